@@ -1,0 +1,1 @@
+"""Warp kernels of neurogf_warp (installed as ``neurogf_warp.kernels``)."""
