@@ -1,0 +1,252 @@
+"""NeuroGF inference as Warp functions and kernels (float32, BatchNorm folded into the weights).
+
+The ``@wp.func`` functions take a ``NeuroGFWeights`` struct and one query, so they can be called from any
+user kernel (one thread per query, no tiles, no shared memory). The kernels below batch them.
+All coordinates here are in the network's normalized unit-sphere frame.
+
+Local vectors are sized for the largest supported D (512); loops run to the actual widths, which are
+read from the weight shapes, so one compiled module serves every D.
+"""
+import warp as wp
+
+MAX_D = 512
+vec_d = wp.types.vector(length=MAX_D, dtype=wp.float32)  # an embedding
+vec_h = wp.types.vector(length=MAX_D // 2, dtype=wp.float32)  # hidden layers (at most D/2 wide)
+vec_acc = wp.types.vector(length=MAX_D // 4, dtype=wp.float64)  # head accumulators (D/4 wide)
+# Sums run in float64: with float32 weights alone the outputs are within ~7e-6 of a float64 evaluation,
+# float32 sums would add as much again.
+
+
+@wp.struct
+class NeuroGFWeights:
+    """Folded weights: every layer is y = relu(W x + b) except the bias-free output layers."""
+
+    # lifting: 3 -> D/4 -> D/2 -> D
+    l0_w: wp.array2d(dtype=wp.float32)
+    l0_b: wp.array(dtype=wp.float32)
+    l1_w: wp.array2d(dtype=wp.float32)
+    l1_b: wp.array(dtype=wp.float32)
+    l2_w: wp.array2d(dtype=wp.float32)
+    l2_b: wp.array(dtype=wp.float32)
+    # distance head on |e_p - e_q|: D -> H -> H -> 1
+    g0_w: wp.array2d(dtype=wp.float32)
+    g0_b: wp.array(dtype=wp.float32)
+    g1_w: wp.array2d(dtype=wp.float32)
+    g1_b: wp.array(dtype=wp.float32)
+    g2_w: wp.array2d(dtype=wp.float32)
+    # SDF head on e_x, same shape
+    s0_w: wp.array2d(dtype=wp.float32)
+    s0_b: wp.array(dtype=wp.float32)
+    s1_w: wp.array2d(dtype=wp.float32)
+    s1_b: wp.array(dtype=wp.float32)
+    s2_w: wp.array2d(dtype=wp.float32)
+    # path guidance on [e_p | e_q]: 2D -> D
+    c_w: wp.array2d(dtype=wp.float32)
+    c_b: wp.array(dtype=wp.float32)
+    # point-wise path head on [xyz | g]: D+3 -> D/2 -> D/4 -> D/8 -> 3
+    p0_w: wp.array2d(dtype=wp.float32)
+    p0_b: wp.array(dtype=wp.float32)
+    p1_w: wp.array2d(dtype=wp.float32)
+    p1_b: wp.array(dtype=wp.float32)
+    p2_w: wp.array2d(dtype=wp.float32)
+    p2_b: wp.array(dtype=wp.float32)
+    p3_w: wp.array2d(dtype=wp.float32)
+
+
+@wp.func
+def _dense_relu(w: wp.array2d(dtype=wp.float32), b: wp.array(dtype=wp.float32), x: vec_h) -> vec_h:
+    y = vec_h()
+    for i in range(w.shape[0]):
+        acc = wp.float64(b[i])
+        for k in range(w.shape[1]):
+            acc += wp.float64(w[i, k]) * wp.float64(x[k])
+        y[i] = wp.max(wp.float32(acc), 0.0)
+    return y
+
+
+@wp.func
+def _dot_row(w: wp.array2d(dtype=wp.float32), row: int, x: vec_h) -> float:
+    acc = wp.float64(0.0)
+    for k in range(w.shape[1]):
+        acc += wp.float64(w[row, k]) * wp.float64(x[k])
+    return wp.float32(acc)
+
+
+@wp.func
+def lift_hidden(net: NeuroGFWeights, x: wp.vec3) -> vec_h:
+    """The first two lifting layers (3 -> D/4 -> D/2)."""
+    h0 = vec_h()
+    for i in range(net.l0_w.shape[0]):
+        h0[i] = wp.max(net.l0_b[i] + net.l0_w[i, 0] * x[0] + net.l0_w[i, 1] * x[1] + net.l0_w[i, 2] * x[2], 0.0)
+    return _dense_relu(net.l1_w, net.l1_b, h0)
+
+
+@wp.func
+def embed(net: NeuroGFWeights, x: wp.vec3) -> vec_d:
+    """The point embedding e(x) (first D entries used)."""
+    h1 = lift_hidden(net, x)
+    e = vec_d()
+    for k in range(net.l2_w.shape[0]):
+        e[k] = wp.max(net.l2_b[k] + _dot_row(net.l2_w, k, h1), 0.0)
+    return e
+
+
+@wp.func
+def _head_tail(w1: wp.array2d(dtype=wp.float32), b1: wp.array(dtype=wp.float32),
+               w2: wp.array2d(dtype=wp.float32), h: vec_h) -> float:
+    h1 = _dense_relu(w1, b1, h)
+    return _dot_row(w2, 0, h1)
+
+
+@wp.func
+def distance_from_embeddings(net: NeuroGFWeights, ep: vec_d, eq: vec_d) -> float:
+    """gdf_head(|e_p - e_q|): symmetric in p and q by construction."""
+    h = vec_h()
+    for j in range(net.g0_w.shape[0]):
+        acc = wp.float64(net.g0_b[j])
+        for k in range(net.g0_w.shape[1]):
+            acc += wp.float64(net.g0_w[j, k]) * wp.float64(wp.abs(ep[k] - eq[k]))
+        h[j] = wp.max(wp.float32(acc), 0.0)
+    return _head_tail(net.g1_w, net.g1_b, net.g2_w, h)
+
+
+@wp.func
+def distance_to_embedding(net: NeuroGFWeights, es: wp.array2d(dtype=wp.float32), row: int, x: wp.vec3) -> float:
+    """Distance from a precomputed embedding ``es[row]`` (e.g. an SSAD source) to point x.
+
+    e(x) is streamed one channel at a time into the head's first layer, so it is never stored.
+    """
+    h1 = lift_hidden(net, x)
+    acc = vec_acc()
+    for j in range(net.g0_w.shape[0]):
+        acc[j] = wp.float64(net.g0_b[j])
+    for k in range(net.l2_w.shape[0]):
+        d = wp.abs(es[row, k] - wp.max(net.l2_b[k] + _dot_row(net.l2_w, k, h1), 0.0))
+        for j in range(net.g0_w.shape[0]):
+            acc[j] += wp.float64(net.g0_w[j, k]) * wp.float64(d)
+    h = vec_h()
+    for j in range(net.g0_w.shape[0]):
+        h[j] = wp.max(wp.float32(acc[j]), 0.0)
+    return _head_tail(net.g1_w, net.g1_b, net.g2_w, h)
+
+
+@wp.func
+def geodesic_distance(net: NeuroGFWeights, p: wp.vec3, q: wp.vec3) -> float:
+    """Predicted geodesic distance between two points (normalized frame). Callable from user kernels."""
+    return distance_from_embeddings(net, embed(net, p), embed(net, q))
+
+
+@wp.func
+def signed_distance(net: NeuroGFWeights, x: wp.vec3) -> float:
+    """Predicted signed distance at x from the network's SDF head (normalized frame)."""
+    h1 = lift_hidden(net, x)
+    acc = vec_acc()
+    for j in range(net.s0_w.shape[0]):
+        acc[j] = wp.float64(net.s0_b[j])
+    for k in range(net.l2_w.shape[0]):
+        e = wp.max(net.l2_b[k] + _dot_row(net.l2_w, k, h1), 0.0)
+        for j in range(net.s0_w.shape[0]):
+            acc[j] += wp.float64(net.s0_w[j, k]) * wp.float64(e)
+    h = vec_h()
+    for j in range(net.s0_w.shape[0]):
+        h[j] = wp.max(wp.float32(acc[j]), 0.0)
+    return _head_tail(net.s1_w, net.s1_b, net.s2_w, h)
+
+
+# ---- batch kernels ---------------------------------------------------------------------------------
+
+@wp.struct
+class Frame:
+    """User frame -> network frame: x_net = (x - center) * xscale; distances back with * dscale."""
+
+    center: wp.vec3
+    xscale: wp.float32
+    dscale: wp.float32
+
+
+@wp.func
+def to_net(frame: Frame, x: wp.vec3) -> wp.vec3:
+    return (x - frame.center) * frame.xscale
+
+
+@wp.kernel(enable_backward=False)
+def embed_points(net: NeuroGFWeights, xs: wp.array(dtype=wp.vec3), frame: Frame, out: wp.array2d(dtype=wp.float32)):
+    i = wp.tid()
+    e = embed(net, to_net(frame, xs[i]))
+    for k in range(out.shape[1]):
+        out[i, k] = e[k]
+
+
+@wp.kernel(enable_backward=False)
+def distance_pairs(net: NeuroGFWeights, ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3),
+                   frame: Frame, out: wp.array(dtype=wp.float32)):
+    i = wp.tid()
+    out[i] = geodesic_distance(net, to_net(frame, ps[i]), to_net(frame, qs[i])) * frame.dscale
+
+
+@wp.kernel(enable_backward=False)
+def distance_to_source(net: NeuroGFWeights, es: wp.array2d(dtype=wp.float32), xs: wp.array(dtype=wp.vec3),
+                       frame: Frame, index: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.float32)):
+    """SSAD: one source embedding es[0] to every point; result i goes to out[index[i]] (the user's numbering)."""
+    i = wp.tid()
+    out[index[i]] = distance_to_embedding(net, es, 0, to_net(frame, xs[i])) * frame.dscale
+
+
+@wp.kernel(enable_backward=False)
+def distance_to_nearest_source(net: NeuroGFWeights, es: wp.array2d(dtype=wp.float32), xs: wp.array(dtype=wp.vec3),
+                               frame: Frame, index: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.float32)):
+    """MSAD: distance to the nearest of several source embeddings; e(x) is computed once per point."""
+    i = wp.tid()
+    ex = embed(net, to_net(frame, xs[i]))
+    best = float(3.0e38)
+    for s in range(es.shape[0]):
+        es_s = vec_d()
+        for k in range(es.shape[1]):
+            es_s[k] = es[s, k]
+        best = wp.min(best, distance_from_embeddings(net, es_s, ex))
+    out[index[i]] = best * frame.dscale
+
+
+@wp.kernel(enable_backward=False)
+def signed_distances(net: NeuroGFWeights, xs: wp.array(dtype=wp.vec3), frame: Frame, out: wp.array(dtype=wp.float32)):
+    i = wp.tid()
+    out[i] = signed_distance(net, to_net(frame, xs[i])) * frame.dscale
+
+
+@wp.kernel(enable_backward=False)
+def path_guidance(net: NeuroGFWeights, e: wp.array2d(dtype=wp.float32), n: int, g: wp.array2d(dtype=wp.float32)):
+    """g[p, j] = relu(cdw_fc([e_p | e_q]))[j], one thread per (path, unit); e holds the p rows, then the q rows."""
+    pi, j = wp.tid()
+    D = net.c_w.shape[0]
+    acc = wp.float64(net.c_b[j])
+    for k in range(D):
+        acc += wp.float64(net.c_w[j, k]) * wp.float64(e[pi, k]) + wp.float64(net.c_w[j, D + k]) * wp.float64(e[n + pi, k])
+    g[pi, j] = wp.max(wp.float32(acc), 0.0)
+
+
+@wp.kernel(enable_backward=False)
+def path_first_layer(net: NeuroGFWeights, g: wp.array2d(dtype=wp.float32), pre: wp.array2d(dtype=wp.float32)):
+    """The part of the path head's first layer that is constant along a path: b0 + W0[:, 3:] g."""
+    pi, r = wp.tid()
+    acc = wp.float64(net.p0_b[r])
+    for j in range(g.shape[1]):
+        acc += wp.float64(net.p0_w[r, 3 + j]) * wp.float64(g[pi, j])
+    pre[pi, r] = wp.float32(acc)
+
+
+@wp.kernel(enable_backward=False)
+def path_points(net: NeuroGFWeights, ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3),
+                pre: wp.array2d(dtype=wp.float32), frame: Frame, out: wp.array2d(dtype=wp.vec3)):
+    """Point i of path n: the straight-line sample x = p + t (q - p), t = i/(m-1), through the point-wise head."""
+    pi, i = wp.tid()
+    m = out.shape[1]
+    t = float(i) / float(wp.max(m - 1, 1))
+    p = to_net(frame, ps[pi])
+    x = p + t * (to_net(frame, qs[pi]) - p)
+    h0 = vec_h()
+    for r in range(net.p0_w.shape[0]):
+        h0[r] = wp.max(pre[pi, r] + net.p0_w[r, 0] * x[0] + net.p0_w[r, 1] * x[1] + net.p0_w[r, 2] * x[2], 0.0)
+    h1 = _dense_relu(net.p1_w, net.p1_b, h0)
+    h2 = _dense_relu(net.p2_w, net.p2_b, h1)
+    y = wp.vec3(_dot_row(net.p3_w, 0, h2), _dot_row(net.p3_w, 1, h2), _dot_row(net.p3_w, 2, h2))
+    out[pi, i] = y * frame.dscale + frame.center

@@ -1,0 +1,200 @@
+"""Queries of a trained NeuroGF, run by the Warp kernels in ``neurogf_warp.kernels.mlp``.
+
+With a mesh attached, points are in the mesh's coordinates and distances in its units, and per-vertex
+outputs follow the mesh's own vertex numbering (NaN for vertices no face uses).
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+import warp as wp
+
+from .arrays import Output, as_points, resolve_device
+from .kernels import mlp
+from .model import Model
+
+__all__ = ["fold_batchnorm", "warp_weights", "ssad", "msad", "distance", "sdf", "path", "embed"]
+
+BN_EPS = 1e-5
+
+
+def fold_batchnorm(layer) -> tuple[np.ndarray, np.ndarray | None]:
+    """(W', b') in float64 with eval-mode BatchNorm folded in: W' = diag(s) W, b' = beta - mu s."""
+    mod = layer.linear if hasattr(layer, "linear") else layer.conv
+    w = mod.weight.detach().double().cpu().reshape(mod.weight.shape[0], -1)
+    if layer.bn is None:
+        return w.numpy(), None
+    bn = layer.bn
+    s = bn.weight.detach().double().cpu() / torch.sqrt(bn.running_var.detach().double().cpu() + BN_EPS)
+    b = bn.bias.detach().double().cpu() - bn.running_mean.detach().double().cpu() * s
+    return (w * s[:, None]).numpy(), b.numpy()
+
+
+def _layers(net):
+    return {"l": list(net.lifting), "g": list(net.gdf_head), "s": list(net.sdf_head),
+            "c": [net.cdw_fc], "p": list(net.spf_head)}
+
+
+def warp_weights(model: Model, device=None) -> mlp.NeuroGFWeights:
+    """The model's folded float32 weights on ``device`` (cached; call ``model.invalidate()`` after edits)."""
+    dev = resolve_device(device)
+    key = ("weights", str(dev))
+    if key not in model._warp:
+        w = mlp.NeuroGFWeights()
+        for prefix, layers in _layers(model.net).items():
+            for i, layer in enumerate(layers):
+                W, b = fold_batchnorm(layer)
+                name = f"{prefix}{i}" if prefix != "c" else "c"
+                setattr(w, f"{name}_w", wp.array(W.astype(np.float32), dtype=wp.float32, device=dev))
+                if b is not None:
+                    setattr(w, f"{name}_b", wp.array(b.astype(np.float32), dtype=wp.float32, device=dev))
+        model._warp[key] = w
+    return model._warp[key]
+
+
+def _frame(model: Model) -> mlp.Frame:
+    f = mlp.Frame()
+    if model.in_mesh_frame:
+        f.center = wp.vec3(*model.center.astype(np.float32))
+        f.xscale = float(model.scale)
+        f.dscale = float(1.0 / model.scale)
+    else:
+        f.center = wp.vec3(0.0, 0.0, 0.0)
+        f.xscale = 1.0
+        f.dscale = 1.0
+    return f
+
+
+def _vertices(model: Model, dev):
+    """Mesh vertices (user frame, float32) and their positions in the user's numbering, cached per device."""
+    if model.mesh is None:
+        raise ValueError("this model has no mesh, so it has no vertices to measure to: load it with "
+                         "neurogf_warp.load(path, mesh=...) or query points with neurogf_warp.distance()")
+    key = ("verts", str(dev))
+    if key not in model._warp:
+        m = model.mesh
+        model._warp[key] = (wp.array(m.vertices.astype(np.float32), dtype=wp.vec3, device=dev),
+                            wp.array(m.index.astype(np.int32), dtype=wp.int32, device=dev))
+    return model._warp[key]
+
+
+def _source_points(model: Model, src, name: str) -> np.ndarray:
+    """Sources as (S, 3) points in the user frame: vertex indices (user numbering) or 3-D points."""
+    if isinstance(src, wp.array):
+        src = src.numpy()
+    elif isinstance(src, torch.Tensor):
+        src = src.detach().cpu().numpy()
+    a = np.asarray(src)
+    if np.issubdtype(a.dtype, np.integer):
+        if model.mesh is None:
+            raise ValueError(f"{name} given as vertex indices, but this model has no mesh: pass points instead")
+        return model.mesh.vertices[model.mesh.vertex(a.reshape(-1))]
+    if not np.issubdtype(a.dtype, np.floating):
+        raise TypeError(f"{name} must be vertex indices (integers) or points (floats), got dtype {a.dtype}")
+    a = a.reshape(1, 3) if a.shape == (3,) else a
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{name} must be vertex indices or points of shape (S, 3), got shape {np.shape(src)}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains non-finite coordinates (NaN or inf)")
+    return a.astype(np.float64)
+
+
+def embed(model: Model, x, device=None) -> wp.array:
+    """Point embeddings e(x), shape (N, D), as a wp.array on the device."""
+    dev = resolve_device(device, like=x)
+    pts, _ = as_points(x, "x", dev, single=True)
+    out = wp.empty((pts.shape[0], model.D), dtype=wp.float32, device=dev)
+    wp.launch(mlp.embed_points, pts.shape[0], inputs=[warp_weights(model, dev), pts, _frame(model)],
+              outputs=[out], device=dev)
+    return out
+
+
+def ssad(model: Model, src, device=None, output: str = "numpy"):
+    """Single source, all destinations: predicted geodesic distance from ``src`` to every mesh vertex.
+
+    src: a vertex index (the mesh's numbering) or a 3-D point in mesh coordinates.
+    Returns one value per vertex of the mesh as given (NaN where no face uses the vertex).
+    """
+    a = np.asarray(src.detach().cpu() if isinstance(src, torch.Tensor) else src)
+    if np.issubdtype(a.dtype, np.integer) and a.size != 1:
+        raise ValueError(f"ssad takes one source, got {a.size}; use msad for several")
+    if np.issubdtype(a.dtype, np.floating) and a.size != 3:
+        raise ValueError(f"ssad takes one source point of 3 coordinates, got shape {a.shape}")
+    return _to_vertices(model, src, "src", mlp.distance_to_source, device, output)
+
+
+def msad(model: Model, sources, device=None, output: str = "numpy"):
+    """Multiple sources, all destinations: distance from every mesh vertex to its nearest source."""
+    return _to_vertices(model, sources, "sources", mlp.distance_to_nearest_source, device, output)
+
+
+def _to_vertices(model, src, name, kernel, device, output):
+    if model.mesh is None:
+        raise ValueError(f"{kernel.key} needs the model's mesh: load the model with neurogf_warp.load(path, mesh=...)")
+    dev = resolve_device(device)
+    pts = _source_points(model, src, name)
+    es = embed(model, pts, dev)
+    verts, index = _vertices(model, dev)
+    out = Output(output, dev)
+    res = out.empty(model.mesh.n_input, fill=float("nan"))
+    wp.launch(kernel, verts.shape[0], inputs=[warp_weights(model, dev), es, verts, _frame(model), index],
+              outputs=[res], device=dev)
+    return out.result(res)
+
+
+def _pair_inputs(model, p, q, device):
+    dev = resolve_device(device, like=p)
+    P, kind = as_points(p, "p", dev)
+    Q, _ = as_points(q, "q", dev)
+    if P.shape != Q.shape:
+        raise ValueError(f"p and q must have the same shape (N, 3), got {P.shape[0]} and {Q.shape[0]} points")
+    return dev, P, Q, kind
+
+
+def distance(model: Model, p, q, device=None):
+    """Batched point-to-point geodesic distances: (N, 3), (N, 3) -> (N,). Symmetric by construction."""
+    dev, P, Q, kind = _pair_inputs(model, p, q, device)
+    out = Output(kind, dev)
+    res = out.empty(P.shape[0])
+    wp.launch(mlp.distance_pairs, P.shape[0], inputs=[warp_weights(model, dev), P, Q, _frame(model)],
+              outputs=[res], device=dev)
+    return out.result(res)
+
+
+def sdf(model: Model, x, device=None):
+    """Signed distance from the network's SDF head (negative inside): (N, 3) -> (N,)."""
+    dev = resolve_device(device, like=x)
+    X, kind = as_points(x, "x", dev)
+    out = Output(kind, dev)
+    res = out.empty(X.shape[0])
+    wp.launch(mlp.signed_distances, X.shape[0], inputs=[warp_weights(model, dev), X, _frame(model)],
+              outputs=[res], device=dev)
+    return out.result(res)
+
+
+def path(model: Model, p, q, m: int = 128, device=None):
+    """Shortest paths as m points each (ends included): (N, 3), (N, 3) -> (N, m, 3).
+
+    Straight-line samples between p and q go through the network's path head, which moves them onto the
+    surface; the end points are the network's, not pinned to p and q.
+    """
+    if not isinstance(m, (int, np.integer)) or m < 2:
+        raise ValueError(f"m (points per path) must be an integer >= 2, got {m!r}")
+    dev, P, Q, kind = _pair_inputs(model, p, q, device)
+    n = P.shape[0]
+    w = warp_weights(model, dev)
+    e = wp.empty((2 * n, model.D), dtype=wp.float32, device=dev)
+    frame = _frame(model)
+    if n:
+        wp.launch(mlp.embed_points, n, inputs=[w, P, frame], outputs=[e[:n]], device=dev)
+        wp.launch(mlp.embed_points, n, inputs=[w, Q, frame], outputs=[e[n:]], device=dev)
+    g = wp.empty((n, model.D), dtype=wp.float32, device=dev)
+    pre = wp.empty((n, w.p0_w.shape[0]), dtype=wp.float32, device=dev)
+    wp.launch(mlp.path_guidance, (n, model.D), inputs=[w, e, n], outputs=[g], device=dev)
+    wp.launch(mlp.path_first_layer, pre.shape, inputs=[w, g], outputs=[pre], device=dev)
+    out = Output(kind, dev)
+    res = out.empty((n, int(m)), dtype=wp.vec3)
+    wp.launch(mlp.path_points, (n, int(m)), inputs=[w, P, Q, pre, frame], outputs=[res], device=dev)
+    if kind == "torch":
+        return wp.to_torch(res).view(n, int(m), 3)
+    return out.result(res)
