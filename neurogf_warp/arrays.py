@@ -7,14 +7,14 @@ import warp as wp
 __all__ = ["resolve_device", "as_points", "Output"]
 
 
-def resolve_device(device=None, like=None) -> wp.context.Device:
+def resolve_device(device=None, like=None) -> wp.Device:
     """The Warp device to run on: explicit ``device``, else the input's device, else Warp's preferred one."""
     wp.init()
     if device is None and like is not None:
         device = _device_of(like)
     if device is None:
         return wp.get_preferred_device()
-    if hasattr(device, "type") and hasattr(device, "index") and not isinstance(device, wp.context.Device):
+    if hasattr(device, "type") and hasattr(device, "index") and not isinstance(device, wp.Device):
         device = str(device)  # torch.device
         if device == "cuda":
             device = "cuda:0"

@@ -120,17 +120,17 @@ def ssad(model: Model, src, device=None, output: str = "numpy"):
         raise ValueError(f"ssad takes one source, got {a.size}; use msad for several")
     if np.issubdtype(a.dtype, np.floating) and a.size != 3:
         raise ValueError(f"ssad takes one source point of 3 coordinates, got shape {a.shape}")
-    return _to_vertices(model, src, "src", mlp.distance_to_source, device, output)
+    return _to_vertices(model, src, "ssad", "src", mlp.distance_to_source, device, output)
 
 
 def msad(model: Model, sources, device=None, output: str = "numpy"):
     """Multiple sources, all destinations: distance from every mesh vertex to its nearest source."""
-    return _to_vertices(model, sources, "sources", mlp.distance_to_nearest_source, device, output)
+    return _to_vertices(model, sources, "msad", "sources", mlp.distance_to_nearest_source, device, output)
 
 
-def _to_vertices(model, src, name, kernel, device, output):
+def _to_vertices(model, src, what, name, kernel, device, output):
     if model.mesh is None:
-        raise ValueError(f"{kernel.key} needs the model's mesh: load the model with neurogf_warp.load(path, mesh=...)")
+        raise ValueError(f"{what} needs the model's mesh: load the model with neurogf_warp.load(path, mesh=...)")
     dev = resolve_device(device)
     pts = _source_points(model, src, name)
     es = embed(model, pts, dev)

@@ -92,6 +92,9 @@ def _strict_load(module: torch.nn.Module, state: dict, what: str, path: str):
 
 def _net_from_state(state: dict, path: str) -> NeuroGFNet:
     w = state.get("lifting.2.linear.weight")
+    if w is None and "fc.0.linear.weight" in state:
+        raise ValueError(f"{path} is an SDF-querier checkpoint, not a NeuroGF model: pass it as "
+                         "neurogf_warp.load(model_path, mesh=..., querier=this_path)")
     if w is None:
         raise ValueError(f"{path} is not a NeuroGF checkpoint: no 'lifting.2.linear.weight' key "
                          f"(found {', '.join(list(state)[:5])} ...)")

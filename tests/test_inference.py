@@ -1,0 +1,203 @@
+"""Warp inference (CPU device) against the released checkpoints, exact geodesics and a float64 torch forward."""
+import numpy as np
+import pytest
+import torch
+import warp as wp
+
+import neurogf_warp as ngf
+from neurogf_warp.kernels import mlp
+from neurogf_warp.network import NeuroGFNet
+from tests.conftest import shared_path
+
+DEV = "cpu"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _precompile():
+    wp.load_module(mlp, device=DEV)
+
+
+def released(name, mesh=None):
+    ck = {"stanford-bunny": "bunny"}.get(name, name)
+    m = shared_path("meshes", f"{name}.obj") if mesh else None
+    return ngf.load(shared_path("checkpoints", "official", f"NeuroGF_Pretrainer__{ck}_final.pth"), mesh=m)
+
+
+def random_net(D, seed):
+    """A network with random weights and random BatchNorm statistics, in eval mode (float64)."""
+    g = torch.Generator().manual_seed(seed)
+    net = NeuroGFNet(D).double()
+    with torch.no_grad():
+        for mod in net.modules():
+            if isinstance(mod, torch.nn.modules.batchnorm._BatchNorm):
+                mod.running_mean.copy_(0.2 * torch.randn(mod.num_features, generator=g))
+                mod.running_var.copy_(0.5 + torch.rand(mod.num_features, generator=g))
+                mod.weight.copy_(0.8 + 0.4 * torch.rand(mod.num_features, generator=g))
+                mod.bias.copy_(0.1 * torch.randn(mod.num_features, generator=g))
+    return net.eval()
+
+
+@pytest.mark.parametrize("name", ["bunny", "fandisk"])
+def test_matches_official_outputs(name):
+    ref = np.load(shared_path("reference", "official", f"{name}.npz"))
+    model = released(name)
+    d = ngf.distance(model, ref["p"], ref["q"], device=DEV)
+    s = ngf.sdf(model, ref["p"], device=DEV)
+    paths = ngf.path(model, ref["p"][:32], ref["q"][:32], m=128, device=DEV)
+    assert d.dtype == np.float32 and d.shape == (256,)
+    np.testing.assert_allclose(d, ref["gdist"], rtol=1e-5, atol=0)
+    # SDF values cross zero; near it a relative bound is meaningless in float32, so add a 1e-7 floor
+    # (about one float32 ulp at the unit-sphere scale; float32 weight rounding alone gives ~2e-9 there).
+    np.testing.assert_allclose(s, ref["sdf_head"], rtol=1e-5, atol=1e-7)
+    assert paths.shape == (32, 128, 3)
+    assert np.abs(paths - ref["paths"]).max() <= 1e-5
+
+
+def test_golden_parity_values():
+    """Values published with the reference notes (bunny, float64 evaluation)."""
+    model = released("bunny")
+    p = np.array([[0.1, 0.2, 0.3], [-0.5, 0.0, 0.2]])
+    q = np.array([[-0.4, 0.1, -0.2], [0.6, -0.3, 0.1]])
+    np.testing.assert_allclose(ngf.distance(model, p, q, device=DEV), [0.7316605, 1.4584210], rtol=1e-6)
+    np.testing.assert_allclose(ngf.sdf(model, p, device=DEV), [0.0356501, -0.1443545], rtol=1e-5)
+    pts = ngf.path(model, p[:1], q[:1], device=DEV)[0]
+    np.testing.assert_allclose(pts[[0, 63, 127]], [[0.116708, 0.157516, 0.297128], [-0.149426, 0.151460, 0.040065],
+                                                   [-0.377735, 0.093600, -0.111356]], atol=2e-6)
+
+
+@pytest.mark.parametrize("name,bound", [("fandisk", 0.0028), ("stanford-bunny", 0.0045)])
+def test_mre_against_exact_geodesics(name, bound):
+    """SSAD of the released checkpoint on its mesh, over the 8 exact-reference sources."""
+    model = released(name, mesh=True)
+    ref = np.load(shared_path("reference", "exact", f"{name}.npz"))
+    oi = ref["orig_index"]
+    rel = []
+    for i, s in enumerate(ref["sources"]):
+        d = ngf.ssad(model, int(oi[s]), device=DEV)
+        assert d.shape == (model.mesh.n_input,) and np.all(np.isfinite(d))
+        ex = ref["dist"][i].astype(np.float64)
+        ok = np.isfinite(ex) & (ex > 0)
+        rel.append(np.abs(d[oi][ok] - ex[ok]) / ex[ok])
+    mre = np.concatenate(rel).mean()
+    print(f"{name}: MRE {100 * mre:.4f}%")
+    assert mre <= bound
+
+
+@pytest.mark.parametrize("D", [64, 256, 512])
+def test_warp_matches_torch_float64_on_random_points(D):
+    seed = int(np.random.SeedSequence().entropy % 2**31)  # fresh inputs each run; the seed is in the failure message
+    rng = np.random.default_rng(seed)
+    net = random_net(D, seed)
+    model = ngf.Model(net=net)
+    p = rng.uniform(-1, 1, (64, 3))
+    q = rng.uniform(-1, 1, (64, 3))
+    with torch.no_grad():
+        P, Q = torch.from_numpy(p), torch.from_numpy(q)
+        d_ref = net.distance(P, Q).numpy()
+        s_ref = net.sdf(P).numpy()
+        path_ref = net.path(P[:8], Q[:8], 16).numpy()
+    scale_d = np.abs(d_ref).max()
+    assert np.abs(ngf.distance(model, p, q, device=DEV) - d_ref).max() <= 1e-5 * scale_d, f"seed {seed}"
+    assert np.abs(ngf.sdf(model, p, device=DEV) - s_ref).max() <= 1e-5 * np.abs(s_ref).max(), f"seed {seed}"
+    assert np.abs(ngf.path(model, p[:8], q[:8], m=16, device=DEV) - path_ref).max() <= 1e-5 * np.abs(path_ref).max(), \
+        f"seed {seed}"
+
+
+def test_symmetry_and_ssad_equals_distance():
+    model = released("fandisk", mesh=True)
+    rng = np.random.default_rng()
+    v = model.mesh.vertices
+    p, q = v[rng.integers(0, len(v), 100)], v[rng.integers(0, len(v), 100)]
+    np.testing.assert_array_equal(ngf.distance(model, p, q, device=DEV), ngf.distance(model, q, p, device=DEV))
+    src = int(rng.integers(0, len(v)))
+    d_all = ngf.ssad(model, src, device=DEV)
+    d_pair = ngf.distance(model, np.repeat(v[src:src + 1], len(v), 0), v, device=DEV)
+    np.testing.assert_allclose(d_all, d_pair, rtol=2e-6, atol=1e-6 * np.nanmax(d_all))
+    # a source given as a point equals the source given as its vertex
+    np.testing.assert_allclose(ngf.ssad(model, v[src], device=DEV), d_all, rtol=1e-6, atol=1e-7)
+
+
+def test_msad_is_min_over_sources():
+    model = released("fandisk", mesh=True)
+    srcs = [5, 1000, 4000]
+    per = np.stack([ngf.ssad(model, s, device=DEV) for s in srcs])
+    np.testing.assert_allclose(ngf.msad(model, srcs, device=DEV), per.min(0), rtol=2e-6, atol=1e-7)
+
+
+def test_mesh_units_and_numbering():
+    """A mesh with an unused vertex, moved and scaled: outputs follow its numbering and its units."""
+    base = released("fandisk", mesh=True)
+    v, f = base.mesh.vertices, base.mesh.faces.astype(np.int64)
+    v2 = np.vstack([[1e3, 1e3, 1e3], v * 2.0 + 5.0])  # an unreferenced vertex first, then the mesh
+    moved = ngf.load(shared_path("checkpoints", "official", "NeuroGF_Pretrainer__fandisk_final.pth"), mesh=(v2, f + 1))
+    d = ngf.ssad(moved, 1, device=DEV)
+    assert d.shape == (len(v2),) and np.isnan(d[0])
+    d_base = 2.0 * ngf.ssad(base, 0, device=DEV)
+    # the moved copy's float32 coordinates round differently: allow 1e-6 of the largest distance
+    np.testing.assert_allclose(d[1:], d_base, rtol=0, atol=1e-6 * d_base.max())
+    with pytest.raises(IndexError, match="not used by any face"):
+        ngf.ssad(moved, 0, device=DEV)
+
+
+def test_torch_and_warp_arrays_in_and_out():
+    model = released("bunny")
+    rng = np.random.default_rng(0)
+    p = rng.uniform(-0.5, 0.5, (10, 3)).astype(np.float32)
+    q = rng.uniform(-0.5, 0.5, (10, 3)).astype(np.float32)
+    ref = ngf.distance(model, p, q, device=DEV)
+    dt = ngf.distance(model, torch.from_numpy(p), torch.from_numpy(q))
+    assert isinstance(dt, torch.Tensor) and dt.dtype == torch.float32
+    np.testing.assert_array_equal(dt.numpy(), ref)
+    dw = ngf.distance(model, wp.array(p, dtype=wp.vec3, device=DEV), wp.array(q, dtype=wp.float32, device=DEV))
+    assert isinstance(dw, wp.array)
+    np.testing.assert_array_equal(dw.numpy(), ref)
+    st = ngf.sdf(model, torch.from_numpy(p))
+    assert isinstance(st, torch.Tensor) and st.shape == (10,)
+    pt = ngf.path(model, torch.from_numpy(p), torch.from_numpy(q), m=8)
+    assert isinstance(pt, torch.Tensor) and pt.shape == (10, 8, 3)
+    # float32 torch input on the device is used in place (zero-copy)
+    from neurogf_warp.arrays import as_points
+
+    t = torch.from_numpy(p)
+    arr, kind = as_points(t, "p", wp.get_device(DEV))
+    assert kind == "torch" and arr.ptr == t.data_ptr()
+
+
+def test_user_kernel_can_call_distance():
+    """The SIMT functions are usable inside a user's own Warp kernel."""
+    model = released("bunny")
+
+    @wp.kernel(enable_backward=False)
+    def user_kernel(net: mlp.NeuroGFWeights, xs: wp.array(dtype=wp.vec3), goal: wp.vec3, out: wp.array(dtype=float)):
+        i = wp.tid()
+        out[i] = mlp.geodesic_distance(net, xs[i], goal) + 0.0 * mlp.signed_distance(net, xs[i])
+
+    xs = np.random.default_rng(1).uniform(-0.5, 0.5, (8, 3)).astype(np.float32)
+    goal = np.array([0.1, 0.2, 0.3], dtype=np.float32)
+    out = wp.zeros(8, dtype=float, device=DEV)
+    wp.launch(user_kernel, 8, inputs=[ngf.warp_weights(model, DEV), wp.array(xs, dtype=wp.vec3, device=DEV),
+                                      wp.vec3(*goal), out], device=DEV)
+    np.testing.assert_allclose(out.numpy(), ngf.distance(model, xs, np.repeat(goal[None], 8, 0), device=DEV), rtol=1e-6)
+
+
+def test_bad_inputs():
+    model = released("fandisk", mesh=True)
+    nomesh = released("fandisk")
+    with pytest.raises(ValueError, match="no mesh|needs the model's mesh"):
+        ngf.ssad(nomesh, 0, device=DEV)
+    with pytest.raises(IndexError, match="out of range"):
+        ngf.ssad(model, 10**6, device=DEV)
+    with pytest.raises(ValueError, match="non-finite"):
+        ngf.distance(model, np.array([[np.nan, 0, 0]]), np.zeros((1, 3)), device=DEV)
+    with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
+        ngf.sdf(model, np.zeros((4, 2)), device=DEV)
+    with pytest.raises(ValueError, match="same shape"):
+        ngf.distance(model, np.zeros((4, 3)), np.zeros((5, 3)), device=DEV)
+    with pytest.raises(TypeError, match="numeric|floating"):
+        ngf.sdf(model, np.array([["a", "b", "c"]]), device=DEV)
+    with pytest.raises(ValueError, match="unknown device"):
+        ngf.sdf(model, np.zeros((1, 3)), device="cuda:7")
+    with pytest.raises(ValueError, match="m \\(points per path\\)"):
+        ngf.path(model, np.zeros((1, 3)), np.ones((1, 3)), m=1, device=DEV)
+    with pytest.raises(ValueError, match="one source"):
+        ngf.ssad(model, [1, 2], device=DEV)
