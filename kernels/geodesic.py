@@ -184,9 +184,17 @@ def init_kernel(sources: wp.array(dtype=int), key: wp.array2d(dtype=wp.uint64), 
 
 
 @wp.kernel
-def clear_flag_kernel(cond: wp.array(dtype=int), counter: wp.array(dtype=int), max_iter: int):
-    counter[0] = counter[0] + 1
-    cond[0] = 0
+def clear_flag_kernel(cond: wp.array(dtype=int), counter: wp.array(dtype=int), thr: wp.array(dtype=float),
+                      minpend: wp.array(dtype=float), delta: float):
+    # delta-stepping: per source row, only nodes closer than (nearest pending distance + delta) relax.
+    # Near-distance order keeps parents from changing after their children used them (consistent paths)
+    # and avoids most repeated improvements of plain Bellman-Ford.
+    s = wp.tid()
+    thr[s] = minpend[s] + delta
+    minpend[s] = INF
+    if s == 0:
+        counter[0] = counter[0] + 1
+        cond[0] = 0
 
 
 @wp.kernel
@@ -195,14 +203,17 @@ def relax_kernel(nv: int, k: int, use_windows: int, pos: wp.array(dtype=wp.vec3)
                  dist: wp.array2d(dtype=float), in_face: wp.array2d(dtype=int),
                  wa: wp.array2d(dtype=float), wh: wp.array2d(dtype=float), wsig: wp.array2d(dtype=float),
                  wl: wp.array2d(dtype=float), wr: wp.array2d(dtype=float),
-                 changed: wp.array2d(dtype=wp.int8), key: wp.array2d(dtype=wp.uint64)):
+                 changed: wp.array2d(dtype=wp.int8), thr: wp.array(dtype=float), key: wp.array2d(dtype=wp.uint64)):
     s, g = wp.tid()
     ns = 3 + 3 * k
+    th = thr[s]
     for i in range(ns):
         u = slot_node(g, i, nv, k, faces, face_edges)
         if changed[s, u] == wp.int8(0):
             continue
         du = dist[s, u]
+        if not (du < th):
+            continue
         pu = node_pos(u, nv, k, pos, edges)
         # the window of u continues into g if it arrived through another face
         win = bool(False)
@@ -367,10 +378,18 @@ def commit_kernel(key: wp.array2d(dtype=wp.uint64), dist: wp.array2d(dtype=float
                   n_wa: wp.array2d(dtype=float), n_wh: wp.array2d(dtype=float), n_wsig: wp.array2d(dtype=float),
                   n_wl: wp.array2d(dtype=float), n_wr: wp.array2d(dtype=float),
                   changed: wp.array2d(dtype=wp.int8), cond: wp.array(dtype=int), counter: wp.array(dtype=int),
-                  max_iter: int):
+                  max_iter: int, thr: wp.array(dtype=float), minpend: wp.array(dtype=float)):
     s, x = wp.tid()
     if improved[s, x] == wp.int8(0):
-        changed[s, x] = wp.int8(0)
+        # still pending if it changed but was beyond this iteration's threshold
+        if changed[s, x] != wp.int8(0):
+            dx = dist[s, x]
+            if dx < thr[s]:
+                changed[s, x] = wp.int8(0)
+            else:
+                wp.atomic_min(minpend, s, dx)
+                if counter[0] < max_iter:
+                    cond[0] = 1
         return
     kk = key[s, x]
     dist[s, x] = unpack_dist(kk)
@@ -383,6 +402,7 @@ def commit_kernel(key: wp.array2d(dtype=wp.uint64), dist: wp.array2d(dtype=float
     wl[s, x] = n_wl[s, x]
     wr[s, x] = n_wr[s, x]
     changed[s, x] = wp.int8(1)
+    wp.atomic_min(minpend, s, unpack_dist(kk))
     if counter[0] < max_iter:
         cond[0] = 1
 

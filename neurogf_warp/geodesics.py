@@ -21,6 +21,9 @@ __all__ = ["geodesic_distances", "geodesic_paths", "GeodesicSolver", "steiner_di
            "resample_polyline"]
 
 DEFAULT_K = 3  # Steiner points per edge at default accuracy (windows on); see benchmarks/geodesics_notes.md
+DEFAULT_DELTA = 2.0  # delta-stepping bucket (mean edge lengths) for distances: few iterations
+PATH_DELTA = 0.05  # near-Dijkstra order for paths: parents settle before children use them, so
+#                    traced polylines are as long as the distances (see GeodesicSolver.trace)
 BYTES_PER_NODE = 76  # solver state per (source row, node)
 
 
@@ -73,7 +76,8 @@ class GeodesicSolver:
     """
 
     def __init__(self, mesh, k: int = DEFAULT_K, windows: bool = True, device=None, batch: int | None = None,
-                 max_iter: int = 100000, memory_budget: float | None = None, max_rows: int | None = None):
+                 max_iter: int = 100000, memory_budget: float | None = None, max_rows: int | None = None,
+                 delta: float = DEFAULT_DELTA):
         self.mesh = load_mesh(mesh)
         if k < 1:
             raise ValueError("k (Steiner points per edge) must be >= 1")
@@ -84,6 +88,11 @@ class GeodesicSolver:
         t0 = time.perf_counter()
         self.topo = Topology(self.mesh.vertices, self.mesh.faces)
         self.nv = len(self.mesh.vertices)
+        # delta-stepping bucket width, in mean edge lengths (normalized frame)
+        e = self.topo.edges
+        nvx = self.mesh.normalized_vertices
+        mean_len = float(np.linalg.norm(nvx[e[:, 0]] - nvx[e[:, 1]], axis=1).mean()) if len(e) else 1.0
+        self.delta = float(delta) * mean_len if delta and delta > 0 else float("inf")
         self.n_nodes = self.nv + len(self.topo.edges) * self.k
         if self.n_nodes >= 2**31 - 1:
             raise ValueError("mesh too large for int32 node ids; lower k")
@@ -117,6 +126,8 @@ class GeodesicSolver:
         self.nw = [z(float) for _ in range(5)]
         self.n_in_face, self.n_info = z(int), z(int)
         self.changed, self.improved = z(wp.int8), z(wp.int8)
+        self.thr = wp.zeros(b, dtype=float, device=d)
+        self.minpend = wp.zeros(b, dtype=float, device=d)
         self.cond = wp.zeros(1, dtype=int, device=d)
         self.counter = wp.zeros(1, dtype=int, device=d)
 
@@ -124,10 +135,11 @@ class GeodesicSolver:
         kg = _kernels()
         d, b, t = self.device, self.batch, self.topo
         nf, n = len(t.faces), self.n_nodes
-        wp.launch(kg.clear_flag_kernel, dim=1, inputs=[self.cond, self.counter, self.max_iter], device=d)
+        wp.launch(kg.clear_flag_kernel, dim=b, inputs=[self.cond, self.counter, self.thr, self.minpend, self.delta],
+                  device=d)
         wp.launch(kg.relax_kernel, dim=(b, nf), device=d,
                   inputs=[self.nv, self.k, int(self.windows), self.pos, self.faces_w, self.edges_w, self.fe_w,
-                          self.fok_w, self.dist, self.in_face, *self.w, self.changed, self.key])
+                          self.fok_w, self.dist, self.in_face, *self.w, self.changed, self.thr, self.key])
         wp.launch(kg.decode_kernel, dim=(b, n), device=d,
                   inputs=[self.nv, self.k, int(self.windows), self.pos, self.faces_w, self.edges_w, self.fe_w,
                           self.ef_w, self.fok_w, self.key, self.dist, self.in_face, *self.w, self.improved,
@@ -135,7 +147,7 @@ class GeodesicSolver:
         wp.launch(kg.commit_kernel, dim=(b, n), device=d,
                   inputs=[self.key, self.dist, self.parent, self.in_face, self.info, *self.w, self.improved,
                           self.n_in_face, self.n_info, *self.nw, self.changed, self.cond, self.counter,
-                          self.max_iter])
+                          self.max_iter, self.thr, self.minpend])
 
     def _program(self):
         kg = _kernels()
@@ -143,6 +155,7 @@ class GeodesicSolver:
                   inputs=[self.src_w, self.key, self.dist, self.parent, self.in_face, self.info, self.changed])
         self.cond.fill_(1)
         self.counter.zero_()
+        self.minpend.zero_()  # the sources sit at distance 0
         wp.capture_while(self.cond, self._body)
 
     def _run_program(self):
@@ -240,15 +253,17 @@ def _sources(mesh: Mesh, sources) -> np.ndarray:
 
 
 def geodesic_distances(mesh, sources, device=None, k: int = DEFAULT_K, windows: bool = True,
-                       batch: int | None = None) -> np.ndarray:
+                       batch: int | None = None, delta: float = DEFAULT_DELTA) -> np.ndarray:
     """Geodesic distances (S, V_input) float32 in the mesh's units from user vertex indices `sources`.
 
     Unreferenced vertices are NaN, unreachable ones inf. Accuracy: `k` Steiner points per edge and
-    `windows` (exact unfolding); every value is an upper bound of the exact distance.
+    `windows` (exact unfolding); every value is an upper bound of the exact distance. `delta`: bucket
+    width of the delta-stepping order (speed only; 0 = plain Bellman-Ford).
     """
     m = load_mesh(mesh)
     src = _sources(m, sources)
-    solver = GeodesicSolver(m, k=k, windows=windows, device=device, batch=batch, max_rows=len(src))
+    solver = GeodesicSolver(m, k=k, windows=windows, device=device, batch=batch, max_rows=len(src),
+                            delta=delta)
     d = solver.solve(src) / np.float32(m.scale)
     return m.to_input(d.astype(np.float32))
 
@@ -276,7 +291,7 @@ def resample_polyline(points: np.ndarray, offsets: np.ndarray, m: int) -> np.nda
 
 
 def geodesic_paths(mesh, source, targets, m: int | None = None, device=None, k: int = DEFAULT_K,
-                   windows: bool = True):
+                   windows: bool = True, delta: float = PATH_DELTA):
     """Shortest surface paths from user vertex `source` to user vertices `targets`, in mesh units.
 
     Returns a list of (n_i, 3) float64 polylines ordered from the source (empty (0,3) for unreachable
@@ -287,7 +302,7 @@ def geodesic_paths(mesh, source, targets, m: int | None = None, device=None, k: 
     if len(s) != 1:
         raise ValueError("geodesic_paths takes one source vertex")
     tg = _sources(msh, targets)
-    solver = GeodesicSolver(msh, k=k, windows=windows, device=device, batch=1)
+    solver = GeodesicSolver(msh, k=k, windows=windows, device=device, batch=1, delta=delta)
     solver.run(s)
     pts, offs, _ = solver.trace(np.zeros(len(tg), np.int32), tg)
     pts = msh.denormalize(pts)
