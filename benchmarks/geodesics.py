@@ -1,0 +1,219 @@
+"""Ground-truth geodesic benchmark: sources/second, peak memory, accuracy vs tvb-gdist (exact) and heat method.
+
+GPU (lead's machine):   python benchmarks/geodesics.py --device cuda:0
+CPU smoke test (here):  python benchmarks/geodesics.py --device cpu --small
+
+Default mesh: the Stanford bunny subdivided twice with trimesh (~557K vertices; --subdiv 1 gives ~139K).
+Prints a table and writes JSON (--json). Compile time is measured apart from run time; every stage reports
+errors instead of aborting the whole run.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared"
+
+
+def make_mesh(small: bool, subdiv: int):
+    import trimesh
+
+    if small:
+        tm = trimesh.load(SHARED / "meshes" / "fandisk.obj", process=False, force="mesh")
+        return np.asarray(tm.vertices), np.asarray(tm.faces), "fandisk"
+    tm = trimesh.load(SHARED / "meshes" / "stanford-bunny.obj", process=False, force="mesh")
+    v, f = np.asarray(tm.vertices), np.asarray(tm.faces)
+    used = np.unique(f)
+    remap = np.full(len(v), -1)
+    remap[used] = np.arange(len(used))
+    v, f = v[used], remap[f]
+    for _ in range(subdiv):
+        v, f = trimesh.remesh.subdivide(v, f)
+    return v, f, f"bunny-subdiv{subdiv}"
+
+
+def peak_mem(device) -> float | None:
+    import warp as wp
+
+    for name in ("get_mempool_used_mem_high", "get_mempool_used_mem_current"):
+        fn = getattr(wp, name, None)
+        if fn is not None and device.is_cuda:
+            try:
+                return float(fn(device))
+            except Exception:  # noqa: BLE001
+                pass
+    return None
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--small", action="store_true", help="fandisk, few sources (CPU smoke test)")
+    ap.add_argument("--subdiv", type=int, default=2)
+    ap.add_argument("--sources", type=int, default=None, help="default 1024 (8 with --small)")
+    ap.add_argument("--path-sources", type=int, default=None, help="default = --sources (2 with --small)")
+    ap.add_argument("--paths", type=int, default=32, help="paths per path source")
+    ap.add_argument("--check", type=int, default=None, help="sources checked against gdist (3; 2 with --small)")
+    ap.add_argument("--k", type=int, default=None)
+    ap.add_argument("--batch", type=int, default=None)
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args(argv)
+
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING
+    wp.init()
+    from neurogf_warp import geodesics as G
+    from neurogf_warp.kernels import geodesic as kg
+    from neurogf_warp.mesh import load_mesh
+
+    k = a.k or G.DEFAULT_K
+    n_src = a.sources or (8 if a.small else 1024)
+    n_psrc = a.path_sources if a.path_sources is not None else (2 if a.small else n_src)
+    n_check = a.check if a.check is not None else (2 if a.small else 3)
+    res = {"device": a.device, "k": k, "errors": {}}
+    dev = wp.get_device(a.device)
+    res["device_name"] = dev.name if hasattr(dev, "name") else str(dev)
+
+    t0 = time.perf_counter()
+    V, F, name = make_mesh(a.small, a.subdiv)
+    m = load_mesh((V, F))
+    res.update(mesh=name, vertices=len(m.vertices), faces=len(m.faces), mesh_build_s=time.perf_counter() - t0)
+    rng = np.random.default_rng(0)
+    src = rng.choice(len(m.vertices), n_src, replace=False)
+
+    t0 = time.perf_counter()
+    try:
+        wp.load_module(kg, device=dev)
+        res["compile_s"] = time.perf_counter() - t0
+    except Exception as e:  # noqa: BLE001
+        res["errors"]["compile"] = repr(e)
+        traceback.print_exc()
+
+    # distances
+    D = None
+    try:
+        solver = G.GeodesicSolver(m, k=k, device=dev, batch=a.batch, max_rows=n_src)
+        res.update(nodes=solver.n_nodes, batch=solver.batch, setup_s=solver.timings["setup_s"])
+        solver.run(src[: solver.batch])  # warm-up: graph capture + first replay
+        wp.synchronize_device(dev)
+        solver.timings.update(solve_s=0.0, iterations=[])
+        t0 = time.perf_counter()
+        D = solver.solve(src)
+        wp.synchronize_device(dev)
+        dt = time.perf_counter() - t0
+        res.update(dist_s=dt, dist_sources_per_s=n_src / dt, iterations=solver.timings["iterations"],
+                   captured_graph=bool(solver._graph), peak_mem_bytes=peak_mem(dev),
+                   state_bytes=solver.n_nodes * solver.batch * G.BYTES_PER_NODE)
+        D = D[:n_check] / m.scale
+        del solver
+    except Exception as e:  # noqa: BLE001
+        res["errors"]["distances"] = repr(e)
+        traceback.print_exc()
+
+    # paths
+    try:
+        if n_psrc:
+            ps = G.GeodesicSolver(m, k=k, device=dev, batch=a.batch, delta=G.PATH_DELTA, max_rows=n_psrc)
+            t0 = time.perf_counter()
+            npts = 0
+            lens_err = []
+            for i in range(0, n_psrc, ps.batch):
+                s = src[i: i + ps.batch]
+                ps.run(s)
+                rows = np.repeat(np.arange(len(s)), a.paths)
+                tg = rng.integers(0, len(m.vertices), len(rows))
+                pts, offs, st = ps.trace(rows, tg)
+                P = G.resample_polyline(pts, offs, 128)
+                npts += len(pts)
+                if i == 0:
+                    d = ps.vertex_distances()[rows, tg]
+                    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+                    cs = np.r_[0, np.cumsum(seg)]
+                    L = cs[offs[1:] - 1] - cs[offs[:-1]]
+                    ok = np.isfinite(d) & (d > 0)
+                    lens_err = np.abs(L[ok] - d[ok]) / d[ok]
+            wp.synchronize_device(dev)
+            dt = time.perf_counter() - t0
+            res.update(path_s=dt, path_sources_per_s=n_psrc / dt, paths_total=n_psrc * a.paths,
+                       path_points_mean=npts / max(n_psrc * a.paths, 1), path_iterations=ps.timings["iterations"],
+                       path_len_vs_dist_max_rel=float(np.max(lens_err)) if len(lens_err) else None,
+                       peak_mem_bytes_after_paths=peak_mem(dev))
+            del P
+    except Exception as e:  # noqa: BLE001
+        res["errors"]["paths"] = repr(e)
+        traceback.print_exc()
+
+    # exact (tvb-gdist) and heat (potpourri3d) on the first n_check sources, CPU
+    if n_check and D is not None:
+        csrc = src[:n_check]
+        try:
+            import gdist
+
+            t0 = time.perf_counter()
+            ex = np.stack([gdist.compute_gdist(m.vertices.astype(np.float64), m.faces.astype(np.int32),
+                                               source_indices=np.array([s], np.int32)) for s in csrc])
+            res["gdist_s_per_source"] = (time.perf_counter() - t0) / n_check
+            mk = np.isfinite(ex) & (ex > 0) & np.isfinite(D)
+            rel = (D[mk] - ex[mk]) / ex[mk]
+            res.update(ours_mre=float(rel.mean()), ours_max_rel=float(rel.max()), ours_min_rel=float(rel.min()))
+            try:
+                import potpourri3d as pp3d
+
+                t0 = time.perf_counter()
+                hs = pp3d.MeshHeatMethodDistanceSolver(m.vertices, m.faces)
+                res["heat_setup_s"] = time.perf_counter() - t0
+                t0 = time.perf_counter()
+                H = np.stack([hs.compute_distance(int(s)) for s in csrc])
+                res["heat_s_per_source"] = (time.perf_counter() - t0) / n_check
+                rh = np.abs(H[mk] - ex[mk]) / ex[mk]
+                res.update(heat_mre=float(rh.mean()), heat_max_rel=float(rh.max()))
+            except Exception as e:  # noqa: BLE001
+                res["errors"]["heat"] = repr(e)
+        except Exception as e:  # noqa: BLE001
+            res["errors"]["gdist"] = repr(e)
+            traceback.print_exc()
+
+    def fmt(key, unit="", scale=1.0, prec=3):
+        v = res.get(key)
+        return "n/a" if v is None else f"{v * scale:.{prec}f}{unit}"
+
+    print(f"\nmesh {res['mesh']}: {res['vertices']} vertices, {res['faces']} faces; device {res['device_name']}; "
+          f"k={k}, nodes={res.get('nodes')}, batch={res.get('batch')}")
+    rows = [
+        ("compile (s)", fmt("compile_s")), ("setup (s)", fmt("setup_s")),
+        (f"distances: {n_src} sources (s)", fmt("dist_s")), ("distance sources / s", fmt("dist_sources_per_s", prec=2)),
+        (f"paths: {n_psrc} sources x {a.paths} (s)", fmt("path_s")),
+        ("path sources / s", fmt("path_sources_per_s", prec=2)),
+        ("path length vs distance, max rel", fmt("path_len_vs_dist_max_rel", prec=2 if False else 7)),
+        ("peak GPU mempool (GB)", fmt("peak_mem_bytes", scale=1e-9)),
+        ("solver state estimate (GB)", fmt("state_bytes", scale=1e-9)),
+        (f"ours vs gdist MRE % ({n_check} src)", fmt("ours_mre", scale=100, prec=4)),
+        ("ours vs gdist max rel %", fmt("ours_max_rel", scale=100, prec=3)),
+        ("ours vs gdist min rel (>= -1e-6)", fmt("ours_min_rel", prec=8)),
+        ("gdist exact, s / source (CPU)", fmt("gdist_s_per_source")),
+        ("heat (pp3d) MRE % / max %", f"{fmt('heat_mre', scale=100, prec=3)} / {fmt('heat_max_rel', scale=100, prec=1)}"),
+        ("heat setup / s per source (CPU)", f"{fmt('heat_setup_s')} / {fmt('heat_s_per_source', prec=4)}"),
+    ]
+    w = max(len(r[0]) for r in rows)
+    for r in rows:
+        print(f"  {r[0]:<{w}}  {r[1]}")
+    if res["errors"]:
+        print("errors:", json.dumps(res["errors"], indent=1))
+    out = a.json or str(ROOT / "benchmarks" / f"geodesics_{'small' if a.small else 'full'}_{dev.alias.replace(':', '')}.json")
+    with open(out, "w") as f:
+        json.dump(res, f, indent=1, default=float)
+    print(f"wrote {out}")
+    return 1 if res["errors"] else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
