@@ -1,14 +1,11 @@
 """Training pipeline on a tiny mesh (CPU): loss falls, held-out MRE bound, Ctrl-C + resume, bad input."""
 import json
 import os
-import sys
-import types
 
 import numpy as np
 import pytest
 import torch
 import trimesh
-import warp as wp
 
 from neurogf_warp.mesh import load_mesh
 from neurogf_warp.network import NeuroGFNet
@@ -16,114 +13,9 @@ from neurogf_warp import losses as L
 from neurogf_warp import train as T
 
 
-# ------------------------------------------------------------------ a tiny dataset with the contract's keys
-
-def _resample(poly, m):
-    """Arc-length resampling of a polyline to m points, both ends kept."""
-    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
-    s = np.concatenate([[0], np.cumsum(seg)])
-    u = np.linspace(0, s[-1], m)
-    return np.stack([np.interp(u, s, poly[:, k]) for k in range(3)], 1)
-
-
-@wp.kernel
-def _sdf_kernel(mesh: wp.uint64, pts: wp.array(dtype=wp.vec3), out: wp.array(dtype=float)):
-    i = wp.tid()
-    q = wp.mesh_query_point_sign_winding_number(mesh, pts[i], 1.0e6)
-    if q.result:
-        cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
-        out[i] = q.sign * wp.length(pts[i] - cp)
-
-
-def _fake_sdf_truth(mesh, points, device=None):
-    v = wp.array(np.asarray(mesh.normalized_vertices, np.float32), dtype=wp.vec3, device="cpu")
-    f = wp.array(np.asarray(mesh.faces, np.int32).ravel(), dtype=wp.int32, device="cpu")
-    wm = wp.Mesh(points=v, indices=f)
-    p = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device="cpu")
-    out = wp.zeros(len(p), dtype=float, device="cpu")
-    wp.launch(_sdf_kernel, dim=len(p), inputs=[wm.id, p, out], device="cpu")
-    return out.numpy()
-
-
-def _fake_sample_sdf_points(rng, surface_points, n):
-    a, b = n // 3, n // 3
-    c = n - a - b
-    cube = rng.uniform(-1.01, 1.01, (a, 3))
-    surf = surface_points[rng.choice(len(surface_points), b, replace=len(surface_points) < b)]
-    near = surface_points[rng.choice(len(surface_points), c, replace=len(surface_points) < c)]
-    near = near + np.clip(rng.normal(0, 0.03, near.shape), -0.03, 0.03)
-    return np.concatenate([cube, surf, near]).astype(np.float32)
-
-
-def tiny_dataset(mesh, n_sources=24, n_test=2, seed=0):
-    """Exact distances (tvb-gdist), edge-Dijkstra paths; the same arrays as neurogf_warp.dataset writes."""
-    gdist = pytest.importorskip("gdist")
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import dijkstra
-
-    rng = np.random.default_rng(seed)
-    V = mesh.normalized_vertices
-    Fc = mesh.faces
-    nv = len(V)
-    src = rng.choice(nv, n_sources + n_test, replace=False)
-    dist = np.stack([gdist.compute_gdist(V, Fc.astype(np.int32), np.array([s], np.int32)) for s in src])
-    train, test = src[:n_sources], src[n_sources:]
-    e = np.concatenate([Fc[:, [0, 1]], Fc[:, [1, 2]], Fc[:, [2, 0]]])
-    w = np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1)
-    G = coo_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(nv, nv)).tocsr()
-    _, pred = dijkstra(G, indices=train, return_predecessors=True)
-
-    def rows(i, tgt):
-        s = V[train[i]]
-        return np.concatenate([np.repeat(s[None], len(tgt), 0), V[tgt], dist[i, tgt, None]], 1)
-
-    gg, l1, l2, pg, pl = [], [], [], [], []
-    for i, s in enumerate(train):
-        order = np.argsort(dist[i])
-        gg.append(rows(i, rng.choice(nv, 128, replace=False)))
-        l1.append(rows(i, order[1:9]))
-        l2.append(rows(i, order[1:33]))
-
-        def path(t, m):
-            chain = [t]
-            while chain[-1] != s:
-                chain.append(pred[i, chain[-1]])
-            return _resample(V[chain[::-1]], m)
-
-        pg.append([path(t, 128) for t in rng.choice(nv, 16, replace=False) if t != s][:12])
-        pl.append([path(t, 32) for t in order[2:14]])
-    tm = trimesh.Trimesh(V, Fc, process=False)
-    surf, _ = trimesh.sample.sample_surface(tm, 20000, seed=seed)
-    f32 = lambda a: np.asarray(a, np.float32)
-    return {
-        "vertices": f32(V), "faces": Fc.astype(np.int32), "center": mesh.center, "scale": np.float64(mesh.scale),
-        "surface_points": f32(surf), "gd_src": train.astype(np.int64),
-        "gd_global": f32(gg), "gd_local1": f32(l1), "gd_local2": f32(l2),
-        "path_src": train.astype(np.int64), "path_global": f32(pg), "path_local": f32(pl),
-        "test_src": test.astype(np.int64), "test_dist": f32(dist[n_sources:]),
-        "meta": json.dumps({"fingerprint": mesh.fingerprint}),
-    }
-
-
-@pytest.fixture(autouse=True)
-def dataset_module(monkeypatch):
-    """Until neurogf_warp.dataset lands, stand in for its SDF helpers (train() imports them lazily)."""
-    try:
-        import neurogf_warp.dataset  # noqa: F401
-    except ImportError:
-        fake = types.ModuleType("neurogf_warp.dataset")
-        fake.sdf_truth = _fake_sdf_truth
-        fake.sample_sdf_points = _fake_sample_sdf_points
-        fake.load_dataset = lambda path, mesh=None: dict(np.load(path, allow_pickle=False))
-
-        def build(mesh, out_path=None, seed=0, device=None, progress=True, **kw):
-            ds = tiny_dataset(mesh, seed=seed)
-            np.savez(out_path, **ds)
-            return ds
-
-        fake.build_dataset = build
-        monkeypatch.setitem(sys.modules, "neurogf_warp.dataset", fake)
-    yield
+# Small dataset settings: about 4 s on 2 CPU cores for the 642-vertex ellipsoid.
+TINY_DS = dict(n_sources=64, n_global=256, n_local1=8, n_local2=32, n_path_sources=16, n_path_global=16,
+               n_path_local=16, n_test=2, n_surface=30000)
 
 
 @pytest.fixture(scope="module")
@@ -135,7 +27,9 @@ def ellipsoid():
 
 @pytest.fixture(scope="module")
 def data(ellipsoid):
-    return tiny_dataset(ellipsoid)
+    from neurogf_warp.dataset import build_dataset
+
+    return build_dataset(ellipsoid, None, device="cpu", progress=False, **TINY_DS)
 
 
 SMALL = dict(D=64, batch_sdf=2048, batch_g=4096, batch_l1=512, batch_l2=1024, batch_paths_g=128,
@@ -171,11 +65,22 @@ def test_fast_path_matches_network(data):
         assert torch.allclose(got, want, atol=1e-10), mode
 
 
-def test_train_loss_falls_and_beats_mre_bound(tmp_path, ellipsoid, data):
-    out = tmp_path / "m.ngf"
-    model = T.train(ellipsoid, out, dataset=data, epochs=3, iters_per_epoch=100, **SMALL)
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory, ellipsoid, data):
+    out = tmp_path_factory.mktemp("trained") / "m.ngf"
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        model = T.train(ellipsoid, out, dataset=data, epochs=3, iters_per_epoch=100, **SMALL)
+    finally:
+        torch.set_num_threads(n)
+    return model, out
+
+
+def test_train_loss_falls_and_beats_mre_bound(trained, data):
+    model, out = trained
     assert out.exists()
-    log = json.loads((tmp_path / "m.train.json").read_text())
+    log = json.loads(out.with_suffix(".train.json").read_text())
     joint = [r for r in log["history"]["loss"] if r["stage"] == "joint"]
     assert joint[-1]["loss"] < 0.3 * joint[0]["loss"]
     # Held-out sources, eval-mode network vs exact distances. The trivial predictor, the straight-line
@@ -247,9 +152,32 @@ def test_corrupt_dataset_cache_is_rebuilt(tmp_path, ellipsoid, capsys):
     cache = T.dataset_cache_path(out)
     with open(cache, "wb") as f:
         f.write(b"not a zip file")
-    ds = T.get_dataset(ellipsoid, None, out, "cpu", False, {"seed": 0})
+    ds = T.get_dataset(ellipsoid, None, out, "cpu", False, dict(TINY_DS, seed=0))
     assert "unreadable" in capsys.readouterr().err
     assert ds["gd_global"].shape[-1] == 7
-    ds2 = T.get_dataset(ellipsoid, None, out, "cpu", True, {"seed": 0})  # now reused
+    ds2 = T.get_dataset(ellipsoid, None, out, "cpu", True, dict(TINY_DS, seed=0))  # now reused
     assert "reusing" in capsys.readouterr().err
     assert np.array_equal(ds["gd_global"], ds2["gd_global"])
+
+
+def test_evaluate_against_exact_reference_and_solver(trained, ellipsoid, tmp_path):
+    from neurogf_warp.evaluate import evaluate
+    from neurogf_warp.model_io import load
+
+    gdist = pytest.importorskip("gdist")
+    m = ellipsoid
+    src = np.array([3, 100, 400], np.int32)
+    dist = np.stack([gdist.compute_gdist(m.vertices, m.faces.astype(np.int32), np.array([s], np.int32)) for s in src])
+    ref = tmp_path / "ref.npz"
+    np.savez(ref, positions=m.vertices.astype(np.float32), orig_index=m.index.astype(np.int32), sources=src,
+             dist=dist.astype(np.float32))
+    model = load(trained[1])  # the file as written, mesh included
+    r = evaluate(model, reference=ref, heat=True, n_sdf=3000, n_path_sources=2, n_path_targets=4, device="cpu")
+    assert r["reference"] == "ref.npz" and r["neurogf"]["pairs"] == 3 * (len(m.vertices) - 1)
+    assert r["neurogf"]["mre"] < 0.06 and r["heat"]["mre"] < 0.05
+    assert r["neurogf"]["max_rel"] >= r["neurogf"]["mre"]
+    # Sanity bounds only: 300 steps on 256 training paths give Chamfer ~0.12 and SDF-head L1 ~0.01 here.
+    assert 0 < r["chamfer_l1"] < 0.25 and r["paths"] > 0
+    assert 0 < r["sdf_l1"] < 0.05 and r["querier_l1"] < 0.3
+    s = evaluate(model, n_sources=2, paths=False, sdf=False, device="cpu", verbose=False)
+    assert s["reference"] == "solver" and s["neurogf"]["mre"] < 0.06
