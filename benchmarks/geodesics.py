@@ -3,7 +3,7 @@
 GPU (lead's machine):   python benchmarks/geodesics.py --device cuda:0
 CPU smoke test (here):  python benchmarks/geodesics.py --device cpu --small
 
-Default mesh: the Stanford bunny subdivided twice with trimesh (~557K vertices; --subdiv 1 gives ~139K).
+Default mesh: the Stanford bunny midpoint-subdivided to about --vertices (436,000) vertices.
 Prints a table and writes JSON (--json). Compile time is measured apart from run time; every stage reports
 errors instead of aborting the whole run.
 """
@@ -19,25 +19,18 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import ROOT, find_shared, subdivided_bunny  # noqa: E402
 
 
-def make_mesh(small: bool, subdiv: int):
+def make_mesh(small: bool, vertices: int):
     import trimesh
 
     if small:
-        tm = trimesh.load(SHARED / "meshes" / "fandisk.obj", process=False, force="mesh")
+        tm = trimesh.load(find_shared("meshes", "fandisk.obj"), process=False, force="mesh")
         return np.asarray(tm.vertices), np.asarray(tm.faces), "fandisk"
-    tm = trimesh.load(SHARED / "meshes" / "stanford-bunny.obj", process=False, force="mesh")
-    v, f = np.asarray(tm.vertices), np.asarray(tm.faces)
-    used = np.unique(f)
-    remap = np.full(len(v), -1)
-    remap[used] = np.arange(len(used))
-    v, f = v[used], remap[f]
-    for _ in range(subdiv):
-        v, f = trimesh.remesh.subdivide(v, f)
-    return v, f, f"bunny-subdiv{subdiv}"
+    v, f = subdivided_bunny(vertices)
+    return v, f, f"bunny-subdivided-{len(v)}"
 
 
 def peak_mem(device) -> float | None:
@@ -57,7 +50,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cuda:0")
     ap.add_argument("--small", action="store_true", help="fandisk, few sources (CPU smoke test)")
-    ap.add_argument("--subdiv", type=int, default=2)
+    ap.add_argument("--vertices", type=int, default=436_000, help="size of the subdivided bunny")
     ap.add_argument("--sources", type=int, default=None, help="default 1024 (8 with --small)")
     ap.add_argument("--path-sources", type=int, default=None, help="default = --sources (2 with --small)")
     ap.add_argument("--paths", type=int, default=32, help="paths per path source")
@@ -84,7 +77,7 @@ def main(argv=None) -> int:
     res["device_name"] = dev.name if hasattr(dev, "name") else str(dev)
 
     t0 = time.perf_counter()
-    V, F, name = make_mesh(a.small, a.subdiv)
+    V, F, name = make_mesh(a.small, a.vertices)
     m = load_mesh((V, F))
     res.update(mesh=name, vertices=len(m.vertices), faces=len(m.faces), mesh_build_s=time.perf_counter() - t0)
     rng = np.random.default_rng(0)
