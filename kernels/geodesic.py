@@ -166,9 +166,10 @@ def in_plane_normal(A: wp.vec3, eh: wp.vec3, C: wp.vec3) -> wp.vec3:
 @wp.kernel
 def init_kernel(sources: wp.array(dtype=int), key: wp.array2d(dtype=wp.uint64), dist: wp.array2d(dtype=float),
                 parent: wp.array2d(dtype=int), in_face: wp.array2d(dtype=int), info: wp.array2d(dtype=int),
-                changed: wp.array2d(dtype=wp.int8)):
+                changed: wp.array2d(dtype=wp.int8), origin: wp.array2d(dtype=int)):
     s, n = wp.tid()
     src = sources[s]
+    origin[s, n] = n
     if n == src:
         key[s, n] = pack(0.0, n)
         dist[s, n] = 0.0
@@ -272,8 +273,8 @@ def to_edge2(p: wp.vec3, A: wp.vec3, eh: wp.vec3) -> wp.vec2:
     return wp.vec2(wp.dot(r, eh), wp.length(wp.cross(r, eh)))
 
 
-@wp.kernel
-def decode_kernel(nv: int, k: int, use_windows: int, pos: wp.array(dtype=wp.vec3), faces: wp.array2d(dtype=int),
+@wp.func
+def decode_one(s: int, x: int, nv: int, k: int, use_windows: int, pos: wp.array(dtype=wp.vec3), faces: wp.array2d(dtype=int),
                   edges: wp.array2d(dtype=int), face_edges: wp.array2d(dtype=int),
                   edge_faces: wp.array2d(dtype=int), face_ok: wp.array(dtype=wp.int8),
                   key: wp.array2d(dtype=wp.uint64), dist: wp.array2d(dtype=float), in_face: wp.array2d(dtype=int),
@@ -281,8 +282,12 @@ def decode_kernel(nv: int, k: int, use_windows: int, pos: wp.array(dtype=wp.vec3
                   wl: wp.array2d(dtype=float), wr: wp.array2d(dtype=float),
                   improved: wp.array2d(dtype=wp.int8), n_in_face: wp.array2d(dtype=int), n_info: wp.array2d(dtype=int),
                   n_wa: wp.array2d(dtype=float), n_wh: wp.array2d(dtype=float), n_wsig: wp.array2d(dtype=float),
-                  n_wl: wp.array2d(dtype=float), n_wr: wp.array2d(dtype=float)):
-    s, x = wp.tid()
+                  n_wl: wp.array2d(dtype=float), n_wr: wp.array2d(dtype=float),
+               n_origin: wp.array2d(dtype=int), origin: wp.array2d(dtype=int), pa: wp.array2d(dtype=float),
+               ph: wp.array2d(dtype=float)):
+    """Decode node x's winning proposal: its new window (staged in n_*), and its path record: the origin node
+    the path from x goes back to (staged in n_origin) and, when x was reached through its parent's window, that
+    window's virtual source (pa, ph: in the parent edge's frame, written directly: only the tracer reads them)."""
     kk = key[s, x]
     d = unpack_dist(kk)
     if not (d < dist[s, x]):
@@ -290,6 +295,7 @@ def decode_kernel(nv: int, k: int, use_windows: int, pos: wp.array(dtype=wp.vec3
         return
     improved[s, x] = wp.int8(1)
     u = unpack_parent(kk)
+    orig = u
     g = common_face(u, x, nv, k, faces, face_edges, edge_faces)
     # default: x is a point source of its own (always valid: a real path of length d reaches x)
     nf = int(-1)
@@ -339,6 +345,9 @@ def decode_kernel(nv: int, k: int, use_windows: int, pos: wp.array(dtype=wp.vec3
         info = g * 2
         if via:
             info = info + 1
+            orig = origin[s, u]
+            pa[s, x] = wa[s, u]
+            ph[s, x] = wh[s, u]
         if x >= nv:
             ex = (x - nv) // k
             B0 = pos[edges[ex, 0]]
@@ -367,6 +376,49 @@ def decode_kernel(nv: int, k: int, use_windows: int, pos: wp.array(dtype=wp.vec3
     n_wsig[s, x] = sg
     n_wl[s, x] = l2
     n_wr[s, x] = r2
+    n_origin[s, x] = orig
+
+
+@wp.kernel
+def decode_kernel(nv: int, k: int, use_windows: int, pos: wp.array(dtype=wp.vec3), faces: wp.array2d(dtype=int),
+                  edges: wp.array2d(dtype=int), face_edges: wp.array2d(dtype=int),
+                  edge_faces: wp.array2d(dtype=int), face_ok: wp.array(dtype=wp.int8),
+                  key: wp.array2d(dtype=wp.uint64), dist: wp.array2d(dtype=float), in_face: wp.array2d(dtype=int),
+                  wa: wp.array2d(dtype=float), wh: wp.array2d(dtype=float), wsig: wp.array2d(dtype=float),
+                  wl: wp.array2d(dtype=float), wr: wp.array2d(dtype=float),
+                  improved: wp.array2d(dtype=wp.int8), n_in_face: wp.array2d(dtype=int), n_info: wp.array2d(dtype=int),
+                  n_wa: wp.array2d(dtype=float), n_wh: wp.array2d(dtype=float), n_wsig: wp.array2d(dtype=float),
+                  n_wl: wp.array2d(dtype=float), n_wr: wp.array2d(dtype=float),
+                  n_origin: wp.array2d(dtype=int), origin: wp.array2d(dtype=int), pa: wp.array2d(dtype=float),
+                  ph: wp.array2d(dtype=float)):
+    s, x = wp.tid()
+    decode_one(s, x, nv, k, use_windows, pos, faces, edges, face_edges, edge_faces, face_ok, key, dist,
+               in_face, wa, wh, wsig, wl, wr, improved, n_in_face, n_info, n_wa, n_wh, n_wsig, n_wl, n_wr,
+               n_origin, origin, pa, ph)
+
+
+@wp.func
+def commit_one(s: int, x: int, key: wp.array2d(dtype=wp.uint64), dist: wp.array2d(dtype=float),
+               parent: wp.array2d(dtype=int), in_face: wp.array2d(dtype=int), info: wp.array2d(dtype=int),
+               wa: wp.array2d(dtype=float), wh: wp.array2d(dtype=float), wsig: wp.array2d(dtype=float),
+               wl: wp.array2d(dtype=float), wr: wp.array2d(dtype=float),
+               n_in_face: wp.array2d(dtype=int), n_info: wp.array2d(dtype=int),
+               n_wa: wp.array2d(dtype=float), n_wh: wp.array2d(dtype=float), n_wsig: wp.array2d(dtype=float),
+               n_wl: wp.array2d(dtype=float), n_wr: wp.array2d(dtype=float),
+               n_origin: wp.array2d(dtype=int), origin: wp.array2d(dtype=int)) -> float:
+    kk = key[s, x]
+    d = unpack_dist(kk)
+    dist[s, x] = d
+    parent[s, x] = unpack_parent(kk)
+    in_face[s, x] = n_in_face[s, x]
+    info[s, x] = n_info[s, x]
+    wa[s, x] = n_wa[s, x]
+    wh[s, x] = n_wh[s, x]
+    wsig[s, x] = n_wsig[s, x]
+    wl[s, x] = n_wl[s, x]
+    wr[s, x] = n_wr[s, x]
+    origin[s, x] = n_origin[s, x]
+    return d
 
 
 @wp.kernel
@@ -377,6 +429,7 @@ def commit_kernel(key: wp.array2d(dtype=wp.uint64), dist: wp.array2d(dtype=float
                   improved: wp.array2d(dtype=wp.int8), n_in_face: wp.array2d(dtype=int), n_info: wp.array2d(dtype=int),
                   n_wa: wp.array2d(dtype=float), n_wh: wp.array2d(dtype=float), n_wsig: wp.array2d(dtype=float),
                   n_wl: wp.array2d(dtype=float), n_wr: wp.array2d(dtype=float),
+                  n_origin: wp.array2d(dtype=int), origin: wp.array2d(dtype=int),
                   changed: wp.array2d(dtype=wp.int8), cond: wp.array(dtype=int), counter: wp.array(dtype=int),
                   max_iter: int, thr: wp.array(dtype=float), minpend: wp.array(dtype=float)):
     s, x = wp.tid()
@@ -391,18 +444,10 @@ def commit_kernel(key: wp.array2d(dtype=wp.uint64), dist: wp.array2d(dtype=float
                 if counter[0] < max_iter:
                     cond[0] = 1
         return
-    kk = key[s, x]
-    dist[s, x] = unpack_dist(kk)
-    parent[s, x] = unpack_parent(kk)
-    in_face[s, x] = n_in_face[s, x]
-    info[s, x] = n_info[s, x]
-    wa[s, x] = n_wa[s, x]
-    wh[s, x] = n_wh[s, x]
-    wsig[s, x] = n_wsig[s, x]
-    wl[s, x] = n_wl[s, x]
-    wr[s, x] = n_wr[s, x]
+    d = commit_one(s, x, key, dist, parent, in_face, info, wa, wh, wsig, wl, wr, n_in_face, n_info, n_wa, n_wh,
+                   n_wsig, n_wl, n_wr, n_origin, origin)
     changed[s, x] = wp.int8(1)
-    wp.atomic_min(minpend, s, unpack_dist(kk))
+    wp.atomic_min(minpend, s, d)
     if counter[0] < max_iter:
         cond[0] = 1
 
@@ -503,6 +548,400 @@ def trace_kernel(nv: int, k: int, pos: wp.array(dtype=wp.vec3), faces: wp.array2
             pts[base + n] = P
         n += 1
         cur = par
+    counts[t] = n
+    if not done:
+        nstale = -1
+    stale[t] = nstale
+
+
+# ---- frontier worklist version --------------------------------------------------------------------------
+# Per source row s: `cur[s, :ccount[s]]` holds the active nodes (improved, not yet relaxed); nodes closer than the
+# row's threshold relax (node-centric: the faces around the node), the others are carried to `nxt`. Nodes whose
+# key went down are appended once per iteration to `tlist` (tstamp = iteration), decoded and committed from that
+# list only; committed nodes join `nxt` unless already carried (qstamp = iteration). Launches are (rows, T) with a
+# grid-stride loop over the row's list, so dims are fixed at capture time and the work follows the list sizes.
+# work[s, 0..2] counts relaxed nodes, list entries read (cur) and decoded entries (tlist) per row.
+
+
+@wp.func
+def slot_of(g: int, u: int, nv: int, k: int, faces: wp.array2d(dtype=int), face_edges: wp.array2d(dtype=int)) -> int:
+    if u < nv:
+        if faces[g, 0] == u:
+            return 0
+        if faces[g, 1] == u:
+            return 1
+        return 2
+    m = u - nv
+    e = m // k
+    le = int(0)
+    if face_edges[g, 1] == e:
+        le = 1
+    elif face_edges[g, 2] == e:
+        le = 2
+    return 3 + le * k + (m - e * k)
+
+
+@wp.kernel
+def init_list_kernel(sources: wp.array(dtype=int), cur: wp.array2d(dtype=int), ccount: wp.array(dtype=int),
+                     minpend: wp.array(dtype=float)):
+    s = wp.tid()
+    cur[s, 0] = sources[s]
+    ccount[s] = 1
+    minpend[s] = 0.0
+
+
+@wp.kernel
+def clear_list_kernel(cond: wp.array(dtype=int), counter: wp.array(dtype=int), thr: wp.array(dtype=float),
+                      minpend: wp.array(dtype=float), delta: float, ncount: wp.array(dtype=int),
+                      tcount: wp.array(dtype=int)):
+    s = wp.tid()
+    thr[s] = minpend[s] + delta
+    minpend[s] = INF
+    ncount[s] = 0
+    tcount[s] = 0
+    if s == 0:
+        counter[0] = counter[0] + 1
+        cond[0] = 0
+
+
+@wp.kernel
+def relax_list_kernel(nv: int, k: int, use_windows: int, pos: wp.array(dtype=wp.vec3), faces: wp.array2d(dtype=int),
+                      edges: wp.array2d(dtype=int), face_edges: wp.array2d(dtype=int),
+                      face_ok: wp.array(dtype=wp.int8),
+                      vf_off: wp.array(dtype=int), vf_idx: wp.array(dtype=int),
+                      ef_off: wp.array(dtype=int), ef_idx: wp.array(dtype=int),
+                      dist: wp.array2d(dtype=float), in_face: wp.array2d(dtype=int),
+                      wa: wp.array2d(dtype=float), wh: wp.array2d(dtype=float), wsig: wp.array2d(dtype=float),
+                      wl: wp.array2d(dtype=float), wr: wp.array2d(dtype=float),
+                      cur: wp.array2d(dtype=int), ccount: wp.array(dtype=int),
+                      nxt: wp.array2d(dtype=int), ncount: wp.array(dtype=int), qstamp: wp.array2d(dtype=int),
+                      tlist: wp.array2d(dtype=int), tcount: wp.array(dtype=int), tstamp: wp.array2d(dtype=int),
+                      thr: wp.array(dtype=float), minpend: wp.array(dtype=float), key: wp.array2d(dtype=wp.uint64),
+                      counter: wp.array(dtype=int), cond: wp.array(dtype=int), max_iter: int,
+                      work: wp.array2d(dtype=int), nthreads: int):
+    s, t = wp.tid()
+    it = counter[0]
+    n = ccount[s]
+    th = thr[s]
+    ns = 3 + 3 * k
+    nrel = int(0)
+    nread = int(0)
+    pmin = float(INF)
+    i = t
+    while i < n:
+        u = cur[s, i]
+        i += nthreads
+        nread += 1
+        du = dist[s, u]
+        if not (du < th):
+            # pending: carry to the next list
+            qstamp[s, u] = it
+            slot = wp.atomic_add(ncount, s, 1)
+            nxt[s, slot] = u
+            pmin = wp.min(pmin, du)
+            continue
+        nrel += 1
+        pu = node_pos(u, nv, k, pos, edges)
+        f0 = int(0)
+        f1 = int(0)
+        ue = int(-1)
+        if u < nv:
+            f0 = vf_off[u]
+            f1 = vf_off[u + 1]
+        else:
+            ue = (u - nv) // k
+            f0 = ef_off[ue]
+            f1 = ef_off[ue + 1]
+        win_ok = bool(False)
+        A = wp.vec3()
+        eh = wp.vec3()
+        elen = float(0.0)
+        f_in = int(-1)
+        if use_windows != 0 and u >= nv:
+            f_in = in_face[s, u]
+            if f_in >= 0:
+                win_ok = True
+                A = pos[edges[ue, 0]]
+                ev = pos[edges[ue, 1]] - A
+                elen = wp.length(ev)
+                eh = ev / elen
+        for fi in range(f0, f1):
+            g = int(0)
+            if u < nv:
+                g = vf_idx[fi]
+            else:
+                g = ef_idx[fi]
+            iu = slot_of(g, u, nv, k, faces, face_edges)
+            win = win_ok and f_in != g and face_ok[g] != wp.int8(0)
+            for j in range(ns):
+                if j == iu:
+                    continue
+                x = slot_node(g, j, nv, k, faces, face_edges)
+                px = node_pos(x, nv, k, pos, edges)
+                d = du + wp.length(px - pu)
+                if win and not slots_share_edge(iu, j, k):
+                    dw = window_dist(wa[s, u], wh[s, u], wsig[s, u], wl[s, u], wr[s, u], A, eh, elen, px)
+                    if dw < d:
+                        d = dw
+                if d < unpack_dist(key[s, x]):
+                    pk = pack(d, u)
+                    old = wp.atomic_min(key, s, x, pk)
+                    if pk < old:
+                        if wp.atomic_max(tstamp, s, x, it) < it:
+                            slot = wp.atomic_add(tcount, s, 1)
+                            tlist[s, slot] = x
+    if pmin < INF:
+        wp.atomic_min(minpend, s, pmin)
+        if it < max_iter:
+            cond[0] = 1
+    if nread > 0:
+        wp.atomic_add(work, s, 0, nrel)
+        wp.atomic_add(work, s, 1, nread)
+
+
+@wp.kernel
+def decode_list_kernel(nv: int, k: int, use_windows: int, pos: wp.array(dtype=wp.vec3), faces: wp.array2d(dtype=int),
+                       edges: wp.array2d(dtype=int), face_edges: wp.array2d(dtype=int),
+                       edge_faces: wp.array2d(dtype=int), face_ok: wp.array(dtype=wp.int8),
+                       key: wp.array2d(dtype=wp.uint64), dist: wp.array2d(dtype=float), in_face: wp.array2d(dtype=int),
+                       wa: wp.array2d(dtype=float), wh: wp.array2d(dtype=float), wsig: wp.array2d(dtype=float),
+                       wl: wp.array2d(dtype=float), wr: wp.array2d(dtype=float),
+                       improved: wp.array2d(dtype=wp.int8), n_in_face: wp.array2d(dtype=int),
+                       n_info: wp.array2d(dtype=int),
+                       n_wa: wp.array2d(dtype=float), n_wh: wp.array2d(dtype=float), n_wsig: wp.array2d(dtype=float),
+                       n_wl: wp.array2d(dtype=float), n_wr: wp.array2d(dtype=float),
+                       n_origin: wp.array2d(dtype=int), origin: wp.array2d(dtype=int), pa: wp.array2d(dtype=float),
+                       ph: wp.array2d(dtype=float), tlist: wp.array2d(dtype=int), tcount: wp.array(dtype=int),
+                       work: wp.array2d(dtype=int), nthreads: int):
+    s, t = wp.tid()
+    n = tcount[s]
+    i = t
+    while i < n:
+        x = tlist[s, i]
+        i += nthreads
+        decode_one(s, x, nv, k, use_windows, pos, faces, edges, face_edges, edge_faces, face_ok, key, dist,
+                   in_face, wa, wh, wsig, wl, wr, improved, n_in_face, n_info, n_wa, n_wh, n_wsig, n_wl, n_wr,
+                   n_origin, origin, pa, ph)
+    if t == 0:
+        wp.atomic_add(work, s, 2, n)
+
+
+@wp.kernel
+def commit_list_kernel(key: wp.array2d(dtype=wp.uint64), dist: wp.array2d(dtype=float), parent: wp.array2d(dtype=int),
+                       in_face: wp.array2d(dtype=int), info: wp.array2d(dtype=int),
+                       wa: wp.array2d(dtype=float), wh: wp.array2d(dtype=float), wsig: wp.array2d(dtype=float),
+                       wl: wp.array2d(dtype=float), wr: wp.array2d(dtype=float),
+                       improved: wp.array2d(dtype=wp.int8), n_in_face: wp.array2d(dtype=int),
+                       n_info: wp.array2d(dtype=int),
+                       n_wa: wp.array2d(dtype=float), n_wh: wp.array2d(dtype=float), n_wsig: wp.array2d(dtype=float),
+                       n_wl: wp.array2d(dtype=float), n_wr: wp.array2d(dtype=float),
+                       n_origin: wp.array2d(dtype=int), origin: wp.array2d(dtype=int),
+                       tlist: wp.array2d(dtype=int), tcount: wp.array(dtype=int),
+                       nxt: wp.array2d(dtype=int), ncount: wp.array(dtype=int), qstamp: wp.array2d(dtype=int),
+                       cond: wp.array(dtype=int), counter: wp.array(dtype=int), max_iter: int,
+                       minpend: wp.array(dtype=float), nthreads: int):
+    s, t = wp.tid()
+    it = counter[0]
+    n = tcount[s]
+    i = t
+    dmin = float(INF)
+    while i < n:
+        x = tlist[s, i]
+        i += nthreads
+        if improved[s, x] == wp.int8(0):
+            continue
+        d = commit_one(s, x, key, dist, parent, in_face, info, wa, wh, wsig, wl, wr, n_in_face, n_info, n_wa, n_wh,
+                       n_wsig, n_wl, n_wr, n_origin, origin)
+        dmin = wp.min(dmin, d)
+        if qstamp[s, x] != it:
+            qstamp[s, x] = it
+            slot = wp.atomic_add(ncount, s, 1)
+            nxt[s, slot] = x
+    if dmin < INF:
+        wp.atomic_min(minpend, s, dmin)
+        if it < max_iter:
+            cond[0] = 1
+
+
+# ---- consistent distances and paths from the path records ------------------------------------------------
+# Node x's path record: its origin o (the node its straight unfolded ray, or its graph edge, goes back to) and, for a
+# ray (info odd), the virtual source (pa, ph) in the frame of its parent's edge, unfolded into face info//2. The
+# record never changes after x's last improvement, but o may have improved later (then x's distance is longer than
+# o's current distance + the ray). `slack` = d_x - (d_o + ray length) >= 0; pointer jumping sums it along the origin
+# chain, and d_x - (sum) is exactly the length of the polyline the tracer walks (the same or shorter: still an
+# upper bound of the exact distance).
+
+
+@wp.func
+def record_len(s: int, x: int, nv: int, k: int, pos: wp.array(dtype=wp.vec3), faces: wp.array2d(dtype=int),
+               edges: wp.array2d(dtype=int), parent: wp.array2d(dtype=int), info: wp.array2d(dtype=int),
+               pa: wp.array2d(dtype=float), ph: wp.array2d(dtype=float)) -> float:
+    px = node_pos(x, nv, k, pos, edges)
+    par = parent[s, x]
+    inf = info[s, x]
+    if inf >= 0 and (inf % 2) == 1:
+        g = inf // 2
+        e = (par - nv) // k
+        A = pos[edges[e, 0]]
+        ev = pos[edges[e, 1]] - A
+        eh = ev / wp.length(ev)
+        ng = in_plane_normal(A, eh, pos[opposite_vertex(g, e, faces, edges)])
+        S3 = A + pa[s, x] * eh - ph[s, x] * ng
+        return wp.length(S3 - px)
+    return wp.length(px - node_pos(par, nv, k, pos, edges))
+
+
+@wp.kernel
+def slack_init_kernel(nv: int, k: int, pos: wp.array(dtype=wp.vec3), faces: wp.array2d(dtype=int),
+                      edges: wp.array2d(dtype=int), dist: wp.array2d(dtype=float), parent: wp.array2d(dtype=int),
+                      info: wp.array2d(dtype=int), origin: wp.array2d(dtype=int), pa: wp.array2d(dtype=float),
+                      ph: wp.array2d(dtype=float), ptr: wp.array2d(dtype=int), acc: wp.array2d(dtype=float)):
+    s, x = wp.tid()
+    par = parent[s, x]
+    if par < 0 or par == x or not (dist[s, x] < INF):
+        ptr[s, x] = x
+        acc[s, x] = 0.0
+        return
+    o = origin[s, x]
+    ptr[s, x] = o
+    sl = dist[s, x] - (dist[s, o] + record_len(s, x, nv, k, pos, faces, edges, parent, info, pa, ph))
+    acc[s, x] = wp.max(sl, 0.0)
+
+
+@wp.kernel
+def slack_jump_kernel(ptr: wp.array2d(dtype=int), acc: wp.array2d(dtype=float), ptr2: wp.array2d(dtype=int),
+                      acc2: wp.array2d(dtype=float)):
+    s, x = wp.tid()
+    p = ptr[s, x]
+    acc2[s, x] = acc[s, x] + acc[s, p]
+    ptr2[s, x] = ptr[s, p]
+
+
+@wp.kernel
+def slack_apply_kernel(acc: wp.array2d(dtype=float), dist: wp.array2d(dtype=float)):
+    s, x = wp.tid()
+    a = acc[s, x]
+    if a > 0.0:
+        dist[s, x] = dist[s, x] - a
+
+
+@wp.kernel
+def walk_kernel(nv: int, k: int, pos: wp.array(dtype=wp.vec3), faces: wp.array2d(dtype=int),
+                edges: wp.array2d(dtype=int), face_edges: wp.array2d(dtype=int), edge_faces: wp.array2d(dtype=int),
+                row: wp.array(dtype=int), targets: wp.array(dtype=int), parent: wp.array2d(dtype=int),
+                info: wp.array2d(dtype=int), origin: wp.array2d(dtype=int), pa: wp.array2d(dtype=float),
+                ph: wp.array2d(dtype=float), max_steps: int, write: int, offsets: wp.array(dtype=int),
+                pts: wp.array(dtype=wp.vec3), counts: wp.array(dtype=int), stale: wp.array(dtype=int)):
+    """Walk a path back from its target to the source along the path records (target->source order): a graph
+    edge goes straight to the parent; a ray walks straight towards its virtual source, face by face (unfolding
+    the source across each crossed edge), and ends at the record's origin. write=0 only counts points."""
+    t = wp.tid()
+    s = row[t]
+    cur = targets[t]
+    base = int(0)
+    if write != 0:
+        base = offsets[t]
+    if parent[s, cur] < 0:
+        counts[t] = 0
+        stale[t] = 0
+        return
+    if write != 0:
+        pts[base] = pos[cur]
+    n = int(1)
+    nstale = int(0)
+    done = bool(False)
+    steps = int(0)
+    while steps < max_steps:
+        steps += 1
+        par = parent[s, cur]
+        if par == cur:
+            done = True
+            break
+        inf = info[s, cur]
+        o = origin[s, cur]
+        if inf < 0 or (inf % 2) == 0:
+            if write != 0:
+                pts[base + n] = node_pos(par, nv, k, pos, edges)
+            n += 1
+            cur = par
+            continue
+        g = inf // 2
+        e = (par - nv) // k
+        A = pos[edges[e, 0]]
+        ev = pos[edges[e, 1]] - A
+        eh = ev / wp.length(ev)
+        ng = in_plane_normal(A, eh, pos[opposite_vertex(g, e, faces, edges)])
+        S = A + pa[s, cur] * eh - ph[s, cur] * ng
+        Q = node_pos(cur, nv, k, pos, edges)
+        face = g
+        # edges the walk must not leave through: those holding the start point, then the entry edge
+        ex0 = int(-1)
+        ex1 = int(-1)
+        if cur >= nv:
+            ex0 = (cur - nv) // k
+        else:
+            for le in range(3):
+                if faces[g, le] == cur or faces[g, (le + 1) % 3] == cur:
+                    if ex0 < 0:
+                        ex0 = face_edges[g, le]
+                    else:
+                        ex1 = face_edges[g, le]
+        ok = bool(False)
+        while steps < max_steps:
+            steps += 1
+            p0 = pos[faces[face, 0]]
+            nrm = wp.cross(pos[faces[face, 1]] - p0, pos[faces[face, 2]] - p0)
+            dv = S - Q
+            best_t = float(2.0)
+            best_le = int(-1)
+            best_w = float(0.0)
+            for le in range(3):
+                ed = face_edges[face, le]
+                if ed == ex0 or ed == ex1:
+                    continue
+                B0 = pos[faces[face, le]]
+                evl = pos[faces[face, (le + 1) % 3]] - B0
+                den = wp.dot(wp.cross(dv, evl), nrm)
+                if wp.abs(den) <= 0.0:
+                    continue
+                tt = wp.dot(wp.cross(B0 - Q, evl), nrm) / den
+                ww = wp.dot(wp.cross(B0 - Q, dv), nrm) / den
+                if tt > -1.0e-4 and ww >= -1.0e-4 and ww <= 1.0001 and tt < best_t:
+                    best_t = tt
+                    best_le = le
+                    best_w = ww
+            if best_le < 0:
+                break
+            if best_t >= 1.0 - 1.0e-5:
+                ok = True  # the virtual source (the origin node) lies on this face's boundary
+                break
+            ed = face_edges[face, best_le]
+            B0 = pos[faces[face, best_le]]
+            Q = B0 + wp.clamp(best_w, 0.0, 1.0) * (pos[faces[face, (best_le + 1) % 3]] - B0)
+            if write != 0:
+                pts[base + n] = Q
+            n += 1
+            f0 = edge_faces[ed, 0]
+            nf = edge_faces[ed, 1]
+            if f0 != face:
+                nf = f0
+            if nf < 0 or nf == face:
+                break
+            A2 = pos[edges[ed, 0]]
+            ev2 = pos[edges[ed, 1]] - A2
+            eh2 = ev2 / wp.length(ev2)
+            r = S - A2
+            n2 = in_plane_normal(A2, eh2, pos[opposite_vertex(nf, ed, faces, edges)])
+            S = A2 + wp.dot(r, eh2) * eh2 + wp.length(wp.cross(r, eh2)) * n2
+            face = nf
+            ex0 = ed
+            ex1 = int(-1)
+        if not ok:
+            nstale += 1
+        if write != 0:
+            pts[base + n] = node_pos(o, nv, k, pos, edges)
+        n += 1
+        cur = o
     counts[t] = n
     if not done:
         nstale = -1

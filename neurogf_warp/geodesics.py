@@ -21,10 +21,11 @@ __all__ = ["geodesic_distances", "geodesic_paths", "GeodesicSolver", "steiner_di
            "resample_polyline"]
 
 DEFAULT_K = 3  # Steiner points per edge at default accuracy (windows on); see benchmarks/geodesics_notes.md
-DEFAULT_DELTA = 2.0  # delta-stepping bucket (mean edge lengths) for distances: few iterations
-PATH_DELTA = 0.05  # near-Dijkstra order for paths: parents settle before children use them, so
-#                    traced polylines are as long as the distances (see GeodesicSolver.trace)
-BYTES_PER_NODE = 76  # solver state per (source row, node)
+DEFAULT_DELTA = 2.0  # delta-stepping bucket (mean edge lengths): few iterations, ~2.4 improvements per node
+PATH_DELTA = DEFAULT_DELTA  # paths come from the same run as distances: every node keeps a path record that never
+#                             goes stale, and distances are made equal to the traced lengths (GeodesicSolver.trace)
+BYTES_PER_NODE = 110  # solver state per (source row, node): see GeodesicSolver._alloc
+MAX_BATCH = 512
 
 
 def _kernels():
@@ -59,6 +60,13 @@ class Topology:
         ef[e_sorted[m], rank[m]] = face_of[m]
         self.edge_faces = ef
         self.nonmanifold_edges = int(np.sum(rank >= 2))
+        # node -> faces (CSR): faces around each vertex, and all faces of each edge (non-manifold ones too)
+        nvtx = len(vertices)
+        fo = np.argsort(f.reshape(-1), kind="stable")
+        self.vf_idx = (fo // 3).astype(np.int32)
+        self.vf_off = np.r_[0, np.cumsum(np.bincount(f.reshape(-1), minlength=nvtx))].astype(np.int32)
+        self.ef_idx = face_of.astype(np.int32)
+        self.ef_off = np.r_[0, np.cumsum(np.bincount(inv, minlength=ne))].astype(np.int32)
         v = np.asarray(vertices, dtype=np.float64)
         p = v[f]
         area2 = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
@@ -72,12 +80,15 @@ class GeodesicSolver:
     """Multi-source solver bound to one mesh and device. Reuse it for many sources.
 
     k: Steiner points per edge; windows: exact unfolding on (upper bounds either way);
-    batch: source rows solved together (default: from a memory budget); max_iter: safety cap.
+    batch: source rows solved together (default: from a memory budget: 25% of the free device memory on CUDA,
+    1 GB on CPU; BYTES_PER_NODE per row and node); max_iter: safety cap on iterations.
+    worklist: each iteration touches only the frontier (nodes improved in the previous one) instead of every
+    (row, face) and (row, node); False keeps the dense passes (same results, kept as a reference).
     """
 
     def __init__(self, mesh, k: int = DEFAULT_K, windows: bool = True, device=None, batch: int | None = None,
                  max_iter: int = 100000, memory_budget: float | None = None, max_rows: int | None = None,
-                 delta: float = DEFAULT_DELTA):
+                 delta: float = DEFAULT_DELTA, worklist: bool = True):
         self.mesh = load_mesh(mesh)
         if k < 1:
             raise ValueError("k (Steiner points per edge) must be >= 1")
@@ -85,6 +96,7 @@ class GeodesicSolver:
         self.windows = bool(windows)
         self.device = wp.get_device(device)
         self.max_iter = int(max_iter)
+        self.worklist = bool(worklist)
         t0 = time.perf_counter()
         self.topo = Topology(self.mesh.vertices, self.mesh.faces)
         self.nv = len(self.mesh.vertices)
@@ -97,9 +109,12 @@ class GeodesicSolver:
         if self.n_nodes >= 2**31 - 1:
             raise ValueError("mesh too large for int32 node ids; lower k")
         if memory_budget is None:
-            memory_budget = 8e9 if self.device.is_cuda else 1e9
+            memory_budget = 1e9
+            if self.device.is_cuda:
+                free = getattr(self.device, "free_memory", None)
+                memory_budget = 0.25 * float(free) if free else 8e9
         if batch is None:
-            batch = int(max(1, min(64, memory_budget // (self.n_nodes * BYTES_PER_NODE))))
+            batch = int(max(1, min(MAX_BATCH, memory_budget // (self.n_nodes * BYTES_PER_NODE))))
             if max_rows:
                 batch = min(batch, int(max_rows))
         self.batch = int(batch)
@@ -126,10 +141,65 @@ class GeodesicSolver:
         self.nw = [z(float) for _ in range(5)]
         self.n_in_face, self.n_info = z(int), z(int)
         self.changed, self.improved = z(wp.int8), z(wp.int8)
+        # path records (never stale; see kernels/geodesic.py) and their staging
+        self.origin, self.n_origin = z(int), z(int)
+        self.pa, self.ph = z(float), z(float)
+        # frontier worklists: two ping-pong lists, the per-iteration improved list, and their stamps
+        self.vf_off, self.vf_idx = wp.array(t.vf_off, dtype=int, device=d), wp.array(t.vf_idx, dtype=int, device=d)
+        self.ef_off, self.ef_idx = wp.array(t.ef_off, dtype=int, device=d), wp.array(t.ef_idx, dtype=int, device=d)
+        self.lists = [z(int), z(int)]
+        self.counts = [wp.zeros(b, dtype=int, device=d), wp.zeros(b, dtype=int, device=d)]
+        self.tlist, self.tcount = z(int), wp.zeros(b, dtype=int, device=d)
+        self.qstamp, self.tstamp = z(int), z(int)
+        self.work = wp.zeros((b, 3), dtype=int, device=d)
+        # threads per row of the list launches (a grid-stride loop covers longer lists)
+        self.row_threads = max(32, min(4096, (1 << 18) // b)) if d.is_cuda else 1
         self.thr = wp.zeros(b, dtype=float, device=d)
         self.minpend = wp.zeros(b, dtype=float, device=d)
         self.cond = wp.zeros(1, dtype=int, device=d)
         self.counter = wp.zeros(1, dtype=int, device=d)
+
+    def _step(self, c, x):
+        """One worklist iteration: relax lists[c], build lists[x]."""
+        kg = _kernels()
+        d, b, T = self.device, self.batch, self.row_threads
+        wp.launch(kg.clear_list_kernel, dim=b, device=d,
+                  inputs=[self.cond, self.counter, self.thr, self.minpend, self.delta, self.counts[x], self.tcount])
+        wp.launch(kg.relax_list_kernel, dim=(b, T), device=d,
+                  inputs=[self.nv, self.k, int(self.windows), self.pos, self.faces_w, self.edges_w, self.fe_w,
+                          self.fok_w, self.vf_off, self.vf_idx, self.ef_off, self.ef_idx, self.dist, self.in_face,
+                          *self.w, self.lists[c], self.counts[c], self.lists[x], self.counts[x], self.qstamp,
+                          self.tlist, self.tcount, self.tstamp, self.thr, self.minpend, self.key, self.counter,
+                          self.cond, self.max_iter, self.work, T])
+        wp.launch(kg.decode_list_kernel, dim=(b, T), device=d,
+                  inputs=[self.nv, self.k, int(self.windows), self.pos, self.faces_w, self.edges_w, self.fe_w,
+                          self.ef_w, self.fok_w, self.key, self.dist, self.in_face, *self.w, self.improved,
+                          self.n_in_face, self.n_info, *self.nw, self.n_origin, self.origin, self.pa, self.ph,
+                          self.tlist, self.tcount, self.work, T])
+        wp.launch(kg.commit_list_kernel, dim=(b, T), device=d,
+                  inputs=[self.key, self.dist, self.parent, self.in_face, self.info, *self.w, self.improved,
+                          self.n_in_face, self.n_info, *self.nw, self.n_origin, self.origin, self.tlist,
+                          self.tcount, self.lists[x], self.counts[x], self.qstamp, self.cond, self.counter,
+                          self.max_iter, self.minpend, T])
+
+    def _list_body(self):
+        # two iterations per body so the ping-pong lists need no copy (the second one is empty once done)
+        self._step(0, 1)
+        self._step(1, 0)
+
+    def _consistent(self):
+        """Lower each distance to the exact length of the path its records describe (pointer jumping)."""
+        kg = _kernels()
+        d, dims = self.device, (self.batch, self.n_nodes)
+        ptr, acc = [self.n_origin, self.n_info], [self.nw[0], self.nw[1]]  # staging is free after the solve
+        wp.launch(kg.slack_init_kernel, dim=dims, device=d,
+                  inputs=[self.nv, self.k, self.pos, self.faces_w, self.edges_w, self.dist, self.parent, self.info,
+                          self.origin, self.pa, self.ph, ptr[0], acc[0]])
+        rounds = max(1, int(np.ceil(np.log2(max(self.n_nodes, 2)))))
+        for r in range(rounds):
+            wp.launch(kg.slack_jump_kernel, dim=dims, device=d,
+                      inputs=[ptr[r % 2], acc[r % 2], ptr[(r + 1) % 2], acc[(r + 1) % 2]])
+        wp.launch(kg.slack_apply_kernel, dim=dims, device=d, inputs=[acc[rounds % 2], self.dist])
 
     def _body(self):
         kg = _kernels()
@@ -143,20 +213,30 @@ class GeodesicSolver:
         wp.launch(kg.decode_kernel, dim=(b, n), device=d,
                   inputs=[self.nv, self.k, int(self.windows), self.pos, self.faces_w, self.edges_w, self.fe_w,
                           self.ef_w, self.fok_w, self.key, self.dist, self.in_face, *self.w, self.improved,
-                          self.n_in_face, self.n_info, *self.nw])
+                          self.n_in_face, self.n_info, *self.nw, self.n_origin, self.origin, self.pa, self.ph])
         wp.launch(kg.commit_kernel, dim=(b, n), device=d,
                   inputs=[self.key, self.dist, self.parent, self.in_face, self.info, *self.w, self.improved,
-                          self.n_in_face, self.n_info, *self.nw, self.changed, self.cond, self.counter,
-                          self.max_iter, self.thr, self.minpend])
+                          self.n_in_face, self.n_info, *self.nw, self.n_origin, self.origin, self.changed, self.cond,
+                          self.counter, self.max_iter, self.thr, self.minpend])
 
     def _program(self):
         kg = _kernels()
         wp.launch(kg.init_kernel, dim=(self.batch, self.n_nodes), device=self.device,
-                  inputs=[self.src_w, self.key, self.dist, self.parent, self.in_face, self.info, self.changed])
+                  inputs=[self.src_w, self.key, self.dist, self.parent, self.in_face, self.info, self.changed,
+                          self.origin])
         self.cond.fill_(1)
         self.counter.zero_()
         self.minpend.zero_()  # the sources sit at distance 0
-        wp.capture_while(self.cond, self._body)
+        self.work.zero_()
+        if self.worklist:
+            self.qstamp.zero_()
+            self.tstamp.zero_()
+            wp.launch(kg.init_list_kernel, dim=self.batch, device=self.device,
+                      inputs=[self.src_w, self.lists[0], self.counts[0], self.minpend])
+            wp.capture_while(self.cond, self._list_body)
+        else:
+            wp.capture_while(self.cond, self._body)
+        self._consistent()
 
     def _run_program(self):
         # One graph replay per batch: the loop runs on the device without host syncs. If capture is not
@@ -188,7 +268,22 @@ class GeodesicSolver:
         wp.synchronize_device(self.device)
         self.timings["solve_s"] += time.perf_counter() - t0
         self.timings["iterations"].append(int(self.counter.numpy()[0]))
+        w = self.work.numpy()[: len(src)].sum(axis=0)
+        self.timings.setdefault("work", []).append([int(v) for v in w])
         self.rows = src
+
+    def work_stats(self) -> dict:
+        """Work of the last run per source: relaxed nodes, node visits (list entries or dense (row, node)/(row,
+        face) items) and iterations; the dense solver's visits are iterations * (faces + 2 nodes)."""
+        it = self.timings["iterations"][-1]
+        rel, read, dec = self.timings["work"][-1]
+        n = len(self.rows)
+        if self.worklist:
+            visits = (read + 2 * dec) / n
+        else:
+            visits = it * (len(self.topo.faces) + 2 * self.n_nodes)
+        return {"iterations": it, "relaxed_per_source": rel / n if self.worklist else None,
+                "visits_per_source": float(visits), "nodes": self.n_nodes}
 
     def vertex_distances(self) -> np.ndarray:
         """(rows, V) float32 distances of the last run, normalized units (inf = unreachable)."""
@@ -207,8 +302,10 @@ class GeodesicSolver:
         """Shortest paths of the last run: row r's source to internal vertex targets[i].
 
         Returns (points (P,3) float32 normalized, offsets (T+1,), stale (T,)); path i is
-        points[offsets[i]:offsets[i+1]] ordered from the source. stale counts bends forced by a window
-        chain that changed after use (the path then is slightly longer than the distance); -1 = truncated.
+        points[offsets[i]:offsets[i+1]] ordered from the source. Paths follow each node's path record (a graph
+        edge, or a straight unfolded ray walked face by face to its origin node), so a path's length equals the
+        node's distance up to float rounding. stale counts rays whose walk failed numerically (the path then
+        jumps to the ray's origin; not seen in the tests); -1 = truncated (max_steps).
         """
         kg = _kernels()
         rows = np.asarray(rows, dtype=np.int32).reshape(-1)
@@ -218,6 +315,7 @@ class GeodesicSolver:
             return np.zeros((0, 3), np.float32), np.zeros(1, np.int64), np.zeros(0, np.int32)
         if max_steps is None:
             max_steps = 4 * (max(self.timings["iterations"][-1], 1) + 16) * (self.k + 1)
+            max_steps = max(max_steps, int(64 * np.sqrt(len(self.topo.faces))) + 1024)
         d = self.device
         rw = wp.array(rows, dtype=int, device=d)
         tw = wp.array(targets, dtype=int, device=d)
@@ -225,9 +323,9 @@ class GeodesicSolver:
         stale = wp.zeros(T, dtype=int, device=d)
         offs = wp.zeros(T, dtype=int, device=d)
         dummy = wp.zeros(1, dtype=wp.vec3, device=d)
-        args = [self.nv, self.k, self.pos, self.faces_w, self.edges_w, rw, tw, self.parent, self.in_face,
-                self.info, self.w[0], self.w[1], self.w[3], self.w[4], max_steps]
-        wp.launch(kg.trace_kernel, dim=T, inputs=args + [0, offs, dummy, counts, stale], device=d)
+        args = [self.nv, self.k, self.pos, self.faces_w, self.edges_w, self.fe_w, self.ef_w, rw, tw, self.parent,
+                self.info, self.origin, self.pa, self.ph, max_steps]
+        wp.launch(kg.walk_kernel, dim=T, inputs=args + [0, offs, dummy, counts, stale], device=d)
         c = counts.numpy().astype(np.int64)
         offsets = np.zeros(T + 1, dtype=np.int64)
         np.cumsum(c, out=offsets[1:])
@@ -235,7 +333,7 @@ class GeodesicSolver:
             raise MemoryError("too many path points in one trace call; trace fewer targets at a time")
         offs.assign(offsets[:-1].astype(np.int32))
         pts = wp.zeros(max(int(offsets[-1]), 1), dtype=wp.vec3, device=d)
-        wp.launch(kg.trace_kernel, dim=T, inputs=args + [1, offs, pts, counts, stale], device=d)
+        wp.launch(kg.walk_kernel, dim=T, inputs=args + [1, offs, pts, counts, stale], device=d)
         p = pts.numpy()[: offsets[-1]]
         # written target->source: reverse each path so it starts at the source
         seg = np.repeat(np.arange(T), c)
