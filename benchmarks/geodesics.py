@@ -3,6 +3,9 @@
 GPU (lead's machine):   python benchmarks/geodesics.py --device cuda:0
 CPU smoke test (here):  python benchmarks/geodesics.py --device cpu --small
 
+Distances and paths come from the same solver runs (paths for the first --path-sources sources); a progress line
+per batch (flushed) shows the rate so far.
+
 Default mesh: the Stanford bunny midpoint-subdivided to about --vertices (436,000) vertices.
 Prints a table and writes JSON (--json). Compile time is measured apart from run time; every stage reports
 errors instead of aborting the whole run.
@@ -91,58 +94,70 @@ def main(argv=None) -> int:
         res["errors"]["compile"] = repr(e)
         traceback.print_exc()
 
-    # distances
+    # distances and paths from the same runs (paths for the first --path-sources sources)
     D = None
     try:
         solver = G.GeodesicSolver(m, k=k, device=dev, batch=a.batch, max_rows=n_src)
-        res.update(nodes=solver.n_nodes, batch=solver.batch, setup_s=solver.timings["setup_s"])
+        res.update(nodes=solver.n_nodes, batch=solver.batch, setup_s=solver.timings["setup_s"],
+                   bytes_per_row=solver.n_nodes * G.BYTES_PER_NODE)
+        print(f"nodes {solver.n_nodes}, batch {solver.batch} rows, "
+              f"{solver.n_nodes * G.BYTES_PER_NODE / 1e9:.3f} GB per row", flush=True)
         solver.run(src[: solver.batch])  # warm-up: graph capture + first replay
         wp.synchronize_device(dev)
-        solver.timings.update(solve_s=0.0, iterations=[])
+        solver.timings.update(solve_s=0.0, iterations=[], work=[])
+        nb = (n_src + solver.batch - 1) // solver.batch
+        D = np.empty((min(n_check, n_src), len(m.vertices)), np.float32)
+        t_path = 0.0
+        npts = 0
+        lens_err, stale = [], 0
+        visits = relaxed = 0.0
         t0 = time.perf_counter()
-        D = solver.solve(src)
+        for bi, i in enumerate(range(0, n_src, solver.batch)):
+            s = src[i: i + solver.batch]
+            solver.run(s)
+            ws = solver.work_stats()
+            visits += ws["visits_per_source"] * len(s)
+            relaxed += (ws["relaxed_per_source"] or 0.0) * len(s)
+            dist = solver.vertex_distances()
+            if i < len(D):
+                D[i: i + len(s)] = dist[: len(D) - i]
+            npr = min(len(s), max(0, n_psrc - i))
+            if npr:
+                tp = time.perf_counter()
+                rows = np.repeat(np.arange(npr), a.paths)
+                tg = rng.integers(0, len(m.vertices), len(rows))
+                pts, offs, st = solver.trace(rows, tg)
+                P = G.resample_polyline(pts, offs, 128)
+                t_path += time.perf_counter() - tp
+                npts += len(pts)
+                stale += int(np.sum(st != 0))
+                d = dist[rows, tg]
+                seg = np.linalg.norm(np.diff(pts.astype(np.float64), axis=0), axis=1)
+                cs = np.r_[0, np.cumsum(seg)]
+                L = cs[offs[1:] - 1] - cs[offs[:-1]]
+                ok = np.isfinite(d) & (d > 0)
+                lens_err.extend((np.abs(L[ok] - d[ok]) / d[ok]).tolist())
+                del P
+            el = time.perf_counter() - t0
+            done = i + len(s)
+            print(f"batch {bi + 1}/{nb}: {done} sources in {el:.1f} s ({done / el:.2f} sources/s), "
+                  f"{solver.timings['iterations'][-1]} iterations, {ws['visits_per_source']:.3g} node visits/source",
+                  flush=True)
         wp.synchronize_device(dev)
         dt = time.perf_counter() - t0
-        res.update(dist_s=dt, dist_sources_per_s=n_src / dt, iterations=solver.timings["iterations"],
-                   captured_graph=bool(solver._graph), peak_mem_bytes=peak_mem(dev),
-                   state_bytes=solver.n_nodes * solver.batch * G.BYTES_PER_NODE)
-        D = D[:n_check] / m.scale
+        res.update(total_s=dt, sources_per_s=n_src / dt, dist_s=dt - t_path, dist_sources_per_s=n_src / (dt - t_path),
+                   iterations=solver.timings["iterations"], captured_graph=bool(solver._graph),
+                   peak_mem_bytes=peak_mem(dev), state_bytes=solver.n_nodes * solver.batch * G.BYTES_PER_NODE,
+                   node_visits_per_source=visits / n_src, relaxed_per_source=relaxed / n_src)
+        if n_psrc:
+            res.update(path_s=t_path, path_sources_per_s=min(n_psrc, n_src) / max(t_path, 1e-9),
+                       paths_total=min(n_psrc, n_src) * a.paths,
+                       path_points_mean=npts / max(min(n_psrc, n_src) * a.paths, 1), path_stale=stale,
+                       path_len_vs_dist_max_rel=float(np.max(lens_err)) if len(lens_err) else None)
+        D = D / m.scale
         del solver
     except Exception as e:  # noqa: BLE001
         res["errors"]["distances"] = repr(e)
-        traceback.print_exc()
-
-    # paths
-    try:
-        if n_psrc:
-            ps = G.GeodesicSolver(m, k=k, device=dev, batch=a.batch, delta=G.PATH_DELTA, max_rows=n_psrc)
-            t0 = time.perf_counter()
-            npts = 0
-            lens_err = []
-            for i in range(0, n_psrc, ps.batch):
-                s = src[i: i + ps.batch]
-                ps.run(s)
-                rows = np.repeat(np.arange(len(s)), a.paths)
-                tg = rng.integers(0, len(m.vertices), len(rows))
-                pts, offs, st = ps.trace(rows, tg)
-                P = G.resample_polyline(pts, offs, 128)
-                npts += len(pts)
-                if i == 0:
-                    d = ps.vertex_distances()[rows, tg]
-                    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-                    cs = np.r_[0, np.cumsum(seg)]
-                    L = cs[offs[1:] - 1] - cs[offs[:-1]]
-                    ok = np.isfinite(d) & (d > 0)
-                    lens_err = np.abs(L[ok] - d[ok]) / d[ok]
-            wp.synchronize_device(dev)
-            dt = time.perf_counter() - t0
-            res.update(path_s=dt, path_sources_per_s=n_psrc / dt, paths_total=n_psrc * a.paths,
-                       path_points_mean=npts / max(n_psrc * a.paths, 1), path_iterations=ps.timings["iterations"],
-                       path_len_vs_dist_max_rel=float(np.max(lens_err)) if len(lens_err) else None,
-                       peak_mem_bytes_after_paths=peak_mem(dev))
-            del P
-    except Exception as e:  # noqa: BLE001
-        res["errors"]["paths"] = repr(e)
         traceback.print_exc()
 
     # exact (tvb-gdist) and heat (potpourri3d) on the first n_check sources, CPU
@@ -183,9 +198,12 @@ def main(argv=None) -> int:
           f"k={k}, nodes={res.get('nodes')}, batch={res.get('batch')}")
     rows = [
         ("compile (s)", fmt("compile_s")), ("setup (s)", fmt("setup_s")),
-        (f"distances: {n_src} sources (s)", fmt("dist_s")), ("distance sources / s", fmt("dist_sources_per_s", prec=2)),
-        (f"paths: {n_psrc} sources x {a.paths} (s)", fmt("path_s")),
-        ("path sources / s", fmt("path_sources_per_s", prec=2)),
+        (f"distances + paths: {n_src} sources (s)", fmt("total_s")), ("sources / s (both)", fmt("sources_per_s", prec=2)),
+        ("distance solve (s)", fmt("dist_s")), ("distance sources / s", fmt("dist_sources_per_s", prec=2)),
+        (f"paths: {n_psrc} sources x {a.paths}, trace + resample (s)", fmt("path_s")),
+        ("node visits / source", fmt("node_visits_per_source", prec=0)),
+        ("relaxed nodes / source", fmt("relaxed_per_source", prec=0)),
+        ("stale paths", fmt("path_stale", prec=0)),
         ("path length vs distance, max rel", fmt("path_len_vs_dist_max_rel", prec=2 if False else 7)),
         ("peak GPU mempool (GB)", fmt("peak_mem_bytes", scale=1e-9)),
         ("solver state estimate (GB)", fmt("state_bytes", scale=1e-9)),

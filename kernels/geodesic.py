@@ -889,6 +889,9 @@ def walk_kernel(nv: int, k: int, pos: wp.array(dtype=wp.vec3), faces: wp.array2d
         ok = bool(False)
         while steps < max_steps:
             steps += 1
+            if face_has_node(face, o, nv, k, faces, face_edges):
+                ok = True  # the origin is on this face: the rest of the ray is the straight segment to it
+                break
             p0 = pos[faces[face, 0]]
             nrm = wp.cross(pos[faces[face, 1]] - p0, pos[faces[face, 2]] - p0)
             dv = S - Q
