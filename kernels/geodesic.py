@@ -825,6 +825,91 @@ def slack_apply_kernel(acc: wp.array2d(dtype=float), dist: wp.array2d(dtype=floa
         dist[s, x] = dist[s, x] - a
 
 
+@wp.func
+def walk_ray(cur: int, o: int, g: int, S_in: wp.vec3, nv: int, k: int, pos: wp.array(dtype=wp.vec3),
+             faces: wp.array2d(dtype=int), edges: wp.array2d(dtype=int), face_edges: wp.array2d(dtype=int),
+             edge_faces: wp.array2d(dtype=int), max_steps: int, write: int, pts: wp.array(dtype=wp.vec3),
+             at: int) -> int:
+    """Walk the straight unfolded ray from node cur (in face g) towards the virtual source S_in until the face
+    holding the origin o; returns the number of crossing points (written at pts[at...] when write=1), or -1 when
+    the walk fails (no exit, a boundary, no progress, or more than max_steps faces)."""
+    S = S_in
+    n = int(0)
+    steps = int(0)
+    Q = node_pos(cur, nv, k, pos, edges)
+    face = g
+    # edges the walk must not leave through: those holding the start point, then the entry edge
+    ex0 = int(-1)
+    ex1 = int(-1)
+    if cur >= nv:
+        ex0 = (cur - nv) // k
+    else:
+        for le in range(3):
+            if faces[g, le] == cur or faces[g, (le + 1) % 3] == cur:
+                if ex0 < 0:
+                    ex0 = face_edges[g, le]
+                else:
+                    ex1 = face_edges[g, le]
+    ok = bool(False)
+    while steps < max_steps:
+        steps += 1
+        if face_has_node(face, o, nv, k, faces, face_edges):
+            ok = True  # the origin is on this face: the rest of the ray is the straight segment to it
+            break
+        p0 = pos[faces[face, 0]]
+        nrm = wp.cross(pos[faces[face, 1]] - p0, pos[faces[face, 2]] - p0)
+        dv = S - Q
+        best_t = float(2.0)
+        best_le = int(-1)
+        best_w = float(0.0)
+        for le in range(3):
+            ed = face_edges[face, le]
+            if ed == ex0 or ed == ex1:
+                continue
+            B0 = pos[faces[face, le]]
+            evl = pos[faces[face, (le + 1) % 3]] - B0
+            den = wp.dot(wp.cross(dv, evl), nrm)
+            if wp.abs(den) <= 0.0:
+                continue
+            tt = wp.dot(wp.cross(B0 - Q, evl), nrm) / den
+            ww = wp.dot(wp.cross(B0 - Q, dv), nrm) / den
+            if tt > -1.0e-4 and ww >= -1.0e-4 and ww <= 1.0001 and tt < best_t:
+                best_t = tt
+                best_le = le
+                best_w = ww
+        if best_le < 0:
+            break
+        if best_t <= 1.0e-6:
+            break  # no progress (e.g. circling a vertex): fail, the caller bends at the parent instead
+        if best_t >= 1.0 - 1.0e-5:
+            ok = True  # the virtual source (the origin node) lies on this face's boundary
+            break
+        ed = face_edges[face, best_le]
+        B0 = pos[faces[face, best_le]]
+        Q = B0 + wp.clamp(best_w, 0.0, 1.0) * (pos[faces[face, (best_le + 1) % 3]] - B0)
+        if write != 0:
+            pts[at + n] = Q
+        n += 1
+        f0 = edge_faces[ed, 0]
+        nf = edge_faces[ed, 1]
+        if f0 != face:
+            nf = f0
+        if nf < 0 or nf == face:
+            break
+        A2 = pos[edges[ed, 0]]
+        ev2 = pos[edges[ed, 1]] - A2
+        eh2 = ev2 / wp.length(ev2)
+        r = S - A2
+        n2 = in_plane_normal(A2, eh2, pos[opposite_vertex(nf, ed, faces, edges)])
+        S = A2 + wp.dot(r, eh2) * eh2 + wp.length(wp.cross(r, eh2)) * n2
+        face = nf
+        ex0 = ed
+        ex1 = int(-1)
+    if not ok:
+        return -1
+    return n
+
+
 @wp.kernel
 def walk_kernel(nv: int, k: int, pos: wp.array(dtype=wp.vec3), faces: wp.array2d(dtype=int),
                 edges: wp.array2d(dtype=int), face_edges: wp.array2d(dtype=int), edge_faces: wp.array2d(dtype=int),
@@ -872,75 +957,19 @@ def walk_kernel(nv: int, k: int, pos: wp.array(dtype=wp.vec3), faces: wp.array2d
         eh = ev / wp.length(ev)
         ng = in_plane_normal(A, eh, pos[opposite_vertex(g, e, faces, edges)])
         S = A + pa[s, cur] * eh - ph[s, cur] * ng
-        Q = node_pos(cur, nv, k, pos, edges)
-        face = g
-        # edges the walk must not leave through: those holding the start point, then the entry edge
-        ex0 = int(-1)
-        ex1 = int(-1)
-        if cur >= nv:
-            ex0 = (cur - nv) // k
-        else:
-            for le in range(3):
-                if faces[g, le] == cur or faces[g, (le + 1) % 3] == cur:
-                    if ex0 < 0:
-                        ex0 = face_edges[g, le]
-                    else:
-                        ex1 = face_edges[g, le]
-        ok = bool(False)
-        while steps < max_steps:
-            steps += 1
-            if face_has_node(face, o, nv, k, faces, face_edges):
-                ok = True  # the origin is on this face: the rest of the ray is the straight segment to it
-                break
-            p0 = pos[faces[face, 0]]
-            nrm = wp.cross(pos[faces[face, 1]] - p0, pos[faces[face, 2]] - p0)
-            dv = S - Q
-            best_t = float(2.0)
-            best_le = int(-1)
-            best_w = float(0.0)
-            for le in range(3):
-                ed = face_edges[face, le]
-                if ed == ex0 or ed == ex1:
-                    continue
-                B0 = pos[faces[face, le]]
-                evl = pos[faces[face, (le + 1) % 3]] - B0
-                den = wp.dot(wp.cross(dv, evl), nrm)
-                if wp.abs(den) <= 0.0:
-                    continue
-                tt = wp.dot(wp.cross(B0 - Q, evl), nrm) / den
-                ww = wp.dot(wp.cross(B0 - Q, dv), nrm) / den
-                if tt > -1.0e-4 and ww >= -1.0e-4 and ww <= 1.0001 and tt < best_t:
-                    best_t = tt
-                    best_le = le
-                    best_w = ww
-            if best_le < 0:
-                break
-            if best_t >= 1.0 - 1.0e-5:
-                ok = True  # the virtual source (the origin node) lies on this face's boundary
-                break
-            ed = face_edges[face, best_le]
-            B0 = pos[faces[face, best_le]]
-            Q = B0 + wp.clamp(best_w, 0.0, 1.0) * (pos[faces[face, (best_le + 1) % 3]] - B0)
-            if write != 0:
-                pts[base + n] = Q
-            n += 1
-            f0 = edge_faces[ed, 0]
-            nf = edge_faces[ed, 1]
-            if f0 != face:
-                nf = f0
-            if nf < 0 or nf == face:
-                break
-            A2 = pos[edges[ed, 0]]
-            ev2 = pos[edges[ed, 1]] - A2
-            eh2 = ev2 / wp.length(ev2)
-            r = S - A2
-            n2 = in_plane_normal(A2, eh2, pos[opposite_vertex(nf, ed, faces, edges)])
-            S = A2 + wp.dot(r, eh2) * eh2 + wp.length(wp.cross(r, eh2)) * n2
-            face = nf
-            ex0 = ed
-            ex1 = int(-1)
-        if not ok:
+        m = walk_ray(cur, o, g, S, nv, k, pos, faces, edges, face_edges, edge_faces, max_steps, 0, pts, 0)
+        if m < 0:
+            # numerically failed walk: bend at the parent (shares face g with cur) and go on from there
             nstale += 1
+            if write != 0:
+                pts[base + n] = node_pos(par, nv, k, pos, edges)
+            n += 1
+            cur = par
+            continue
+        steps += m
+        if write != 0:
+            walk_ray(cur, o, g, S, nv, k, pos, faces, edges, face_edges, edge_faces, max_steps, 1, pts, base + n)
+        n += m
         if write != 0:
             pts[base + n] = node_pos(o, nv, k, pos, edges)
         n += 1
