@@ -68,7 +68,7 @@ def _heat(mesh: Mesh, source_ids, vertex_ids):
 
 
 @torch.no_grad()
-def _paths(net, mesh: Mesh, rng, n_sources, n_targets, device, solver_device):
+def _paths(net, mesh: Mesh, rng, n_sources, n_targets, device, solver_device, k):
     """Chamfer-L1 of predicted 128-point paths against solver paths between random vertex pairs."""
     from .geodesics import geodesic_paths
 
@@ -77,7 +77,8 @@ def _paths(net, mesh: Mesh, rng, n_sources, n_targets, device, solver_device):
     for s in rng.choice(V, min(n_sources, V), replace=False):
         tg = rng.choice(V, min(n_targets, V), replace=False)
         tg = tg[tg != s]
-        g = geodesic_paths(mesh, mesh.index[s], mesh.index[tg], m=128, device=solver_device)
+        kw = {} if k is None else {"k": k}
+        g = geodesic_paths(mesh, mesh.index[s], mesh.index[tg], m=128, device=solver_device, **kw)
         g = mesh.normalize(g.reshape(-1, 3)).reshape(g.shape)
         ok = np.isfinite(g).all(axis=(1, 2))
         gts.append(g[ok])
@@ -109,10 +110,12 @@ def _warp_device(device: torch.device) -> str:
 
 def evaluate(model, mesh=None, reference=None, *, heat: bool = False, n_sources: int = 8,
              n_path_sources: int = 8, n_path_targets: int = 8, n_sdf: int = 30000, paths: bool = True,
-             sdf: bool = True, device=None, seed: int = 0, verbose: bool = True) -> dict:
+             sdf: bool = True, solver_k: int | None = None, device=None, seed: int = 0,
+             verbose: bool = True) -> dict:
     """Accuracy of ``model`` (a Model or a model file) on ``mesh`` (default: the model's own mesh).
 
     reference: exact-distance .npz (else the solver from ``n_sources`` random vertices).
+    solver_k: Steiner points per edge for the solver's distances and paths (None: its default).
     Returns a dict (errors as fractions, distances normalized); prints a table when ``verbose``.
     """
     if not hasattr(model, "net"):
@@ -137,7 +140,8 @@ def evaluate(model, mesh=None, reference=None, *, heat: bool = False, n_sources:
 
         vids = np.arange(len(mesh.vertices))
         sids = np.sort(rng.choice(len(vids), min(n_sources, len(vids)), replace=False))
-        gt = geodesic_distances(mesh, mesh.index[sids], device=wdev)[:, mesh.index].astype(np.float64) * mesh.scale
+        kw = {} if solver_k is None else {"k": solver_k}
+        gt = geodesic_distances(mesh, mesh.index[sids], device=wdev, **kw)[:, mesh.index].astype(np.float64) * mesh.scale
         res["reference"] = "solver"
     res["ground_truth_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -149,7 +153,7 @@ def evaluate(model, mesh=None, reference=None, *, heat: bool = False, n_sources:
         res["heat"] = _rel_stats(_heat(mesh, sids, vids), gt)
         res["heat"]["seconds"] = time.perf_counter() - t0
     if paths:
-        res.update(_paths(net, mesh, rng, n_path_sources, n_path_targets, dev, wdev))
+        res.update(_paths(net, mesh, rng, n_path_sources, n_path_targets, dev, wdev, solver_k))
     if sdf:
         res.update(_sdf(model, mesh, rng, n_sdf, dev, wdev))
     if verbose:

@@ -1,0 +1,169 @@
+"""Train NeuroGF on bunny and fandisk and measure it against the exact references, in one command.
+
+GPU (the target: everything, ground truth included, inside one 9-minute call):
+    python benchmarks/train.py --device cuda:0 --budget-seconds 500
+CPU smoke test (a couple of minutes; tiny data and network, numbers meaningless):
+    python benchmarks/train.py --device cpu --small
+
+Per mesh: build the dataset (our solver), train with the step counts scaled to the time left, then
+evaluate: MRE / max relative error over the 8 exact-reference sources, path Chamfer-L1 against solver
+paths, SDF L1, and the heat method on the same sources. Writes <out>/train_bench.json and, when
+matplotlib is importable, <out>/loss_curves.png.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from neurogf_warp.dataset import build_dataset  # noqa: E402
+from neurogf_warp.evaluate import evaluate, format_table  # noqa: E402
+from neurogf_warp.mesh import load_mesh  # noqa: E402
+from neurogf_warp.train import log_path, train  # noqa: E402
+
+SHARED = ROOT.parent / "shared"
+MESHES = {"bunny": ("stanford-bunny.obj", "stanford-bunny.npz"), "fandisk": ("fandisk.obj", "fandisk.npz")}
+TARGETS = {"bunny": 0.0040, "fandisk": 0.0027, "chamfer_l1": 1.25e-2}
+SHARE = {"bunny": 0.6, "fandisk": 0.4}  # bunny is larger and has the harder target
+
+FULL_DATA = dict(n_sources=512, n_path_sources=64, n_path_global=256, n_path_local=64, n_test=8)
+SMALL_DATA = dict(n_sources=24, n_global=512, n_local1=16, n_local2=64, n_path_sources=8, n_path_global=16,
+                  n_path_local=16, n_test=2, n_surface=30000, n_spread=2000, k=1)  # k=1: ~14 s for bunny on CPU
+SMALL_TRAIN = dict(D=64, batch_sdf=2048, batch_g=4096, batch_l1=512, batch_l2=1024, batch_paths_g=128,
+                   batch_paths_l=128, batch_surf=16, batch_querier=2048, sdf_pool=20000, val_every=100,
+                   log_every=20)
+
+
+def _plot(results: dict, path: Path) -> bool:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except Exception:  # matplotlib is optional here
+        return False
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    for name, r in results.items():
+        h = r.get("history")
+        if not h:
+            continue
+        joint = [x for x in h["loss"] if x["stage"] == "joint"]
+        axes[0].semilogy([x["step"] for x in joint], [x["loss"] for x in joint], label=f"{name} joint loss")
+        axes[0].semilogy([x["step"] for x in joint], [x["dist_g"] for x in joint], "--", label=f"{name} L1 dist (global)")
+        if h["val"]:
+            axes[1].semilogy([v["step"] for v in h["val"]], [100 * v["mre"] for v in h["val"]], "o-", label=name)
+    axes[0].set_xlabel("joint step")
+    axes[0].legend()
+    axes[1].set_xlabel("joint step")
+    axes[1].set_ylabel("validation MRE % (held-out solver sources)")
+    axes[1].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--device", default="cuda:0" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--meshes", nargs="+", default=list(MESHES), choices=list(MESHES))
+    p.add_argument("--budget-seconds", type=float, default=None,
+                   help="wall time for the whole command (default 500 on GPU, 150 with --small)")
+    p.add_argument("--small", action="store_true", help="tiny data and network: a CPU smoke test")
+    p.add_argument("--D", type=int, default=None)
+    p.add_argument("--n-sources", type=int, default=None, help="training sources per mesh")
+    p.add_argument("--eval-reserve", type=float, default=None, help="seconds kept for evaluation per mesh")
+    p.add_argument("--amp", action="store_true", help="bf16 path head")
+    p.add_argument("--out", default=str(Path(os.environ.get("OUT", ROOT / "benchmarks" / "results")) / "train"))
+    a = p.parse_args(argv)
+
+    t_begin = time.perf_counter()
+    budget = a.budget_seconds or (150.0 if a.small else 500.0)
+    reserve = a.eval_reserve if a.eval_reserve is not None else (10.0 if a.small else 25.0)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if a.small:
+        torch.set_num_threads(1)  # tiny batches: threads only add sync overhead
+    data_opts = dict(SMALL_DATA if a.small else FULL_DATA)
+    if a.n_sources:
+        data_opts["n_sources"] = a.n_sources
+    train_opts = dict(SMALL_TRAIN) if a.small else {}
+    if a.D:
+        train_opts["D"] = a.D
+    if a.amp:
+        train_opts["amp"] = True
+
+    report = {"device": a.device, "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+              "torch": torch.__version__, "python": platform.python_version(), "budget_s": budget,
+              "small": a.small, "data_options": data_opts, "train_options": train_opts, "meshes": {}}
+
+    # 1. ground truth for every mesh first, so the training budget is what is really left
+    meshes, datasets = {}, {}
+    for name in a.meshes:
+        obj, _ = MESHES[name]
+        meshes[name] = load_mesh(SHARED / "meshes" / obj)
+        path = out / f"{name}.dataset.npz"
+        t0 = time.perf_counter()
+        build_dataset(meshes[name], path, device=a.device, progress=True, **data_opts)
+        datasets[name] = path
+        report["meshes"][name] = {"dataset_s": round(time.perf_counter() - t0, 2)}
+        print(f"[{name}] dataset built in {report['meshes'][name]['dataset_s']:.1f}s", flush=True)
+
+    # 2. train, each mesh getting its share of the time left
+    left = budget - (time.perf_counter() - t_begin) - reserve * len(a.meshes)
+    shares = {n: SHARE[n] / sum(SHARE[m] for m in a.meshes) for n in a.meshes}
+    results = {}
+    for i, name in enumerate(a.meshes):
+        left = budget - (time.perf_counter() - t_begin) - reserve * (len(a.meshes) - i)
+        rest = sum(shares[m] for m in a.meshes[i:])
+        secs = max(5.0, left * shares[name] / rest - 10.0)  # 10 s for set-up and calibration
+        model_path = out / f"{name}.ngf"
+        t0 = time.perf_counter()
+        model = train(meshes[name], model_path, dataset=datasets[name], device=a.device, budget_seconds=secs,
+                      progress=True, **train_opts)
+        r = report["meshes"][name]
+        r["train_budget_s"] = round(secs, 1)
+        r["train_wall_s"] = round(time.perf_counter() - t0, 2)
+        log = json.loads(Path(log_path(model_path)).read_text())
+        r["train_s"] = log["config"]["train_seconds"]
+        r["steps"] = log["config"]["steps"]
+        r["history"] = log["history"]
+
+        # 3. evaluate against the exact reference
+        t0 = time.perf_counter()
+        ev = evaluate(model, meshes[name], SHARED / "reference" / "exact" / MESHES[name][1], heat=True,
+                      n_path_sources=1 if a.small else 4, n_path_targets=16, solver_k=1 if a.small else None,
+                      device=a.device, verbose=False)
+        r["eval_s"] = round(time.perf_counter() - t0, 2)
+        r["eval"] = ev
+        r["mre"] = ev["neurogf"]["mre"]
+        r["chamfer_l1"] = ev.get("chamfer_l1")
+        r["meets_mre_target"] = bool(r["mre"] <= TARGETS[name])
+        r["meets_chamfer_target"] = bool(r["chamfer_l1"] is not None and r["chamfer_l1"] <= TARGETS["chamfer_l1"])
+        print(f"[{name}] " + format_table(ev).replace("\n", f"\n[{name}] "), flush=True)
+        results[name] = r
+
+    report["total_s"] = round(time.perf_counter() - t_begin, 2)
+    report["plot"] = _plot(report["meshes"], out / "loss_curves.png")
+    (out / "train_bench.json").write_text(json.dumps(report, indent=1))
+
+    print("\nmesh     MRE      target   Chamfer-L1  dataset_s  train_s  steps(joint)")
+    for name, r in results.items():
+        print(f"{name:8s} {r['mre']:.3%}  {TARGETS[name]:.2%}   {r['chamfer_l1']:.3e}   {r['dataset_s']:8.1f}"
+              f"  {r['train_s']:7.1f}  {r['steps']['joint']}")
+    print(f"total {report['total_s']:.1f}s of budget {budget:.0f}s; results in {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
