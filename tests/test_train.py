@@ -10,7 +10,9 @@ import trimesh
 from neurogf_warp.mesh import load_mesh
 from neurogf_warp.network import NeuroGFNet
 from neurogf_warp import losses as L
-from neurogf_warp import train as T
+import importlib
+
+T = importlib.import_module("neurogf_warp.train")  # the module; the package attribute `train` is the function
 
 
 # Small dataset settings: about 4 s on 2 CPU cores for the 642-vertex ellipsoid.
