@@ -70,6 +70,9 @@ class TrainConfig:
     log_every: int = 50
     ckpt_every_s: float = 120.0
     amp: bool = False                 # bf16 autocast for the path head only (CUDA)
+    # TF32 matmuls while training on CUDA (validation and saved weights stay fp32). The official runs used
+    # PyTorch 1.10 on Ampere, where TF32 was on by default for both matmul and cuDNN.
+    tf32: bool = True
     seed: int = 0
     dataset_options: dict = dataclasses.field(default_factory=dict)
 
@@ -258,6 +261,14 @@ def fast_path(net: NeuroGFNet, es, et, lines):
     return h.reshape(K, M, 3)
 
 
+def _set_tf32(on: bool) -> bool:
+    """Switch TF32 for matmul and cuDNN; returns the previous matmul setting."""
+    was = torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = on
+    torch.backends.cudnn.allow_tf32 = on
+    return was
+
+
 def _cosine(step: int, n: int, hi: float, lo: float) -> float:
     return lo + 0.5 * (hi - lo) * (1.0 + math.cos(math.pi * min(step, n) / max(n, 1)))
 
@@ -411,6 +422,7 @@ class Trainer:
     def validate(self) -> float:
         was = self.net.training
         self.net.eval()
+        tf32 = _set_tf32(False)
         d = self.data
         ev = self.net.embed(d.vertices)
         errs = []
@@ -420,6 +432,7 @@ class Trainer:
             ok = torch.isfinite(gt) & (gt > 0)
             errs.append(((pred[ok] - gt[ok]).abs() / gt[ok]).mean())
         self.net.train(was)
+        _set_tf32(tf32)
         return float(torch.stack(errs).mean()) if errs else float("nan")
 
     # -- checkpoint state
@@ -624,6 +637,7 @@ class _Runner:
             old = signal.signal(signal.SIGINT, self._on_sigint)
         except ValueError:  # not the main thread: Ctrl-C arrives as KeyboardInterrupt instead
             pass
+        tf32 = _set_tf32(cfg.tf32 and t.device.type == "cuda") if t.device.type == "cuda" else None
         save = lambda i, s: save_checkpoint(t.state(i, s, history, elapsed, self.mesh.fingerprint), self.ckpt_file)
         last_save = time.perf_counter()
         try:
@@ -676,6 +690,8 @@ class _Runner:
                 save(stage_i, step)
                 last_save = time.perf_counter()
         finally:
+            if tf32 is not None:
+                _set_tf32(tf32)
             if old is not None:
                 signal.signal(signal.SIGINT, old)
             if bar is not None:

@@ -183,3 +183,26 @@ def test_evaluate_against_exact_reference_and_solver(trained, ellipsoid, tmp_pat
     assert 0 < r["sdf_l1"] < 0.05 and r["querier_l1"] < 0.3
     s = evaluate(model, n_sources=2, paths=False, sdf=False, device="cpu", verbose=False)
     assert s["reference"] == "solver" and s["neurogf"]["mre"] < 0.06
+
+
+def test_sigint_saves_checkpoint_and_stops(tmp_path, ellipsoid, data):
+    import signal
+
+    out = tmp_path / "m.ngf"
+
+    def ctrl_c(stage, step, terms):  # a real SIGINT, as a terminal would send
+        if stage == "querier" and step == 5:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    with pytest.raises(T.TrainingInterrupted, match="--resume"):
+        T.train(ellipsoid, out, dataset=data, epochs=1, iters_per_epoch=10, callback=ctrl_c, **SMALL)
+    ck = T.load_checkpoint(T.checkpoint_path(out))
+    assert (ck["stage"], ck["step"]) == (0, 5)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handler restored
+
+
+def test_train_main_reports_bad_output_path(tmp_path, capsys):
+    mesh = tmp_path / "tri.obj"
+    trimesh.creation.icosphere(subdivisions=1).export(mesh)
+    assert T.train_main([str(mesh), "-o", str(tmp_path / "missing" / "m.ngf"), "--no-progress"]) == 2
+    assert "does not exist" in capsys.readouterr().err
