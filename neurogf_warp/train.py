@@ -17,6 +17,7 @@ Differences from the official scripts, on purpose:
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import json
@@ -190,7 +191,8 @@ def get_dataset(mesh: Mesh, dataset, out_path, device, progress, options: dict):
     from .dataset import build_dataset
 
     _say(progress, f"building the training dataset -> {cache}")
-    build_dataset(mesh, out_path=cache, seed=options.pop("seed", 0), device=device, progress=progress, **options)
+    build_dataset(mesh, out_path=cache, seed=options.pop("seed", 0), device=_warp_device(device), progress=progress,
+                  **options)
     return _load_checked(cache, mesh)[0]
 
 
@@ -374,7 +376,8 @@ class Trainer:
         p, q = gt[:, 0], gt[:, -1]
         m = gt.shape[1]
         lines = torch.cat([straight_lines(p, q, m), straight_lines(q, p, m)])
-        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.amp):
+        ctx = torch.autocast("cuda", dtype=torch.bfloat16) if self.amp else contextlib.nullcontext()
+        with ctx:
             pred = fast_path(self.net, torch.cat([es, et]), torch.cat([et, es]), lines)
         return pred.float(), torch.cat([gt, gt.flip(1)])
 
@@ -555,6 +558,8 @@ def train(mesh, out_path, *, D: int = 256, epochs: int | None = None, iters_per_
     mesh = load_mesh(mesh)
     _check_mesh(mesh)
     device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    if device.type == "cuda" and device.index is None:  # generators and tensors must agree on the index
+        device = torch.device("cuda", torch.cuda.current_device())
     ckpt_file = checkpoint_path(out_path)
 
     ck = None

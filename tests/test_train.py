@@ -154,7 +154,7 @@ def test_corrupt_dataset_cache_is_rebuilt(tmp_path, ellipsoid, capsys):
     cache = T.dataset_cache_path(out)
     with open(cache, "wb") as f:
         f.write(b"not a zip file")
-    ds = T.get_dataset(ellipsoid, None, out, "cpu", False, dict(TINY_DS, seed=0))
+    ds = T.get_dataset(ellipsoid, None, out, torch.device("cpu"), False, dict(TINY_DS, seed=0))  # as train() passes it
     assert "unreadable" in capsys.readouterr().err
     assert ds["gd_global"].shape[-1] == 7
     ds2 = T.get_dataset(ellipsoid, None, out, "cpu", True, dict(TINY_DS, seed=0))  # now reused
