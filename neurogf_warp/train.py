@@ -321,7 +321,8 @@ class Trainer:
                   "refine_sdf": lambda: self.net.sdf_head.parameters(),
                   "refine_path": lambda: list(self.net.cdw_fc.parameters()) + list(self.net.spf_head.parameters()),
                   }[stage]()
-        self.opt = torch.optim.AdamW(params, lr=c.lr, weight_decay=c.weight_decay)
+        # fused: one kernel for the whole update on CUDA instead of a few per parameter group
+        self.opt = torch.optim.AdamW(params, lr=c.lr, weight_decay=c.weight_decay, fused=self.device.type == "cuda")
         self.opt_stage = stage
         self._batch = None
         return self.opt
