@@ -1,6 +1,10 @@
 """Training pipeline on a tiny mesh (CPU): loss falls, held-out MRE bound, Ctrl-C + resume, bad input."""
 import json
 import os
+import sys
+
+sys.path.insert(0, os.path.dirname(__file__))
+from conftest import shared_path  # noqa: E402
 
 import numpy as np
 import pytest
@@ -206,3 +210,18 @@ def test_train_main_reports_bad_output_path(tmp_path, capsys):
     trimesh.creation.icosphere(subdivisions=1).export(mesh)
     assert T.train_main([str(mesh), "-o", str(tmp_path / "missing" / "m.ngf"), "--no-progress"]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_evaluate_reproduces_released_checkpoint_numbers():
+    """The released fandisk checkpoint against the exact reference: 0.274% MRE and heat 1.04% (reference/README)."""
+    from neurogf_warp.evaluate import evaluate
+    from neurogf_warp.model_io import load
+
+    ck = shared_path("checkpoints", "official", "NeuroGF_Pretrainer__fandisk_final.pth")
+    model = load(ck, mesh=shared_path("meshes", "fandisk.obj"))
+    r = evaluate(model, reference=shared_path("reference", "exact", "fandisk.npz"), heat=True, paths=False,
+                 n_sdf=6000, device="cpu", verbose=False)
+    assert r["neurogf"]["pairs"] == 51792
+    assert r["neurogf"]["mre"] == pytest.approx(0.00274, abs=5e-6)
+    assert r["heat"]["mre"] == pytest.approx(0.0104, abs=5e-5)
+    assert r["sdf_l1"] < 1e-3
