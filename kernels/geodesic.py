@@ -355,7 +355,8 @@ def decode_one(s: int, x: int, nv: int, k: int, use_windows: int, pos: wp.array(
             bl = wp.length(bv)
             bh = bv / bl
             q = to_edge2(S3, B0, bh)
-            if q[1] > 1.0e-7 * bl:
+            # a window lives in face g: only in faces where unfolding is well conditioned (face_ok)
+            if q[1] > 1.0e-7 * bl and use_windows != 0 and face_ok[g] != wp.int8(0):
                 nf = g
                 a2 = q[0]
                 h2 = q[1]
@@ -828,11 +829,13 @@ def slack_apply_kernel(acc: wp.array2d(dtype=float), dist: wp.array2d(dtype=floa
 @wp.func
 def walk_ray(cur: int, o: int, g: int, S_in: wp.vec3, nv: int, k: int, pos: wp.array(dtype=wp.vec3),
              faces: wp.array2d(dtype=int), edges: wp.array2d(dtype=int), face_edges: wp.array2d(dtype=int),
-             edge_faces: wp.array2d(dtype=int), max_steps: int, write: int, pts: wp.array(dtype=wp.vec3),
-             at: int) -> int:
+             edge_faces: wp.array2d(dtype=int), face_ok: wp.array(dtype=wp.int8), max_steps: int, write: int,
+             pts: wp.array(dtype=wp.vec3), at: int):
     """Walk the straight unfolded ray from node cur (in face g) towards the virtual source S_in until the face
-    holding the origin o; returns the number of crossing points (written at pts[at...] when write=1), or -1 when
-    the walk fails (no exit, a boundary, no progress, or more than max_steps faces)."""
+    holding the origin o. Returns (number of crossing points (written at pts[at...] when write=1), vertex):
+    vertex = -1 when the walk reached the origin's face; (n, v) when the walk stopped (circling, no exit, a
+    boundary, a graph-only face) with its last crossing point on mesh vertex v (the ray ran through v within
+    rounding): the caller ends the ray at v and goes on along v's own path; (-1, -1) when the walk fails."""
     S = S_in
     n = int(0)
     steps = int(0)
@@ -851,6 +854,7 @@ def walk_ray(cur: int, o: int, g: int, S_in: wp.vec3, nv: int, k: int, pos: wp.a
                 else:
                     ex1 = face_edges[g, le]
     ok = bool(False)
+    snap = int(-1)
     while steps < max_steps:
         steps += 1
         if face_has_node(face, o, nv, k, faces, face_edges):
@@ -880,7 +884,8 @@ def walk_ray(cur: int, o: int, g: int, S_in: wp.vec3, nv: int, k: int, pos: wp.a
         if best_le < 0:
             break
         if best_t <= 1.0e-6:
-            break  # no progress (e.g. circling a vertex): fail, the caller bends at the parent instead
+            # no progress: the ray passes (within rounding) through a vertex of this face and circles it
+            break
         if best_t >= 1.0 - 1.0e-5:
             ok = True  # the virtual source (the origin node) lies on this face's boundary
             break
@@ -894,8 +899,8 @@ def walk_ray(cur: int, o: int, g: int, S_in: wp.vec3, nv: int, k: int, pos: wp.a
         nf = edge_faces[ed, 1]
         if f0 != face:
             nf = f0
-        if nf < 0 or nf == face:
-            break
+        if nf < 0 or nf == face or face_ok[nf] == wp.int8(0):
+            break  # windows never cross graph-only faces: the walk has strayed (or left through a vertex)
         A2 = pos[edges[ed, 0]]
         ev2 = pos[edges[ed, 1]] - A2
         eh2 = ev2 / wp.length(ev2)
@@ -906,13 +911,28 @@ def walk_ray(cur: int, o: int, g: int, S_in: wp.vec3, nv: int, k: int, pos: wp.a
         ex0 = ed
         ex1 = int(-1)
     if not ok:
-        return -1
-    return n
+        # The ray left through (or circles) a vertex within rounding: end it at that vertex (it lies on the ray, so
+        # its own distance is at most the ray's value there) when Q is on it; otherwise fail (the caller bends at
+        # the parent).
+        lmax = float(0.0)
+        dbest = float(INF)
+        for lv in range(3):
+            pv = pos[faces[face, lv]]
+            lmax = wp.max(lmax, wp.length(pos[faces[face, (lv + 1) % 3]] - pv))
+            dq = wp.length(pv - Q)
+            if dq < dbest and faces[face, lv] != cur:
+                dbest = dq
+                snap = faces[face, lv]
+        if n > 0 and snap >= 0 and dbest <= 1.0e-3 * lmax:
+            return n, snap
+        return int(-1), int(-1)
+    return n, int(-1)
 
 
 @wp.kernel
 def walk_kernel(nv: int, k: int, pos: wp.array(dtype=wp.vec3), faces: wp.array2d(dtype=int),
                 edges: wp.array2d(dtype=int), face_edges: wp.array2d(dtype=int), edge_faces: wp.array2d(dtype=int),
+                face_ok: wp.array(dtype=wp.int8),
                 row: wp.array(dtype=int), targets: wp.array(dtype=int), parent: wp.array2d(dtype=int),
                 info: wp.array2d(dtype=int), origin: wp.array2d(dtype=int), pa: wp.array2d(dtype=float),
                 ph: wp.array2d(dtype=float), max_steps: int, write: int, offsets: wp.array(dtype=int),
@@ -957,7 +977,8 @@ def walk_kernel(nv: int, k: int, pos: wp.array(dtype=wp.vec3), faces: wp.array2d
         eh = ev / wp.length(ev)
         ng = in_plane_normal(A, eh, pos[opposite_vertex(g, e, faces, edges)])
         S = A + pa[s, cur] * eh - ph[s, cur] * ng
-        m = walk_ray(cur, o, g, S, nv, k, pos, faces, edges, face_edges, edge_faces, max_steps, 0, pts, 0)
+        m, snap = walk_ray(cur, o, g, S, nv, k, pos, faces, edges, face_edges, edge_faces, face_ok, max_steps, 0,
+                           pts, 0)
         if m < 0:
             # numerically failed walk: bend at the parent (shares face g with cur) and go on from there
             nstale += 1
@@ -968,12 +989,16 @@ def walk_kernel(nv: int, k: int, pos: wp.array(dtype=wp.vec3), faces: wp.array2d
             continue
         steps += m
         if write != 0:
-            walk_ray(cur, o, g, S, nv, k, pos, faces, edges, face_edges, edge_faces, max_steps, 1, pts, base + n)
+            walk_ray(cur, o, g, S, nv, k, pos, faces, edges, face_edges, edge_faces, face_ok, max_steps, 1, pts,
+                     base + n)
         n += m
+        nxt = o
+        if snap >= 0:
+            nxt = snap  # the ray ran through vertex snap: go on along its own path
         if write != 0:
-            pts[base + n] = node_pos(o, nv, k, pos, edges)
+            pts[base + n] = node_pos(nxt, nv, k, pos, edges)
         n += 1
-        cur = o
+        cur = nxt
     counts[t] = n
     if not done:
         nstale = -1

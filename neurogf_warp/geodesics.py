@@ -67,13 +67,30 @@ class Topology:
         self.vf_off = np.r_[0, np.cumsum(np.bincount(f.reshape(-1), minlength=nvtx))].astype(np.int32)
         self.ef_idx = face_of.astype(np.int32)
         self.ef_off = np.r_[0, np.cumsum(np.bincount(inv, minlength=ne))].astype(np.int32)
-        v = np.asarray(vertices, dtype=np.float64)
-        p = v[f]
-        area2 = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-        elen = np.linalg.norm(p - p[:, [1, 2, 0]], axis=2)
-        lmax = np.maximum(elen.max(axis=1), 1e-300)
-        # windows are only unfolded across well-shaped faces (sliver faces keep the plain graph)
-        self.face_ok = ((area2 > 1e-6 * lmax * lmax) & (elen.min(axis=1) > 1e-7 * lmax)).astype(np.int8)
+        self.face_ok = window_faces(vertices, f)
+
+
+def window_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """int8 per face: 1 where unfolding windows may cross the face, 0 for graph-only faces.
+
+    Unfolding a virtual source across an edge uses the in-plane normal towards the face's third vertex; when that
+    vertex is (nearly) on the edge's line (zero-area faces, needles, caps, coincident vertices) the normal is float
+    noise and the unfolded source lands anywhere: values below the exact distance, paths the tracer cannot walk.
+    Such faces keep only their graph edges (always real segments). A face is kept for windows when its smallest
+    height (2 area / longest edge) is at least 1% of its longest edge (smallest angle about 0.6 degrees or more)
+    and at least 1% of the mean edge length and 1e-5 absolute (pass the float32 positions the kernels use, in the
+    normalized unit-sphere frame, for the absolute part to mean anything)."""
+    f = np.asarray(faces, dtype=np.int64)
+    if len(f) == 0:
+        return np.zeros(0, np.int8)
+    p = np.asarray(vertices, dtype=np.float64)[f]
+    area2 = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    elen = np.linalg.norm(p - p[:, [1, 2, 0]], axis=2)
+    lmax = elen.max(axis=1)
+    hmin = area2 / np.maximum(lmax, 1e-300)
+    floor = max(1e-2 * float(elen.mean()), 1e-5)
+    ok = (hmin >= 1e-2 * lmax) & (hmin >= floor) & np.isfinite(hmin)
+    return ok.astype(np.int8)
 
 
 class GeodesicSolver:
@@ -98,7 +115,8 @@ class GeodesicSolver:
         self.max_iter = int(max_iter)
         self.worklist = bool(worklist)
         t0 = time.perf_counter()
-        self.topo = Topology(self.mesh.vertices, self.mesh.faces)
+        # window-face test on the float32 normalized positions the kernels use (see window_faces)
+        self.topo = Topology(self.mesh.normalized_vertices.astype(np.float32), self.mesh.faces)
         self.nv = len(self.mesh.vertices)
         # delta-stepping bucket width, in mean edge lengths (normalized frame)
         e = self.topo.edges
@@ -323,7 +341,8 @@ class GeodesicSolver:
         stale = wp.zeros(T, dtype=int, device=d)
         offs = wp.zeros(T, dtype=int, device=d)
         dummy = wp.zeros(1, dtype=wp.vec3, device=d)
-        args = [self.nv, self.k, self.pos, self.faces_w, self.edges_w, self.fe_w, self.ef_w, rw, tw, self.parent,
+        args = [self.nv, self.k, self.pos, self.faces_w, self.edges_w, self.fe_w, self.ef_w, self.fok_w, rw, tw,
+                self.parent,
                 self.info, self.origin, self.pa, self.ph, max_steps]
         wp.launch(kg.walk_kernel, dim=T, inputs=args + [0, offs, dummy, counts, stale], device=d)
         c = counts.numpy().astype(np.int64)

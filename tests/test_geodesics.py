@@ -211,3 +211,101 @@ def test_paths_from_distance_run_match_distances():
     dt = d[rows, tg].astype(np.float64)
     ok = dt > 0
     assert np.max(np.abs(L[ok] - dt[ok]) / dt[ok]) < 2e-5
+
+
+# ---- degenerate meshes: zero-area faces, needles, coincident vertices, QSlim slivers ---------------------------
+def squashed_square(n=16, seed=1, m=60):
+    """A flat jittered grid (exact geodesics = straight lines) where m interior vertices are slid onto (t=0:
+    coincident), or to 1e-9 / 1e-6 / 1e-4 of, a neighbour: zero-area faces, needles, caps, zero-length edges."""
+    V, F = grid_square(n, seed)
+    rng = np.random.default_rng(seed)
+    interior = [i * n + j for i in range(1, n - 1) for j in range(1, n - 1)]
+    moved = set()
+    for i in rng.permutation(interior)[:m]:
+        nb = [j for j in np.unique(F[(F == i).any(1)]) if j != i and j not in moved]
+        if nb:
+            j = rng.choice(nb)
+            V[i] = V[j] + rng.choice([0.0, 1e-9, 1e-6, 1e-4]) * (V[i] - V[j])
+            moved.add(i)
+    return V, F
+
+
+def _check_paths(solver, msh, rows, tg, tol_len=1e-5, flat=False):
+    """Every traced path: no failed walk, length = distance, every point on the surface."""
+    d = solver.vertex_distances()
+    pts, offs, stale = solver.trace(rows, tg)
+    assert np.all(stale == 0)
+    seg = np.linalg.norm(np.diff(pts.astype(np.float64), axis=0), axis=1)
+    cs = np.r_[0, np.cumsum(seg)]
+    L = cs[offs[1:] - 1] - cs[offs[:-1]]
+    dt = d[rows, tg].astype(np.float64)
+    ok = dt > 1e-3
+    assert np.all(np.isfinite(L)) and np.all(np.isfinite(dt))
+    assert np.max(np.abs(L[ok] - dt[ok]) / dt[ok]) < tol_len
+    if flat:  # the unit square in the plane z = 0 (closest-point queries are unreliable on zero-area faces)
+        q = msh.denormalize(pts)
+        assert np.abs(q[:, 2]).max() < 1e-6 and q[:, :2].min() > -1e-6 and q[:, :2].max() < 1 + 1e-6
+        return d
+    from neurogf_warp.dataset import sdf_truth
+
+    wm = wp.Mesh(wp.array(msh.normalized_vertices.astype(np.float32), dtype=wp.vec3, device="cpu"),
+                 wp.array(msh.faces.reshape(-1).astype(np.int32), dtype=wp.int32, device="cpu"))
+    assert np.abs(sdf_truth(wm, pts.astype(np.float32), device="cpu")).max() < 1e-6  # normalized: mesh size 1
+    return d
+
+
+def test_degenerate_flat_mesh_upper_bound_and_paths():
+    # before the fix: values 3e-4 below the exact (straight-line) distance, 184 failed walks, paths 91% off
+    V, F = squashed_square()
+    msh = load_mesh((V, F))
+    src = [0, 30, 200]
+    solver = G.GeodesicSolver(msh, device="cpu", batch=len(src))
+    assert 0.5 < solver.topo.face_ok.mean() < 0.95  # the squashed faces are graph-only
+    solver.run(msh.vertex(np.array(src)))
+    rows = np.repeat(np.arange(len(src)), solver.nv)
+    tg = np.tile(np.arange(solver.nv), len(src))
+    d = _check_paths(solver, msh, rows, tg, tol_len=2e-4, flat=True)  # 6.5e-5 measured: a ray ending at a vertex it runs through
+    P = msh.normalized_vertices
+    ex = np.linalg.norm(P[None] - P[msh.vertex(np.array(src))][:, None], axis=2)
+    assert np.all(d >= ex * (1 - 1e-5) - 1e-6)  # flat and convex: exact = Euclidean
+    ref = G.steiner_dijkstra(msh, src) * msh.scale  # windows off: an upper bound by construction
+    assert np.all(d <= ref[:, msh.index] * (1 + 2e-6) + 1e-6)
+
+
+def test_degenerate_qslim_mesh_paths():
+    # spot subdivided once and QSlim-decimated (fast_simplification): 132 faces with an angle < 0.1 degree.
+    # Before the fix: 399 of 7,030 paths with a failed walk, path length vs distance off by up to 95%.
+    fs = pytest.importorskip("fast_simplification")
+    s = trimesh.load(shared_path("meshes", "spot.obj"), process=False)
+    V2, F2 = trimesh.remesh.subdivide(np.asarray(s.vertices), np.asarray(s.faces))
+    v, f = fs.simplify(V2.astype("f4"), F2.astype("i4"), 0.7)
+    msh = load_mesh((np.asarray(v, np.float64), np.asarray(f, np.int64)))
+    src = [0, 7]
+    solver = G.GeodesicSolver(msh, device="cpu", batch=len(src))
+    solver.run(msh.vertex(np.array(src)))
+    rows = np.repeat(np.arange(len(src)), solver.nv)
+    tg = np.tile(np.arange(solver.nv), len(src))
+    d = _check_paths(solver, msh, rows, tg)
+    ref = G.steiner_dijkstra(msh, src) * msh.scale
+    assert np.all(d <= ref[:, msh.index] * (1 + 2e-6) + 1e-6)
+
+
+def test_degenerate_coincident_nonmanifold_components():
+    # coincident vertex records (a crack closed by a zero-area face), a non-manifold fin, a second component
+    V, F = grid_square(8)
+    n = len(V)
+    dup = np.array([V[27], V[28]])  # copies of two interior vertices; faces on one side use the copies
+    V = np.concatenate([V, dup, [[0.5, 0.5, 1.0]], V[:3] + 10.0])
+    F = F.copy()
+    side = np.where((F == 27).any(1) & (F == 28).any(1))[0][:1]
+    F[side] = np.where(F[side] == 27, n, np.where(F[side] == 28, n + 1, F[side]))
+    F = np.concatenate([F, [[27, n, 28], [n, n + 1, 28], [27, 28, n + 2], [n + 3, n + 4, n + 5]]])
+    msh = load_mesh((V, F))
+    d = G.geodesic_distances((V, F), [0], device="cpu")[0]
+    flat = np.arange(n + 2)
+    ex = np.linalg.norm(V[flat] - V[0], axis=1)
+    assert np.all(np.isfinite(d[: n + 3])) and np.all(np.isinf(d[n + 3:]))
+    assert np.all(d[flat] >= ex * (1 - 1e-5) - 1e-6)
+    solver = G.GeodesicSolver(msh, device="cpu", batch=1)
+    solver.run(msh.vertex(np.array([0])))
+    _check_paths(solver, msh, np.zeros(n + 2, np.int32), msh.vertex(np.arange(n + 2)), flat=True)
