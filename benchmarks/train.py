@@ -17,6 +17,7 @@ import json
 import os
 import platform
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -26,10 +27,10 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from neurogf_warp.dataset import build_dataset  # noqa: E402
+from neurogf_warp.dataset import build_dataset, load_dataset  # noqa: E402
 from neurogf_warp.evaluate import evaluate, format_table  # noqa: E402
 from neurogf_warp.mesh import load_mesh  # noqa: E402
-from neurogf_warp.train import log_path, train  # noqa: E402
+from neurogf_warp.train import log_path, parse_overrides, train  # noqa: E402
 
 SHARED = ROOT.parent / "shared"
 MESHES = {"bunny": ("stanford-bunny.obj", "stanford-bunny.npz"), "fandisk": ("fandisk.obj", "fandisk.npz")}
@@ -42,6 +43,17 @@ SMALL_DATA = dict(n_sources=24, n_global=512, n_local1=16, n_local2=64, n_path_s
 SMALL_TRAIN = dict(D=64, batch_sdf=2048, batch_g=4096, batch_l1=512, batch_l2=1024, batch_paths_g=128,
                    batch_paths_l=128, batch_surf=16, batch_querier=2048, sdf_pool=20000, val_every=100,
                    log_every=20)
+
+
+def _usable(path: Path, mesh) -> bool:
+    if not path.exists():
+        return False
+    try:
+        load_dataset(path, mesh=mesh)
+        return True
+    except Exception as e:  # stale or corrupt: rebuild
+        print(f"not reusing {path}: {e}", flush=True)
+        return False
 
 
 def _plot(results: dict, path: Path) -> bool:
@@ -84,14 +96,22 @@ def main(argv=None) -> int:
     p.add_argument("--n-sources", type=int, default=None, help="training sources per mesh")
     p.add_argument("--eval-reserve", type=float, default=None, help="seconds kept for evaluation per mesh")
     p.add_argument("--amp", action="store_true", help="bf16 path head")
-    p.add_argument("--out", default=str(Path(os.environ.get("OUT", ROOT / "benchmarks" / "results")) / "train"))
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="TrainConfig override, e.g. --set batch_surf=256 (repeatable)")
+    p.add_argument("--out", default=str(Path(os.environ.get("OUT", ROOT / "benchmarks" / "results")) / "train"),
+                   help="models, JSON and PNG (small files)")
+    p.add_argument("--work", default=os.path.join(tempfile.gettempdir(), "neurogf-train-bench"),
+                   help="datasets (large; kept out of --out)")
+    p.add_argument("--reuse-data", action="store_true",
+                   help="reuse a dataset already in --work for the same mesh and settings (its time is then not counted)")
     a = p.parse_args(argv)
 
     t_begin = time.perf_counter()
     budget = a.budget_seconds or (150.0 if a.small else 500.0)
-    reserve = a.eval_reserve if a.eval_reserve is not None else (10.0 if a.small else 25.0)
-    out = Path(a.out)
+    reserve = a.eval_reserve if a.eval_reserve is not None else (10.0 if a.small else 40.0)
+    out, work = Path(a.out), Path(a.work)
     out.mkdir(parents=True, exist_ok=True)
+    work.mkdir(parents=True, exist_ok=True)
     if a.small:
         torch.set_num_threads(1)  # tiny batches: threads only add sync overhead
     data_opts = dict(SMALL_DATA if a.small else FULL_DATA)
@@ -102,6 +122,7 @@ def main(argv=None) -> int:
         train_opts["D"] = a.D
     if a.amp:
         train_opts["amp"] = True
+    train_opts.update(parse_overrides(a.set))
 
     report = {"device": a.device, "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
               "torch": torch.__version__, "python": platform.python_version(), "budget_s": budget,
@@ -112,12 +133,15 @@ def main(argv=None) -> int:
     for name in a.meshes:
         obj, _ = MESHES[name]
         meshes[name] = load_mesh(SHARED / "meshes" / obj)
-        path = out / f"{name}.dataset.npz"
+        path = work / f"{name}-{'small' if a.small else 'full'}-{data_opts['n_sources']}.dataset.npz"
         t0 = time.perf_counter()
-        build_dataset(meshes[name], path, device=a.device, progress=True, **data_opts)
+        reused = a.reuse_data and _usable(path, meshes[name])
+        if not reused:
+            build_dataset(meshes[name], path, device=a.device, progress=True, **data_opts)
         datasets[name] = path
-        report["meshes"][name] = {"dataset_s": round(time.perf_counter() - t0, 2)}
-        print(f"[{name}] dataset built in {report['meshes'][name]['dataset_s']:.1f}s", flush=True)
+        report["meshes"][name] = {"dataset_s": round(time.perf_counter() - t0, 2), "dataset_reused": reused}
+        print(f"[{name}] dataset {'reused' if reused else 'built'} in {report['meshes'][name]['dataset_s']:.1f}s",
+              flush=True)
 
     # 2. train, each mesh getting its share of the time left
     left = budget - (time.perf_counter() - t_begin) - reserve * len(a.meshes)
@@ -142,7 +166,7 @@ def main(argv=None) -> int:
         # 3. evaluate against the exact reference
         t0 = time.perf_counter()
         ev = evaluate(model, meshes[name], SHARED / "reference" / "exact" / MESHES[name][1], heat=True,
-                      n_path_sources=1 if a.small else 4, n_path_targets=16, solver_k=1 if a.small else None,
+                      n_path_sources=1 if a.small else 8, n_path_targets=16, solver_k=1 if a.small else None,
                       device=a.device, verbose=False)
         r["eval_s"] = round(time.perf_counter() - t0, 2)
         r["eval"] = ev

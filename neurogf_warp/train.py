@@ -724,19 +724,41 @@ def _parser():
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--lr", type=float, default=None)
     p.add_argument("--amp", action="store_true", help="bf16 autocast for the path head (CUDA)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="any other TrainConfig field, e.g. --set batch_g=131072 --set val_every=1000")
     p.add_argument("--no-progress", action="store_true")
     return p
 
 
+def parse_overrides(items) -> dict:
+    """['batch_g=4096', 'amp=true'] -> {'batch_g': 4096, 'amp': True}; unknown keys are an error."""
+    fields = {f.name for f in dataclasses.fields(TrainConfig)}
+    out = {}
+    for item in items:
+        key, sep, val = item.partition("=")
+        key = key.strip().replace("-", "_")
+        if not sep or key not in fields:
+            raise ValueError(f"--set {item!r}: expected KEY=VALUE with KEY one of {sorted(fields)}")
+        try:
+            out[key] = json.loads(val)
+        except json.JSONDecodeError:
+            out[key] = val
+    return out
+
+
 def train_main(argv=None) -> int:
     a = _parser().parse_args(argv)
-    opts = {}
+    try:
+        opts = parse_overrides(a.set)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     if a.lr is not None:
         opts["lr"] = a.lr
     if a.amp:
         opts["amp"] = True
     if a.n_sources is not None:
-        opts["dataset_options"] = {"n_sources": a.n_sources}
+        opts["dataset_options"] = dict(opts.get("dataset_options") or {}, n_sources=a.n_sources)
     try:
         train(a.mesh, a.output, D=a.D, epochs=a.epochs, iters_per_epoch=a.iters_per_epoch, device=a.device,
               seed=a.seed, dataset=a.dataset, resume=a.resume, progress=not a.no_progress,

@@ -225,3 +225,9 @@ def test_evaluate_reproduces_released_checkpoint_numbers():
     assert r["neurogf"]["mre"] == pytest.approx(0.00274, abs=5e-6)
     assert r["heat"]["mre"] == pytest.approx(0.0104, abs=5e-5)
     assert r["sdf_l1"] < 1e-3
+
+
+def test_parse_overrides():
+    assert T.parse_overrides(["batch_g=128", "amp=true", "lr=3e-3"]) == {"batch_g": 128, "amp": True, "lr": 0.003}
+    with pytest.raises(ValueError, match="KEY=VALUE"):
+        T.parse_overrides(["nonsense=1"])
