@@ -292,6 +292,7 @@ class Trainer:
         self.opt = None
         self.opt_stage = None
         self._batch = None
+        self._gen_at_batch = None  # generator state when the current batch was drawn (for resume)
         self.amp = cfg.amp and self.device.type == "cuda"
 
     # -- sampling (all on the device, no host sync)
@@ -349,7 +350,15 @@ class Trainer:
         for g in opt.param_groups:
             g["lr"] = self.lr_at(stage, step)
         if self._batch is None or step % self.cfg.resample_every == 0:
-            self._batch = self.sample(stage)
+            if step % self.cfg.resample_every == 0:
+                self._gen_at_batch = self.gen.get_state()
+            elif self._gen_at_batch is not None:  # resumed mid-reuse: redraw the batch the run was using
+                now = self.gen.get_state()
+                self.gen.set_state(self._gen_at_batch)
+                self._batch = self.sample(stage)
+                self.gen.set_state(now)
+            if self._batch is None or step % self.cfg.resample_every == 0:
+                self._batch = self.sample(stage)
         terms = getattr(self, f"_loss_{stage}")(self._batch)
         loss = L.weighted_sum(terms) if stage == "joint" else sum(terms.values())
         opt.zero_grad(set_to_none=True)
@@ -446,7 +455,8 @@ class Trainer:
             "stage": stage_i, "step": step, "steps": self.steps,
             "net": self.net.state_dict(), "querier": self.querier.state_dict(),
             "opt": self.opt.state_dict() if self.opt is not None else None, "opt_stage": self.opt_stage,
-            "gen": self.gen.get_state(), "batch_valid": False, "history": history, "elapsed": elapsed,
+            "gen": self.gen.get_state(), "gen_at_batch": self._gen_at_batch, "history": history,
+            "elapsed": elapsed,
         }
 
     def load_state(self, ck):
@@ -454,6 +464,8 @@ class Trainer:
         self.querier.load_state_dict(ck["querier"])
         self.steps = dict(ck["steps"])
         self.gen.set_state(ck["gen"].cpu())
+        g = ck.get("gen_at_batch")
+        self._gen_at_batch = g.cpu() if g is not None else None
         if ck["opt"] is not None and ck["opt_stage"] is not None:
             self.set_modes(ck["opt_stage"])
             self._optimizer(ck["opt_stage"]).load_state_dict(ck["opt"])

@@ -100,8 +100,9 @@ def test_train_loss_falls_and_beats_mre_bound(trained, data):
     assert model.net.D == 64 and not model.net.training
 
 
-def test_interrupt_then_resume(tmp_path, ellipsoid, data):
-    cfg = dict(SMALL, val_every=0)
+@pytest.mark.parametrize("resample_every", [1, 5])
+def test_interrupt_then_resume(tmp_path, ellipsoid, data, resample_every):
+    cfg = dict(SMALL, val_every=0, resample_every=resample_every)
     ref = T.train(ellipsoid, tmp_path / "ref.ngf", dataset=data, epochs=1, iters_per_epoch=40, **cfg)
 
     out = tmp_path / "m.ngf"
