@@ -12,7 +12,7 @@ SHARED = Path(os.environ.get("NEUROGF_SHARED", ROOT.parent / "shared"))
 
 def find_shared(*parts) -> Path:
     """A file of ../shared, or of ./.bench (the copy carried to the GPU machine, where ../shared is absent)."""
-    for base in (SHARED, ROOT / "shared", ROOT / ".bench"):
+    for base in (SHARED, ROOT / "shared", ROOT / ".bench", ROOT / ".bench2"):
         p = base.joinpath(*parts)
         if p.exists():
             return p

@@ -32,7 +32,8 @@ from neurogf_warp.evaluate import evaluate, format_table  # noqa: E402
 from neurogf_warp.mesh import load_mesh  # noqa: E402
 from neurogf_warp.train import log_path, parse_overrides, train  # noqa: E402
 
-SHARED = ROOT.parent / "shared"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import find_shared  # noqa: E402  (../shared here, ./.bench on the GPU machine)
 MESHES = {"bunny": ("stanford-bunny.obj", "stanford-bunny.npz"), "fandisk": ("fandisk.obj", "fandisk.npz")}
 TARGETS = {"bunny": 0.0040, "fandisk": 0.0027, "chamfer_l1": 1.25e-2}
 SHARE = {"bunny": 0.6, "fandisk": 0.4}  # bunny is larger and has the harder target
@@ -132,7 +133,7 @@ def main(argv=None) -> int:
     meshes, datasets = {}, {}
     for name in a.meshes:
         obj, _ = MESHES[name]
-        meshes[name] = load_mesh(SHARED / "meshes" / obj)
+        meshes[name] = load_mesh(find_shared("meshes", obj))
         path = work / f"{name}-{'small' if a.small else 'full'}-{data_opts['n_sources']}.dataset.npz"
         t0 = time.perf_counter()
         reused = a.reuse_data and _usable(path, meshes[name])
@@ -165,7 +166,7 @@ def main(argv=None) -> int:
 
         # 3. evaluate against the exact reference
         t0 = time.perf_counter()
-        ev = evaluate(model, meshes[name], SHARED / "reference" / "exact" / MESHES[name][1], heat=True,
+        ev = evaluate(model, meshes[name], find_shared("reference", "exact", MESHES[name][1]), heat=True,
                       n_path_sources=1 if a.small else 8, n_path_targets=16, solver_k=1 if a.small else None,
                       device=a.device, verbose=False)
         r["eval_s"] = round(time.perf_counter() - t0, 2)
