@@ -14,9 +14,10 @@ def demo_main(argv=None) -> int:
     ap.add_argument("-o", "--output", default="neurogf-demo.ngf", help="model file to write")
     ap.add_argument("--device", default=None, help="cpu or cuda:N (default: the GPU if there is one)")
     ap.add_argument("--budget-seconds", type=float, default=None,
-                    help="training time (default 150 on CPU, 300 on a GPU)")
-    ap.add_argument("--D", type=int, default=128, choices=(64, 128, 256, 512))
-    ap.add_argument("--sources", type=int, default=None, help="training sources (default 96 on CPU, 1024 on GPU)")
+                    help="training time (default 200 on CPU, 300 on a GPU)")
+    ap.add_argument("--D", type=int, default=None, choices=(64, 128, 256, 512),
+                    help="network width (default 256 on a GPU, 64 on CPU)")
+    ap.add_argument("--sources", type=int, default=None, help="training sources (default 64 on CPU, 1024 on GPU)")
     a = ap.parse_args(argv)
 
     import torch
@@ -31,13 +32,20 @@ def demo_main(argv=None) -> int:
     mesh = ngf.load_mesh(a.mesh if a.mesh else default_mesh())
     name = a.mesh or "bundled blob (generated)"
     print(f"mesh: {name}, {mesh.n_input} vertices, {len(mesh.faces)} faces; device {device}")
-    budget = a.budget_seconds or (300.0 if gpu else 150.0)
-    n_src = a.sources or (1024 if gpu else 96)
-    opts = dict(n_sources=n_src, n_path_sources=min(128, n_src // 2), n_path_global=64, n_path_local=32,
-                n_global=min(4096, mesh.n_input), n_local2=512, n_surface=60000)
+    budget = a.budget_seconds or (300.0 if gpu else 200.0)
+    n_src = a.sources or (1024 if gpu else 64)
+    data = dict(n_sources=n_src, n_path_sources=min(128, n_src // 4), n_path_global=64, n_path_local=32,
+                n_global=min(4096, mesh.n_input), n_local2=512, n_surface=30000)
+    # The paper's batches (65K pairs, 8K paths per step) suit a GPU; a CPU gets small ones so that a
+    # couple of minutes buy thousands of steps rather than a few dozen.
+    opts = {} if gpu else dict(batch_sdf=2048, batch_g=4096, batch_l1=512, batch_l2=1024, batch_paths_g=128,
+                                batch_paths_l=128, batch_surf=32, batch_querier=4096, sdf_pool=100000, val_every=500)
+    if not gpu:
+        torch.set_num_threads(1)  # tiny batches: threads only add synchronization
+    opts["D"] = a.D or (256 if gpu else 64)
     t0 = time.perf_counter()
-    model = ngf.train(mesh, a.output, D=a.D, device=device, budget_seconds=budget, dataset_options=opts,
-                      resume=True)
+    model = ngf.train(mesh, a.output, device=device, budget_seconds=budget, dataset_options=data, resume=True,
+                      **opts)
     print(f"trained in {time.perf_counter() - t0:.0f} s (dataset, querier, joint training, refinement): {a.output}")
 
     print("\naccuracy on held-out sources (ground truth: our geodesic solver):")
