@@ -38,7 +38,7 @@ def ssad_main(argv) -> int:
     import numpy as np
 
     import neurogf_warp as ngf
-    from neurogf_warp.model_io import atomic_write_bytes
+    from neurogf_warp.files import atomic_write
 
     model = ngf.load(a.model, mesh=a.mesh)
     src = np.array(a.point, dtype=np.float64) if a.point is not None else a.source
@@ -48,11 +48,7 @@ def ssad_main(argv) -> int:
     t = time.perf_counter()
     d = ngf.ssad(model, src, device=a.device)
     again = time.perf_counter() - t
-    import io
-
-    buf = io.BytesIO()
-    np.save(buf, d)
-    atomic_write_bytes(a.output, buf.getvalue())
+    atomic_write(a.output, lambda f: np.save(f, d))
     ok = np.isfinite(d)
     print(f"{model}: {ok.sum()} distances written to {a.output} "
           f"(min {np.nanmin(d):.6g}, max {np.nanmax(d):.6g}, mesh units); "

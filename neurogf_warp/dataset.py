@@ -16,12 +16,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import tempfile
 import time
 
 import numpy as np
 import warp as wp
 
+from .files import atomic_write
 from .geodesics import DEFAULT_K, PATH_DELTA, GeodesicSolver, resample_polyline
 from .mesh import Mesh, load_mesh
 
@@ -260,17 +260,8 @@ def save_dataset(path, data: dict) -> None:
     path = os.fspath(path)
     if not path.endswith(".npz"):
         path += ".npz"
-    d = os.path.dirname(os.path.abspath(path))
-    os.makedirs(d, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".npz.tmp", dir=d)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    atomic_write(path, lambda f: np.savez(f, **data))
 
 
 def load_dataset(path, mesh=None) -> dict:

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import io
 import time
 
 import numpy as np
@@ -25,7 +24,7 @@ def demo_main(argv=None) -> int:
 
     import neurogf_warp as ngf
     from neurogf_warp.default_mesh import default_mesh
-    from neurogf_warp.model_io import atomic_write_bytes
+    from neurogf_warp.files import atomic_write
 
     gpu = (a.device or ("cuda:0" if torch.cuda.is_available() else "cpu")).startswith("cuda")
     device = a.device or ("cuda:0" if gpu else "cpu")
@@ -57,9 +56,7 @@ def demo_main(argv=None) -> int:
     t = time.perf_counter()
     d = ngf.ssad(model, 0, device=wdev)
     ms = (time.perf_counter() - t) * 1e3
-    buf = io.BytesIO()
-    np.save(buf, d)
-    atomic_write_bytes("ssad_vertex0.npy", buf.getvalue())
+    atomic_write("ssad_vertex0.npy", lambda f: np.save(f, d))
     far = int(np.nanargmax(d))
     print(f"\nSSAD from vertex 0 ({wdev}): {ms:.1f} ms for {mesh.n_input} vertices; farthest vertex {far} at "
           f"{d[far]:.4f} (mesh units); written to ssad_vertex0.npy")

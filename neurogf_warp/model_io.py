@@ -9,40 +9,19 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 
 import numpy as np
 import torch
 
+from .files import atomic_write_bytes
 from .mesh import Mesh, load_mesh
 from .model import Model
 from .network import SUPPORTED_D, NeuroGFNet, SdfQuerier
 
-__all__ = ["save", "load", "atomic_write_bytes"]
+__all__ = ["save", "load", "load_querier"]
 
 FORMAT = "neurogf-warp"
 FORMAT_VERSION = 1
-
-
-def atomic_write_bytes(path, data: bytes):
-    """Write ``data`` to ``path`` so that a failure leaves any previous file untouched."""
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(folder):
-        raise FileNotFoundError(f"cannot write {path}: folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.basename(path), dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
 
 
 def save(model: Model, path, include_mesh: bool = True):

@@ -34,6 +34,7 @@ import torch
 import torch.nn.functional as F
 
 from . import losses as L
+from .files import atomic_write
 from .mesh import Mesh, load_mesh
 from .network import NeuroGFNet, SdfQuerier, straight_lines
 
@@ -475,16 +476,10 @@ class Trainer:
 
 def save_checkpoint(state: dict, path: str) -> bool:
     """Atomic write (tmp + os.replace); on failure the previous checkpoint stays and we go on."""
-    tmp = f"{path}.tmp-{os.getpid()}"
     try:
-        torch.save(state, tmp)
-        os.replace(tmp, path)
+        atomic_write(path, lambda f: torch.save(state, f))
         return True
     except Exception as e:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
         print(f"warning: could not save checkpoint {path} ({e}); the previous one is kept", file=sys.stderr)
         return False
 

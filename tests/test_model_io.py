@@ -7,7 +7,7 @@ import torch
 import trimesh
 
 import neurogf_warp as ngf
-from neurogf_warp import model_io
+from neurogf_warp import files
 from tests.conftest import shared_path
 
 DEV = "cpu"
@@ -83,7 +83,7 @@ def test_failed_save_keeps_previous_file(tmp_path, monkeypatch):
     def broken_fsync(fd):
         raise OSError("disk full (simulated)")
 
-    monkeypatch.setattr(model_io.os, "fsync", broken_fsync)
+    monkeypatch.setattr(files.os, "fsync", broken_fsync)
     with pytest.raises(OSError, match="disk full"):
         ngf.save(model, out)
     assert out.read_bytes() == before
