@@ -23,6 +23,7 @@ import warp as wp
 
 from .files import atomic_write
 from .geodesics import DEFAULT_K, PATH_DELTA, GeodesicSolver, resample_polyline
+from .arrays import resolve_device
 from .mesh import Mesh, load_mesh
 
 __all__ = ["build_dataset", "load_dataset", "sdf_truth", "sample_sdf_points", "spread_vertices", "data_main",
@@ -102,7 +103,7 @@ def sdf_truth(mesh_or_wp_mesh, points, device=None, watertight: bool | None = No
     pass watertight=False for a wp.Mesh built with support_winding_number=True to use the winding number).
     Watertight meshes use the pseudo-normal sign; meshes with holes the generalized winding number.
     """
-    device = wp.get_device(device)
+    device = resolve_device(device)
     if isinstance(mesh_or_wp_mesh, wp.Mesh):
         wm = mesh_or_wp_mesh
         winding = watertight is False

@@ -15,6 +15,7 @@ import time
 import numpy as np
 import warp as wp
 
+from .arrays import resolve_device
 from .mesh import Mesh, load_mesh
 
 __all__ = ["geodesic_distances", "geodesic_paths", "GeodesicSolver", "steiner_dijkstra", "DEFAULT_K",
@@ -111,7 +112,7 @@ class GeodesicSolver:
             raise ValueError("k (Steiner points per edge) must be >= 1")
         self.k = int(k)
         self.windows = bool(windows)
-        self.device = wp.get_device(device)
+        self.device = resolve_device(device)
         self.max_iter = int(max_iter)
         self.worklist = bool(worklist)
         t0 = time.perf_counter()

@@ -197,6 +197,8 @@ def test_bad_inputs():
         ngf.sdf(model, np.array([["a", "b", "c"]]), device=DEV)
     with pytest.raises(ValueError, match="unknown device"):
         ngf.sdf(model, np.zeros((1, 3)), device="cuda:7")
+    with pytest.raises(ValueError, match="unknown device"):
+        ngf.geodesic_distances(model.mesh, [0], device="cuda:7")
     with pytest.raises(ValueError, match="m \\(points per path\\)"):
         ngf.path(model, np.zeros((1, 3)), np.ones((1, 3)), m=1, device=DEV)
     with pytest.raises(ValueError, match="one source"):
