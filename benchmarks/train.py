@@ -95,7 +95,7 @@ def main(argv=None) -> int:
     p.add_argument("--D", type=int, default=None)
     p.add_argument("--n-sources", type=int, default=None, help="training sources per mesh")
     p.add_argument("--eval-reserve", type=float, default=None, help="seconds kept for evaluation per mesh")
-    p.add_argument("--amp", action="store_true", help="bf16 path head")
+    p.add_argument("--no-amp", dest="amp", action="store_false", help="float32 path head (default: bf16 on CUDA)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="TrainConfig override, e.g. --set batch_surf=256 (repeatable)")
     p.add_argument("--out", default=str(Path(os.environ.get("OUT", ROOT / "benchmarks" / "results")) / "train"),
@@ -120,8 +120,8 @@ def main(argv=None) -> int:
     train_opts = dict(SMALL_TRAIN) if a.small else {}
     if a.D:
         train_opts["D"] = a.D
-    if a.amp:
-        train_opts["amp"] = True
+    if not a.amp:
+        train_opts["amp"] = False
     train_opts.update(parse_overrides(a.set))
 
     report = {"device": a.device, "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,

@@ -57,21 +57,24 @@ class TrainConfig:
     lr_min: float = 1e-4
     refine_lr: float = 1e-3
     weight_decay: float = 1e-8
-    # per-step batch sizes (official §4 values; paths are doubled by their reversed copies)
+    # per-step batch sizes: the official §4 values (paths doubled by their reversed copies), except the
+    # paths (official 4096 + 4096) and the surface term (official 1024): on an H200 halving the paths,
+    # quartering the surface points and a bf16 path head halved the step (19.2 -> 9.7 ms) and, at equal
+    # wall time, took MRE from 1.02% to 0.79% (bunny) and 0.65% to 0.50% (fandisk); benchmarks/RESULTS.md
     batch_sdf: int = 30000
     batch_g: int = 65536
     batch_l1: int = 8192
     batch_l2: int = 16384
-    batch_paths_g: int = 4096
-    batch_paths_l: int = 4096
-    batch_surf: int = 1024
+    batch_paths_g: int = 2048
+    batch_paths_l: int = 2048
+    batch_surf: int = 256
     batch_querier: int = 90000
     resample_every: int = 1
     sdf_pool: int = 1_000_000         # SDF ground-truth points computed once
     val_every: int = 500              # joint steps between validation MREs (0: only at the end)
     log_every: int = 50
     ckpt_every_s: float = 120.0
-    amp: bool = False                 # bf16 autocast for the path head only (CUDA)
+    amp: bool = True                  # bf16 autocast for the path head only (CUDA; ignored on CPU)
     # TF32 matmuls while training on CUDA (validation and saved weights stay fp32). The official runs used
     # PyTorch 1.10 on Ampere, where TF32 was on by default for both matmul and cuDNN.
     tf32: bool = True
@@ -730,7 +733,7 @@ def _parser():
     p.add_argument("--n-sources", type=int, default=None, help="training sources for the dataset build")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--lr", type=float, default=None)
-    p.add_argument("--amp", action="store_true", help="bf16 autocast for the path head (CUDA)")
+    p.add_argument("--no-amp", dest="amp", action="store_false", help="float32 path head (default: bf16 on CUDA)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="any other TrainConfig field, e.g. --set batch_g=131072 --set val_every=1000")
     p.add_argument("--no-progress", action="store_true")
@@ -762,8 +765,8 @@ def train_main(argv=None) -> int:
         return 2
     if a.lr is not None:
         opts["lr"] = a.lr
-    if a.amp:
-        opts["amp"] = True
+    if not a.amp:
+        opts["amp"] = False
     if a.n_sources is not None:
         opts["dataset_options"] = dict(opts.get("dataset_options") or {}, n_sources=a.n_sources)
     try:
