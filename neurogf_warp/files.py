@@ -13,6 +13,7 @@ def atomic_write(path, write) -> str:
         raise FileNotFoundError(f"cannot write {path}: folder {folder} does not exist")
     fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix="-" + os.path.basename(path), dir=folder)
     try:
+        os.chmod(tmp, _mode_for(path))  # mkstemp makes 0600; a saved file should look like any other
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()
@@ -29,3 +30,13 @@ def atomic_write(path, write) -> str:
 
 def atomic_write_bytes(path, data: bytes) -> str:
     return atomic_write(path, lambda f: f.write(data))
+
+
+def _mode_for(path: str) -> int:
+    """The replaced file's permissions, or what the umask gives a new file."""
+    try:
+        return os.stat(path).st_mode & 0o777
+    except FileNotFoundError:
+        umask = os.umask(0)
+        os.umask(umask)
+        return 0o666 & ~umask

@@ -90,6 +90,20 @@ def test_failed_save_keeps_previous_file(tmp_path, monkeypatch):
     assert os.listdir(tmp_path) == ["m.ngf"]  # no temporary file left behind
 
 
+def test_saved_files_get_normal_permissions(tmp_path):
+    ck, mesh = fandisk()
+    out = tmp_path / "m.ngf"
+    umask = os.umask(0o022)
+    try:
+        ngf.save(ngf.load(ck, mesh=mesh), out)
+        assert out.stat().st_mode & 0o777 == 0o644
+        out.chmod(0o640)
+        ngf.save(ngf.load(ck, mesh=mesh), out)  # overwriting keeps the file's own permissions
+        assert out.stat().st_mode & 0o777 == 0o640
+    finally:
+        os.umask(umask)
+
+
 def test_bad_model_files(tmp_path):
     with pytest.raises(FileNotFoundError, match="not found"):
         ngf.load(tmp_path / "missing.pth")
