@@ -61,7 +61,11 @@ def _rel_stats(pred, gt) -> dict:
 
 
 def _heat(mesh: Mesh, source_ids, vertex_ids):
-    import potpourri3d as pp3d
+    try:
+        import potpourri3d as pp3d
+    except ImportError as e:
+        raise ImportError("the heat-method comparison needs potpourri3d: pip install potpourri3d "
+                          "(or neurogf-warp[heat])") from e
 
     solver = pp3d.MeshHeatMethodDistanceSolver(mesh.normalized_vertices, mesh.faces.astype(np.int64))
     return np.stack([solver.compute_distance(int(s))[vertex_ids] for s in source_ids])

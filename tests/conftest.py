@@ -18,8 +18,11 @@ SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 
 
 def shared_path(*parts) -> Path:
-    """A file under ../shared; the test is skipped with a reason when the shared data is absent."""
+    """A file under ../shared. Missing data fails under CI (CI=true) and skips, with the reason, elsewhere."""
     p = SHARED.joinpath(*parts)
     if not p.exists():
-        pytest.skip(f"shared test data not found: {p}")
+        msg = f"shared test data not found: {p} (the tests expect the shared/ folder beside the checkout)"
+        if os.environ.get("CI"):
+            pytest.fail(msg)
+        pytest.skip(msg)
     return p
