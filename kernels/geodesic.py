@@ -163,6 +163,44 @@ def in_plane_normal(A: wp.vec3, eh: wp.vec3, C: wp.vec3) -> wp.vec3:
     return n / ln
 
 
+@wp.func
+def edge_frame(e: int, pos: wp.array(dtype=wp.vec3), edges: wp.array2d(dtype=int)):
+    """Frame of edge e: its lower vertex A, unit direction eh and length elen."""
+    A = pos[edges[e, 0]]
+    ev = pos[edges[e, 1]] - A
+    elen = wp.length(ev)
+    return A, ev / elen, elen
+
+
+@wp.func
+def face_candidate(s: int, u: int, du: float, pu: wp.vec3, iu: int, j: int, g: int, win: bool, A: wp.vec3,
+                   eh: wp.vec3, elen: float, nv: int, k: int, pos: wp.array(dtype=wp.vec3),
+                   faces: wp.array2d(dtype=int), edges: wp.array2d(dtype=int), face_edges: wp.array2d(dtype=int),
+                   wa: wp.array2d(dtype=float), wh: wp.array2d(dtype=float), wsig: wp.array2d(dtype=float),
+                   wl: wp.array2d(dtype=float), wr: wp.array2d(dtype=float)):
+    """Candidate from node u (slot iu of face g, distance du, position pu) to the node x in slot j of g: the graph
+    edge, or the straight ray of u's window when shorter (win: the window continues into g; A, eh, elen: frame of
+    u's edge). Returns (x, d)."""
+    x = slot_node(g, j, nv, k, faces, face_edges)
+    px = node_pos(x, nv, k, pos, edges)
+    d = du + wp.length(px - pu)
+    if win and not slots_share_edge(iu, j, k):
+        dw = window_dist(wa[s, u], wh[s, u], wsig[s, u], wl[s, u], wr[s, u], A, eh, elen, px)
+        if dw < d:
+            d = dw
+    return x, d
+
+
+@wp.func
+def propose(key: wp.array2d(dtype=wp.uint64), s: int, x: int, d: float, u: int) -> bool:
+    """Offer node x distance d through parent u (packed atomic_min); True when this lowered x's key."""
+    if d < unpack_dist(key[s, x]):
+        pk = pack(d, u)
+        old = wp.atomic_min(key, s, x, pk)
+        return pk < old
+    return False
+
+
 @wp.kernel
 def init_kernel(sources: wp.array(dtype=int), key: wp.array2d(dtype=wp.uint64), dist: wp.array2d(dtype=float),
                 parent: wp.array2d(dtype=int), in_face: wp.array2d(dtype=int), info: wp.array2d(dtype=int),
@@ -225,23 +263,13 @@ def relax_kernel(nv: int, k: int, use_windows: int, pos: wp.array(dtype=wp.vec3)
             f_in = in_face[s, u]
             if f_in >= 0 and f_in != g:
                 win = True
-                e = (u - nv) // k
-                A = pos[edges[e, 0]]
-                ev = pos[edges[e, 1]] - A
-                elen = wp.length(ev)
-                eh = ev / elen
+                A, eh, elen = edge_frame((u - nv) // k, pos, edges)
         for j in range(ns):
             if j == i:
                 continue
-            x = slot_node(g, j, nv, k, faces, face_edges)
-            px = node_pos(x, nv, k, pos, edges)
-            d = du + wp.length(px - pu)
-            if win and not slots_share_edge(i, j, k):
-                dw = window_dist(wa[s, u], wh[s, u], wsig[s, u], wl[s, u], wr[s, u], A, eh, elen, px)
-                if dw < d:
-                    d = dw
-            if d < unpack_dist(key[s, x]):
-                wp.atomic_min(key, s, x, pack(d, u))
+            x, d = face_candidate(s, u, du, pu, i, j, g, win, A, eh, elen, nv, k, pos, faces, edges, face_edges,
+                                  wa, wh, wsig, wl, wr)
+            propose(key, s, x, d, u)
 
 
 @wp.func
@@ -662,10 +690,7 @@ def relax_list_kernel(nv: int, k: int, use_windows: int, pos: wp.array(dtype=wp.
             f_in = in_face[s, u]
             if f_in >= 0:
                 win_ok = True
-                A = pos[edges[ue, 0]]
-                ev = pos[edges[ue, 1]] - A
-                elen = wp.length(ev)
-                eh = ev / elen
+                A, eh, elen = edge_frame(ue, pos, edges)
         for fi in range(f0, f1):
             g = int(0)
             if u < nv:
@@ -677,20 +702,13 @@ def relax_list_kernel(nv: int, k: int, use_windows: int, pos: wp.array(dtype=wp.
             for j in range(ns):
                 if j == iu:
                     continue
-                x = slot_node(g, j, nv, k, faces, face_edges)
-                px = node_pos(x, nv, k, pos, edges)
-                d = du + wp.length(px - pu)
-                if win and not slots_share_edge(iu, j, k):
-                    dw = window_dist(wa[s, u], wh[s, u], wsig[s, u], wl[s, u], wr[s, u], A, eh, elen, px)
-                    if dw < d:
-                        d = dw
-                if d < unpack_dist(key[s, x]):
-                    pk = pack(d, u)
-                    old = wp.atomic_min(key, s, x, pk)
-                    if pk < old:
-                        if wp.atomic_max(tstamp, s, x, it) < it:
-                            slot = wp.atomic_add(tcount, s, 1)
-                            tlist[s, slot] = x
+                x, d = face_candidate(s, u, du, pu, iu, j, g, win, A, eh, elen, nv, k, pos, faces, edges,
+                                      face_edges, wa, wh, wsig, wl, wr)
+                if propose(key, s, x, d, u):
+                    # first improvement of x this iteration: append it to the decode list
+                    if wp.atomic_max(tstamp, s, x, it) < it:
+                        slot = wp.atomic_add(tcount, s, 1)
+                        tlist[s, slot] = x
     if pmin < INF:
         wp.atomic_min(minpend, s, pmin)
         if it < max_iter:
