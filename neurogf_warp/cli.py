@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import sys
 import time
@@ -56,35 +57,30 @@ def ssad_main(argv) -> int:
     return 0
 
 
+# command -> (module, function taking argv)
+COMMANDS = {
+    "ssad": (".cli", "ssad_main"),
+    "data": (".dataset", "data_main"),
+    "train": (".train", "train_main"),
+    "eval": (".evaluate", "eval_main"),
+    "demo": (".demo", "demo_main"),
+}
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
         print(USAGE)
         return 0 if argv else 2
     cmd, rest = argv[0], argv[1:]
+    if cmd not in COMMANDS:
+        print(f"neurogf-warp: unknown command {cmd!r}\n\n{USAGE}", file=sys.stderr)
+        return 2
     try:
-        if cmd == "ssad":
-            return ssad_main(rest)
-        if cmd == "data":
-            _quiet_warp()
-            from .dataset import data_main
-
-            return data_main(rest) or 0
-        if cmd == "train":
-            _quiet_warp()
-            from .train import train_main
-
-            return train_main(rest) or 0
-        if cmd == "eval":
-            _quiet_warp()
-            from .evaluate import eval_main
-
-            return eval_main(rest) or 0
-        if cmd == "demo":
-            _quiet_warp()
-            from .demo import demo_main
-
-            return demo_main(rest) or 0
+        _quiet_warp()
+        module, func = COMMANDS[cmd]
+        run = getattr(importlib.import_module(module, __package__), func)  # imported only when used
+        return run(rest) or 0
     except (FileNotFoundError, PermissionError, ValueError, TypeError, IndexError) as e:
         if os.environ.get("NEUROGF_DEBUG"):
             raise
@@ -93,8 +89,6 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print(f"neurogf-warp {cmd}: interrupted", file=sys.stderr)
         return 130
-    print(f"neurogf-warp: unknown command {cmd!r}\n\n{USAGE}", file=sys.stderr)
-    return 2
 
 
 if __name__ == "__main__":
