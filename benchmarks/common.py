@@ -9,6 +9,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("NEUROGF_SHARED", ROOT.parent / "shared"))
 
+# training benchmarks: mesh and exact-reference files, and the issue's accuracy targets
+MESHES = {"bunny": ("stanford-bunny.obj", "stanford-bunny.npz"), "fandisk": ("fandisk.obj", "fandisk.npz")}
+TARGETS = {"bunny": 0.0040, "fandisk": 0.0027, "chamfer_l1": 1.25e-2}
+
 
 def find_shared(*parts) -> Path:
     """A file of ../shared, or of ./.bench (the copy carried to the GPU machine, where ../shared is absent)."""

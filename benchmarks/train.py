@@ -32,9 +32,7 @@ from neurogf_warp.mesh import load_mesh  # noqa: E402
 from neurogf_warp.train import log_path, parse_overrides, train  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import find_shared  # noqa: E402  (../shared here, ./.bench on the GPU machine)
-MESHES = {"bunny": ("stanford-bunny.obj", "stanford-bunny.npz"), "fandisk": ("fandisk.obj", "fandisk.npz")}
-TARGETS = {"bunny": 0.0040, "fandisk": 0.0027, "chamfer_l1": 1.25e-2}
+from common import MESHES, TARGETS, find_shared  # noqa: E402  (../shared here, ./.bench on the GPU machine)
 SHARE = {"bunny": 0.6, "fandisk": 0.4}  # bunny is larger and has the harder target
 
 FULL_DATA = dict(n_sources=512, n_path_sources=64, n_path_global=256, n_path_local=64, n_test=8)

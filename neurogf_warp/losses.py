@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 __all__ = [
-    "WEIGHTS", "l1", "polyline_length", "length_loss", "surface_loss", "weighted_sum",
+    "WEIGHTS", "l1", "relative_l1", "polyline_length", "length_loss", "surface_loss", "weighted_sum",
     "relative_errors", "mre", "chamfer_l1",
 ]
 
@@ -26,6 +26,11 @@ WEIGHTS = {
 def l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Mean absolute error over every element (nn.L1Loss); path losses use it on all xyz of all points."""
     return (pred - target).abs().mean()
+
+
+def relative_l1(pred: torch.Tensor, target: torch.Tensor, floor: float = 1e-4) -> torch.Tensor:
+    """Mean |pred - target| / target: the MRE itself as a loss (targets below ``floor`` count as ``floor``)."""
+    return ((pred - target).abs() / target.clamp_min(floor)).mean()
 
 
 def polyline_length(paths: torch.Tensor) -> torch.Tensor:

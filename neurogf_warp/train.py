@@ -5,6 +5,8 @@ can resume anywhere:
 
   querier      SDF querier, MSE on SDF samples                              (§3)
   joint        the whole network with the paper's losses and weights       (§4)
+  refine_dist  lifting + distance head, distance losses only, eval-mode BN (not in the paper: the distance
+               network is fine-tuned as inference runs it, with steps ~3x cheaper than joint ones)
   refine_sdf   SDF head alone on eval-mode (running-stat) lifting features  (§5a)
   refine_path  guidance + path head on eval-mode lifting features           (§5b)
 
@@ -40,9 +42,14 @@ from .network import NeuroGFNet, SdfQuerier, straight_lines
 
 __all__ = ["TrainConfig", "train", "train_main", "TrainingInterrupted", "checkpoint_path", "dataset_cache_path"]
 
-STAGES = ("querier", "joint", "refine_sdf", "refine_path")
+STAGES = ("querier", "joint", "refine_dist", "refine_sdf", "refine_path")
+# default steps of each stage per joint step (an explicit <stage>_steps overrides; querier capped, below)
+RATIOS = {"querier": 0.25, "joint": 1.0, "refine_dist": 1.0, "refine_sdf": 0.1, "refine_path": 0.1}
+DIST_LOSSES = ("l1", "relative", "relative_global")
+QUERIER_MAX = 4000  # default querier steps: 0.25 x joint steps, at most this (it only guides the surface term)
+GRAPH_WARMUP = 3  # eager steps per stage before its CUDA graph is captured
 MIN_VERTICES = 16  # below this there is nothing to hold out or sample paths from
-CKPT_VERSION = 1
+CKPT_VERSION = 2  # 2: the refine_dist stage
 
 
 @dataclass
@@ -50,12 +57,15 @@ class TrainConfig:
     D: int = 256
     epochs: int = 100                 # joint-training epochs ...
     iters_per_epoch: int = 200        # ... of this many steps
-    querier_steps: int | None = None  # default 0.25 x joint steps
-    refine_sdf_steps: int | None = None   # default 0.10 x joint steps
-    refine_path_steps: int | None = None  # default 0.10 x joint steps
+    querier_steps: int | None = None      # default: RATIOS x joint steps (querier at most QUERIER_MAX)
+    refine_dist_steps: int | None = None
+    refine_sdf_steps: int | None = None
+    refine_path_steps: int | None = None
+    ratios: dict = dataclasses.field(default_factory=dict)  # overrides of RATIOS, e.g. {"refine_dist": 2.0}
     lr: float = 1e-2
     lr_min: float = 1e-4
     refine_lr: float = 1e-3
+    refine_dist_lr: float = 1e-3
     weight_decay: float = 1e-8
     # per-step batch sizes: the official §4 values (paths doubled by their reversed copies), except the
     # paths (official 4096 + 4096) and the surface term (official 1024): on an H200 halving the paths,
@@ -78,6 +88,13 @@ class TrainConfig:
     # TF32 matmuls while training on CUDA (validation and saved weights stay fp32). The official runs used
     # PyTorch 1.10 on Ampere, where TF32 was on by default for both matmul and cuDNN.
     tf32: bool = True
+    # CUDA: each stage's whole step (gather, forward, backward, AdamW) is captured once as a CUDA graph and
+    # replayed; only the random index draws and the learning rate are set outside. Same math as eager.
+    cuda_graph: bool = True
+    # distance loss: "l1" = the paper's L1; "relative" = |pred - gt| / gt on all three target sets (the MRE
+    # itself); "relative_global" = relative on global targets, L1 on the local ones
+    dist_loss: str = "l1"
+    compile: bool = False             # torch.compile the loss functions (CUDA; experimental)
     seed: int = 0
     dataset_options: dict = dataclasses.field(default_factory=dict)
 
@@ -85,11 +102,22 @@ class TrainConfig:
     def joint_steps(self) -> int:
         return self.epochs * self.iters_per_epoch
 
+    def ratio(self, stage) -> float:
+        return float({**RATIOS, **self.ratios}[stage])
+
+    def explicit_steps(self, stage):
+        return None if stage == "joint" else getattr(self, f"{stage}_steps")
+
     def stage_steps(self) -> dict:
-        j = self.joint_steps
-        pick = lambda v, f: int(v) if v is not None else max(1, int(round(f * j)))
-        return {"querier": pick(self.querier_steps, 0.25), "joint": j,
-                "refine_sdf": pick(self.refine_sdf_steps, 0.1), "refine_path": pick(self.refine_path_steps, 0.1)}
+        j, out = self.joint_steps, {}
+        for stage in STAGES:
+            n = self.explicit_steps(stage)
+            if n is None:
+                n = max(1 if self.ratio(stage) > 0 else 0, int(round(self.ratio(stage) * j)))
+                if stage == "querier":
+                    n = min(n, QUERIER_MAX)
+            out[stage] = int(n)
+        return out
 
 
 class TrainingInterrupted(KeyboardInterrupt):
@@ -295,26 +323,49 @@ class Trainer:
         self.steps = cfg.stage_steps()
         self.opt = None
         self.opt_stage = None
-        self._batch = None
+        self._idx_now = None       # index vectors of the current batch
         self._gen_at_batch = None  # generator state when the current batch was drawn (for resume)
+        self._graph = None         # (CUDAGraph, static index vectors, static loss terms) of this stage
+        self._eager_steps = 0
+        self._compiled = {}
         self.amp = cfg.amp and self.device.type == "cuda"
+        self.graphs = cfg.cuda_graph and self.device.type == "cuda"
+        if cfg.dist_loss not in DIST_LOSSES:
+            raise ValueError(f"dist_loss must be one of {DIST_LOSSES}, got {cfg.dist_loss!r}")
+        self.weights = dict(L.WEIGHTS)
 
-    # -- sampling (all on the device, no host sync)
+    # -- sampling (all on the device, no host sync). A step draws index vectors (``draw``), then gathers
+    # its batch from the device arrays (``gather``); with CUDA graphs only the draw runs outside the graph.
     def _idx(self, n, k):
         return torch.randint(0, n, (k,), device=self.device, generator=self.gen)
 
-    def _sdf(self, k):
-        i = self._idx(len(self.sdf_pts), min(k, len(self.sdf_pts)))
-        return self.sdf_pts[i], self.sdf_val[i]
-
-    def _sample_joint(self):
+    def _draws(self, stage):
+        """(name, pool size, count) of the index vectors one step of ``stage`` uses."""
         c, d = self.cfg, self.data
-        b = {"sdf": self._sdf(c.batch_sdf)}
-        for key, n in (("global", c.batch_g), ("local1", c.batch_l1), ("local2", c.batch_l2)):
-            rows = d.gd[key][self._idx(len(d.gd[key]), n)]
-            b[key] = (rows[:, :3], rows[:, 3:6], rows[:, 6])
-        b["pg"] = d.pg[self._idx(len(d.pg), c.batch_paths_g)]
-        b["pl"] = d.pl[self._idx(len(d.pl), c.batch_paths_l)]
+        sdf = lambda k: ("sdf", len(self.sdf_pts), min(k, len(self.sdf_pts)))
+        if stage in ("querier", "refine_sdf"):
+            return [sdf(c.batch_querier)]
+        pg = ("pg", len(d.pg), c.batch_paths_g)
+        if stage == "refine_path":
+            return [pg]
+        dist = [(k, len(d.gd[k]), n) for k, n in (("global", c.batch_g), ("local1", c.batch_l1), ("local2", c.batch_l2))]
+        if stage == "refine_dist":
+            return dist
+        return [sdf(c.batch_sdf)] + dist + [pg, ("pl", len(d.pl), c.batch_paths_l)]
+
+    def draw(self, stage):
+        return {k: self._idx(n, m) for k, n, m in self._draws(stage)}
+
+    def gather(self, idx):
+        d, b = self.data, {}
+        for k, i in idx.items():
+            if k == "sdf":
+                b[k] = (self.sdf_pts[i], self.sdf_val[i])
+            elif k in ("pg", "pl"):
+                b[k] = (d.pg if k == "pg" else d.pl)[i]
+            else:
+                rows = d.gd[k][i]
+                b[k] = (rows[:, :3], rows[:, 3:6], rows[:, 6])
         return b
 
     def _optimizer(self, stage):
@@ -323,13 +374,20 @@ class Trainer:
         c = self.cfg
         params = {"querier": lambda: self.querier.parameters(),
                   "joint": lambda: self.net.parameters(),
+                  "refine_dist": lambda: list(self.net.lifting.parameters()) + list(self.net.gdf_head.parameters()),
                   "refine_sdf": lambda: self.net.sdf_head.parameters(),
                   "refine_path": lambda: list(self.net.cdw_fc.parameters()) + list(self.net.spf_head.parameters()),
                   }[stage]()
-        # fused: one kernel for the whole update on CUDA instead of a few per parameter group
-        self.opt = torch.optim.AdamW(params, lr=c.lr, weight_decay=c.weight_decay, fused=self.device.type == "cuda")
+        cuda = self.device.type == "cuda"
+        # fused: one kernel for the whole update on CUDA. Under CUDA graphs the learning rate is a device
+        # tensor (filled before each replay) and the step counter lives on the device (capturable).
+        lr = torch.tensor(c.lr, device=self.device) if self.graphs else c.lr
+        self.opt = torch.optim.AdamW(params, lr=lr, weight_decay=c.weight_decay, fused=cuda,
+                                     capturable=self.graphs)
         self.opt_stage = stage
-        self._batch = None
+        self._idx_now = None
+        self._graph = None  # the previous stage's graph and its memory pool go
+        self._eager_steps = 0
         return self.opt
 
     def set_modes(self, stage):
@@ -338,6 +396,9 @@ class Trainer:
         self.querier.train(stage == "querier")
         self.querier.requires_grad_(stage == "querier")
         self.net.requires_grad_(stage == "joint")
+        if stage == "refine_dist":  # eval-mode BN: a fixed affine map, exactly what inference computes
+            self.net.lifting.requires_grad_(True)
+            self.net.gdf_head.requires_grad_(True)
         if stage == "refine_sdf":
             self.net.sdf_head.train().requires_grad_(True)
         if stage == "refine_path":
@@ -346,43 +407,77 @@ class Trainer:
 
     def lr_at(self, stage, step):
         c, n = self.cfg, self.steps[stage]
-        hi = c.refine_lr if stage.startswith("refine") else c.lr
+        hi = {"querier": c.lr, "joint": c.lr, "refine_dist": c.refine_dist_lr}.get(stage, c.refine_lr)
         return _cosine(step, n, hi, c.lr_min)
 
+    def _set_lr(self, lr):
+        for g in self.opt.param_groups:
+            if isinstance(g["lr"], torch.Tensor):
+                g["lr"].fill_(lr)
+            else:
+                g["lr"] = lr
+
+    def _update(self, stage, idx):
+        """Gather, forward, backward, optimizer step: everything a CUDA graph captures."""
+        terms = self._loss_fn(stage)(self.gather(idx))
+        loss = L.weighted_sum(terms, self.weights) if stage in ("joint", "refine_dist") else sum(terms.values())
+        loss.backward()
+        self.opt.step()
+        return terms
+
+    def _loss_fn(self, stage):
+        fn = getattr(self, f"_loss_{stage}")
+        if not (self.cfg.compile and self.device.type == "cuda"):
+            return fn
+        if stage not in self._compiled:
+            self._compiled[stage] = torch.compile(fn, dynamic=False)
+        return self._compiled[stage]
+
     def step(self, stage, step):
-        opt = self._optimizer(stage)
-        for g in opt.param_groups:
-            g["lr"] = self.lr_at(stage, step)
-        if self._batch is None or step % self.cfg.resample_every == 0:
+        self._optimizer(stage)
+        self._set_lr(self.lr_at(stage, step))
+        if self._idx_now is None or step % self.cfg.resample_every == 0:
             if step % self.cfg.resample_every == 0:
                 self._gen_at_batch = self.gen.get_state()
             elif self._gen_at_batch is not None:  # resumed mid-reuse: redraw the batch the run was using
                 now = self.gen.get_state()
                 self.gen.set_state(self._gen_at_batch)
-                self._batch = self.sample(stage)
+                self._idx_now = self.draw(stage)
                 self.gen.set_state(now)
-            if self._batch is None or step % self.cfg.resample_every == 0:
-                self._batch = self.sample(stage)
-        terms = getattr(self, f"_loss_{stage}")(self._batch)
-        loss = L.weighted_sum(terms) if stage == "joint" else sum(terms.values())
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
+            if self._idx_now is None or step % self.cfg.resample_every == 0:
+                self._idx_now = self.draw(stage)
+        if not self.graphs:
+            self.opt.zero_grad(set_to_none=True)
+            return self._update(stage, self._idx_now)
+        if self._graph is None and self._eager_steps >= GRAPH_WARMUP:
+            self._graph = self._capture(stage)
+        if self._graph is not None:
+            graph, static_idx, terms = self._graph
+            for k, v in self._idx_now.items():
+                static_idx[k].copy_(v)
+            graph.replay()
+            return terms
+        # the first steps of a stage run eagerly on a side stream (allocator and cuBLAS warm-up before capture)
+        side = torch.cuda.Stream(self.device)
+        side.wait_stream(torch.cuda.current_stream(self.device))
+        with torch.cuda.stream(side):
+            self.opt.zero_grad(set_to_none=True)
+            terms = self._update(stage, self._idx_now)
+        torch.cuda.current_stream(self.device).wait_stream(side)
+        self._eager_steps += 1
         return terms
 
-    def sample(self, stage):
-        c = self.cfg
-        if stage == "querier":
-            return self._sdf(c.batch_querier)
-        if stage == "joint":
-            return self._sample_joint()
-        if stage == "refine_sdf":
-            return self._sdf(c.batch_querier)
-        return self.data.pg[self._idx(len(self.data.pg), c.batch_paths_g)]
+    def _capture(self, stage):
+        static_idx = {k: v.clone() for k, v in self._idx_now.items()}
+        self.opt.zero_grad(set_to_none=True)  # gradients are then allocated inside the graph's pool
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            terms = self._update(stage, static_idx)
+        return graph, static_idx, terms
 
     # -- losses per stage
     def _loss_querier(self, b):
-        x, y = b
+        x, y = b["sdf"]
         return {"querier_mse": F.mse_loss(self.querier(x), y)}
 
     def _paths(self, es, et, gt):
@@ -390,7 +485,8 @@ class Trainer:
         p, q = gt[:, 0], gt[:, -1]
         m = gt.shape[1]
         lines = torch.cat([straight_lines(p, q, m), straight_lines(q, p, m)])
-        ctx = torch.autocast("cuda", dtype=torch.bfloat16) if self.amp else contextlib.nullcontext()
+        ctx = torch.autocast("cuda", dtype=torch.bfloat16, cache_enabled=False) if self.amp \
+            else contextlib.nullcontext()
         with ctx:
             pred = fast_path(self.net, torch.cat([es, et]), torch.cat([et, es]), lines)
         return pred.float(), torch.cat([gt, gt.flip(1)])
@@ -405,13 +501,7 @@ class Trainer:
         sizes = [len(x) for x in parts]
         e = self.net.embed(torch.cat(parts)).split(sizes)  # one lifting call: shared BN statistics
         t = {"sdf": L.l1(self.net.sdf_from_embeddings(e[0]), sv)}
-        # One distance-head call for all three target sets: with three calls the BN running statistics
-        # would follow the last (local) batch and eval-mode distances would be far off the trained ones.
-        d = self.net.distance_from_embeddings(torch.cat(e[1:7:2]), torch.cat(e[2:7:2]))
-        d = d.split([len(x) for x in e[1:7:2]])
-        for i, key in enumerate(("global", "local1", "local2")):
-            name = {"global": "dist_g", "local1": "dist_l1", "local2": "dist_l2"}[key]
-            t[name] = L.l1(d[i], b[key][2])
+        t.update(self._distance_terms(b, e[1:7]))
         pred_g, gt_g = self._paths(e[7], e[8], pg)
         pred_l, gt_l = self._paths(e[9], e[10], pl)
         t["path_g"] = L.l1(pred_g, gt_g)
@@ -420,16 +510,35 @@ class Trainer:
         t["surf"] = L.surface_loss(self.querier, pred_g[: self.cfg.batch_surf])
         return t
 
+    def _distance_terms(self, b, e):
+        """The three distance losses from the (source, target) embeddings of global, local1, local2."""
+        # One distance-head call for all three target sets: with three calls the BN running statistics
+        # would follow the last (local) batch and eval-mode distances would be far off the trained ones.
+        d = self.net.distance_from_embeddings(torch.cat(e[0::2]), torch.cat(e[1::2]))
+        d = d.split([len(x) for x in e[0::2]])
+        t = {}
+        for i, key in enumerate(("global", "local1", "local2")):
+            name = {"global": "dist_g", "local1": "dist_l1", "local2": "dist_l2"}[key]
+            rel = self.cfg.dist_loss == "relative" or (self.cfg.dist_loss == "relative_global" and key == "global")
+            t[name] = L.relative_l1(d[i], b[key][2]) if rel else L.l1(d[i], b[key][2])
+        return t
+
+    def _loss_refine_dist(self, b):
+        parts = [x for key in ("global", "local1", "local2") for x in b[key][:2]]
+        e = self.net.embed(torch.cat(parts)).split([len(x) for x in parts])
+        return self._distance_terms(b, e)
+
     def _eval_features(self, x):
         with torch.no_grad():
             self.net.lifting.eval()
             return self.net.embed(x)
 
     def _loss_refine_sdf(self, b):
-        x, y = b
+        x, y = b["sdf"]
         return {"sdf": L.l1(self.net.sdf_from_embeddings(self._eval_features(x)), y)}
 
-    def _loss_refine_path(self, pg):
+    def _loss_refine_path(self, b):
+        pg = b["pg"]
         e = self._eval_features(torch.cat([pg[:, 0], pg[:, -1]]))
         pred, gt = self._paths(e[: len(pg)], e[len(pg):], pg)
         return {"path_g": L.l1(pred, gt)}
@@ -458,10 +567,18 @@ class Trainer:
             "version": CKPT_VERSION, "config": dataclasses.asdict(self.cfg), "fingerprint": fingerprint,
             "stage": stage_i, "step": step, "steps": self.steps,
             "net": self.net.state_dict(), "querier": self.querier.state_dict(),
-            "opt": self.opt.state_dict() if self.opt is not None else None, "opt_stage": self.opt_stage,
+            "opt": self._opt_state(), "opt_stage": self.opt_stage,
             "gen": self.gen.get_state(), "gen_at_batch": self._gen_at_batch, "history": history,
             "elapsed": elapsed,
         }
+
+    def _opt_state(self):
+        if self.opt is None:
+            return None
+        sd = self.opt.state_dict()
+        for g in sd["param_groups"]:  # a graph run's device-tensor lr is stored as a number
+            g["lr"] = float(g["lr"])
+        return sd
 
     def load_state(self, ck):
         self.net.load_state_dict(ck["net"])
@@ -472,7 +589,11 @@ class Trainer:
         self._gen_at_batch = g.cpu() if g is not None else None
         if ck["opt"] is not None and ck["opt_stage"] is not None:
             self.set_modes(ck["opt_stage"])
-            self._optimizer(ck["opt_stage"]).load_state_dict(ck["opt"])
+            opt = self._optimizer(ck["opt_stage"])
+            opt.load_state_dict(ck["opt"])
+            if self.graphs:  # keep the lr a device tensor, or a captured graph would bake in one value
+                for g in opt.param_groups:
+                    g["lr"] = torch.tensor(float(g["lr"]), device=self.device)
 
 
 # ------------------------------------------------------------------------------------ checkpoint
@@ -523,12 +644,13 @@ def calibrate(trainer: Trainer, n: int = 6) -> dict:
     probe.querier = copy.deepcopy(trainer.querier)
     probe.gen = torch.Generator(device=trainer.device)
     probe.gen.manual_seed(12345)
-    probe.opt, probe.opt_stage, probe._batch = None, None, None
+    probe.opt, probe.opt_stage, probe._idx_now, probe._graph, probe._compiled = None, None, None, None, {}
+    warm = 2 + (GRAPH_WARMUP + 1 if probe.graphs else 0)  # and the capture, when graphs are on
     out = {}
     for stage in STAGES:
         probe.set_modes(stage)
-        for i in range(n + 2):
-            if i == 2:  # two warm-up steps
+        for i in range(n + warm):
+            if i == warm:
                 _sync(trainer.device)
                 t0 = time.perf_counter()
             probe.step(stage, 0)
@@ -539,12 +661,16 @@ def calibrate(trainer: Trainer, n: int = 6) -> dict:
 
 def fit_budget(cfg: TrainConfig, per_step: dict, seconds: float) -> TrainConfig:
     """Scale the joint steps (other stages keep their ratios) so all stages fit ``seconds``."""
-    ratio = {"querier": 0.25, "joint": 1.0, "refine_sdf": 0.1, "refine_path": 0.1}
-    explicit = {"querier": cfg.querier_steps, "refine_sdf": cfg.refine_sdf_steps, "refine_path": cfg.refine_path_steps}
-    fixed = sum(per_step[s] * v for s, v in explicit.items() if v is not None)
-    per_joint = sum(per_step[s] * r for s, r in ratio.items() if explicit.get(s) is None)
-    # 5% slack for the loop itself (logging, validation, checkpoints)
-    joint = max(10, int(0.95 * (seconds - fixed) / per_joint))
+    fixed = sum(per_step[s] * cfg.explicit_steps(s) for s in STAGES if cfg.explicit_steps(s) is not None)
+    scaled = [s for s in STAGES if cfg.explicit_steps(s) is None and s != "querier"]
+    per_joint = sum(per_step[s] * cfg.ratio(s) for s in scaled)
+    avail = 0.95 * seconds - fixed  # 5% slack for the loop itself (logging, validation, checkpoints)
+    joint = avail / per_joint
+    if cfg.querier_steps is None:  # ratio x joint querier steps, capped at QUERIER_MAX
+        joint = avail / (per_joint + cfg.ratio("querier") * per_step["querier"])
+        if cfg.ratio("querier") * joint > QUERIER_MAX:
+            joint = (avail - per_step["querier"] * QUERIER_MAX) / per_joint
+    joint = max(10, int(joint))
     epochs = max(1, joint // cfg.iters_per_epoch)
     if epochs * cfg.iters_per_epoch > joint:  # fewer steps than one epoch: shrink the epoch
         return dataclasses.replace(cfg, epochs=1, iters_per_epoch=joint)
@@ -605,7 +731,7 @@ def train(mesh, out_path, *, D: int = 256, epochs: int | None = None, iters_per_
         _say(progress, f"resuming from {ckpt_file}: stage {STAGES[stage_i]}, step {step}")
     else:
         if budget_seconds is not None:
-            per = calibrate(trainer)
+            per = calibrate(trainer, n=20 if trainer.graphs else 6)
             cfg = fit_budget(cfg, per, budget_seconds)
             trainer.cfg = cfg
             trainer.steps = cfg.stage_steps()
@@ -680,15 +806,16 @@ class _Runner:
                     if acc_n and (step % cfg.log_every == 0 or step == n):
                         row = dict(zip(terms, (acc / acc_n).tolist()))
                         total_loss = float(L.weighted_sum({k: torch.tensor(v) for k, v in row.items()})) \
-                            if stage == "joint" else sum(row.values())
+                            if stage in ("joint", "refine_dist") else sum(row.values())
                         history["loss"].append({"stage": stage, "step": step, "lr": t.lr_at(stage, step - 1),
                                                 "loss": total_loss, **row})
                         acc, acc_n = None, 0
                         if bar is not None:
                             bar.set_postfix_str(f"{stage} loss {total_loss:.4g} lr {t.lr_at(stage, step - 1):.2e}"
                                                 + (f" valMRE {history['val'][-1]['mre']:.3%}" if history["val"] else ""))
-                    if stage == "joint" and ((cfg.val_every and step % cfg.val_every == 0) or step == n):
-                        history["val"].append({"step": step, "mre": t.validate()})
+                    if stage in ("joint", "refine_dist") and ((cfg.val_every and step % cfg.val_every == 0)
+                                                              or step == n):
+                        history["val"].append({"stage": stage, "step": step, "mre": t.validate()})
                     if interrupted or self.stop:
                         elapsed += time.perf_counter() - t0
                         t0 = time.perf_counter()
