@@ -62,6 +62,7 @@ def profile(mesh, ds, device, stages=("joint", "refine_dist"), steps=5) -> str:
     from torch.profiler import ProfilerActivity, profile as prof
 
     cfg = TrainConfig(cuda_graph=False)
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True  # as training runs
     data = Data(ds, device)
     t = Trainer(cfg, data, make_sdf_pool(mesh, data.surface_points, 200_000, 0, device), device)
     text = []

@@ -79,6 +79,8 @@ class TrainConfig:
     batch_paths_l: int = 2048
     batch_surf: int = 256
     batch_querier: int = 90000
+    refine_batch_paths: int = 2048    # global paths per refine_path step (plus their reversed copies)
+    refine_amp: bool = True           # bf16 path head in refine_path too (CUDA)
     resample_every: int = 1
     sdf_pool: int = 1_000_000         # SDF ground-truth points computed once
     val_every: int = 500              # joint steps between validation MREs (0: only at the end)
@@ -347,7 +349,7 @@ class Trainer:
             return [sdf(c.batch_querier)]
         pg = ("pg", len(d.pg), c.batch_paths_g)
         if stage == "refine_path":
-            return [pg]
+            return [("pg", len(d.pg), c.refine_batch_paths)]
         dist = [(k, len(d.gd[k]), n) for k, n in (("global", c.batch_g), ("local1", c.batch_l1), ("local2", c.batch_l2))]
         if stage == "refine_dist":
             return dist
@@ -480,12 +482,12 @@ class Trainer:
         x, y = b["sdf"]
         return {"querier_mse": F.mse_loss(self.querier(x), y)}
 
-    def _paths(self, es, et, gt):
+    def _paths(self, es, et, gt, amp=True):
         """Predicted paths for gt and for its reversed copy (swapped endpoints): (2K, M, 3) each."""
         p, q = gt[:, 0], gt[:, -1]
         m = gt.shape[1]
         lines = torch.cat([straight_lines(p, q, m), straight_lines(q, p, m)])
-        ctx = torch.autocast("cuda", dtype=torch.bfloat16, cache_enabled=False) if self.amp \
+        ctx = torch.autocast("cuda", dtype=torch.bfloat16, cache_enabled=False) if self.amp and amp \
             else contextlib.nullcontext()
         with ctx:
             pred = fast_path(self.net, torch.cat([es, et]), torch.cat([et, es]), lines)
@@ -540,7 +542,7 @@ class Trainer:
     def _loss_refine_path(self, b):
         pg = b["pg"]
         e = self._eval_features(torch.cat([pg[:, 0], pg[:, -1]]))
-        pred, gt = self._paths(e[: len(pg)], e[len(pg):], pg)
+        pred, gt = self._paths(e[: len(pg)], e[len(pg):], pg, amp=self.cfg.refine_amp)
         return {"path_g": L.l1(pred, gt)}
 
     # -- validation: MRE on held-out sources, eval-mode BN (what inference sees)
@@ -638,24 +640,30 @@ def _sync(device):
 
 
 def calibrate(trainer: Trainer, n: int = 6) -> dict:
-    """Seconds per step of each stage, timed on throw-away copies (the real state is untouched)."""
-    probe = copy.copy(trainer)
-    probe.net = copy.deepcopy(trainer.net)
-    probe.querier = copy.deepcopy(trainer.querier)
-    probe.gen = torch.Generator(device=trainer.device)
-    probe.gen.manual_seed(12345)
-    probe.opt, probe.opt_stage, probe._idx_now, probe._graph, probe._compiled = None, None, None, None, {}
-    warm = 2 + (GRAPH_WARMUP + 1 if probe.graphs else 0)  # and the capture, when graphs are on
+    """Seconds per step of each stage, timed on the trainer itself; its state is restored afterwards.
+
+    (In place rather than on a copy: compiled loss functions are then compiled once, for the real run.)
+    """
+    saved = (copy.deepcopy(trainer.net.state_dict()), copy.deepcopy(trainer.querier.state_dict()),
+             trainer.gen.get_state(), trainer._gen_at_batch)
+    warm = 2 + (GRAPH_WARMUP + 1 if trainer.graphs else 0)  # and the capture, when graphs are on
     out = {}
-    for stage in STAGES:
-        probe.set_modes(stage)
-        for i in range(n + warm):
-            if i == warm:
-                _sync(trainer.device)
-                t0 = time.perf_counter()
-            probe.step(stage, 0)
-        _sync(trainer.device)
-        out[stage] = (time.perf_counter() - t0) / n
+    try:
+        for stage in STAGES:
+            trainer.set_modes(stage)
+            for i in range(n + warm):
+                if i == warm:
+                    _sync(trainer.device)
+                    t0 = time.perf_counter()
+                trainer.step(stage, 0)
+            _sync(trainer.device)
+            out[stage] = (time.perf_counter() - t0) / n
+    finally:
+        trainer.net.load_state_dict(saved[0])
+        trainer.querier.load_state_dict(saved[1])
+        trainer.gen.set_state(saved[2])
+        trainer._gen_at_batch = saved[3]
+        trainer.opt, trainer.opt_stage, trainer._idx_now, trainer._graph = None, None, None, None
     return out
 
 
@@ -731,7 +739,12 @@ def train(mesh, out_path, *, D: int = 256, epochs: int | None = None, iters_per_
         _say(progress, f"resuming from {ckpt_file}: stage {STAGES[stage_i]}, step {step}")
     else:
         if budget_seconds is not None:
-            per = calibrate(trainer, n=20 if trainer.graphs else 6)
+            tf32 = _set_tf32(cfg.tf32) if device.type == "cuda" else None  # time what the run will do
+            try:
+                per = calibrate(trainer, n=20 if trainer.graphs else 6)
+            finally:
+                if tf32 is not None:
+                    _set_tf32(tf32)
             cfg = fit_budget(cfg, per, budget_seconds)
             trainer.cfg = cfg
             trainer.steps = cfg.stage_steps()
