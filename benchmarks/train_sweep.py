@@ -151,13 +151,25 @@ def main(argv=None) -> int:
         log = json.loads(Path(log_path(model_path)).read_text())
         ev = evaluate(model, mesh, find_shared("reference", "exact", ref), n_path_sources=8, n_path_targets=16,
                       device=a.device, verbose=False)
-        r = {"options": opts, "train_wall_s": round(wall, 1), "train_s": log["config"]["train_seconds"],
+        with torch.no_grad():  # path fit on training paths (eval mode): the generalization gap next to the test Chamfer
+            import numpy as np
+            from neurogf_warp import losses as L
+
+            allp = np.asarray(ds["path_global"]).reshape(-1, 128, 3)
+            pick = np.random.default_rng(0).choice(len(allp), min(512, len(allp)), replace=False)
+            gt = torch.as_tensor(allp[pick], device=a.device)
+            net = model.net.to(a.device).eval()
+            pred = net.path(gt[:, 0], gt[:, -1], 128)
+            train_paths = {"l1": float((pred - gt).abs().mean()),
+                           "chamfer_l1": float(L.chamfer_l1(pred.cpu().numpy(), gt.cpu().numpy()).mean())}
+        r = {"train_paths": train_paths, "options": opts, "train_wall_s": round(wall, 1), "train_s": log["config"]["train_seconds"],
              "steps": log["config"]["steps"], "mre": ev["neurogf"]["mre"], "max_rel": ev["neurogf"]["max_rel"],
              "p99_rel": ev["neurogf"]["p99_rel"], "chamfer_l1": ev["chamfer_l1"], "sdf_l1": ev.get("sdf_l1"),
              "val": [(v.get("stage", "joint"), v["step"], v["mre"]) for v in log["history"]["val"]],
              "last_joint": [x for x in log["history"]["loss"] if x["stage"] == "joint"][-1]}
         report["variants"][name] = r
         print(f"[{name}] MRE {r['mre']:.3%} max {r['max_rel']:.1%} Chamfer {r['chamfer_l1']:.3e} "
+              f"(training paths: {train_paths['chamfer_l1']:.3e}, L1 {train_paths['l1']:.3e}) "
               f"steps {r['steps']} wall {wall:.0f}s", flush=True)
         (out / "sweep.json").write_text(json.dumps(report, indent=1))
 
