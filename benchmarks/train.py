@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import MESHES, TARGETS, find_shared  # noqa: E402  (../shared here, ./.bench on the GPU machine)
 SHARE = {"bunny": 0.6, "fandisk": 0.4}  # bunny is larger and has the harder target
 
-FULL_DATA = dict(n_sources=512, n_path_sources=64, n_path_global=256, n_path_local=64, n_test=8)
+FULL_DATA = dict(n_sources=512, n_path_sources=256, n_path_global=128, n_path_local=32, n_test=8)
 SMALL_DATA = dict(n_sources=24, n_global=512, n_local1=16, n_local2=64, n_path_sources=8, n_path_global=16,
                   n_path_local=16, n_test=2, n_surface=30000, n_spread=2000, k=1)  # k=1: ~14 s for bunny on CPU
 SMALL_TRAIN = dict(D=64, batch_sdf=2048, batch_g=4096, batch_l1=512, batch_l2=1024, batch_paths_g=128,
@@ -67,14 +67,20 @@ def _plot(results: dict, path: Path) -> bool:
         h = r.get("history")
         if not h:
             continue
-        joint = [x for x in h["loss"] if x["stage"] == "joint"]
+        n_joint = r["steps"]["joint"]
+        x_of = lambda row: row["step"] + (n_joint if row.get("stage") == "refine_dist" else 0)
+        dist = [x for x in h["loss"] if x["stage"] in ("joint", "refine_dist")]
+        joint = [x for x in dist if x["stage"] == "joint"]
         axes[0].semilogy([x["step"] for x in joint], [x["loss"] for x in joint], label=f"{name} joint loss")
-        axes[0].semilogy([x["step"] for x in joint], [x["dist_g"] for x in joint], "--", label=f"{name} L1 dist (global)")
+        axes[0].semilogy([x_of(x) for x in dist], [x["dist_g"] for x in dist], "--",
+                         label=f"{name} global distance loss (relative)")
         if h["val"]:
-            axes[1].semilogy([v["step"] for v in h["val"]], [100 * v["mre"] for v in h["val"]], "o-", label=name)
-    axes[0].set_xlabel("joint step")
+            axes[1].semilogy([x_of(v) for v in h["val"]], [100 * v["mre"] for v in h["val"]], "o-", label=name)
+        for ax in axes:
+            ax.axvline(n_joint, color="0.7", lw=0.8)
+    axes[0].set_xlabel("step (joint, then refine_dist after the grey line)")
     axes[0].legend()
-    axes[1].set_xlabel("joint step")
+    axes[1].set_xlabel("step (joint, then refine_dist)")
     axes[1].set_ylabel("validation MRE % (held-out solver sources)")
     axes[1].legend()
     fig.tight_layout()
@@ -106,7 +112,7 @@ def main(argv=None) -> int:
 
     t_begin = time.perf_counter()
     budget = a.budget_seconds or (150.0 if a.small else 500.0)
-    reserve = a.eval_reserve if a.eval_reserve is not None else (10.0 if a.small else 40.0)
+    reserve = a.eval_reserve if a.eval_reserve is not None else (10.0 if a.small else 20.0)
     out, work = Path(a.out), Path(a.work)
     out.mkdir(parents=True, exist_ok=True)
     work.mkdir(parents=True, exist_ok=True)
@@ -148,7 +154,7 @@ def main(argv=None) -> int:
     for i, name in enumerate(a.meshes):
         left = budget - (time.perf_counter() - t_begin) - reserve * (len(a.meshes) - i)
         rest = sum(shares[m] for m in a.meshes[i:])
-        secs = max(5.0, left * shares[name] / rest - 10.0)  # 10 s for set-up and calibration
+        secs = max(5.0, left * shares[name] / rest)  # train() fits set-up, compiling and saving inside it
         model_path = out / f"{name}.ngf"
         t0 = time.perf_counter()
         model = train(meshes[name], model_path, dataset=datasets[name], device=a.device, budget_seconds=secs,

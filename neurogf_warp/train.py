@@ -708,8 +708,8 @@ def train(mesh, out_path, *, D: int = 256, epochs: int | None = None, iters_per_
     """Train a NeuroGF for ``mesh`` and write it to ``out_path``; returns the saved Model.
 
     dataset: None (cached next to the output, else built), a dataset .npz path, or a dict of its arrays.
-    budget_seconds: scale the number of steps so the four stages take about this long (timed on the
-      device before training; the resulting step counts are fixed in the checkpoint).
+    budget_seconds: scale the number of steps so that everything after the dataset (SDF pool, timing and
+      compiling, all stages, saving) takes about this long; the step counts are fixed in the checkpoint.
     callback(stage, step, terms): called after every step (e.g. to stop early by raising KeyboardInterrupt).
     options: any other TrainConfig field (batch sizes, lr, val_every, ...).
     A checkpoint ``<out_path>.ckpt`` is written every ``ckpt_every_s`` seconds, at stage ends and on Ctrl-C.
@@ -743,6 +743,7 @@ def train(mesh, out_path, *, D: int = 256, epochs: int | None = None, iters_per_
 
     t_start = time.perf_counter()
     ds = get_dataset(mesh, dataset, out_path, device, progress, dict(cfg.dataset_options, seed=cfg.seed))
+    t_ready = time.perf_counter()
     data = Data(ds, device)
     pool = make_sdf_pool(mesh, data.surface_points, cfg.sdf_pool, cfg.seed, device)
     trainer = Trainer(cfg, data, pool, device)
@@ -760,7 +761,8 @@ def train(mesh, out_path, *, D: int = 256, epochs: int | None = None, iters_per_
             finally:
                 if tf32 is not None:
                     _set_tf32(tf32)
-            cfg = fit_budget(cfg, per, budget_seconds)
+            # what set-up and timing (incl. compilation) took comes out of the budget; 2 s for the save
+            cfg = fit_budget(cfg, per, budget_seconds - (time.perf_counter() - t_ready) - 2.0)
             trainer.cfg = cfg
             trainer.steps = cfg.stage_steps()
             _say(progress, "budget {:.0f}s: s/step {}; steps {}".format(
