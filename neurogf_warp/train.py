@@ -891,6 +891,10 @@ def _parser():
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--lr", type=float, default=None)
     p.add_argument("--no-amp", dest="amp", action="store_false", help="float32 path head (default: bf16 on CUDA)")
+    p.add_argument("--no-compile", dest="compile", action="store_false",
+                   help="skip torch.compile (default on CUDA: ~1.5x faster steps after ~25 s of compiling)")
+    p.add_argument("--paper", action="store_true",
+                   help="the paper's recipe: L1 distance loss and no refine_dist stage (our defaults measured better)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="any other TrainConfig field, e.g. --set batch_g=131072 --set val_every=1000")
     p.add_argument("--no-progress", action="store_true")
@@ -924,6 +928,11 @@ def train_main(argv=None) -> int:
         opts["lr"] = a.lr
     if not a.amp:
         opts["amp"] = False
+    if not a.compile:
+        opts["compile"] = False
+    if a.paper:
+        opts.setdefault("dist_loss", "l1")
+        opts.setdefault("refine_dist_steps", 0)
     if a.n_sources is not None:
         opts["dataset_options"] = dict(opts.get("dataset_options") or {}, n_sources=a.n_sources)
     try:

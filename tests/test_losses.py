@@ -11,6 +11,12 @@ def test_l1_is_mean_absolute_error():
     assert L.l1(torch.tensor([1.0, 2.0, 3.0]), torch.tensor([2.0, 2.0, 1.0])).item() == pytest.approx(1.0)
 
 
+def test_relative_l1_is_the_mre_with_a_floor():
+    # |1.1-1|/1 = 0.1; |1-0.5|/0.5 = 1.0; the target 0 counts as the floor 0.25: |0.5-0|/0.25 = 2.0
+    pred, gt = torch.tensor([1.1, 1.0, 0.5]), torch.tensor([1.0, 0.5, 0.0])
+    assert L.relative_l1(pred, gt, floor=0.25).item() == pytest.approx((0.1 + 1.0 + 2.0) / 3)
+
+
 def test_path_l1_averages_over_all_coordinates():
     pred = torch.zeros(2, 4, 3)
     gt = torch.zeros(2, 4, 3)

@@ -127,6 +127,41 @@ def test_interrupt_then_resume(tmp_path, ellipsoid, data, resample_every):
         assert torch.allclose(a.float(), b.float(), atol=1e-5), k
 
 
+def test_refine_dist_trains_only_the_distance_network_in_eval_mode(ellipsoid, data):
+    """refine_dist moves lifting + distance head, keeps BN running statistics and the other heads fixed."""
+    cfg = T.TrainConfig(**{k: v for k, v in SMALL.items() if k != "progress"})
+    d = T.Data(data, "cpu")
+    t = T.Trainer(cfg, d, T.make_sdf_pool(ellipsoid, d.surface_points, 2000, 0, "cpu"), "cpu")
+    before = {k: v.clone() for k, v in t.net.state_dict().items()}
+    t.set_modes("refine_dist")
+    for i in range(3):
+        terms = t.step("refine_dist", i)
+    assert set(terms) == {"dist_g", "dist_l1", "dist_l2"}
+    after = t.net.state_dict()
+    moved = {k for k in before if not torch.equal(before[k], after[k])}
+    assert moved and all(k.startswith(("lifting.", "gdf_head.")) for k in moved), moved
+    assert not any("running_" in k or "num_batches" in k for k in moved)  # eval-mode BatchNorm
+    assert any(k.startswith("lifting.") and k.endswith("linear.weight") for k in moved)
+
+
+def test_stage_ratios_and_budget_fit():
+    cfg = T.TrainConfig(epochs=10, iters_per_epoch=100, ratios={"refine_dist": 2.0}, refine_sdf_steps=7)
+    st = cfg.stage_steps()
+    assert st == {"querier": 250, "joint": 1000, "refine_dist": 2000, "refine_sdf": 7, "refine_path": 100}
+    assert T.TrainConfig(epochs=1000, iters_per_epoch=100).stage_steps()["querier"] == T.QUERIER_MAX
+    # 1 ms per step everywhere, 100 s: joint*(1 + 2 + 0.1) + 0.25*joint = 0.95*100 s - 7 ms -> joint ~ 28,357
+    per = {s: 1e-3 for s in T.STAGES}
+    fit = T.fit_budget(cfg, per, 100.0)
+    total = sum(per[s] * n for s, n in fit.stage_steps().items())
+    assert 0.9 * 95 < total <= 95 and fit.joint_steps % 100 == 0
+
+
+def test_unknown_distance_loss_is_rejected(ellipsoid, data):
+    d = T.Data(data, "cpu")
+    with pytest.raises(ValueError, match="dist_loss must be one of"):
+        T.Trainer(T.TrainConfig(dist_loss="huber"), d, (torch.zeros(1, 3), torch.zeros(1)), "cpu")
+
+
 def test_failed_checkpoint_save_keeps_previous(tmp_path, monkeypatch):
     path = str(tmp_path / "c.ckpt")
     assert T.save_checkpoint({"version": T.CKPT_VERSION, "step": 1}, path)
