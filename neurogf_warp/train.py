@@ -79,7 +79,7 @@ class TrainConfig:
     batch_paths_l: int = 2048
     batch_surf: int = 256
     batch_querier: int = 90000
-    refine_batch_paths: int = 2048    # global paths per refine_path step (plus their reversed copies)
+    refine_batch_paths: int | None = None  # global paths per refine_path step (+ reversed); None: batch_paths_g
     refine_amp: bool = True           # bf16 path head in refine_path too (CUDA)
     resample_every: int = 1
     sdf_pool: int = 1_000_000         # SDF ground-truth points computed once
@@ -351,7 +351,7 @@ class Trainer:
             return [sdf(c.batch_querier)]
         pg = ("pg", len(d.pg), c.batch_paths_g)
         if stage == "refine_path":
-            return [("pg", len(d.pg), c.refine_batch_paths)]
+            return [("pg", len(d.pg), c.refine_batch_paths or c.batch_paths_g)]
         dist = [(k, len(d.gd[k]), n) for k, n in (("global", c.batch_g), ("local1", c.batch_l1), ("local2", c.batch_l2))]
         if stage == "refine_dist":
             return dist
