@@ -62,6 +62,7 @@ class TrainConfig:
     refine_sdf_steps: int | None = None
     refine_path_steps: int | None = None
     ratios: dict = dataclasses.field(default_factory=dict)  # overrides of RATIOS, e.g. {"refine_dist": 2.0}
+    loss_weights: dict = dataclasses.field(default_factory=dict)  # overrides of losses.WEIGHTS (the paper's)
     lr: float = 1e-2
     lr_min: float = 1e-4
     refine_lr: float = 1e-3
@@ -336,7 +337,10 @@ class Trainer:
         self.graphs = cfg.cuda_graph and self.device.type == "cuda"
         if cfg.dist_loss not in DIST_LOSSES:
             raise ValueError(f"dist_loss must be one of {DIST_LOSSES}, got {cfg.dist_loss!r}")
-        self.weights = dict(L.WEIGHTS)
+        unknown = set(cfg.loss_weights) - set(L.WEIGHTS)
+        if unknown:
+            raise ValueError(f"loss_weights: unknown terms {sorted(unknown)}; known: {sorted(L.WEIGHTS)}")
+        self.weights = {**L.WEIGHTS, **cfg.loss_weights}
 
     # -- sampling (all on the device, no host sync). A step draws index vectors (``draw``), then gathers
     # its batch from the device arrays (``gather``); with CUDA graphs only the draw runs outside the graph.
@@ -524,7 +528,8 @@ class Trainer:
         t["path_g"] = L.l1(pred_g, gt_g)
         t["path_l"] = L.l1(pred_l, gt_l)
         t["len"] = L.length_loss(pred_g, gt_g)
-        t["surf"] = L.surface_loss(self.querier, pred_g[: self.cfg.batch_surf])
+        if self.cfg.batch_surf > 0:
+            t["surf"] = L.surface_loss(self.querier, pred_g[: self.cfg.batch_surf])
         return t
 
     def _distance_terms(self, b, e):
