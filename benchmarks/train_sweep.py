@@ -7,6 +7,8 @@ One dataset is built (its time printed) and shared by all variants; each variant
 time (steps fitted to it) and is evaluated against the exact reference (MRE over its sources) and solver
 paths (Chamfer-L1). ``--check-graph`` first compares CUDA-graph and eager training steps on the same state
 (agreement and seconds per step of each stage). Prints a table; writes <out>/sweep.json.
+With torch.compile on (the CUDA default) the first variant, and any variant with new shapes (another D or batch),
+pays the ~25 s compilation inside its budget; later variants reuse the cache. Put a throw-away variant first.
 """
 from __future__ import annotations
 
