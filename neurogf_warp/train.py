@@ -635,8 +635,11 @@ def load_checkpoint(path: str) -> dict:
         ck = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
         raise ValueError(f"checkpoint {path} is unreadable ({e}); delete it to start over") from e
-    if not isinstance(ck, dict) or ck.get("version") != CKPT_VERSION:
-        raise ValueError(f"{path} is not a neurogf-warp training checkpoint (version {CKPT_VERSION})")
+    if not isinstance(ck, dict) or "version" not in ck:
+        raise ValueError(f"{path} is not a neurogf-warp training checkpoint")
+    if ck["version"] != CKPT_VERSION:
+        raise ValueError(f"{path} is a training checkpoint of format {ck['version']}; this version resumes format "
+                         f"{CKPT_VERSION} only (its stages differ). Delete it, or drop --resume, to start over")
     return ck
 
 

@@ -162,6 +162,13 @@ def test_unknown_distance_loss_is_rejected(ellipsoid, data):
         T.Trainer(T.TrainConfig(dist_loss="huber"), d, (torch.zeros(1, 3), torch.zeros(1)), "cpu")
 
 
+def test_old_checkpoint_format_is_refused_clearly(tmp_path):
+    path = str(tmp_path / "old.ckpt")
+    torch.save({"version": 1, "stage": 1, "step": 3}, path)
+    with pytest.raises(ValueError, match="format 1.*Delete it"):
+        T.load_checkpoint(path)
+
+
 def test_failed_checkpoint_save_keeps_previous(tmp_path, monkeypatch):
     path = str(tmp_path / "c.ckpt")
     assert T.save_checkpoint({"version": T.CKPT_VERSION, "step": 1}, path)
