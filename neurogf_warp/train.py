@@ -358,13 +358,12 @@ class Trainer:
         sdf = lambda k: ("sdf", len(self.sdf_pts), min(k, len(self.sdf_pts)))
         if stage in ("querier", "refine_sdf"):
             return [sdf(c.batch_querier)]
-        pg = ("pg", len(d.pg), c.batch_paths_g)
         if stage == "refine_path":
             return [("pg", len(d.pg), c.refine_batch_paths or c.batch_paths_g)]
         dist = [(k, len(d.gd[k]), n) for k, n in (("global", c.batch_g), ("local1", c.batch_l1), ("local2", c.batch_l2))]
         if stage == "refine_dist":
             return dist
-        return [sdf(c.batch_sdf)] + dist + [pg, ("pl", len(d.pl), c.batch_paths_l)]
+        return [sdf(c.batch_sdf)] + dist + [("pg", len(d.pg), c.batch_paths_g), ("pl", len(d.pl), c.batch_paths_l)]
 
     def draw(self, stage):
         return {k: self._idx(n, m) for k, n, m in self._draws(stage)}
