@@ -29,6 +29,7 @@ sys.path.insert(0, str(ROOT))
 from neurogf_warp.dataset import build_dataset, load_dataset  # noqa: E402
 from neurogf_warp.evaluate import evaluate, format_table  # noqa: E402
 from neurogf_warp.mesh import load_mesh  # noqa: E402
+from neurogf_warp.model_io import load  # noqa: E402
 from neurogf_warp.train import log_path, parse_overrides, train  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -174,11 +175,19 @@ def main(argv=None) -> int:
 
         # 3. evaluate against the exact reference
         t0 = time.perf_counter()
-        ev = evaluate(model, meshes[name], find_shared("reference", "exact", MESHES[name][1]), heat=True,
-                      n_path_sources=1 if a.small else 8, n_path_targets=16, solver_k=1 if a.small else None,
-                      device=a.device, verbose=False)
+        ref = find_shared("reference", "exact", MESHES[name][1])
+        kw = dict(n_path_sources=1 if a.small else 16, n_path_targets=16 if a.small else 32,
+                  solver_k=1 if a.small else None, device=a.device, verbose=False)
+        ev = evaluate(model, meshes[name], ref, heat=True, **kw)
         r["eval_s"] = round(time.perf_counter() - t0, 2)
         r["eval"] = ev
+        try:  # the released checkpoint on the same sources and path pairs, for scale
+            rel = load(find_shared("checkpoints", "official", f"NeuroGF_Pretrainer__{name}_final.pth"), mesh=meshes[name])
+            er = evaluate(rel, meshes[name], ref, sdf=False, **kw)
+            r["released"] = {"mre": er["neurogf"]["mre"], "max_rel": er["neurogf"]["max_rel"],
+                             "chamfer_l1": er["chamfer_l1"], "chamfer_l1_median": er.get("chamfer_l1_median")}
+        except FileNotFoundError as e:
+            r["released"] = {"missing": str(e)}
         r["mre"] = ev["neurogf"]["mre"]
         r["chamfer_l1"] = ev.get("chamfer_l1")
         r["meets_mre_target"] = bool(r["mre"] <= TARGETS[name])
@@ -190,10 +199,12 @@ def main(argv=None) -> int:
     report["plot"] = _plot(report["meshes"], out / "loss_curves.png")
     (out / "train_bench.json").write_text(json.dumps(report, indent=1))
 
-    print("\nmesh     MRE      target   Chamfer-L1  dataset_s  train_s  steps(joint)")
+    print("\nmesh     MRE      target   Chamfer-L1  dataset_s  train_s  steps(joint)  released: MRE  Chamfer-L1")
     for name, r in results.items():
+        rel = r.get("released", {})
+        rel_s = f"{rel['mre']:.3%}  {rel['chamfer_l1']:.3e}" if "mre" in rel else "-"
         print(f"{name:8s} {r['mre']:.3%}  {TARGETS[name]:.2%}   {r['chamfer_l1']:.3e}   {r['dataset_s']:8.1f}"
-              f"  {r['train_s']:7.1f}  {r['steps']['joint']}")
+              f"  {r['train_s']:7.1f}  {r['steps']['joint']:12d}  {rel_s}")
     print(f"total {report['total_s']:.1f}s of budget {budget:.0f}s; results in {out}, models in {work}")
     return 0
 
@@ -215,9 +226,11 @@ def _parallel(a, argv) -> int:
     procs = {}
     for i, name in enumerate(a.meshes):
         env = dict(os.environ, CUDA_VISIBLE_DEVICES=str(i))
-        cmd = [sys.executable, __file__, *base, "--meshes", name, "--out", str(out / name), "--work", str(work / name)]
-        (out / name).mkdir(parents=True, exist_ok=True)
-        log = open(out / name / "run.log", "w")
+        # each process's own report and plot go to the work folder; --out gets the merged ones and the logs
+        cmd = [sys.executable, __file__, *base, "--meshes", name, "--out", str(work / name / "report"),
+               "--work", str(work / name)]
+        out.mkdir(parents=True, exist_ok=True)
+        log = open(out / f"{name}.log", "w")
         procs[name] = (subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT), log)
     codes = {}
     for name, (proc, log) in procs.items():
@@ -226,7 +239,7 @@ def _parallel(a, argv) -> int:
     wall = time.perf_counter() - t0
     merged = {"parallel": True, "wall_s": round(wall, 2), "exit_codes": codes, "meshes": {}}
     for name in a.meshes:
-        f = out / name / "train_bench.json"
+        f = work / name / "report" / "train_bench.json"
         if f.exists():
             r = json.loads(f.read_text())
             merged["meshes"][name] = r["meshes"][name]
@@ -235,14 +248,16 @@ def _parallel(a, argv) -> int:
                 merged.setdefault(k, r.get(k))
     merged["plot"] = _plot(merged["meshes"], out / "loss_curves.png")
     (out / "train_bench.json").write_text(json.dumps(merged, indent=1))
-    print("mesh     MRE      target   Chamfer-L1  process_s  exit")
+    print("mesh     MRE      target   Chamfer-L1  process_s  exit  released: MRE  Chamfer-L1")
     for name in a.meshes:
         r = merged["meshes"].get(name)
         if r is None:
-            print(f"{name:8s} failed (exit {codes[name]}); see {out / name / 'run.log'}")
+            print(f"{name:8s} failed (exit {codes[name]}); see {out / f'{name}.log'}")
             continue
+        rel = r.get("released", {})
+        rel_s = f"{rel['mre']:.3%}  {rel['chamfer_l1']:.3e}" if "mre" in rel else "-"
         print(f"{name:8s} {r['mre']:.3%}  {TARGETS[name]:.2%}   {r['chamfer_l1']:.3e}   {r['process_total_s']:8.1f}"
-              f"  {codes[name]}")
+              f"  {codes[name]:4d}  {rel_s}")
     print(f"all meshes in {wall:.1f}s (one process per mesh, one GPU each); results in {out}")
     return max(codes.values())
 

@@ -5,7 +5,8 @@ user kernel (one thread per query, no tiles, no shared memory). The kernels belo
 All coordinates here are in the network's normalized unit-sphere frame.
 
 Local vectors are sized for the largest supported D (512); loops run to the actual widths, which are
-read from the weight shapes, so one compiled module serves every D.
+read from the weight shapes, so one compiled module serves every D and every network option
+(Fourier input octaves from the first layer's width; ``euclid`` and ``residual`` are 0/1 flags).
 """
 import warp as wp
 
@@ -13,6 +14,8 @@ MAX_D = 512
 vec_d = wp.types.vector(length=MAX_D, dtype=wp.float32)  # an embedding
 vec_h = wp.types.vector(length=MAX_D // 2, dtype=wp.float32)  # hidden layers (at most D/2 wide)
 vec_acc = wp.types.vector(length=MAX_D // 4, dtype=wp.float64)  # head accumulators (D/4 wide)
+MAX_FOURIER = 8
+vec_feat = wp.types.vector(length=3 + 6 * MAX_FOURIER, dtype=wp.float64)  # lifting input features
 # Sums run in float64: with float32 weights alone the outputs are within ~7e-6 of a float64 evaluation,
 # float32 sums would add as much again.
 
@@ -51,6 +54,9 @@ class NeuroGFWeights:
     p2_w: wp.array2d(dtype=wp.float32)
     p2_b: wp.array(dtype=wp.float32)
     p3_w: wp.array2d(dtype=wp.float32)
+    # options (network.py): distance += euclid * |p - q|; path points += residual * straight-line point
+    euclid: wp.float32
+    residual: wp.float32
 
 
 @wp.func
@@ -73,11 +79,32 @@ def _dot_row(w: wp.array2d(dtype=wp.float32), row: int, x: vec_h) -> float:
 
 
 @wp.func
+def features(x: wp.vec3, n: int) -> vec_feat:
+    """The lifting input: [x, sin(2^k pi x_c), cos(2^k pi x_c)] in network.fourier_features' order (n = 3 + 6L)."""
+    f = vec_feat()
+    L = (n - 3) // 6
+    for c in range(3):
+        xc = wp.float64(x[c])
+        f[c] = xc
+        w = wp.float64(3.141592653589793)
+        for k in range(L):
+            f[3 + c * L + k] = wp.sin(w * xc)  # float64: arguments reach 2^L pi
+            f[3 + 3 * L + c * L + k] = wp.cos(w * xc)
+            w = w * wp.float64(2.0)
+    return f
+
+
+@wp.func
 def lift_hidden(net: NeuroGFWeights, x: wp.vec3) -> vec_h:
-    """The first two lifting layers (3 -> D/4 -> D/2)."""
+    """The first two lifting layers (features -> D/4 -> D/2)."""
+    n = net.l0_w.shape[1]
+    f = features(x, n)
     h0 = vec_h()
     for i in range(net.l0_w.shape[0]):
-        h0[i] = wp.max(net.l0_b[i] + net.l0_w[i, 0] * x[0] + net.l0_w[i, 1] * x[1] + net.l0_w[i, 2] * x[2], 0.0)
+        acc = wp.float64(net.l0_b[i])
+        for k in range(n):
+            acc += wp.float64(net.l0_w[i, k]) * f[k]
+        h0[i] = wp.max(wp.float32(acc), 0.0)
     return _dense_relu(net.l1_w, net.l1_b, h0)
 
 
@@ -111,8 +138,9 @@ def distance_from_embeddings(net: NeuroGFWeights, ep: vec_d, eq: vec_d) -> float
 
 
 @wp.func
-def distance_to_embedding(net: NeuroGFWeights, es: wp.array2d(dtype=wp.float32), row: int, x: wp.vec3) -> float:
-    """Distance from a precomputed embedding ``es[row]`` (e.g. an SSAD source) to point x.
+def distance_to_embedding(net: NeuroGFWeights, es: wp.array2d(dtype=wp.float32), row: int, s: wp.vec3,
+                          x: wp.vec3) -> float:
+    """Distance from source point s, whose embedding ``es[row]`` is precomputed (e.g. an SSAD source), to x.
 
     e(x) is streamed one channel at a time into the head's first layer, so it is never stored.
     """
@@ -127,13 +155,13 @@ def distance_to_embedding(net: NeuroGFWeights, es: wp.array2d(dtype=wp.float32),
     h = vec_h()
     for j in range(net.g0_w.shape[0]):
         h[j] = wp.max(wp.float32(acc[j]), 0.0)
-    return _head_tail(net.g1_w, net.g1_b, net.g2_w, h)
+    return _head_tail(net.g1_w, net.g1_b, net.g2_w, h) + net.euclid * wp.length(x - s)
 
 
 @wp.func
 def geodesic_distance(net: NeuroGFWeights, p: wp.vec3, q: wp.vec3) -> float:
     """Predicted geodesic distance between two points (normalized frame). Callable from user kernels."""
-    return distance_from_embeddings(net, embed(net, p), embed(net, q))
+    return distance_from_embeddings(net, embed(net, p), embed(net, q)) + net.euclid * wp.length(p - q)
 
 
 @wp.func
@@ -185,25 +213,29 @@ def distance_pairs(net: NeuroGFWeights, ps: wp.array(dtype=wp.vec3), qs: wp.arra
 
 
 @wp.kernel(enable_backward=False)
-def distance_to_source(net: NeuroGFWeights, es: wp.array2d(dtype=wp.float32), xs: wp.array(dtype=wp.vec3),
-                       frame: Frame, index: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.float32)):
-    """SSAD: one source embedding es[0] to every point; result i goes to out[index[i]] (the user's numbering)."""
+def distance_to_source(net: NeuroGFWeights, es: wp.array2d(dtype=wp.float32), src: wp.array(dtype=wp.vec3),
+                       xs: wp.array(dtype=wp.vec3), frame: Frame, index: wp.array(dtype=wp.int32),
+                       out: wp.array(dtype=wp.float32)):
+    """SSAD: source src[0] (embedding es[0]) to every point; result i goes to out[index[i]] (the user's numbering)."""
     i = wp.tid()
-    out[index[i]] = distance_to_embedding(net, es, 0, to_net(frame, xs[i])) * frame.dscale
+    out[index[i]] = distance_to_embedding(net, es, 0, to_net(frame, src[0]), to_net(frame, xs[i])) * frame.dscale
 
 
 @wp.kernel(enable_backward=False)
-def distance_to_nearest_source(net: NeuroGFWeights, es: wp.array2d(dtype=wp.float32), xs: wp.array(dtype=wp.vec3),
-                               frame: Frame, index: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.float32)):
-    """MSAD: distance to the nearest of several source embeddings; e(x) is computed once per point."""
+def distance_to_nearest_source(net: NeuroGFWeights, es: wp.array2d(dtype=wp.float32), src: wp.array(dtype=wp.vec3),
+                               xs: wp.array(dtype=wp.vec3), frame: Frame, index: wp.array(dtype=wp.int32),
+                               out: wp.array(dtype=wp.float32)):
+    """MSAD: distance to the nearest of several sources (embeddings es); e(x) is computed once per point."""
     i = wp.tid()
-    ex = embed(net, to_net(frame, xs[i]))
+    x = to_net(frame, xs[i])
+    ex = embed(net, x)
     best = float(3.0e38)
     for s in range(es.shape[0]):
         es_s = vec_d()
         for k in range(es.shape[1]):
             es_s[k] = es[s, k]
-        best = wp.min(best, distance_from_embeddings(net, es_s, ex))
+        d = distance_from_embeddings(net, es_s, ex) + net.euclid * wp.length(x - to_net(frame, src[s]))
+        best = wp.min(best, d)
     out[index[i]] = best * frame.dscale
 
 
@@ -248,5 +280,5 @@ def path_points(net: NeuroGFWeights, ps: wp.array(dtype=wp.vec3), qs: wp.array(d
         h0[r] = wp.max(pre[pi, r] + net.p0_w[r, 0] * x[0] + net.p0_w[r, 1] * x[1] + net.p0_w[r, 2] * x[2], 0.0)
     h1 = _dense_relu(net.p1_w, net.p1_b, h0)
     h2 = _dense_relu(net.p2_w, net.p2_b, h1)
-    y = wp.vec3(_dot_row(net.p3_w, 0, h2), _dot_row(net.p3_w, 1, h2), _dot_row(net.p3_w, 2, h2))
+    y = wp.vec3(_dot_row(net.p3_w, 0, h2), _dot_row(net.p3_w, 1, h2), _dot_row(net.p3_w, 2, h2)) + net.residual * x
     out[pi, i] = y * frame.dscale + frame.center

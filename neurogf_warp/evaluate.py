@@ -46,9 +46,10 @@ def _torch_device(device):
 def _predict_rows(net, xyz, vertex_ids, source_ids, device):
     """Network distances from each source to the given vertices: (S, Vr) float64, normalized units."""
     x = torch.as_tensor(xyz, dtype=torch.float32, device=device)
-    ev = net.embed(x[torch.as_tensor(vertex_ids, device=device)])
-    es = net.embed(x[torch.as_tensor(source_ids, device=device)])
-    return np.stack([net.distance_from_embeddings(es[i].expand_as(ev), ev).double().cpu().numpy()
+    xv = x[torch.as_tensor(vertex_ids, device=device)]
+    xs = x[torch.as_tensor(source_ids, device=device)]
+    ev, es = net.embed(xv), net.embed(xs)
+    return np.stack([net.distance_from_embeddings(es[i].expand_as(ev), ev, xs[i].expand_as(xv), xv).double().cpu().numpy()
                      for i in range(len(es))])
 
 

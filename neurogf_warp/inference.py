@@ -48,6 +48,8 @@ def warp_weights(model: Model, device=None) -> mlp.NeuroGFWeights:
                 setattr(w, f"{name}_w", wp.array(W.astype(np.float32), dtype=wp.float32, device=dev))
                 if b is not None:
                     setattr(w, f"{name}_b", wp.array(b.astype(np.float32), dtype=wp.float32, device=dev))
+        w.euclid = 1.0 if model.net.euclid else 0.0
+        w.residual = 1.0 if model.net.path_residual else 0.0
         model._warp[key] = w
     return model._warp[key]
 
@@ -137,7 +139,8 @@ def _to_vertices(model, src, what, name, kernel, device, output):
     verts, index = _vertices(model, dev)
     out = Output(output, dev)
     res = out.empty(model.mesh.n_input, fill=float("nan"))
-    wp.launch(kernel, verts.shape[0], inputs=[warp_weights(model, dev), es, verts, _frame(model), index],
+    srcs = wp.array(pts.astype(np.float32), dtype=wp.vec3, device=dev)
+    wp.launch(kernel, verts.shape[0], inputs=[warp_weights(model, dev), es, srcs, verts, _frame(model), index],
               outputs=[res], device=dev)
     return out.result(res)
 

@@ -35,6 +35,7 @@ def save(model: Model, path, include_mesh: bool = True):
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
         "D": model.D,
+        "net_options": model.net.options,
         "center": model.center.tolist(),
         "scale": model.scale,
         "config": model.config,
@@ -69,7 +70,7 @@ def _strict_load(module: torch.nn.Module, state: dict, what: str, path: str):
     module.load_state_dict({k: v.to(own[k].dtype) for k, v in state.items()}, strict=True)
 
 
-def _net_from_state(state: dict, path: str) -> NeuroGFNet:
+def _net_from_state(state: dict, path: str, options: dict | None = None) -> NeuroGFNet:
     w = state.get("lifting.2.linear.weight")
     if w is None and "fc.0.linear.weight" in state:
         raise ValueError(f"{path} is an SDF-querier checkpoint, not a NeuroGF model: pass it as "
@@ -80,8 +81,18 @@ def _net_from_state(state: dict, path: str) -> NeuroGFNet:
     D = int(w.shape[0])
     if D not in SUPPORTED_D:
         raise ValueError(f"{path}: embedding width {D} is not supported (expected one of {SUPPORTED_D})")
-    net = NeuroGFNet(D)
-    _strict_load(net, state, f"NeuroGF (D={D})", path)
+    opts = dict(options or {})
+    w0 = state.get("lifting.0.linear.weight")
+    if w0 is not None and "fourier" not in opts:  # the input width says how many Fourier octaves
+        opts["fourier"] = (int(w0.shape[1]) - 3) // 6
+    p0 = state.get("spf_head.0.conv.weight")
+    if p0 is not None and "path_width" not in opts:  # ... and the path head's width its multiplier
+        opts["path_width"] = max(1, 2 * int(p0.shape[0]) // D)
+    try:
+        net = NeuroGFNet(D, **opts)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{path}: unsupported network options {opts} ({e}); upgrade neurogf-warp") from e
+    _strict_load(net, state, f"NeuroGF (D={D}, {net.options})", path)
     return net
 
 
@@ -152,7 +163,8 @@ def _load_ngf(path: str, mesh, check_mesh: bool) -> Model:
         raise ValueError(f"{path} is a safetensors file but not a neurogf-warp model (no '{FORMAT}' metadata)")
     if meta.get("format_version", 0) > FORMAT_VERSION:
         raise ValueError(f"{path} was written by a newer neurogf-warp (format {meta['format_version']}); upgrade the package")
-    net = _net_from_state({k[4:]: v for k, v in tensors.items() if k.startswith("net.")}, path)
+    net = _net_from_state({k[4:]: v for k, v in tensors.items() if k.startswith("net.")}, path,
+                          meta.get("net_options"))
     querier = None
     qstate = {k[8:]: v for k, v in tensors.items() if k.startswith("querier.")}
     if qstate:

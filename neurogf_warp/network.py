@@ -4,15 +4,25 @@ Every layer is a bias-free linear map, optionally followed by BatchNorm and ReLU
 ``*_final.pth`` and querier checkpoints load with ``load_state_dict(strict=True)``.
 Widths scale with D; D=256 is the released layout (lifting 3-64-128-256, heads 256-64-64-1,
 guidance 512-256, path head 259-128-64-32-3).
+
+Three options (not in the paper; all off reproduces it exactly, and released checkpoints load that way):
+  fourier=L     the lifting sees [x, sin(2^k pi x), cos(2^k pi x)], k < L (3 + 6L inputs) instead of x;
+  euclid=True   distance = |p - q| + gdf_head(|e_p - e_q|): the head learns only the excess over the
+                straight line, so it needs the query points as well as their embeddings;
+  path_residual=True  the path head outputs offsets from the straight line instead of absolute points;
+  path_width=2  the path head's hidden layers twice as wide (D/2, D/4, D/8 -> D, D/2, D/4).
 """
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import nn
 
-__all__ = ["FC", "PointMLP", "NeuroGFNet", "SdfQuerier", "widths"]
+__all__ = ["FC", "PointMLP", "NeuroGFNet", "SdfQuerier", "widths", "fourier_features"]
 
 SUPPORTED_D = (64, 128, 256, 512)
+MAX_FOURIER = 8
 
 
 class FC(nn.Module):
@@ -53,14 +63,17 @@ class PointMLP(nn.Module):
         return y.squeeze(-1).permute(0, 2, 1)
 
 
-def widths(D: int) -> dict:
+def widths(D: int, path_width: int = 1) -> dict:
     if D not in SUPPORTED_D:
         raise ValueError(f"D must be one of {SUPPORTED_D}, got {D}")
+    if path_width not in (1, 2) or path_width * D > 512:
+        raise ValueError(f"path_width must be 1 or 2 (2 only for D <= 256), got {path_width} with D={D}")
+    w = path_width
     return {
         "lifting": [3, D // 4, D // 2, D],
         "head": [D, D // 4, D // 4, 1],
         "guidance": [2 * D, D],
-        "path": [D + 3, D // 2, D // 4, D // 8, 3],
+        "path": [D + 3, w * D // 2, w * D // 4, w * D // 8, 3],
     }
 
 
@@ -69,14 +82,26 @@ def _head(ws):
     return nn.Sequential(*layers, FC(ws[-2], ws[-1], bn=False, relu=False))
 
 
+def fourier_features(x, L: int):
+    """[x, sin(2^k pi x), cos(2^k pi x) for k < L]: (..., 3) -> (..., 3 + 6L); L = 0 returns x."""
+    if L == 0:
+        return x
+    f = x.unsqueeze(-1) * (math.pi * 2.0 ** torch.arange(L, dtype=x.dtype, device=x.device))  # (..., 3, L)
+    return torch.cat([x, torch.sin(f).flatten(-2), torch.cos(f).flatten(-2)], dim=-1)
+
+
 class NeuroGFNet(nn.Module):
     """Overfitted NeuroGF: shared point lifting, distance head, SDF head and path head."""
 
-    def __init__(self, D: int = 256):
+    def __init__(self, D: int = 256, fourier: int = 0, euclid: bool = False, path_residual: bool = False,
+                 path_width: int = 1):
         super().__init__()
-        w = widths(D)
-        self.D = D
-        lw = w["lifting"]
+        w = widths(D, path_width)
+        if not (isinstance(fourier, int) and 0 <= fourier <= MAX_FOURIER):
+            raise ValueError(f"fourier must be an integer in 0..{MAX_FOURIER}, got {fourier!r}")
+        self.D, self.fourier, self.euclid, self.path_residual = D, fourier, bool(euclid), bool(path_residual)
+        self.path_width = path_width
+        lw = [3 + 6 * fourier] + w["lifting"][1:]
         self.lifting = nn.Sequential(*[FC(a, b) for a, b in zip(lw[:-1], lw[1:])])
         self.sdf_head = _head(w["head"])
         self.gdf_head = _head(w["head"])
@@ -87,11 +112,23 @@ class NeuroGFNet(nn.Module):
         )
 
     # Each query kind on its own; training may instead lift all points in one call (shared BN statistics).
-    def embed(self, x):
-        return self.lifting(x)
+    @property
+    def options(self) -> dict:
+        """What a model file must record besides the weights to rebuild this network."""
+        return {"fourier": self.fourier, "euclid": self.euclid, "path_residual": self.path_residual,
+                "path_width": self.path_width}
 
-    def distance_from_embeddings(self, es, et):
-        return self.gdf_head((es - et).abs()).squeeze(-1)
+    def embed(self, x):
+        return self.lifting(fourier_features(x, self.fourier))
+
+    def distance_from_embeddings(self, es, et, p=None, q=None):
+        """gdf_head(|e_p - e_q|) (+ |p - q| with ``euclid``, which then needs the points p, q)."""
+        d = self.gdf_head((es - et).abs()).squeeze(-1)
+        if self.euclid:
+            if p is None or q is None:
+                raise ValueError("this network adds |p - q| to its distances: pass the query points p and q too")
+            d = d + torch.linalg.vector_norm(p - q, dim=-1)
+        return d
 
     def sdf_from_embeddings(self, e):
         return self.sdf_head(e).squeeze(-1)
@@ -100,11 +137,12 @@ class NeuroGFNet(nn.Module):
         """lines: (N, M, 3) straight-line samples; returns (N, M, 3) absolute path points."""
         g = self.cdw_fc(torch.cat([es, et], dim=-1))
         g = g.unsqueeze(1).expand(-1, lines.shape[1], -1)
-        return self.spf_head(torch.cat([lines, g], dim=-1))
+        out = self.spf_head(torch.cat([lines, g], dim=-1))
+        return out + lines if self.path_residual else out
 
     def distance(self, p, q):
         e = self.embed(torch.cat([p, q], 0))
-        return self.distance_from_embeddings(e[: len(p)], e[len(p):])
+        return self.distance_from_embeddings(e[: len(p)], e[len(p):], p, q)
 
     def sdf(self, x):
         return self.sdf_from_embeddings(self.embed(x))

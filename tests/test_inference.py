@@ -23,10 +23,11 @@ def released(name, mesh=None):
     return ngf.load(shared_path("checkpoints", "official", f"NeuroGF_Pretrainer__{ck}_final.pth"), mesh=m)
 
 
-def random_net(D, seed):
+def random_net(D, seed, **options):
     """A network with random weights and random BatchNorm statistics, in eval mode (float64)."""
     g = torch.Generator().manual_seed(seed)
-    net = NeuroGFNet(D).double()
+    torch.manual_seed(seed)
+    net = NeuroGFNet(D, **options).double()
     with torch.no_grad():
         for mod in net.modules():
             if isinstance(mod, torch.nn.modules.batchnorm._BatchNorm):
@@ -101,6 +102,43 @@ def test_warp_matches_torch_float64_on_random_points(D):
     assert np.abs(ngf.sdf(model, p, device=DEV) - s_ref).max() <= 1e-5 * np.abs(s_ref).max(), f"seed {seed}"
     assert np.abs(ngf.path(model, p[:8], q[:8], m=16, device=DEV) - path_ref).max() <= 1e-5 * np.abs(path_ref).max(), \
         f"seed {seed}"
+
+
+@pytest.mark.parametrize("options", [dict(fourier=2, euclid=True, path_residual=True),
+                                     dict(fourier=8, path_width=2), dict(euclid=True)])
+def test_network_options_match_torch_float64(options, tmp_path):
+    """Fourier inputs, the |p - q| distance term, residual and wider path heads: every Warp query (pairs, SSAD,
+    MSAD, SDF, paths) against the float64 torch network, in a moved and scaled mesh frame, after a file round trip."""
+    import trimesh
+
+    seed = int(np.random.SeedSequence().entropy % 2**31)
+    rng = np.random.default_rng(seed)
+    tm = trimesh.creation.icosphere(subdivisions=2)
+    V = tm.vertices * np.array([2.0, 1.6, 1.2]) + 3.0
+    mesh = ngf.load_mesh((V, tm.faces))
+    net = random_net(64, seed, **options)
+    ngf.save(ngf.Model(net=net, mesh=mesh, center=mesh.center, scale=mesh.scale), tmp_path / "m.ngf")
+    model = ngf.load(tmp_path / "m.ngf")
+    assert model.net.options == net.options
+    to_net = lambda x: torch.from_numpy((x - mesh.center) * mesh.scale)
+    p, q = V[rng.integers(0, len(V), 32)], V[rng.integers(0, len(V), 32)] + rng.normal(0, 0.1, (32, 3))
+    with torch.no_grad():
+        d_ref = net.distance(to_net(p), to_net(q)).numpy() / mesh.scale
+        s_ref = net.sdf(to_net(p)).numpy() / mesh.scale
+        path_ref = net.path(to_net(p[:8]), to_net(q[:8]), 16).numpy() / mesh.scale + mesh.center
+        srcs = [3, 40]
+        all_ref = np.stack([net.distance(to_net(V[[s]]).expand(len(V), 3), to_net(V)).numpy() for s in srcs]) / mesh.scale
+    tol = lambda ref: 1e-5 * np.abs(ref).max()
+    msg = f"seed {seed}, {options}"
+    assert np.abs(ngf.distance(model, p, q, device=DEV) - d_ref).max() <= tol(d_ref), msg
+    assert np.abs(ngf.sdf(model, p, device=DEV) - s_ref).max() <= tol(s_ref), msg
+    assert np.abs(ngf.path(model, p[:8], q[:8], m=16, device=DEV) - path_ref).max() <= tol(path_ref), msg
+    assert np.abs(ngf.ssad(model, srcs[1], device=DEV) - all_ref[1]).max() <= tol(all_ref), msg
+    assert np.abs(ngf.msad(model, srcs, device=DEV) - all_ref.min(0)).max() <= tol(all_ref), msg
+    with torch.no_grad():  # p = q: the |p - q| term is 0, the rest is the constant gdf_head(0)
+        self_ref = net.distance(to_net(p), to_net(p)).numpy() / mesh.scale
+    assert np.ptp(self_ref) <= 1e-12
+    assert np.abs(ngf.distance(model, p, p, device=DEV) - self_ref).max() <= tol(d_ref), msg
 
 
 def test_symmetry_and_ssad_equals_distance():
