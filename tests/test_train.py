@@ -274,3 +274,23 @@ def test_parse_overrides():
     assert T.parse_overrides(["batch_g=128", "amp=true", "lr=3e-3"]) == {"batch_g": 128, "amp": True, "lr": 0.003}
     with pytest.raises(ValueError, match="KEY=VALUE"):
         T.parse_overrides(["nonsense=1"])
+
+
+def test_paper_settings_give_the_official_network_and_recipe():
+    cfg = T.TrainConfig(**T.PAPER)
+    net = NeuroGFNet(cfg.D, cfg.fourier, cfg.euclid, cfg.path_residual, cfg.path_width)
+    assert net.options == {"fourier": 0, "euclid": False, "path_residual": False, "path_width": 1}
+    assert net.lifting[0].linear.weight.shape == (64, 3)  # the released layout
+    assert cfg.dist_loss == "l1" and cfg.stage_steps()["refine_dist"] == 0
+    assert cfg.ratio("refine_path") == 0.1 and cfg.refine_path_lr == 1e-3
+    defaults = NeuroGFNet(64, T.TrainConfig().fourier).lifting[0].linear.weight.shape
+    assert defaults == (16, 3 + 6 * T.TrainConfig().fourier)
+
+
+@pytest.mark.parametrize("bad,match", [(dict(fourier=9), "fourier must be"), (dict(fourier=1.5), "fourier must be"),
+                                       (dict(path_width=3), "path_width must be")])
+def test_bad_network_options_are_rejected(bad, match):
+    with pytest.raises(ValueError, match=match):
+        NeuroGFNet(64, **bad)
+    with pytest.raises(ValueError, match="path_width must be"):
+        NeuroGFNet(512, path_width=2)
