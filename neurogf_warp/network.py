@@ -5,7 +5,7 @@ Every layer is a bias-free linear map, optionally followed by BatchNorm and ReLU
 Widths scale with D; D=256 is the released layout (lifting 3-64-128-256, heads 256-64-64-1,
 guidance 512-256, path head 259-128-64-32-3).
 
-Three options (not in the paper; all off reproduces it exactly, and released checkpoints load that way):
+Four options (not in the paper; all off reproduces it exactly, and released checkpoints load that way):
   fourier=L     the lifting sees [x, sin(2^k pi x), cos(2^k pi x)], k < L (3 + 6L inputs) instead of x;
   euclid=True   distance = |p - q| + gdf_head(|e_p - e_q|): the head learns only the excess over the
                 straight line, so it needs the query points as well as their embeddings;
@@ -111,13 +111,13 @@ class NeuroGFNet(nn.Module):
             *[PointMLP(a, b) for a, b in zip(pw[:-2], pw[1:-1])], PointMLP(pw[-2], pw[-1], bn=False, relu=False)
         )
 
-    # Each query kind on its own; training may instead lift all points in one call (shared BN statistics).
     @property
     def options(self) -> dict:
         """What a model file must record besides the weights to rebuild this network."""
         return {"fourier": self.fourier, "euclid": self.euclid, "path_residual": self.path_residual,
                 "path_width": self.path_width}
 
+    # Each query kind on its own; training may instead lift all points in one call (shared BN statistics).
     def embed(self, x):
         return self.lifting(fourier_features(x, self.fourier))
 

@@ -124,6 +124,10 @@ class TrainConfig:
     def joint_steps(self) -> int:
         return self.epochs * self.iters_per_epoch
 
+    def network(self) -> NeuroGFNet:
+        """A fresh network of this config's width and options."""
+        return NeuroGFNet(self.D, self.fourier, self.euclid, self.path_residual, self.path_width)
+
     def ratio(self, stage) -> float:
         return float({**RATIOS, **self.ratios}[stage])
 
@@ -338,7 +342,7 @@ class Trainer:
     def __init__(self, cfg: TrainConfig, data: Data, sdf_pool, device):
         self.cfg, self.data, self.device = cfg, data, torch.device(device)
         torch.manual_seed(cfg.seed)  # weight init
-        self.net = NeuroGFNet(cfg.D, cfg.fourier, cfg.euclid, cfg.path_residual, cfg.path_width).to(self.device)
+        self.net = cfg.network().to(self.device)
         self.querier = SdfQuerier().to(self.device)
         self.sdf_pts, self.sdf_val = sdf_pool
         self.gen = torch.Generator(device=self.device)
@@ -768,7 +772,7 @@ def train(mesh, out_path, *, D: int = 256, epochs: int | None = None, iters_per_
         if iters_per_epoch is not None:
             kw["iters_per_epoch"] = iters_per_epoch
         cfg = TrainConfig(**kw)
-        NeuroGFNet(cfg.D, cfg.fourier, cfg.euclid, cfg.path_residual, cfg.path_width)  # validates them before the expensive steps
+        cfg.network()  # validates D and the options before the expensive steps
 
     t_start = time.perf_counter()
     ds = get_dataset(mesh, dataset, out_path, device, progress, dict(cfg.dataset_options, seed=cfg.seed))

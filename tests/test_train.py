@@ -54,9 +54,10 @@ def one_thread():
 
 # --------------------------------------------------------------------------------------------- tests
 
-def test_fast_path_matches_network(data):
+@pytest.mark.parametrize("options", [{}, dict(path_residual=True, path_width=2)])
+def test_fast_path_matches_network(data, options):
     torch.manual_seed(0)
-    net = NeuroGFNet(64).double()
+    net = NeuroGFNet(64, **options).double()
     pg = torch.as_tensor(data["path_global"][:2].reshape(-1, 128, 3), dtype=torch.float64)
     p, q = pg[:, 0], pg[:, -1]
     for mode in (True, False):
@@ -278,7 +279,7 @@ def test_parse_overrides():
 
 def test_paper_settings_give_the_official_network_and_recipe():
     cfg = T.TrainConfig(**T.PAPER)
-    net = NeuroGFNet(cfg.D, cfg.fourier, cfg.euclid, cfg.path_residual, cfg.path_width)
+    net = cfg.network()
     assert net.options == {"fourier": 0, "euclid": False, "path_residual": False, "path_width": 1}
     assert net.lifting[0].linear.weight.shape == (64, 3)  # the released layout
     assert cfg.dist_loss == "l1" and cfg.stage_steps()["refine_dist"] == 0
