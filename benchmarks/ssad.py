@@ -86,7 +86,7 @@ def main(argv=None):
         xx, ss = x.to(dtype), src.to(dtype)
         def run():
             with torch.no_grad():
-                return n.distance_from_embeddings(n.embed(ss), n.embed(xx)) / model.scale
+                return n.distance_from_embeddings(n.embed(ss), n.embed(xx), ss, xx) / model.scale
         return run
 
     tsync = (lambda: torch.cuda.synchronize(tdev)) if tdev.type == "cuda" else (lambda: None)

@@ -36,7 +36,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import MESHES, TARGETS, find_shared  # noqa: E402  (../shared here, ./.bench on the GPU machine)
 SHARE = {"bunny": 0.6, "fandisk": 0.4}  # bunny is larger and has the harder target
 
-FULL_DATA = dict(n_sources=512, n_path_sources=256, n_path_global=128, n_path_local=32, n_test=8)
+# 2,048 training sources (paths from all of them, 16 each): at equal steps bunny MRE 0.638% -> 0.546% against 512
+# sources (sweep 9, benchmarks/RESULTS.md) for ~11 s more ground truth. The session-3 final run used 512 / 256 x 128.
+FULL_DATA = dict(n_sources=2048, n_path_sources=2048, n_path_global=16, n_path_local=32, n_test=8)
 SMALL_DATA = dict(n_sources=24, n_global=512, n_local1=16, n_local2=64, n_path_sources=8, n_path_global=16,
                   n_path_local=16, n_test=2, n_surface=30000, n_spread=2000, k=1)  # k=1: ~14 s for bunny on CPU
 SMALL_TRAIN = dict(D=64, batch_sdf=2048, batch_g=4096, batch_l1=512, batch_l2=1024, batch_paths_g=128,
