@@ -6,7 +6,9 @@ fields from held-out test sources. Definitions used here (the original repo does
 chosen):
 - spread vertices: QSlim (fast-simplification) decimation to ~n_spread vertices, each mapped to the nearest
   mesh vertex; sources, test sources and global targets are drawn from them;
-- global targets: random spread vertices reachable from the source (never another component);
+- global targets (distances and paths): random spread vertices reachable from the source (never another
+  component), or with ``target_pool="all"`` random vertices of the whole mesh, the measure that evaluation over
+  all vertices uses (QSlim keeps detailed regions, so the spread set under-samples flat ones);
 - local_1: the n_local1 vertices nearest to the source by geodesic distance;
 - local_2 and local path targets: random vertices among the `local_ball` (default 5% of V, at least
   4*n_local2) nearest to the source by geodesic distance.
@@ -140,8 +142,10 @@ def build_dataset(mesh, out_path=None, n_sources: int = 1024, seed: int = 0, dev
                   n_global: int = 4096, n_local1: int = 32, n_local2: int = 2048, local_ball: float = 0.05,
                   n_path_sources: int = 128, n_path_global: int = 256, n_path_local: int = 64,
                   n_test: int = 8, n_surface: int = 100000, n_spread: int = 20000, k: int = DEFAULT_K,
-                  batch: int | None = None) -> dict:
+                  batch: int | None = None, target_pool: str = "spread") -> dict:
     """Build the NeuroGF training data for one mesh; returns the dict of arrays (and saves it if out_path)."""
+    if target_pool not in ("spread", "all"):
+        raise ValueError(f"target_pool must be 'spread' or 'all', got {target_pool!r}")
     from tqdm.auto import tqdm
 
     t_start = time.perf_counter()
@@ -168,6 +172,7 @@ def build_dataset(mesh, out_path=None, n_sources: int = 1024, seed: int = 0, dev
     gd_local1 = np.zeros((S, n_local1, 7), np.float32)
     gd_local2 = np.zeros((S, n_local2, 7), np.float32)
     spread_set = np.asarray(spread)
+    target_set = spread_set if target_pool == "spread" else np.arange(V)
 
     def local_pool(d, s):
         order = np.argsort(d, kind="stable")
@@ -183,7 +188,7 @@ def build_dataset(mesh, out_path=None, n_sources: int = 1024, seed: int = 0, dev
         D = solver.vertex_distances()
         for j, s in enumerate(src):
             d = D[j]
-            reach = spread_set[np.isfinite(d[spread_set]) & (spread_set != s)]
+            reach = target_set[np.isfinite(d[target_set]) & (target_set != s)]
             pool = local_pool(d, s)
             gd_global[i + j] = _rows(xyz, s, _pick(rng, reach, n_global), d)
             gd_local1[i + j] = _rows(xyz, s, _pick(rng, pool[:n_local1], n_local1) if len(pool) >= n_local1
@@ -212,7 +217,7 @@ def build_dataset(mesh, out_path=None, n_sources: int = 1024, seed: int = 0, dev
             rows, tg, kinds = [], [], []
             for j, s in enumerate(src):
                 d = D[j]
-                reach = spread_set[np.isfinite(d[spread_set]) & (spread_set != s)]
+                reach = target_set[np.isfinite(d[target_set]) & (target_set != s)]
                 tg.append(_pick(rng, reach, n_path_global))
                 tg.append(_pick(rng, local_pool(d, s), n_path_local))
                 rows += [np.full(len(tg[-2]), j), np.full(len(tg[-1]), j)]
@@ -238,7 +243,7 @@ def build_dataset(mesh, out_path=None, n_sources: int = 1024, seed: int = 0, dev
         "settings": {"k": k, "n_sources": int(S), "n_global": n_global, "n_local1": n_local1, "n_local2": n_local2,
                      "local_ball_vertices": nball, "n_path_sources": int(n_path_sources),
                      "n_path_global": n_path_global, "n_path_local": n_path_local, "n_test": int(len(test_src)),
-                     "n_spread": int(len(spread)), "path_delta": PATH_DELTA},
+                     "n_spread": int(len(spread)), "target_pool": target_pool, "path_delta": PATH_DELTA},
         "definitions": __doc__.split("Definitions used here", 1)[-1].strip(),
         "stale_paths": stale, "units": "normalized (unit sphere)",
         "versions": {"warp": wp.config.version, "numpy": np.__version__},

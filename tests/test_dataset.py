@@ -101,3 +101,20 @@ def test_sdf_truth_and_sampling():
     p = np.array([[0, 0, 0.2], [0, 0, 2.0]])
     sd = D.sdf_truth((s.vertices, s.faces[keep]), p, device="cpu")
     assert sd[0] < 0 < sd[1]
+
+
+def test_target_pool_all_reaches_vertices_outside_the_spread_set(two_blobs):
+    """target_pool="all": global distance and path targets come from every vertex, not only the spread ones."""
+    m = load_mesh(two_blobs)
+    opts = dict(SMALL, n_spread=100, n_global=64, n_path_global=16)
+    spread = set(D.spread_vertices(m, min(100, len(m.vertices) // 2)).tolist())
+    V = m.normalized_vertices.astype(np.float32)
+    for pool, want_outside in (("spread", False), ("all", True)):
+        d = D.build_dataset(two_blobs, None, target_pool=pool, **opts)
+        tgt = np.argmin(np.linalg.norm(V[None] - d["gd_global"][:, :, 3:6].reshape(-1, 1, 3), axis=2), axis=1)
+        ends = np.argmin(np.linalg.norm(V[None] - d["path_global"][:, :, -1].reshape(-1, 1, 3), axis=2), axis=1)
+        outside = [t for t in np.concatenate([tgt, ends]) if t not in spread]
+        assert bool(outside) == want_outside, pool
+        assert np.all(np.isfinite(d["gd_global"][:, :, 6]))
+    with pytest.raises(ValueError, match="target_pool"):
+        D.build_dataset(two_blobs, None, target_pool="everything", **opts)
