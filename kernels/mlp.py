@@ -54,9 +54,11 @@ class NeuroGFWeights:
     p2_w: wp.array2d(dtype=wp.float32)
     p2_b: wp.array(dtype=wp.float32)
     p3_w: wp.array2d(dtype=wp.float32)
-    # options (network.py): distance += euclid * |p - q|; path points += residual * straight-line point
+    # options (network.py): distance += euclid * |p - q|; path points += residual * straight-line point, the
+    # head's offsets scaled by sin(pi t) where window = 1
     euclid: wp.float32
     residual: wp.float32
+    window: wp.float32
 
 
 @wp.func
@@ -280,5 +282,6 @@ def path_points(net: NeuroGFWeights, ps: wp.array(dtype=wp.vec3), qs: wp.array(d
         h0[r] = wp.max(pre[pi, r] + net.p0_w[r, 0] * x[0] + net.p0_w[r, 1] * x[1] + net.p0_w[r, 2] * x[2], 0.0)
     h1 = _dense_relu(net.p1_w, net.p1_b, h0)
     h2 = _dense_relu(net.p2_w, net.p2_b, h1)
-    y = wp.vec3(_dot_row(net.p3_w, 0, h2), _dot_row(net.p3_w, 1, h2), _dot_row(net.p3_w, 2, h2)) + net.residual * x
+    y = wp.vec3(_dot_row(net.p3_w, 0, h2), _dot_row(net.p3_w, 1, h2), _dot_row(net.p3_w, 2, h2))
+    y = y * (1.0 - net.window + net.window * wp.sin(wp.pi * t)) + net.residual * x
     out[pi, i] = y * frame.dscale + frame.center

@@ -50,6 +50,7 @@ def warp_weights(model: Model, device=None) -> mlp.NeuroGFWeights:
                     setattr(w, f"{name}_b", wp.array(b.astype(np.float32), dtype=wp.float32, device=dev))
         w.euclid = 1.0 if model.net.euclid else 0.0
         w.residual = 1.0 if model.net.path_residual else 0.0
+        w.window = 1.0 if model.net.path_window else 0.0
         model._warp[key] = w
     return model._warp[key]
 

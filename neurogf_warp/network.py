@@ -5,11 +5,13 @@ Every layer is a bias-free linear map, optionally followed by BatchNorm and ReLU
 Widths scale with D; D=256 is the released layout (lifting 3-64-128-256, heads 256-64-64-1,
 guidance 512-256, path head 259-128-64-32-3).
 
-Four options (not in the paper; all off reproduces it exactly, and released checkpoints load that way):
+Five options (not in the paper; all off reproduces it exactly, and released checkpoints load that way):
   fourier=L     the lifting sees [x, sin(2^k pi x), cos(2^k pi x)], k < L (3 + 6L inputs) instead of x;
   euclid=True   distance = |p - q| + gdf_head(|e_p - e_q|): the head learns only the excess over the
                 straight line, so it needs the query points as well as their embeddings;
   path_residual=True  the path head outputs offsets from the straight line instead of absolute points;
+  path_window=True  (with path_residual) the offsets are scaled by sin(pi t), t in [0, 1] along the line, so a
+                path starts exactly at p and ends exactly at q;
   path_width=2  the path head's hidden layers twice as wide (D/2, D/4, D/8 -> D, D/2, D/4).
 """
 from __future__ import annotations
@@ -94,13 +96,15 @@ class NeuroGFNet(nn.Module):
     """Overfitted NeuroGF: shared point lifting, distance head, SDF head and path head."""
 
     def __init__(self, D: int = 256, fourier: int = 0, euclid: bool = False, path_residual: bool = False,
-                 path_width: int = 1):
+                 path_width: int = 1, path_window: bool = False):
         super().__init__()
         w = widths(D, path_width)
         if not (isinstance(fourier, int) and 0 <= fourier <= MAX_FOURIER):
             raise ValueError(f"fourier must be an integer in 0..{MAX_FOURIER}, got {fourier!r}")
         self.D, self.fourier, self.euclid, self.path_residual = D, fourier, bool(euclid), bool(path_residual)
-        self.path_width = path_width
+        self.path_width, self.path_window = path_width, bool(path_window)
+        if self.path_window and not self.path_residual:
+            raise ValueError("path_window scales the path offsets: it needs path_residual=True")
         lw = [3 + 6 * fourier] + w["lifting"][1:]
         self.lifting = nn.Sequential(*[FC(a, b) for a, b in zip(lw[:-1], lw[1:])])
         self.sdf_head = _head(w["head"])
@@ -115,7 +119,16 @@ class NeuroGFNet(nn.Module):
     def options(self) -> dict:
         """What a model file must record besides the weights to rebuild this network."""
         return {"fourier": self.fourier, "euclid": self.euclid, "path_residual": self.path_residual,
-                "path_width": self.path_width}
+                "path_width": self.path_width, "path_window": self.path_window}
+
+    def path_output(self, out, lines):
+        """Path points from the head's output: absolute (paper), or offsets from the lines (optionally windowed)."""
+        if not self.path_residual:
+            return out
+        if self.path_window:
+            t = torch.linspace(0.0, 1.0, lines.shape[1], dtype=lines.dtype, device=lines.device).view(1, -1, 1)
+            out = out * torch.sin(math.pi * t)
+        return lines + out
 
     # Each query kind on its own; training may instead lift all points in one call (shared BN statistics).
     def embed(self, x):
@@ -137,8 +150,7 @@ class NeuroGFNet(nn.Module):
         """lines: (N, M, 3) straight-line samples; returns (N, M, 3) absolute path points."""
         g = self.cdw_fc(torch.cat([es, et], dim=-1))
         g = g.unsqueeze(1).expand(-1, lines.shape[1], -1)
-        out = self.spf_head(torch.cat([lines, g], dim=-1))
-        return out + lines if self.path_residual else out
+        return self.path_output(self.spf_head(torch.cat([lines, g], dim=-1)), lines)
 
     def distance(self, p, q):
         e = self.embed(torch.cat([p, q], 0))

@@ -57,7 +57,7 @@ GRAPH_WARMUP = 3  # eager steps per stage before its CUDA graph is captured
 MIN_VERTICES = 16  # below this there is nothing to hold out or sample paths from
 CKPT_VERSION = 3  # 2: the refine_dist stage; 3: network options (fourier, euclid, ...) in the config
 # TrainConfig values that give the paper's network and recipe (`--paper`)
-PAPER = {"fourier": 0, "euclid": False, "path_residual": False, "path_width": 1, "dist_loss": "l1",
+PAPER = {"fourier": 0, "euclid": False, "path_residual": False, "path_width": 1, "path_window": False, "dist_loss": "l1",
          "refine_dist_steps": 0, "refine_path_lr": 1e-3, "ratios": {"refine_path": 0.1}}
 
 
@@ -71,6 +71,9 @@ class TrainConfig:
     euclid: bool = True               # distance = |p - q| + head
     path_residual: bool = True        # path head outputs offsets from the straight line
     path_width: int = 1               # path head hidden widths x1 or x2
+    # path offsets x sin(pi t): exact end points. Path head alone on fixed fandisk features (CPU, 2,500 steps):
+    # test Chamfer 3.03e-2 -> 2.65e-2 (benchmarks/RESULTS.md); not yet measured in a full GPU run
+    path_window: bool = True
     epochs: int = 100                 # joint-training epochs ...
     iters_per_epoch: int = 200        # ... of this many steps
     querier_steps: int | None = None      # default: RATIOS x joint steps (querier at most QUERIER_MAX)
@@ -126,7 +129,7 @@ class TrainConfig:
 
     def network(self) -> NeuroGFNet:
         """A fresh network of this config's width and options."""
-        return NeuroGFNet(self.D, self.fourier, self.euclid, self.path_residual, self.path_width)
+        return NeuroGFNet(self.D, self.fourier, self.euclid, self.path_residual, self.path_width, self.path_window)
 
     def ratio(self, stage) -> float:
         return float({**RATIOS, **self.ratios}[stage])
@@ -318,8 +321,7 @@ def fast_path(net: NeuroGFNet, es, et, lines):
             h = _bn(h, layer.bn, layer.bn.training)
         if layer.act is not None:
             h = torch.relu(h)
-    h = h.reshape(K, M, 3)
-    return h + lines if net.path_residual else h  # (float32 lines: the sum is float32 under autocast too)
+    return net.path_output(h.reshape(K, M, 3), lines)  # float32 lines: float32 points under autocast too
 
 
 def _set_tf32(on: bool) -> bool:

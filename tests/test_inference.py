@@ -104,10 +104,10 @@ def test_warp_matches_torch_float64_on_random_points(D):
         f"seed {seed}"
 
 
-@pytest.mark.parametrize("options", [dict(fourier=2, euclid=True, path_residual=True),
+@pytest.mark.parametrize("options", [dict(fourier=2, euclid=True, path_residual=True, path_window=True),
                                      dict(fourier=8, path_width=2), dict(euclid=True)])
 def test_network_options_match_torch_float64(options, tmp_path):
-    """Fourier inputs, the |p - q| distance term, residual and wider path heads: every Warp query (pairs, SSAD,
+    """Fourier inputs, the |p - q| distance term, residual (windowed) and wider path heads: every Warp query (pairs, SSAD,
     MSAD, SDF, paths) against the float64 torch network, in a moved and scaled mesh frame, after a file round trip."""
     import trimesh
 
@@ -132,7 +132,10 @@ def test_network_options_match_torch_float64(options, tmp_path):
     msg = f"seed {seed}, {options}"
     assert np.abs(ngf.distance(model, p, q, device=DEV) - d_ref).max() <= tol(d_ref), msg
     assert np.abs(ngf.sdf(model, p, device=DEV) - s_ref).max() <= tol(s_ref), msg
-    assert np.abs(ngf.path(model, p[:8], q[:8], m=16, device=DEV) - path_ref).max() <= tol(path_ref), msg
+    paths = ngf.path(model, p[:8], q[:8], m=16, device=DEV)
+    assert np.abs(paths - path_ref).max() <= tol(path_ref), msg
+    if options.get("path_window"):  # exact end points
+        assert np.abs(paths[:, 0] - p[:8]).max() <= 1e-5 and np.abs(paths[:, -1] - q[:8]).max() <= 1e-5, msg
     assert np.abs(ngf.ssad(model, srcs[1], device=DEV) - all_ref[1]).max() <= tol(all_ref), msg
     assert np.abs(ngf.msad(model, srcs, device=DEV) - all_ref.min(0)).max() <= tol(all_ref), msg
     with torch.no_grad():  # p = q: the |p - q| term is 0, the rest is the constant gdf_head(0)

@@ -54,7 +54,8 @@ def one_thread():
 
 # --------------------------------------------------------------------------------------------- tests
 
-@pytest.mark.parametrize("options", [{}, dict(path_residual=True, path_width=2)])
+@pytest.mark.parametrize("options", [{}, dict(path_residual=True, path_width=2),
+                                     dict(path_residual=True, path_window=True)])
 def test_fast_path_matches_network(data, options):
     torch.manual_seed(0)
     net = NeuroGFNet(64, **options).double()
@@ -280,7 +281,8 @@ def test_parse_overrides():
 def test_paper_settings_give_the_official_network_and_recipe():
     cfg = T.TrainConfig(**T.PAPER)
     net = cfg.network()
-    assert net.options == {"fourier": 0, "euclid": False, "path_residual": False, "path_width": 1}
+    assert net.options == {"fourier": 0, "euclid": False, "path_residual": False, "path_width": 1,
+                           "path_window": False}
     assert net.lifting[0].linear.weight.shape == (64, 3)  # the released layout
     assert cfg.dist_loss == "l1" and cfg.stage_steps()["refine_dist"] == 0
     assert cfg.ratio("refine_path") == 0.1 and cfg.refine_path_lr == 1e-3
@@ -289,7 +291,8 @@ def test_paper_settings_give_the_official_network_and_recipe():
 
 
 @pytest.mark.parametrize("bad,match", [(dict(fourier=9), "fourier must be"), (dict(fourier=1.5), "fourier must be"),
-                                       (dict(path_width=3), "path_width must be")])
+                                       (dict(path_width=3), "path_width must be"),
+                                       (dict(path_window=True), "needs path_residual")])
 def test_bad_network_options_are_rejected(bad, match):
     with pytest.raises(ValueError, match=match):
         NeuroGFNet(64, **bad)
