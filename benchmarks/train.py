@@ -13,7 +13,10 @@ matplotlib is importable, <out>/loss_curves.png.
 from __future__ import annotations
 
 import argparse
+import hashlib
+import inspect
 import json
+import shlex
 import os
 import platform
 import sys
@@ -34,6 +37,7 @@ from neurogf_warp.train import log_path, parse_overrides, train  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import MESHES, TARGETS, find_shared  # noqa: E402  (../shared here, ./.bench on the GPU machine)
+DATA_FIELDS = set(inspect.signature(build_dataset).parameters) - {"mesh", "path", "device", "progress"}
 SHARE = {"bunny": 0.6, "fandisk": 0.4}  # bunny is larger and has the harder target
 
 # 2,048 training sources (paths from all of them, 16 each): at equal steps bunny MRE 0.638% -> 0.546% against 512
@@ -92,6 +96,16 @@ def _plot(results: dict, path: Path) -> bool:
     return True
 
 
+def _chamfer(r: dict) -> str:
+    ref = r.get("chamfer_l1_refined")
+    return f"{r['chamfer_l1']:.3e} ({ref:.3e})" if ref is not None else f"{r['chamfer_l1']:.3e} (-)"
+
+
+def _released(r: dict) -> str:
+    rel = r.get("released", {})
+    return f"{rel['mre']:.3%}  {_chamfer(rel)}" if "mre" in rel else "-"
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cuda:0" if torch.cuda.is_available() else "cpu")
@@ -102,9 +116,16 @@ def main(argv=None) -> int:
     p.add_argument("--D", type=int, default=None)
     p.add_argument("--n-sources", type=int, default=None, help="training sources per mesh")
     p.add_argument("--eval-reserve", type=float, default=None, help="seconds kept for evaluation per mesh")
+    p.add_argument("--path-refine", type=int, default=None, metavar="N",
+                   help="also score the paths after N shortening sweeps (default 400 on GPU, 2 with --small)")
     p.add_argument("--no-amp", dest="amp", action="store_false", help="float32 path head (default: bf16 on CUDA)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="TrainConfig override, e.g. --set batch_surf=256 (repeatable)")
+    p.add_argument("--data", action="append", default=[], metavar="KEY=VALUE",
+                   help="build_dataset override, e.g. --data target_pool=all (repeatable)")
+    p.add_argument("--variant", action="append", default=[], metavar="NAME:OPTIONS",
+                   help="with --parallel: also run every mesh with these extra options, e.g. "
+                        "'pool:--data target_pool=all' (repeatable; one GPU per mesh and variant)")
     p.add_argument("--out", default=str(Path(os.environ.get("OUT", ROOT / "benchmarks" / "results")) / "train"),
                    help="models, JSON and PNG (small files)")
     p.add_argument("--work", default=os.path.join(tempfile.gettempdir(), "neurogf-train-bench"),
@@ -129,6 +150,7 @@ def main(argv=None) -> int:
     data_opts = dict(SMALL_DATA if a.small else FULL_DATA)
     if a.n_sources:
         data_opts["n_sources"] = a.n_sources
+    data_opts.update(parse_overrides(a.data, fields=DATA_FIELDS, flag="--data"))
     train_opts = dict(SMALL_TRAIN) if a.small else {}
     if a.D:
         train_opts["D"] = a.D
@@ -145,7 +167,8 @@ def main(argv=None) -> int:
     for name in a.meshes:
         obj, _ = MESHES[name]
         meshes[name] = load_mesh(find_shared("meshes", obj))
-        path = work / f"{name}-{'small' if a.small else 'full'}-{data_opts['n_sources']}.dataset.npz"
+        tag = hashlib.sha1(json.dumps(data_opts, sort_keys=True).encode()).hexdigest()[:8]
+        path = work / f"{name}-{'small' if a.small else 'full'}-{tag}.dataset.npz"
         t0 = time.perf_counter()
         reused = a.reuse_data and _usable(path, meshes[name])
         if not reused:
@@ -179,7 +202,8 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         ref = find_shared("reference", "exact", MESHES[name][1])
         kw = dict(n_path_sources=1 if a.small else 16, n_path_targets=16 if a.small else 32,
-                  solver_k=1 if a.small else None, device=a.device, verbose=False)
+                  solver_k=1 if a.small else None, device=a.device, verbose=False,
+                  path_refine=a.path_refine if a.path_refine is not None else (2 if a.small else 400))
         ev = evaluate(model, meshes[name], ref, heat=True, **kw)
         r["eval_s"] = round(time.perf_counter() - t0, 2)
         r["eval"] = ev
@@ -187,13 +211,16 @@ def main(argv=None) -> int:
             rel = load(find_shared("checkpoints", "official", f"NeuroGF_Pretrainer__{name}_final.pth"), mesh=meshes[name])
             er = evaluate(rel, meshes[name], ref, sdf=False, **kw)
             r["released"] = {"mre": er["neurogf"]["mre"], "max_rel": er["neurogf"]["max_rel"],
-                             "chamfer_l1": er["chamfer_l1"], "chamfer_l1_median": er.get("chamfer_l1_median")}
+                             **{k: v for k, v in er.items() if k.startswith("chamfer_l1")}}
         except FileNotFoundError as e:
             r["released"] = {"missing": str(e)}
         r["mre"] = ev["neurogf"]["mre"]
         r["chamfer_l1"] = ev.get("chamfer_l1")
+        r["chamfer_l1_refined"] = ev.get("chamfer_l1_refined")
         r["meets_mre_target"] = bool(r["mre"] <= TARGETS[name])
         r["meets_chamfer_target"] = bool(r["chamfer_l1"] is not None and r["chamfer_l1"] <= TARGETS["chamfer_l1"])
+        r["meets_chamfer_target_refined"] = bool(r["chamfer_l1_refined"] is not None
+                                                 and r["chamfer_l1_refined"] <= TARGETS["chamfer_l1"])
         print(f"[{name}] " + format_table(ev).replace("\n", f"\n[{name}] "), flush=True)
         results[name] = r
 
@@ -201,66 +228,73 @@ def main(argv=None) -> int:
     report["plot"] = _plot(report["meshes"], out / "loss_curves.png")
     (out / "train_bench.json").write_text(json.dumps(report, indent=1))
 
-    print("\nmesh     MRE      target   Chamfer-L1  dataset_s  train_s  steps(joint)  released: MRE  Chamfer-L1")
+    print("\nmesh     MRE      target   Chamfer-L1 (refined)   dataset_s  train_s  steps(joint)  "
+          "released: MRE  Chamfer-L1 (refined)")
     for name, r in results.items():
-        rel = r.get("released", {})
-        rel_s = f"{rel['mre']:.3%}  {rel['chamfer_l1']:.3e}" if "mre" in rel else "-"
-        print(f"{name:8s} {r['mre']:.3%}  {TARGETS[name]:.2%}   {r['chamfer_l1']:.3e}   {r['dataset_s']:8.1f}"
-              f"  {r['train_s']:7.1f}  {r['steps']['joint']:12d}  {rel_s}")
+        print(f"{name:8s} {r['mre']:.3%}  {TARGETS[name]:.2%}   {_chamfer(r)}   {r['dataset_s']:8.1f}"
+              f"  {r['train_s']:7.1f}  {r['steps']['joint']:12d}  {_released(r)}")
     print(f"total {report['total_s']:.1f}s of budget {budget:.0f}s; results in {out}, models in {work}")
     return 0
 
 
 def _parallel(a, argv) -> int:
-    """Run each mesh in its own process on its own GPU; merge their reports into <out>/train_bench.json."""
+    """One process per mesh and variant, each on its own GPU; merge their reports into <out>/train_bench.json."""
     import subprocess
 
-    drop = {"--parallel"}
     base, skip = [], False
-    for x in argv:  # the same options minus --parallel / --meshes / --out / --work
+    for x in argv:  # the same options minus --parallel / --meshes / --out / --work / --variant
         if skip and not x.startswith("--"):
             continue
-        skip = x in ("--meshes", "--out", "--work")
-        if not skip and x not in drop and not x.startswith(("--meshes=", "--out=", "--work=")):
+        skip = x in ("--meshes", "--out", "--work", "--variant")
+        if not skip and x != "--parallel" and not x.startswith(("--meshes=", "--out=", "--work=", "--variant=")):
             base.append(x)
+    variants = {}
+    for v in a.variant or [":"]:
+        name, sep, opts = v.partition(":")
+        if not sep or not name.replace("-", "").replace("_", "").isalnum() and name:
+            raise SystemExit(f"--variant {v!r}: expected NAME:OPTIONS with NAME made of letters, digits, - and _")
+        variants[name] = shlex.split(opts)
+    runs = [(m, v) for m in a.meshes for v in variants]  # run i gets GPU i
+    if torch.cuda.is_available() and len(runs) > torch.cuda.device_count():
+        raise SystemExit(f"{len(runs)} runs (meshes x variants) but {torch.cuda.device_count()} GPUs")
     out, work = Path(a.out), Path(a.work)
+    out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     procs = {}
-    for i, name in enumerate(a.meshes):
+    for i, (mesh, v) in enumerate(runs):
+        key = f"{mesh}+{v}" if v else mesh
         env = dict(os.environ, CUDA_VISIBLE_DEVICES=str(i))
         # each process's own report and plot go to the work folder; --out gets the merged ones and the logs
-        cmd = [sys.executable, __file__, *base, "--meshes", name, "--out", str(work / name / "report"),
-               "--work", str(work / name)]
-        out.mkdir(parents=True, exist_ok=True)
-        log = open(out / f"{name}.log", "w")
-        procs[name] = (subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT), log)
+        cmd = [sys.executable, __file__, *base, *variants[v], "--meshes", mesh, "--out", str(work / key / "report"),
+               "--work", str(work / key)]
+        log = open(out / f"{key}.log", "w")
+        procs[key] = (mesh, v, subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT), log)
     codes = {}
-    for name, (proc, log) in procs.items():
-        codes[name] = proc.wait()
+    for key, (_, _, proc, log) in procs.items():
+        codes[key] = proc.wait()
         log.close()
     wall = time.perf_counter() - t0
-    merged = {"parallel": True, "wall_s": round(wall, 2), "exit_codes": codes, "meshes": {}}
-    for name in a.meshes:
-        f = work / name / "report" / "train_bench.json"
+    merged = {"parallel": True, "wall_s": round(wall, 2), "exit_codes": codes,
+              "variants": {v: shlex.join(o) for v, o in variants.items()}, "meshes": {}}
+    for key, (mesh, v, _, _) in procs.items():
+        f = work / key / "report" / "train_bench.json"
         if f.exists():
             r = json.loads(f.read_text())
-            merged["meshes"][name] = r["meshes"][name]
-            merged["meshes"][name]["process_total_s"] = r["total_s"]
-            for k in ("gpu", "torch", "python", "budget_s", "data_options", "train_options"):
+            merged["meshes"][key] = dict(r["meshes"][mesh], mesh=mesh, variant=v, process_total_s=r["total_s"],
+                                         data_options=r["data_options"], train_options=r["train_options"])
+            for k in ("gpu", "torch", "python", "budget_s"):
                 merged.setdefault(k, r.get(k))
     merged["plot"] = _plot(merged["meshes"], out / "loss_curves.png")
     (out / "train_bench.json").write_text(json.dumps(merged, indent=1))
-    print("mesh     MRE      target   Chamfer-L1  process_s  exit  released: MRE  Chamfer-L1")
-    for name in a.meshes:
-        r = merged["meshes"].get(name)
+    print("run              MRE      target   Chamfer-L1 (refined)   process_s  exit  released: MRE  Chamfer-L1 (refined)")
+    for key, (mesh, _, _, _) in procs.items():
+        r = merged["meshes"].get(key)
         if r is None:
-            print(f"{name:8s} failed (exit {codes[name]}); see {out / f'{name}.log'}")
+            print(f"{key:16s} failed (exit {codes[key]}); see {out / f'{key}.log'}")
             continue
-        rel = r.get("released", {})
-        rel_s = f"{rel['mre']:.3%}  {rel['chamfer_l1']:.3e}" if "mre" in rel else "-"
-        print(f"{name:8s} {r['mre']:.3%}  {TARGETS[name]:.2%}   {r['chamfer_l1']:.3e}   {r['process_total_s']:8.1f}"
-              f"  {codes[name]:4d}  {rel_s}")
-    print(f"all meshes in {wall:.1f}s (one process per mesh, one GPU each); results in {out}")
+        print(f"{key:16s} {r['mre']:.3%}  {TARGETS[mesh]:.2%}   {_chamfer(r)}   {r['process_total_s']:8.1f}"
+              f"  {codes[key]:4d}  {_released(r)}")
+    print(f"{len(runs)} runs in {wall:.1f}s (one process and one GPU each); results in {out}")
     return max(codes.values())
 
 

@@ -183,6 +183,33 @@ def signed_distance(net: NeuroGFWeights, x: wp.vec3) -> float:
     return _head_tail(net.s1_w, net.s1_b, net.s2_w, h)
 
 
+SDF_FD_STEP = 1.0e-4  # forward-difference step (unit-sphere frame); far above float32 rounding of x
+
+
+@wp.func
+def sdf_gradient(net: NeuroGFWeights, x: wp.vec3, s: float) -> wp.vec3:
+    """Gradient of the SDF head at x (s = its value there) by forward differences: the head is piecewise
+    linear (ReLU), so away from a kink this is its exact gradient, at the cost of three more evaluations."""
+    h = float(SDF_FD_STEP)
+    return wp.vec3(signed_distance(net, x + wp.vec3(h, 0.0, 0.0)) - s,
+                   signed_distance(net, x + wp.vec3(0.0, h, 0.0)) - s,
+                   signed_distance(net, x + wp.vec3(0.0, 0.0, h)) - s) / h
+
+
+@wp.func
+def project_to_surface(net: NeuroGFWeights, x: wp.vec3, steps: int) -> wp.vec3:
+    """Newton steps onto the SDF head's zero level set, x -= s grad / |grad|^2, each step at most 2|s| long
+    (a flat spot in a poorly fitted SDF must not throw the point away). Callable from user kernels."""
+    y = x
+    for _ in range(steps):
+        s = signed_distance(net, y)
+        g = sdf_gradient(net, y, s)
+        n = wp.length(g)
+        if n > 1.0e-12:
+            y = y - (s / (n * wp.max(n, 0.5))) * g
+    return y
+
+
 # ---- batch kernels ---------------------------------------------------------------------------------
 
 @wp.struct
@@ -197,6 +224,11 @@ class Frame:
 @wp.func
 def to_net(frame: Frame, x: wp.vec3) -> wp.vec3:
     return (x - frame.center) * frame.xscale
+
+
+@wp.func
+def from_net(frame: Frame, y: wp.vec3) -> wp.vec3:
+    return y * frame.dscale + frame.center
 
 
 @wp.kernel(enable_backward=False)
@@ -284,4 +316,39 @@ def path_points(net: NeuroGFWeights, ps: wp.array(dtype=wp.vec3), qs: wp.array(d
     h2 = _dense_relu(net.p2_w, net.p2_b, h1)
     y = wp.vec3(_dot_row(net.p3_w, 0, h2), _dot_row(net.p3_w, 1, h2), _dot_row(net.p3_w, 2, h2))
     y = y * (1.0 - net.window + net.window * wp.sin(wp.pi * t)) + net.residual * x
-    out[pi, i] = y * frame.dscale + frame.center
+    out[pi, i] = from_net(frame, y)
+
+
+@wp.kernel(enable_backward=False)
+def project_points(net: NeuroGFWeights, xs: wp.array(dtype=wp.vec3), frame: Frame, steps: int,
+                   out: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    out[i] = from_net(frame, project_to_surface(net, to_net(frame, xs[i]), steps))
+
+
+@wp.kernel(enable_backward=False)
+def pin_and_project(net: NeuroGFWeights, ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3), frame: Frame,
+                    steps: int, x: wp.array2d(dtype=wp.vec3)):
+    """Start of path refinement, in place: end points := the queries, inner points onto the surface."""
+    pi, i = wp.tid()
+    m = x.shape[1]
+    if i == 0:
+        x[pi, i] = ps[pi]
+    elif i == m - 1:
+        x[pi, i] = qs[pi]
+    else:
+        x[pi, i] = from_net(frame, project_to_surface(net, to_net(frame, x[pi, i]), steps))
+
+
+@wp.kernel(enable_backward=False)
+def relax_paths(net: NeuroGFWeights, x: wp.array2d(dtype=wp.vec3), frame: Frame, steps: int,
+                y: wp.array2d(dtype=wp.vec3)):
+    """One Jacobi sweep of path shortening on the surface: each inner point moves to the midpoint of its
+    neighbours, projected back onto the surface. Its fixed points are discrete geodesics."""
+    pi, i = wp.tid()
+    m = x.shape[1]
+    if i == 0 or i == m - 1:
+        y[pi, i] = x[pi, i]
+    else:
+        mid = 0.5 * (x[pi, i - 1] + x[pi, i + 1])
+        y[pi, i] = from_net(frame, project_to_surface(net, to_net(frame, mid), steps))

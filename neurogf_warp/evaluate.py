@@ -73,8 +73,12 @@ def _heat(mesh: Mesh, source_ids, vertex_ids):
 
 
 @torch.no_grad()
-def _paths(net, mesh: Mesh, rng, n_sources, n_targets, device, solver_device, k):
-    """Chamfer-L1 of predicted 128-point paths against solver paths between random vertex pairs."""
+def _paths(model, mesh: Mesh, rng, n_sources, n_targets, device, solver_device, k, refine):
+    """Chamfer-L1 of predicted 128-point paths against solver paths between random vertex pairs; with
+    refine > 0 also of the same paths after that many shortening sweeps (the Warp kernels of ``path``)."""
+    from .inference import path
+
+    net = model.net
     from .geodesics import geodesic_paths
 
     V = len(mesh.vertices)
@@ -92,7 +96,16 @@ def _paths(net, mesh: Mesh, rng, n_sources, n_targets, device, solver_device, k)
     q = torch.as_tensor(gt[:, -1], dtype=torch.float32, device=device)
     pred = net.path(p, q, 128).double().cpu().numpy()
     cd = L.chamfer_l1(pred, gt)
-    return {"chamfer_l1": float(cd.mean()), "chamfer_l1_median": float(np.median(cd)), "paths": int(len(cd))}
+    res = {"chamfer_l1": float(cd.mean()), "chamfer_l1_median": float(np.median(cd)), "paths": int(len(cd))}
+    if refine:
+        t0 = time.perf_counter()
+        ends = [mesh.denormalize(e) if model.in_mesh_frame else e for e in (gt[:, 0], gt[:, -1])]
+        r = path(model, *ends, m=128, refine=refine, device=solver_device)
+        r = mesh.normalize(r.reshape(-1, 3)).reshape(r.shape) if model.in_mesh_frame else r
+        cd = L.chamfer_l1(r, gt)
+        res.update(chamfer_l1_refined=float(cd.mean()), chamfer_l1_refined_median=float(np.median(cd)),
+                   refine_sweeps=int(refine), refine_s=time.perf_counter() - t0)
+    return res
 
 
 @torch.no_grad()
@@ -115,12 +128,13 @@ def _warp_device(device: torch.device) -> str:
 
 def evaluate(model, mesh=None, reference=None, *, heat: bool = False, n_sources: int = 8,
              n_path_sources: int = 8, n_path_targets: int = 8, n_sdf: int = 30000, paths: bool = True,
-             sdf: bool = True, solver_k: int | None = None, device=None, seed: int = 0,
+             sdf: bool = True, solver_k: int | None = None, path_refine: int = 0, device=None, seed: int = 0,
              verbose: bool = True) -> dict:
     """Accuracy of ``model`` (a Model or a model file) on ``mesh`` (default: the model's own mesh).
 
     reference: exact-distance .npz (else the solver from ``n_sources`` random vertices).
     solver_k: Steiner points per edge for the solver's distances and paths (None: its default).
+    path_refine: also measure the paths after that many shortening sweeps (``path(..., refine=)``; slow on CPU).
     Returns a dict (errors as fractions, distances normalized); prints a table when ``verbose``.
     """
     if not hasattr(model, "net"):
@@ -158,7 +172,7 @@ def evaluate(model, mesh=None, reference=None, *, heat: bool = False, n_sources:
         res["heat"] = _rel_stats(_heat(mesh, sids, vids), gt)
         res["heat"]["seconds"] = time.perf_counter() - t0
     if paths:
-        res.update(_paths(net, mesh, rng, n_path_sources, n_path_targets, dev, wdev, solver_k))
+        res.update(_paths(model, mesh, rng, n_path_sources, n_path_targets, dev, wdev, solver_k, path_refine))
     if sdf:
         res.update(_sdf(model, mesh, rng, n_sdf, dev, wdev))
     if verbose:
@@ -179,6 +193,9 @@ def format_table(res: dict) -> str:
     if "chamfer_l1" in res:
         lines.append(f"path Chamfer-L1 {res['chamfer_l1']:.4e} (median {res['chamfer_l1_median']:.4e}, "
                      f"{res['paths']} solver paths)")
+    if "chamfer_l1_refined" in res:
+        lines.append(f"path Chamfer-L1 after {res['refine_sweeps']} shortening sweeps {res['chamfer_l1_refined']:.4e} "
+                     f"(median {res['chamfer_l1_refined_median']:.4e}, {res['refine_s']:.1f} s)")
     if "sdf_l1" in res:
         q = f", querier {res['querier_l1']:.4e}" if "querier_l1" in res else ""
         lines.append(f"SDF L1 {res['sdf_l1']:.4e}{q}")
@@ -196,12 +213,14 @@ def eval_main(argv=None) -> int:
     p.add_argument("--sources", type=int, default=8, help="solver sources when no reference is given")
     p.add_argument("--no-paths", action="store_true")
     p.add_argument("--no-sdf", action="store_true")
+    p.add_argument("--path-refine", type=int, default=0, metavar="N",
+                   help="also score the paths after N shortening sweeps on the SDF surface (e.g. 400; slow on CPU)")
     p.add_argument("--device", default=None)
     p.add_argument("--json", default=None, help="also write the results here")
     a = p.parse_args(argv)
     try:
         res = evaluate(a.model, a.mesh, a.reference, heat=a.heat, n_sources=a.sources, paths=not a.no_paths,
-                       sdf=not a.no_sdf, device=a.device)
+                       sdf=not a.no_sdf, path_refine=a.path_refine, device=a.device)
     except (ValueError, OSError, IndexError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -176,14 +176,19 @@ def sdf(model: Model, x, device=None):
     return out.result(res)
 
 
-def path(model: Model, p, q, m: int = 128, device=None):
+def path(model: Model, p, q, m: int = 128, refine: int = 0, device=None):
     """Shortest paths as m points each (ends included): (N, 3), (N, 3) -> (N, m, 3).
 
     Straight-line samples between p and q go through the network's path head, which moves them onto the
-    surface; the end points are the network's, not pinned to p and q.
+    surface. With a windowed path head (``path_window``) the ends are exactly p and q, else the network's.
+    refine > 0 pins the ends to p and q and runs that many sweeps of path shortening on the SDF head's
+    surface (each inner point to the projected midpoint of its neighbours): slower, but the paths become
+    locally shortest on the surface. A few hundred sweeps for 128 points (benchmarks/RESULTS.md).
     """
     if not isinstance(m, (int, np.integer)) or m < 2:
         raise ValueError(f"m (points per path) must be an integer >= 2, got {m!r}")
+    if not isinstance(refine, (int, np.integer)) or refine < 0:
+        raise ValueError(f"refine (shortening sweeps) must be an integer >= 0, got {refine!r}")
     dev, P, Q, kind = _pair_inputs(model, p, q, device)
     n = P.shape[0]
     w = warp_weights(model, dev)
@@ -199,6 +204,30 @@ def path(model: Model, p, q, m: int = 128, device=None):
     out = Output(kind, dev)
     res = out.empty((n, int(m)), dtype=wp.vec3)
     wp.launch(mlp.path_points, (n, int(m)), inputs=[w, P, Q, pre, frame], outputs=[res], device=dev)
+    if refine and n:
+        wp.launch(mlp.pin_and_project, res.shape, inputs=[w, P, Q, frame, PROJECT_STEPS], outputs=[res], device=dev)
+        tmp = wp.empty_like(res)
+        for _ in range(int(refine)):
+            wp.launch(mlp.relax_paths, res.shape, inputs=[w, res, frame, 1], outputs=[tmp], device=dev)
+            res, tmp = tmp, res
     if kind == "torch":
         return wp.to_torch(res).view(n, int(m), 3)
+    return out.result(res)
+
+
+PROJECT_STEPS = 2  # Newton steps from a point near the surface; |sdf| falls ~10x per step (a trained SDF head)
+
+
+def project(model: Model, x, steps: int = PROJECT_STEPS, device=None):
+    """Points moved onto the surface of the network's SDF head (Newton steps on its zero level set): (N, 3) -> (N, 3)."""
+    if not isinstance(steps, (int, np.integer)) or steps < 0:
+        raise ValueError(f"steps must be an integer >= 0, got {steps!r}")
+    dev = resolve_device(device, like=x)
+    X, kind = as_points(x, "x", dev)
+    out = Output(kind, dev)
+    res = out.empty(X.shape[0], dtype=wp.vec3)
+    wp.launch(mlp.project_points, X.shape[0], inputs=[warp_weights(model, dev), X, _frame(model), int(steps)],
+              outputs=[res], device=dev)
+    if kind == "torch":
+        return wp.to_torch(res).view(-1, 3)
     return out.result(res)

@@ -361,6 +361,9 @@ class Trainer:
         self.graphs = cfg.cuda_graph and self.device.type == "cuda"
         if cfg.dist_loss not in DIST_LOSSES:
             raise ValueError(f"dist_loss must be one of {DIST_LOSSES}, got {cfg.dist_loss!r}")
+        if not isinstance(cfg.ratios, dict) or set(cfg.ratios) - set(STAGES):
+            raise ValueError(f"ratios must map stage names {STAGES} to step ratios, e.g. {{\"refine_dist\": 0}}; "
+                             f"got {cfg.ratios!r}")
         unknown = set(cfg.loss_weights) - set(L.WEIGHTS)
         if unknown:
             raise ValueError(f"loss_weights: unknown terms {sorted(unknown)}; known: {sorted(L.WEIGHTS)}")
@@ -937,15 +940,16 @@ def _parser():
     return p
 
 
-def parse_overrides(items) -> dict:
-    """['batch_g=4096', 'amp=true'] -> {'batch_g': 4096, 'amp': True}; unknown keys are an error."""
-    fields = {f.name for f in dataclasses.fields(TrainConfig)}
+def parse_overrides(items, fields=None, flag: str = "--set") -> dict:
+    """['batch_g=4096', 'amp=true'] -> {'batch_g': 4096, 'amp': True}; keys not in ``fields`` (default: the
+    TrainConfig fields) are an error."""
+    fields = {f.name for f in dataclasses.fields(TrainConfig)} if fields is None else set(fields)
     out = {}
     for item in items:
         key, sep, val = item.partition("=")
         key = key.strip().replace("-", "_")
         if not sep or key not in fields:
-            raise ValueError(f"--set {item!r}: expected KEY=VALUE with KEY one of {sorted(fields)}")
+            raise ValueError(f"{flag} {item!r}: expected KEY=VALUE with KEY one of {sorted(fields)}")
         try:
             out[key] = json.loads(val)
         except json.JSONDecodeError:
