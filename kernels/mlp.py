@@ -352,3 +352,44 @@ def relax_paths(net: NeuroGFWeights, x: wp.array2d(dtype=wp.vec3), frame: Frame,
     else:
         mid = 0.5 * (x[pi, i - 1] + x[pi, i + 1])
         y[pi, i] = from_net(frame, project_to_surface(net, to_net(frame, mid), steps))
+
+
+@wp.func
+def _path_length(x: wp.array2d(dtype=wp.vec3), row: int) -> wp.vec2:
+    """(length, longest segment) of polyline ``row``."""
+    total = float(0.0)
+    longest = float(0.0)
+    for i in range(x.shape[1] - 1):
+        seg = wp.length(x[row, i + 1] - x[row, i])
+        total += seg
+        longest = wp.max(longest, seg)
+    return wp.vec2(total, longest)
+
+
+@wp.kernel(enable_backward=False)
+def pick_shortest(x: wp.array2d(dtype=wp.vec3), n_cand: int, reversed_mask: wp.array(dtype=wp.int32),
+                  out: wp.array2d(dtype=wp.vec3)):
+    """Refined candidates of path n are rows n, n + N, n + 2N, ... of x (N = out.shape[0]; candidate c runs
+    q -> p where reversed_mask[c]). Keep the shortest whose longest segment is at most 3x the mean: a much
+    longer segment means the polyline jumps between sheets of the surface instead of following it."""
+    pi, i = wp.tid()
+    N = out.shape[0]
+    m = x.shape[1]
+    best = int(0)
+    best_len = float(3.0e38)
+    for c in range(n_cand):
+        lm = _path_length(x, c * N + pi)
+        if lm[1] * float(m - 1) <= 3.0 * lm[0] and lm[0] < best_len:
+            best = c
+            best_len = lm[0]
+    j = i
+    if reversed_mask[best] != 0:
+        j = m - 1 - i
+    out[pi, i] = x[best * N + pi, j]
+
+
+@wp.kernel(enable_backward=False)
+def straight_paths(ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3), out: wp.array2d(dtype=wp.vec3)):
+    pi, i = wp.tid()
+    t = float(i) / float(wp.max(out.shape[1] - 1, 1))
+    out[pi, i] = ps[pi] + t * (qs[pi] - ps[pi])

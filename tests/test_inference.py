@@ -5,6 +5,7 @@ import torch
 import warp as wp
 
 import neurogf_warp as ngf
+from neurogf_warp import losses as L
 from neurogf_warp.kernels import mlp
 from neurogf_warp.network import NeuroGFNet
 from tests.conftest import shared_path
@@ -142,6 +143,86 @@ def test_network_options_match_torch_float64(options, tmp_path):
         self_ref = net.distance(to_net(p), to_net(p)).numpy() / mesh.scale
     assert np.ptp(self_ref) <= 1e-12
     assert np.abs(ngf.distance(model, p, p, device=DEV) - self_ref).max() <= tol(d_ref), msg
+
+
+def _project_ref(net, x, steps):
+    """float64 reference of mlp.project_to_surface: the same forward differences and step limit."""
+    h, eye = mlp.SDF_FD_STEP, torch.eye(3, dtype=x.dtype)
+    for _ in range(steps):
+        s = net.sdf(x)
+        g = torch.stack([(net.sdf(x + h * eye[c]) - s) / h for c in range(3)], -1)
+        n = torch.linalg.vector_norm(g, dim=-1, keepdim=True)
+        x = torch.where(n > 1e-12, x - s.unsqueeze(-1) * g / (n * n.clamp_min(0.5)).clamp_min(1e-30), x)
+    return x
+
+
+def _refine_ref(net, p, q, m, sweeps):
+    """float64 reference of path(..., refine=sweeps): three starts, pinned and projected, Jacobi shortening
+    sweeps, the shortest start without a jump (a segment > 3x the mean) kept."""
+    from neurogf_warp.network import straight_lines
+
+    starts = [net.path(p, q, m), net.path(q, p, m), straight_lines(p, q, m)]
+    ends = [(p, q), (q, p), (p, q)]
+    out = []
+    for x, (a, b) in zip(starts, ends):
+        x = torch.cat([a[:, None], _project_ref(net, x[:, 1:-1].reshape(-1, 3), 2).view(len(a), -1, 3), b[:, None]], 1)
+        for _ in range(sweeps):
+            mid = 0.5 * (x[:, :-2] + x[:, 2:])
+            x = torch.cat([x[:, :1], _project_ref(net, mid.reshape(-1, 3), 1).view_as(mid), x[:, -1:]], 1)
+        out.append(x)
+    out[1] = out[1].flip(1)
+    x = torch.stack(out)  # (3, N, m, 3)
+    seg = torch.linalg.vector_norm(x[:, :, 1:] - x[:, :, :-1], dim=-1)
+    length = torch.where(seg.max(-1).values * (m - 1) <= 3 * seg.sum(-1), seg.sum(-1), torch.inf)
+    best = length.argmin(0)  # all-inf columns pick start 0, as the kernel does
+    return x[best, torch.arange(x.shape[1])]
+
+
+def test_projection_and_refined_paths_match_float64():
+    """project() and path(refine=) against float64 references of the same method, on the released fandisk
+    model (a trained SDF head: random weights have flat spots where finite differences are all noise) and
+    fresh random points near its surface and vertex pairs."""
+    model = released("fandisk", mesh=True)
+    mesh, net = model.mesh, model.net.double().eval()
+    seed = int(np.random.SeedSequence().entropy % 2**31)
+    rng = np.random.default_rng(seed)
+    v = mesh.normalized_vertices
+    x = v[rng.integers(0, len(v), 64)] + rng.normal(0, 0.01, (64, 3))
+    with torch.no_grad():
+        x_ref = _project_ref(net, torch.from_numpy(x), 2).numpy()
+    x_w = mesh.normalize(ngf.project(model, mesh.denormalize(x), device=DEV))
+    assert np.abs(x_w - x_ref).max() <= 2e-5, f"seed {seed}"
+    i, j = rng.integers(0, len(v), 6), rng.integers(0, len(v), 6)
+    with torch.no_grad():
+        ref = _refine_ref(net, torch.from_numpy(v[i]), torch.from_numpy(v[j]), 32, 3).numpy()
+    got = mesh.normalize(ngf.path(model, mesh.vertices[i], mesh.vertices[j], m=32, refine=3, device=DEV))
+    # shortening sweeps carry the float32 noise on (a point's move depends on its neighbours'): most points
+    # agree to float32 level, a few to 1e-3 of the unit-sphere frame
+    err = np.abs(got - ref).max(-1)
+    assert np.quantile(err, 0.95) <= 2e-5 and err.max() <= 1e-3, f"seed {seed}: {np.quantile(err, 0.95)}, {err.max()}"
+
+
+def test_refined_paths_are_shorter_and_closer_to_geodesics():
+    """Released fandisk model, solver paths: refinement pins the ends, keeps the points on the surface and
+    lowers the Chamfer distance to the true paths."""
+    model = released("fandisk", mesh=True)
+    mesh = model.mesh
+    rng = np.random.default_rng(3)
+    tg = rng.choice(len(mesh.vertices), 8, replace=False)
+    gt = ngf.geodesic_paths(mesh, 11, tg, m=64, device=DEV)
+    p, q = gt[:, 0], gt[:, -1]
+    raw = ngf.path(model, p, q, m=64, device=DEV)
+    ref = ngf.path(model, p, q, m=64, refine=20, device=DEV)
+    np.testing.assert_allclose(ref[:, 0], p, atol=1e-6)
+    np.testing.assert_allclose(ref[:, -1], q, atol=1e-6)
+    sdf_scale = mesh.scale  # normalized units
+    assert np.abs(ngf.sdf(model, ref[:, 1:-1].reshape(-1, 3), device=DEV)).max() * sdf_scale < 1e-3
+    length = lambda x: np.linalg.norm(np.diff(x, axis=1), axis=2).sum(1)
+    rel_ref, rel_raw = np.abs(length(ref) / length(gt) - 1), np.abs(length(raw) / length(gt) - 1)
+    assert rel_ref.max() < 0.02 and rel_ref.mean() < rel_raw.mean(), (rel_ref, rel_raw)
+    norm = lambda x: mesh.normalize(x.reshape(-1, 3)).reshape(x.shape)
+    cd_raw, cd_ref = L.chamfer_l1(norm(raw), norm(gt)).mean(), L.chamfer_l1(norm(ref), norm(gt)).mean()
+    assert cd_ref < 0.9 * cd_raw, (cd_raw, cd_ref)
 
 
 def test_symmetry_and_ssad_equals_distance():
