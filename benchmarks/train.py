@@ -40,9 +40,10 @@ from common import MESHES, TARGETS, find_shared  # noqa: E402  (../shared here, 
 DATA_FIELDS = set(inspect.signature(build_dataset).parameters) - {"mesh", "path", "device", "progress"}
 SHARE = {"bunny": 0.6, "fandisk": 0.4}  # bunny is larger and has the harder target
 
-# 2,048 training sources (paths from all of them, 16 each): at equal steps bunny MRE 0.638% -> 0.546% against 512
-# sources (sweep 9, benchmarks/RESULTS.md) for ~11 s more ground truth. The session-3 final run used 512 / 256 x 128.
-FULL_DATA = dict(n_sources=2048, n_path_sources=2048, n_path_global=16, n_path_local=32, n_test=8)
+# 2,048 training sources: at equal steps bunny MRE 0.638% -> 0.546% against 512 (sweep 9); paths from all of them,
+# 64 global targets each: bunny test-path Chamfer 2.20e-2 -> 1.80e-2 against 16 for 5 s more ground truth
+# (session-4 run 3, benchmarks/RESULTS.md). These are build_dataset's defaults too.
+FULL_DATA = dict(n_sources=2048, n_path_sources=2048, n_path_global=64, n_path_local=32, n_test=8)
 SMALL_DATA = dict(n_sources=24, n_global=512, n_local1=16, n_local2=64, n_path_sources=8, n_path_global=16,
                   n_path_local=16, n_test=2, n_surface=30000, n_spread=2000, k=1)  # k=1: ~14 s for bunny on CPU
 SMALL_TRAIN = dict(D=64, batch_sdf=2048, batch_g=4096, batch_l1=512, batch_l2=1024, batch_paths_g=128,
@@ -118,6 +119,8 @@ def main(argv=None) -> int:
     p.add_argument("--eval-reserve", type=float, default=None, help="seconds kept for evaluation per mesh")
     p.add_argument("--path-refine", type=int, default=None, metavar="N",
                    help="also score the paths after N shortening sweeps (default 400 on GPU, 2 with --small)")
+    p.add_argument("--no-released", dest="released", action="store_false",
+                   help="skip evaluating the released checkpoint on the same sources and pairs")
     p.add_argument("--no-amp", dest="amp", action="store_false", help="float32 path head (default: bf16 on CUDA)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="TrainConfig override, e.g. --set batch_surf=256 (repeatable)")
@@ -217,6 +220,8 @@ def main(argv=None) -> int:
         r["eval_s"] = round(time.perf_counter() - t0, 2)
         r["eval"] = ev
         try:  # the released checkpoint on the same sources and path pairs, for scale
+            if not a.released:
+                raise FileNotFoundError("not evaluated (--no-released)")
             rel = load(find_shared("checkpoints", "official", f"NeuroGF_Pretrainer__{name}_final.pth"), mesh=meshes[name])
             er = evaluate(rel, meshes[name], ref, sdf=False, **kw)
             r["released"] = {"mre": er["neurogf"]["mre"], "max_rel": er["neurogf"]["max_rel"],

@@ -323,5 +323,9 @@ def test_bad_inputs():
         ngf.geodesic_distances(model.mesh, [0], device="cuda:7")
     with pytest.raises(ValueError, match="m \\(points per path\\)"):
         ngf.path(model, np.zeros((1, 3)), np.ones((1, 3)), m=1, device=DEV)
+    with pytest.raises(ValueError, match="refine"):
+        ngf.path(model, np.zeros((1, 3)), np.ones((1, 3)), refine=-1, device=DEV)
+    with pytest.raises(ValueError, match="steps"):
+        ngf.project(model, np.zeros((1, 3)), steps=2.5, device=DEV)
     with pytest.raises(ValueError, match="one source"):
         ngf.ssad(model, [1, 2], device=DEV)
