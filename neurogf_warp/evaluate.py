@@ -76,10 +76,10 @@ def _heat(mesh: Mesh, source_ids, vertex_ids):
 def _paths(model, mesh: Mesh, rng, n_sources, n_targets, device, solver_device, k, refine):
     """Chamfer-L1 of predicted 128-point paths against solver paths between random vertex pairs; with
     refine > 0 also of the same paths after that many shortening sweeps (the Warp kernels of ``path``)."""
+    from .geodesics import geodesic_paths
     from .inference import path
 
     net = model.net
-    from .geodesics import geodesic_paths
 
     V = len(mesh.vertices)
     gts, ps, qs = [], [], []
