@@ -14,6 +14,17 @@ MESHES = {"bunny": ("stanford-bunny.obj", "stanford-bunny.npz"), "fandisk": ("fa
 TARGETS = {"bunny": 0.0040, "fandisk": 0.0027, "chamfer_l1": 1.25e-2}
 
 
+def parse_data_options(items) -> dict:
+    """--data KEY=VALUE items -> build_dataset keyword arguments; unknown keys are an error."""
+    import inspect
+
+    from neurogf_warp.dataset import build_dataset
+    from neurogf_warp.train import parse_overrides
+
+    fields = set(inspect.signature(build_dataset).parameters) - {"mesh", "out_path", "device", "progress"}
+    return parse_overrides(items, fields=fields, flag="--data")
+
+
 def find_shared(*parts) -> Path:
     """A file of ../shared, or of ./.bench (the copy carried to the GPU machine, where ../shared is absent)."""
     for base in (SHARED, ROOT / "shared", ROOT / ".bench", ROOT / ".bench2"):

@@ -14,11 +14,10 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import inspect
 import json
-import shlex
 import os
 import platform
+import shlex
 import sys
 import tempfile
 import time
@@ -36,8 +35,7 @@ from neurogf_warp.model_io import load  # noqa: E402
 from neurogf_warp.train import log_path, parse_overrides, train  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import MESHES, TARGETS, find_shared  # noqa: E402  (../shared here, ./.bench on the GPU machine)
-DATA_FIELDS = set(inspect.signature(build_dataset).parameters) - {"mesh", "path", "device", "progress"}
+from common import MESHES, TARGETS, find_shared, parse_data_options  # noqa: E402  (./.bench on the GPU machine)
 SHARE = {"bunny": 0.6, "fandisk": 0.4}  # bunny is larger and has the harder target
 
 # 2,048 training sources: at equal steps bunny MRE 0.638% -> 0.546% against 512 (sweep 9); paths from all of them,
@@ -134,7 +132,8 @@ def main(argv=None) -> int:
     p.add_argument("--work", default=os.path.join(tempfile.gettempdir(), "neurogf-train-bench"),
                    help="datasets (large; kept out of --out)")
     p.add_argument("--parallel", action="store_true",
-                   help="one process per mesh, mesh i on GPU i (CUDA_VISIBLE_DEVICES), each with the whole budget")
+                   help="one process per mesh (and --variant), run i on GPU i (CUDA_VISIBLE_DEVICES), each with "
+                        "the whole budget")
     p.add_argument("--reuse-data", action="store_true",
                    help="reuse a dataset already in --work for the same mesh and settings (its time is then not counted)")
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -153,7 +152,7 @@ def main(argv=None) -> int:
     data_opts = dict(SMALL_DATA if a.small else FULL_DATA)
     if a.n_sources:
         data_opts["n_sources"] = a.n_sources
-    data_opts.update(parse_overrides(a.data, fields=DATA_FIELDS, flag="--data"))
+    data_opts.update(parse_data_options(a.data))
     train_opts = dict(SMALL_TRAIN) if a.small else {}
     if a.D:
         train_opts["D"] = a.D
@@ -219,15 +218,16 @@ def main(argv=None) -> int:
         ev = evaluate(model, meshes[name], ref, heat=True, **kw)
         r["eval_s"] = round(time.perf_counter() - t0, 2)
         r["eval"] = ev
-        try:  # the released checkpoint on the same sources and path pairs, for scale
-            if not a.released:
-                raise FileNotFoundError("not evaluated (--no-released)")
-            rel = load(find_shared("checkpoints", "official", f"NeuroGF_Pretrainer__{name}_final.pth"), mesh=meshes[name])
-            er = evaluate(rel, meshes[name], ref, sdf=False, **kw)
-            r["released"] = {"mre": er["neurogf"]["mre"], "max_rel": er["neurogf"]["max_rel"],
-                             **{k: v for k, v in er.items() if k.startswith("chamfer_l1")}}
-        except FileNotFoundError as e:
-            r["released"] = {"missing": str(e)}
+        r["released"] = {"missing": "not evaluated (--no-released)"}
+        if a.released:  # the released checkpoint on the same sources and path pairs, for scale
+            try:
+                rel = load(find_shared("checkpoints", "official", f"NeuroGF_Pretrainer__{name}_final.pth"),
+                           mesh=meshes[name])
+                er = evaluate(rel, meshes[name], ref, sdf=False, **kw)
+                r["released"] = {"mre": er["neurogf"]["mre"], "max_rel": er["neurogf"]["max_rel"],
+                                 **{k: v for k, v in er.items() if k.startswith("chamfer_l1")}}
+            except FileNotFoundError as e:
+                r["released"] = {"missing": str(e)}
         r["mre"] = ev["neurogf"]["mre"]
         r["chamfer_l1"] = ev.get("chamfer_l1")
         r["chamfer_l1_refined"] = ev.get("chamfer_l1_refined")

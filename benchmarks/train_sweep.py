@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import MESHES, TARGETS, find_shared  # noqa: E402
+from common import MESHES, TARGETS, find_shared, parse_data_options  # noqa: E402
 from neurogf_warp.dataset import build_dataset, load_dataset  # noqa: E402
 from neurogf_warp.evaluate import evaluate  # noqa: E402
 from neurogf_warp.mesh import load_mesh  # noqa: E402
@@ -117,7 +117,7 @@ def main(argv=None) -> int:
     obj, ref = MESHES[a.mesh]
     mesh = load_mesh(find_shared("meshes", obj))
     data_opts = dict(n_sources=512, n_path_sources=256, n_path_global=128, n_path_local=32, n_test=8)
-    data_opts.update(parse_overrides_any(a.data))
+    data_opts.update(parse_data_options(a.data))
     report = {"mesh": a.mesh, "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
               "torch": torch.__version__, "date": time.strftime("%Y-%m-%d"), "budget_s": None if a.joint_steps else a.budget_seconds,
               "joint_steps": a.joint_steps,
@@ -191,17 +191,6 @@ def main(argv=None) -> int:
         print(f"{name:14s} {r['mre']:8.3%} {r['max_rel']:7.1%} {r['chamfer_l1']:9.3e} {r['steps']['joint']:7d} "
               f"{r['train_s']:8.1f}  {r['options']}")
     return 0
-
-
-def parse_overrides_any(items) -> dict:
-    out = {}
-    for item in items:
-        k, _, v = item.partition("=")
-        try:
-            out[k] = json.loads(v)
-        except json.JSONDecodeError:
-            out[k] = v
-    return out
 
 
 if __name__ == "__main__":
