@@ -116,7 +116,7 @@ def main(argv=None) -> int:
     p.add_argument("--n-sources", type=int, default=None, help="training sources per mesh")
     p.add_argument("--eval-reserve", type=float, default=None, help="seconds kept for evaluation per mesh")
     p.add_argument("--path-refine", type=int, default=None, metavar="N",
-                   help="also score the paths after N shortening sweeps (default 400 on GPU, 2 with --small)")
+                   help="also score the paths after N shortening sweeps per level (default 50 on GPU, 2 with --small)")
     p.add_argument("--no-released", dest="released", action="store_false",
                    help="skip evaluating the released checkpoint on the same sources and pairs")
     p.add_argument("--no-amp", dest="amp", action="store_false", help="float32 path head (default: bf16 on CUDA)")
@@ -214,7 +214,7 @@ def main(argv=None) -> int:
         ref = find_shared("reference", "exact", MESHES[name][1])
         kw = dict(n_path_sources=1 if a.small else 16, n_path_targets=16 if a.small else 32,
                   solver_k=1 if a.small else None, device=a.device, verbose=False,
-                  path_refine=a.path_refine if a.path_refine is not None else (2 if a.small else 400))
+                  path_refine=a.path_refine if a.path_refine is not None else (2 if a.small else 50))
         ev = evaluate(model, meshes[name], ref, heat=True, **kw)
         r["eval_s"] = round(time.perf_counter() - t0, 2)
         r["eval"] = ev

@@ -389,6 +389,17 @@ def pick_shortest(x: wp.array2d(dtype=wp.vec3), n_cand: int, reversed_mask: wp.a
 
 
 @wp.kernel(enable_backward=False)
+def resample_paths(x: wp.array2d(dtype=wp.vec3), out: wp.array2d(dtype=wp.vec3)):
+    """Polylines to another point count, by linear interpolation in the point index (the sweeps keep the
+    points about evenly spaced, so this is close to arc length)."""
+    pi, i = wp.tid()
+    u = float(i) * float(x.shape[1] - 1) / float(out.shape[1] - 1)
+    k = wp.min(int(u), x.shape[1] - 2)
+    f = u - float(k)
+    out[pi, i] = (1.0 - f) * x[pi, k] + f * x[pi, k + 1]
+
+
+@wp.kernel(enable_backward=False)
 def straight_paths(ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3), out: wp.array2d(dtype=wp.vec3)):
     pi, i = wp.tid()
     t = float(i) / float(wp.max(out.shape[1] - 1, 1))

@@ -182,11 +182,11 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, device=None):
     Straight-line samples between p and q go through the network's path head, which moves them onto the
     surface. With a windowed path head (``path_window``) the ends are exactly p and q, else the network's.
 
-    refine > 0 runs that many sweeps of path shortening on the SDF head's surface (each inner point to the
-    projected midpoint of its neighbours, ends pinned to p and q) from three starts: the head's path p -> q,
-    its path q -> p, and the straight line; the shortest result that does not jump between sheets is kept.
-    About 3 x refine times slower than the plain query; a few hundred sweeps for 128 points
-    (benchmarks/RESULTS.md). The refined paths are locally shortest on the surface.
+    refine > 0 shortens the paths on the SDF head's surface: that many sweeps (each inner point to the
+    projected midpoint of its neighbours, ends pinned to p and q) at m/4, then m/2, then m points, from
+    three starts: the head's path p -> q, its path q -> p, and the straight line; the shortest result that
+    does not jump between sheets is kept. 25-50 sweeps suffice for m=128 (benchmarks/RESULTS.md); a sweep
+    costs about as much as four SDF queries per point. The refined paths are locally shortest on the surface.
     """
     if not isinstance(m, (int, np.integer)) or m < 2:
         raise ValueError(f"m (points per path) must be an integer >= 2, got {m!r}")
@@ -199,26 +199,44 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, device=None):
     if n and not refine:
         _head_paths(model, P, Q, res, dev)
     elif n:
-        w, frame = warp_weights(model, dev), _frame(model)
-        cand = wp.empty((3 * n, m), dtype=wp.vec3, device=dev)
+        w, frame, levels = warp_weights(model, dev), _frame(model), _levels(m)
+        cand = wp.empty((3 * n, levels[0]), dtype=wp.vec3, device=dev)
         _head_paths(model, P, Q, cand[:n], dev)
         _head_paths(model, Q, P, cand[n:2 * n], dev)
-        wp.launch(mlp.straight_paths, (n, m), inputs=[P, Q], outputs=[cand[2 * n:]], device=dev)
+        wp.launch(mlp.straight_paths, (n, levels[0]), inputs=[P, Q], outputs=[cand[2 * n:]], device=dev)
         starts, ends = wp.empty(3 * n, dtype=wp.vec3, device=dev), wp.empty(3 * n, dtype=wp.vec3, device=dev)
         for c, (a, b) in enumerate(((P, Q), (Q, P), (P, Q))):
             wp.copy(starts, a, dest_offset=c * n, count=n)
             wp.copy(ends, b, dest_offset=c * n, count=n)
-        wp.launch(mlp.pin_and_project, cand.shape, inputs=[w, starts, ends, frame, PROJECT_STEPS], outputs=[cand],
-                  device=dev)
-        tmp = wp.empty_like(cand)
-        for _ in range(int(refine)):
-            wp.launch(mlp.relax_paths, cand.shape, inputs=[w, cand, frame, 1], outputs=[tmp], device=dev)
-            cand, tmp = tmp, cand
+        for level, ml in enumerate(levels):
+            if level:
+                finer = wp.empty((3 * n, ml), dtype=wp.vec3, device=dev)
+                wp.launch(mlp.resample_paths, finer.shape, inputs=[cand], outputs=[finer], device=dev)
+                cand = finer
+            wp.launch(mlp.pin_and_project, cand.shape, inputs=[w, starts, ends, frame, PROJECT_STEPS],
+                      outputs=[cand], device=dev)
+            tmp = wp.empty_like(cand)
+            for _ in range(int(refine)):
+                wp.launch(mlp.relax_paths, cand.shape, inputs=[w, cand, frame, 1], outputs=[tmp], device=dev)
+                cand, tmp = tmp, cand
+        # a sweep takes one Newton step from the midpoint; at a crease the chord's midpoint lies deeper than
+        # one step reaches, so the result gets a full projection
+        wp.launch(mlp.pin_and_project, cand.shape, inputs=[w, starts, ends, frame, 2 * PROJECT_STEPS],
+                  outputs=[cand], device=dev)
         rev = wp.array([0, 1, 0], dtype=wp.int32, device=dev)
         wp.launch(mlp.pick_shortest, (n, m), inputs=[cand, 3, rev], outputs=[res], device=dev)
     if kind == "torch":
         return wp.to_torch(res).view(n, m, 3)
     return out.result(res)
+
+
+def _levels(m: int) -> list:
+    """Point counts of the coarse-to-fine refinement: m/4, m/2, m (none under 8). Jacobi sweeps straighten a
+    chain of k points in ~k^2 sweeps; the coarse levels do the long-range part cheaply."""
+    out = [m]
+    while len(out) < 3 and out[0] // 2 >= 8:
+        out.insert(0, out[0] // 2)
+    return out
 
 
 def _head_paths(model: Model, P: wp.array, Q: wp.array, res: wp.array, dev):
