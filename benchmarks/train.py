@@ -39,9 +39,10 @@ from common import MESHES, TARGETS, find_shared, parse_data_options  # noqa: E40
 SHARE = {"bunny": 0.6, "fandisk": 0.4}  # bunny is larger and has the harder target
 
 # 2,048 training sources: at equal steps bunny MRE 0.638% -> 0.546% against 512 (sweep 9); paths from all of them,
-# 64 global targets each: bunny test-path Chamfer 2.20e-2 -> 1.80e-2 against 16 for 5 s more ground truth
-# (session-4 run 3, benchmarks/RESULTS.md). These are build_dataset's defaults too.
-FULL_DATA = dict(n_sources=2048, n_path_sources=2048, n_path_global=64, n_path_local=32, n_test=8)
+# 128 global targets each: test-path Chamfer bunny 2.20e-2 (16) -> 1.80e-2 (64, session-4 run 3) -> 1.72e-2 (128),
+# fandisk 1.26e-2 (64) -> 1.10e-2 (128), for 5-6 s more ground truth each step (session-5 run, benchmarks/RESULTS.md).
+# These are build_dataset's defaults too.
+FULL_DATA = dict(n_sources=2048, n_path_sources=2048, n_path_global=128, n_path_local=32, n_test=8)
 SMALL_DATA = dict(n_sources=24, n_global=512, n_local1=16, n_local2=64, n_path_sources=8, n_path_global=16,
                   n_path_local=16, n_test=2, n_surface=30000, n_spread=2000, k=1)  # k=1: ~14 s for bunny on CPU
 SMALL_TRAIN = dict(D=64, batch_sdf=2048, batch_g=4096, batch_l1=512, batch_l2=1024, batch_paths_g=128,
