@@ -134,7 +134,8 @@ def evaluate(model, mesh=None, reference=None, *, heat: bool = False, n_sources:
 
     reference: exact-distance .npz (else the solver from ``n_sources`` random vertices).
     solver_k: Steiner points per edge for the solver's distances and paths (None: its default).
-    path_refine: also measure the paths after that many shortening sweeps (``path(..., refine=)``; slow on CPU).
+    path_refine: also measure the paths after that many shortening sweeps per level (``path(..., refine=)``;
+    slow on CPU).
     Returns a dict (errors as fractions, distances normalized); prints a table when ``verbose``.
     """
     if not hasattr(model, "net"):
@@ -214,7 +215,8 @@ def eval_main(argv=None) -> int:
     p.add_argument("--no-paths", action="store_true")
     p.add_argument("--no-sdf", action="store_true")
     p.add_argument("--path-refine", type=int, default=0, metavar="N",
-                   help="also score the paths after N shortening sweeps on the SDF surface (e.g. 400; slow on CPU)")
+                   help="also score the paths after N shortening sweeps per level on the SDF surface "
+                        "(e.g. 50; slow on CPU)")
     p.add_argument("--device", default=None)
     p.add_argument("--json", default=None, help="also write the results here")
     a = p.parse_args(argv)
