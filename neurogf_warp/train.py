@@ -72,7 +72,7 @@ class TrainConfig:
     path_residual: bool = True        # path head outputs offsets from the straight line
     path_width: int = 1               # path head hidden widths x1 or x2
     # path offsets x sin(pi t): exact end points. Path head alone on fixed fandisk features (CPU, 2,500 steps):
-    # test Chamfer 3.03e-2 -> 2.65e-2 (benchmarks/RESULTS.md); not yet measured in a full GPU run
+    # test Chamfer 3.03e-2 -> 2.65e-2 (benchmarks/RESULTS.md); on in every GPU run since session 4 (no GPU A/B)
     path_window: bool = True
     epochs: int = 100                 # joint-training epochs ...
     iters_per_epoch: int = 200        # ... of this many steps
