@@ -10,7 +10,7 @@ import torch
 import warp as wp
 
 from .arrays import Output, as_points, resolve_device
-from .kernels import mlp
+from .kernels import mlp, ssad_tile
 from .model import Model
 
 __all__ = ["fold_batchnorm", "warp_weights", "ssad", "msad", "distance", "sdf", "path", "embed"]
@@ -117,13 +117,45 @@ def ssad(model: Model, src, device=None, output: str = "numpy"):
 
     src: a vertex index (the mesh's numbering) or a 3-D point in mesh coordinates.
     Returns one value per vertex of the mesh as given (NaN where no face uses the vertex).
+    For D <= 256 the first call embeds every vertex and keeps the result with the model (V x D float32 per
+    device); later calls run only the distance head, as tile GEMMs (``kernels/ssad_tile.py``).
     """
     a = np.asarray(src.detach().cpu() if isinstance(src, torch.Tensor) else src)
     if np.issubdtype(a.dtype, np.integer) and a.size != 1:
         raise ValueError(f"ssad takes one source, got {a.size}; use msad for several")
     if np.issubdtype(a.dtype, np.floating) and a.size != 3:
         raise ValueError(f"ssad takes one source point of 3 coordinates, got shape {a.shape}")
+    if model.mesh is not None and model.D <= ssad_tile.MAX_D:
+        return _ssad_tile(model, src, resolve_device(device), output)
     return _to_vertices(model, src, "ssad", "src", mlp.distance_to_source, device, output)
+
+
+def _ssad_tile(model: Model, src, dev, output: str = "numpy", mathdx: bool = False, block: int = ssad_tile.BLOCK,
+               chunk: int = ssad_tile.CHUNK, threads: int = ssad_tile.THREADS):
+    """SSAD through the tile kernel: vertex embeddings cached per model and device (V x D float32, e.g. 455 MB
+    for 444K vertices at D=256), so a query runs only the distance head as tile GEMMs."""
+    verts, index = _vertices(model, dev)
+    key = ("tile_ssad", str(dev))
+    if key not in model._warp:
+        w = warp_weights(model, dev)
+        ex = embed(model, verts, dev)
+        col = lambda b: wp.array(b.numpy().reshape(-1, 1), dtype=wp.float32, device=dev)
+        xs = wp.array(((model.mesh.vertices - model.center) * model.scale).astype(np.float32), dtype=wp.vec3,
+                      device=dev)
+        model._warp[key] = (ex, xs, (w.g0_w, col(w.g0_b), w.g1_w, col(w.g1_b), w.g2_w))
+    ex, xs, weights = model._warp[key]
+    pts = _source_points(model, src, "src")
+    es = embed(model, pts, dev)
+    n, (H, D) = verts.shape[0], weights[0].shape
+    head = wp.empty((1, n), dtype=wp.float32, device=dev)
+    wp.launch_tiled(ssad_tile.head_kernel(D, H, mathdx, block, chunk), dim=[(n + block - 1) // block],
+                    inputs=[es, ex, *weights, D // chunk], outputs=[head], block_dim=threads, device=dev)
+    out = Output(output, dev)
+    res = out.empty(model.mesh.n_input, fill=float("nan"))
+    s = wp.vec3(*((pts[0] - model.center) * model.scale).astype(np.float32))
+    wp.launch(ssad_tile.finish, n, inputs=[head, s, xs, 1.0 if model.net.euclid else 0.0, 1.0 / model.scale, index],
+              outputs=[res], device=dev)
+    return out.result(res)
 
 
 def msad(model: Model, sources, device=None, output: str = "numpy"):

@@ -105,6 +105,28 @@ def test_warp_matches_torch_float64_on_random_points(D):
         f"seed {seed}"
 
 
+@pytest.mark.parametrize("D", [256, 512])
+def test_ssad_matches_float64_with_cached_embeddings(D):
+    """SSAD (tile head on cached vertex embeddings for D <= 256, the per-thread kernel above) against float64,
+    for two sources in a row: the second call reuses the first one's cache."""
+    import trimesh
+
+    seed = int(np.random.SeedSequence().entropy % 2**31)
+    rng = np.random.default_rng(seed)
+    tm = trimesh.creation.icosphere(subdivisions=2)
+    V = tm.vertices * np.array([2.0, 1.6, 1.2]) - 1.0
+    mesh = ngf.load_mesh((V, tm.faces))
+    net = random_net(D, seed, euclid=True)
+    model = ngf.Model(net=net, mesh=mesh, center=mesh.center, scale=mesh.scale)
+    x = torch.from_numpy(mesh.normalize(V))
+    for src in rng.choice(len(V), 2, replace=False):
+        with torch.no_grad():
+            ref = net.distance(x[[src]].expand(len(V), 3), x).numpy() / mesh.scale
+        got = ngf.ssad(model, int(src), device=DEV)
+        assert np.abs(got - ref).max() <= 1e-5 * np.abs(ref).max(), f"seed {seed}, source {src}"
+    assert (("tile_ssad", DEV) in model._warp) == (D <= 256)
+
+
 @pytest.mark.parametrize("options", [dict(fourier=2, euclid=True, path_residual=True, path_window=True),
                                      dict(fourier=8, path_width=2), dict(euclid=True)])
 def test_network_options_match_torch_float64(options, tmp_path):

@@ -1,0 +1,60 @@
+"""SSAD as a tile GEMM: the distance head on |e_s - e_x| for a block of vertices at once.
+
+The lifting of every vertex does not depend on the source, so ``inference.ssad`` embeds the vertices once per
+model and device and caches the (V, D) array; a query then runs only the distance head (D -> D/4 -> D/4 -> 1),
+a third of the MLP, as matrix products on (features, vertices) tiles. The per-thread kernels in ``mlp`` stay the
+reference and the path for user kernels.
+"""
+import functools
+
+import warp as wp
+
+BLOCK = 64  # vertices per tile (columns)
+CHUNK = 32  # embedding channels per step of the first layer
+THREADS = 128  # block_dim on CUDA (B=32..128, 64..256 threads: 3.6-3.9 ms, benchmarks/RESULTS.md)
+
+
+@wp.func
+def _relu(x: float):
+    return wp.max(x, 0.0)
+
+
+MAX_D = 256  # D = 512 would need a chunked second layer too (its H = 128)
+
+
+@functools.lru_cache(maxsize=None)
+def head_kernel(D: int, H: int, mathdx: bool = False, block: int = BLOCK, chunk: int = CHUNK):
+    """Kernel for embedding width D and head width H: out[0, x] = W2 relu(W1 relu(W0 |e_s - e_x| + b0) + b1).
+
+    The first layer runs over D in chunks (a rolled loop: its trip count is an argument), so neither W0 nor
+    the (D, block) input tile is ever whole in shared memory, which keeps several blocks resident per SM.
+    mathdx=False: Warp's scalar tile GEMM (compiles in seconds); True: cuBLASDx on CUDA (about a minute).
+    """
+    B, K = block, chunk
+
+    @wp.kernel(enable_backward=False, module="unique", module_options={"enable_mathdx_gemm": mathdx})
+    def head(es: wp.array2d(dtype=wp.float32), ex: wp.array2d(dtype=wp.float32),
+             w0: wp.array2d(dtype=wp.float32), b0: wp.array2d(dtype=wp.float32),
+             w1: wp.array2d(dtype=wp.float32), b1: wp.array2d(dtype=wp.float32),
+             w2: wp.array2d(dtype=wp.float32), n_chunks: int, out: wp.array2d(dtype=wp.float32)):
+        blk = wp.tid()
+        h = wp.tile_zeros(shape=(H, B), dtype=wp.float32)
+        for c in range(n_chunks):
+            e = wp.tile_transpose(wp.tile_load(ex, shape=(B, K), offset=(blk * B, c * K)))  # (K, B)
+            s = wp.tile_broadcast(wp.tile_transpose(wp.tile_load(es, shape=(1, K), offset=(0, c * K))), shape=(K, B))
+            wp.tile_matmul(wp.tile_load(w0, shape=(H, K), offset=(0, c * K)), wp.tile_map(wp.abs, e - s), h)
+        h = wp.tile_map(_relu, h + wp.tile_broadcast(wp.tile_load(b0, shape=(H, 1)), shape=(H, B)))
+        h1 = wp.tile_matmul(wp.tile_load(w1, shape=(H, H)), h)
+        h1 = wp.tile_map(_relu, h1 + wp.tile_broadcast(wp.tile_load(b1, shape=(H, 1)), shape=(H, B)))
+        y = wp.tile_matmul(wp.tile_load(w2, shape=(1, H)), h1)  # (1, B)
+        wp.tile_store(out, y, offset=(0, blk * B))
+
+    return head
+
+
+@wp.kernel(enable_backward=False)
+def finish(head: wp.array2d(dtype=wp.float32), src: wp.vec3, xs: wp.array(dtype=wp.vec3), euclid: float,
+           dscale: float, index: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.float32)):
+    """Adds the |x - s| term (network frame), scales to user units and writes in the user's vertex numbering."""
+    i = wp.tid()
+    out[index[i]] = (head[0, i] + euclid * wp.length(xs[i] - src)) * dscale
