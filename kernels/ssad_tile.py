@@ -9,6 +9,8 @@ import functools
 
 import warp as wp
 
+from . import mlp
+
 BLOCK = 64  # vertices per tile (columns)
 CHUNK = 32  # embedding channels per step of the first layer
 THREADS = 128  # block_dim on CUDA (B=32..128, 64..256 threads: 3.6-3.9 ms, benchmarks/RESULTS.md)
@@ -53,8 +55,9 @@ def head_kernel(D: int, H: int, mathdx: bool = False, block: int = BLOCK, chunk:
 
 
 @wp.kernel(enable_backward=False)
-def finish(head: wp.array2d(dtype=wp.float32), src: wp.vec3, xs: wp.array(dtype=wp.vec3), euclid: float,
-           dscale: float, index: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.float32)):
+def finish(head: wp.array2d(dtype=wp.float32), src: wp.vec3, xs: wp.array(dtype=wp.vec3), frame: mlp.Frame,
+           euclid: float, index: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.float32)):
     """Adds the |x - s| term (network frame), scales to user units and writes in the user's vertex numbering."""
     i = wp.tid()
-    out[index[i]] = (head[0, i] + euclid * wp.length(xs[i] - src)) * dscale
+    d = head[0, i] + euclid * wp.length(mlp.to_net(frame, xs[i]) - mlp.to_net(frame, src))
+    out[index[i]] = d * frame.dscale

@@ -140,10 +140,8 @@ def _ssad_tile(model: Model, src, dev, output: str = "numpy", mathdx: bool = Fal
         w = warp_weights(model, dev)
         ex = embed(model, verts, dev)
         col = lambda b: wp.array(b.numpy().reshape(-1, 1), dtype=wp.float32, device=dev)
-        xs = wp.array(((model.mesh.vertices - model.center) * model.scale).astype(np.float32), dtype=wp.vec3,
-                      device=dev)
-        model._warp[key] = (ex, xs, (w.g0_w, col(w.g0_b), w.g1_w, col(w.g1_b), w.g2_w))
-    ex, xs, weights = model._warp[key]
+        model._warp[key] = (ex, (w.g0_w, col(w.g0_b), w.g1_w, col(w.g1_b), w.g2_w))
+    ex, weights = model._warp[key]
     pts = _source_points(model, src, "src")
     es = embed(model, pts, dev)
     n, (H, D) = verts.shape[0], weights[0].shape
@@ -152,9 +150,8 @@ def _ssad_tile(model: Model, src, dev, output: str = "numpy", mathdx: bool = Fal
                     inputs=[es, ex, *weights, D // chunk], outputs=[head], block_dim=threads, device=dev)
     out = Output(output, dev)
     res = out.empty(model.mesh.n_input, fill=float("nan"))
-    s = wp.vec3(*((pts[0] - model.center) * model.scale).astype(np.float32))
-    wp.launch(ssad_tile.finish, n, inputs=[head, s, xs, 1.0 if model.net.euclid else 0.0, 1.0 / model.scale, index],
-              outputs=[res], device=dev)
+    wp.launch(ssad_tile.finish, n, inputs=[head, wp.vec3(*pts[0].astype(np.float32)), verts, _frame(model),
+                                           1.0 if model.net.euclid else 0.0, index], outputs=[res], device=dev)
     return out.result(res)
 
 
