@@ -41,6 +41,44 @@ class Mesh:
     scale: float
     fingerprint: str
     _inverse: np.ndarray | None = field(default=None, repr=False)
+    _components: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def input_to_internal(self) -> np.ndarray:
+        """(n_input,) int64: the internal vertex of each vertex as given, -1 where no face uses it.
+
+        Several input vertices may share one internal vertex (a welded file); per-vertex results are
+        gathered through this map, so every input vertex gets its internal vertex's value.
+        """
+        if self._inverse is None:
+            inv = np.full(self.n_input, -1, dtype=np.int64)
+            inv[self.index] = np.arange(len(self.index))
+            self._inverse = inv
+        return self._inverse
+
+    @property
+    def components(self) -> np.ndarray:
+        """(V,) int32 connected-component label of each internal vertex (0 .. n_components - 1).
+
+        Two vertices share a label when mesh edges join them; faces that meet only at a vertex are joined
+        through it, as a geodesic can pass there. Across labels the geodesic distance is infinite.
+        """
+        if self._components is None:
+            from scipy.sparse import coo_matrix
+            from scipy.sparse.csgraph import connected_components
+
+            f = self.faces.astype(np.int64)
+            a = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
+            b = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
+            n = len(self.vertices)
+            g = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(n, n))
+            _, labels = connected_components(g, directed=False)
+            self._components = labels.astype(np.int32)
+        return self._components
+
+    @property
+    def n_components(self) -> int:
+        return int(self.components.max()) + 1 if len(self.vertices) else 0
 
     @property
     def normalized_vertices(self) -> np.ndarray:
@@ -60,11 +98,7 @@ class Mesh:
         if i.size and (i.min() < -self.n_input or i.max() >= self.n_input):
             bad = i[(i < -self.n_input) | (i >= self.n_input)].ravel()[0]
             raise IndexError(f"vertex index {int(bad)} is out of range for a mesh of {self.n_input} vertices")
-        if self._inverse is None:
-            inv = np.full(self.n_input, -1, dtype=np.int64)
-            inv[self.index] = np.arange(len(self.index))
-            self._inverse = inv
-        j = self._inverse[i % self.n_input]
+        j = self.input_to_internal[i % self.n_input]
         if np.any(j < 0):
             bad = np.asarray(i).ravel()[np.asarray(j).ravel() < 0][0]
             raise IndexError(f"vertex {int(bad)} is not used by any face, so it has no geodesic distance")
@@ -73,8 +107,10 @@ class Mesh:
     def to_input(self, values: np.ndarray, fill=np.nan) -> np.ndarray:
         """Scatter per-vertex values (last axis = internal vertices) back to the vertices as given."""
         values = np.asarray(values)
+        inv = self.input_to_internal
         out = np.full(values.shape[:-1] + (self.n_input,), fill, dtype=values.dtype)
-        out[..., self.index] = values
+        used = inv >= 0
+        out[..., used] = values[..., inv[used]]
         return out
 
     def to_trimesh(self):

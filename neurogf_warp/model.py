@@ -41,6 +41,13 @@ class Model:
         """True when inputs/outputs are in the mesh's coordinates (a mesh is attached)."""
         return self.mesh is not None
 
+    def warp_struct(self, device=None):
+        """The folded weights as a ``neurogf_warp.kernels.mlp.NeuroGFWeights`` struct on ``device``, for the
+        ``@wp.func``s that users call inside their own kernels (cached; see ``invalidate``)."""
+        from .inference import warp_weights
+
+        return warp_weights(self, device)
+
     def invalidate(self):
         """Forget cached Warp weights, e.g. after changing ``net`` in place."""
         self._warp.clear()
