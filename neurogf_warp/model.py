@@ -1,8 +1,4 @@
-"""A trained NeuroGF: the torch network plus the frame it answers in.
-
-With a mesh, queries take and return the mesh's own coordinates and units, and vertex indices follow the
-mesh as given. Without one, everything is in the normalized unit-sphere frame the network was trained in.
-"""
+"""A trained NeuroGF: the torch network plus the frame it answers in."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -17,6 +13,27 @@ __all__ = ["Model"]
 
 @dataclass(eq=False)
 class Model:
+    """A trained NeuroGF network and the frame it answers in.
+
+    Attributes
+    ----------
+    net : network.NeuroGFNet
+        The torch network (eval mode): lifting, distance, SDF and path heads.
+    querier : network.SdfQuerier or None
+        The separate SDF network used while training (optional).
+    mesh : mesh.Mesh or None
+        The mesh the network was fitted to. With it, queries take and return the mesh's own coordinates and
+        units and per-vertex results follow the mesh file's numbering; without it, everything is in the
+        normalized unit-sphere frame.
+    center : (3,) float64, scale : float
+        The normalization: network coordinates = (x - center) * scale.
+    config : dict
+        How the model was made (training settings, source file).
+
+    Per-device state (folded weights, packed tensor-core weights, kept vertex embeddings) is cached in the
+    model; ``invalidate()`` drops it after the network is changed in place, ``unbind()`` frees the embeddings.
+    """
+
     net: NeuroGFNet
     querier: SdfQuerier | None = None
     mesh: Mesh | None = None
@@ -48,8 +65,23 @@ class Model:
 
         return warp_weights(self, device)
 
+    def bind(self, device=None, precision: str = "auto") -> int:
+        """Embed every mesh vertex once and keep the embeddings on ``device``, so that vertex queries (ssad,
+        msad, distance_matrix) run only the distance head. Returns the bytes kept: 2 D per vertex in fp16
+        (precision "fp16", the default on CUDA), 4 D in fp32. Vertex queries do this on their first call
+        unless given ``cache=False``."""
+        from .inference import bind
+
+        return bind(self, device, precision)
+
+    def unbind(self, device=None) -> None:
+        """Free the vertex embeddings kept on ``device`` (every device when None)."""
+        from .inference import unbind
+
+        unbind(self, device)
+
     def invalidate(self):
-        """Forget cached Warp weights, e.g. after changing ``net`` in place."""
+        """Forget all cached per-device state (weights, embeddings), e.g. after changing ``net`` in place."""
         self._warp.clear()
 
     def __repr__(self):

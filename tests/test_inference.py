@@ -99,7 +99,7 @@ def test_warp_matches_torch_float64_on_random_points(D):
         s_ref = net.sdf(P).numpy()
         path_ref = net.path(P[:8], Q[:8], 16).numpy()
     scale_d = np.abs(d_ref).max()
-    assert np.abs(ngf.distance(model, p, q, device=DEV) - d_ref).max() <= 1e-5 * scale_d, f"seed {seed}"
+    assert np.abs(ngf.distance(model, p, q, device=DEV, raw=True) - d_ref).max() <= 1e-5 * scale_d, f"seed {seed}"
     assert np.abs(ngf.sdf(model, p, device=DEV) - s_ref).max() <= 1e-5 * np.abs(s_ref).max(), f"seed {seed}"
     assert np.abs(ngf.path(model, p[:8], q[:8], m=16, device=DEV) - path_ref).max() <= 1e-5 * np.abs(path_ref).max(), \
         f"seed {seed}"
@@ -122,9 +122,9 @@ def test_ssad_matches_float64_with_cached_embeddings(D):
     for src in rng.choice(len(V), 2, replace=False):
         with torch.no_grad():
             ref = net.distance(x[[src]].expand(len(V), 3), x).numpy() / mesh.scale
-        got = ngf.ssad(model, int(src), device=DEV)
+        got = ngf.ssad(model, int(src), device=DEV, raw=True)
         assert np.abs(got - ref).max() <= 1e-5 * np.abs(ref).max(), f"seed {seed}, source {src}"
-    assert (("tile_ssad", DEV) in model._warp) == (D <= 256)
+    assert (("tile_head", DEV) in model._warp) == (D <= 256)
 
 
 @pytest.mark.parametrize("options", [dict(fourier=2, euclid=True, path_residual=True, path_window=True),
@@ -153,18 +153,19 @@ def test_network_options_match_torch_float64(options, tmp_path):
         all_ref = np.stack([net.distance(to_net(V[[s]]).expand(len(V), 3), to_net(V)).numpy() for s in srcs]) / mesh.scale
     tol = lambda ref: 1e-5 * np.abs(ref).max()
     msg = f"seed {seed}, {options}"
-    assert np.abs(ngf.distance(model, p, q, device=DEV) - d_ref).max() <= tol(d_ref), msg
+    assert np.abs(ngf.distance(model, p, q, device=DEV, raw=True) - d_ref).max() <= tol(d_ref), msg
     assert np.abs(ngf.sdf(model, p, device=DEV) - s_ref).max() <= tol(s_ref), msg
     paths = ngf.path(model, p[:8], q[:8], m=16, device=DEV)
     assert np.abs(paths - path_ref).max() <= tol(path_ref), msg
     if options.get("path_window"):  # exact end points
         assert np.abs(paths[:, 0] - p[:8]).max() <= 1e-5 and np.abs(paths[:, -1] - q[:8]).max() <= 1e-5, msg
-    assert np.abs(ngf.ssad(model, srcs[1], device=DEV) - all_ref[1]).max() <= tol(all_ref), msg
-    assert np.abs(ngf.msad(model, srcs, device=DEV) - all_ref.min(0)).max() <= tol(all_ref), msg
+    assert np.abs(ngf.ssad(model, srcs[1], device=DEV, raw=True) - all_ref[1]).max() <= tol(all_ref), msg
+    assert np.abs(ngf.msad(model, srcs, device=DEV, raw=True) - all_ref.min(0)).max() <= tol(all_ref), msg
     with torch.no_grad():  # p = q: the |p - q| term is 0, the rest is the constant gdf_head(0)
         self_ref = net.distance(to_net(p), to_net(p)).numpy() / mesh.scale
     assert np.ptp(self_ref) <= 1e-12
-    assert np.abs(ngf.distance(model, p, p, device=DEV) - self_ref).max() <= tol(d_ref), msg
+    assert np.abs(ngf.distance(model, p, p, device=DEV, raw=True) - self_ref).max() <= tol(d_ref), msg
+    assert np.all(ngf.distance(model, p, p, device=DEV) == 0.0), msg  # the finished answer: exactly 0
 
 
 def _project_ref(net, x, steps):

@@ -1,9 +1,9 @@
-"""SSAD as a tile GEMM: the distance head on |e_s - e_x| for a block of vertices at once.
+"""The distance head alone in float32 (precision="fp32"): head(|e_s - e_x|) for sources s and rows x.
 
-The lifting of every vertex does not depend on the source, so ``inference.ssad`` embeds the vertices once per
-model and device and caches the (V, D) array; a query then runs only the distance head (D -> D/4 -> D/4 -> 1),
-a third of the MLP, as matrix products on (features, vertices) tiles. The per-thread kernels in ``mlp`` stay the
-reference and the path for user kernels.
+With the rows' embeddings kept on the device (a bound model) the head runs as tile GEMMs on (features, rows)
+tiles, a third of the network's work; otherwise one thread per (source, row) embeds its row with the
+per-thread functions of ``mlp``. Both return raw head values in the network frame: ``kernels.finish`` adds the
+|x - s| term, the units and the rules every distance follows.
 """
 import functools
 
@@ -13,7 +13,7 @@ from . import mlp
 
 BLOCK = 64  # vertices per tile (columns)
 CHUNK = 32  # embedding channels per step of the first layer
-THREADS = 128  # block_dim on CUDA (B=32..128, 64..256 threads: 3.6-3.9 ms, benchmarks/RESULTS.md)
+THREADS = 128  # block_dim on CUDA (B=32..128 with 64..256 threads measured within 10%, benchmarks/RESULTS.md)
 
 
 @wp.func
@@ -55,9 +55,9 @@ def head_kernel(D: int, H: int, mathdx: bool = False, block: int = BLOCK, chunk:
 
 
 @wp.kernel(enable_backward=False)
-def finish(head: wp.array2d(dtype=wp.float32), src: wp.vec3, xs: wp.array(dtype=wp.vec3), frame: mlp.Frame,
-           euclid: float, index: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.float32)):
-    """Adds the |x - s| term (network frame), scales to user units and writes in the user's vertex numbering."""
-    i = wp.tid()
-    d = head[0, i] + euclid * wp.length(mlp.to_net(frame, xs[i]) - mlp.to_net(frame, src))
-    out[index[i]] = d * frame.dscale
+def head_rows(net: mlp.NeuroGFWeights, es: wp.array2d(dtype=wp.float32), src: wp.array(dtype=wp.vec3),
+              xs: wp.array(dtype=wp.vec3), frame: mlp.Frame, out: wp.array2d(dtype=wp.float32)):
+    """out[s, i] = head(|e(src[s]) - e(xs[i])|), one thread per pair; ``net`` must have euclid = 0 (the |x - s|
+    term is added by kernels.finish)."""
+    s, i = wp.tid()
+    out[s, i] = mlp.distance_to_embedding(net, es, s, mlp.to_net(frame, src[s]), mlp.to_net(frame, xs[i]))

@@ -1,0 +1,115 @@
+"""Small kernels shared by every query: finishing raw distances, per-component answers, numbering, input checks.
+
+A distance is finished the same way on every path: the network's head value plus the |x - s| term of
+``euclid`` networks, scaled to user units, never negative, exactly 0 where the query point is the source
+itself, and +inf between points of different connected components (no surface path joins them).
+"""
+import warp as wp
+
+from . import mlp
+
+INF = wp.constant(float("inf"))
+NAN = wp.constant(float("nan"))
+
+
+@wp.func
+def finish_distance(head: float, x: wp.vec3, s: wp.vec3, frame: mlp.Frame, euclid: float, other_part: bool,
+                    raw: int) -> float:
+    """User-unit distance from a head value (network frame), the same rule as ngf::finish_distance."""
+    if other_part:
+        return INF
+    if raw == 0 and x[0] == s[0] and x[1] == s[1] and x[2] == s[2]:
+        return 0.0
+    d = (head + euclid * wp.length(mlp.to_net(frame, x) - mlp.to_net(frame, s))) * frame.dscale
+    if raw != 0:
+        return d
+    return wp.max(d, 0.0)
+
+
+@wp.kernel(enable_backward=False)
+def finish_rows(head: wp.array2d(dtype=wp.float32), rows: wp.array(dtype=wp.vec3), row_comp: wp.array(dtype=wp.int32),
+                src: wp.array(dtype=wp.vec3), src_comp: wp.array(dtype=wp.int32), frame: mlp.Frame, euclid: float,
+                raw: int, out: wp.array2d(dtype=wp.float32)):
+    """out[s, i] from head values head[s, i] of source s and row i (component arrays empty: one component)."""
+    s, i = wp.tid()
+    other = False
+    if row_comp.shape[0] > 0:
+        other = row_comp[i] != src_comp[s]
+    out[s, i] = finish_distance(head[s, i], rows[i], src[s], frame, euclid, other, raw)
+
+
+@wp.kernel(enable_backward=False)
+def clamp_pairs(ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3), d: wp.array(dtype=wp.float32)):
+    """Pair distances from the per-thread kernels: never negative, exactly 0 for a point and itself."""
+    i = wp.tid()
+    p = ps[i]
+    q = qs[i]
+    if p[0] == q[0] and p[1] == q[1] and p[2] == q[2]:
+        d[i] = 0.0
+    else:
+        d[i] = wp.max(d[i], 0.0)
+
+
+@wp.kernel(enable_backward=False)
+def split_pairs(comp_p: wp.array(dtype=wp.int32), comp_q: wp.array(dtype=wp.int32), d: wp.array(dtype=wp.float32)):
+    """+inf where the two points of a pair lie on different connected components."""
+    i = wp.tid()
+    if comp_p[i] != comp_q[i]:
+        d[i] = INF
+
+
+@wp.kernel(enable_backward=False)
+def split_paths(comp_p: wp.array(dtype=wp.int32), comp_q: wp.array(dtype=wp.int32), x: wp.array2d(dtype=wp.vec3)):
+    """NaN rows for paths between different connected components."""
+    i, j = wp.tid()
+    if comp_p[i] != comp_q[i]:
+        x[i, j] = wp.vec3(NAN, NAN, NAN)
+
+
+@wp.kernel(enable_backward=False)
+def min_rows(d: wp.array2d(dtype=wp.float32), out: wp.array(dtype=wp.float32)):
+    i = wp.tid()
+    best = INF
+    for s in range(d.shape[0]):
+        best = wp.min(best, d[s, i])
+    out[i] = best
+
+
+@wp.kernel(enable_backward=False)
+def to_input(internal: wp.array2d(dtype=wp.float32), inv: wp.array(dtype=wp.int32), out: wp.array2d(dtype=wp.float32)):
+    """Per-vertex results in the user's numbering: out[s, j] = internal[s, inv[j]], NaN where inv[j] < 0."""
+    s, j = wp.tid()
+    k = inv[j]
+    if k < 0:
+        out[s, j] = NAN
+    else:
+        out[s, j] = internal[s, k]
+
+
+@wp.kernel(enable_backward=False)
+def point_components(mesh: wp.uint64, pts: wp.array(dtype=wp.vec3), face_comp: wp.array(dtype=wp.int32),
+                     out: wp.array(dtype=wp.int32)):
+    """Component of the surface point closest to each point."""
+    i = wp.tid()
+    q = wp.mesh_query_point_no_sign(mesh, pts[i], 1.0e30)
+    out[i] = face_comp[q.face]
+
+
+@wp.kernel(enable_backward=False)
+def check_points(pts: wp.array(dtype=wp.vec3), frame: mlp.Frame, limit: float, bad: wp.array(dtype=wp.int32)):
+    """bad[0] = 1 + the smallest index of a non-finite point or one outside the domain cube (normalized frame)."""
+    i = wp.tid()
+    x = mlp.to_net(frame, pts[i])
+    ok = wp.isfinite(x[0]) and wp.isfinite(x[1]) and wp.isfinite(x[2])
+    if ok:
+        ok = wp.abs(x[0]) <= limit and wp.abs(x[1]) <= limit and wp.abs(x[2]) <= limit
+    if not ok:
+        wp.atomic_min(bad, 0, i + 1)
+
+
+@wp.kernel(enable_backward=False)
+def gather_rows(rows: wp.array(dtype=wp.uint32), ids: wp.array(dtype=wp.int32), words: int,
+                out: wp.array(dtype=wp.uint32)):
+    """out[s] = row ids[s] of a (V, words) array stored flat (the sources' kept embeddings)."""
+    s, k = wp.tid()
+    out[s * words + k] = rows[ids[s] * words + k]

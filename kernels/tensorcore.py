@@ -1,0 +1,408 @@
+"""The NeuroGF networks on tensor cores: fused per-warp MLP kernels for every batch query.
+
+One warp takes 16 rows (points, vertices or pairs) from the point coordinates to the answer in registers:
+fp16 x fp16 -> fp32 ``mma.sync`` per layer, BatchNorm-folded bias and ReLU in fp32, the result rounded to fp16
+for the next layer. Warps are persistent (the grid is sized to the GPU) and read the packed weights from L1.
+The device code is ``native/neurogf_mma.h``; this module packs the weights, groups the kernel arguments into
+structs and launches.
+
+Why native code: Warp's tile API (cuBLASDx ``tile_matmul``) stages every operand and result in shared memory and
+cannot keep a layer's output in registers as the next layer's input; benchmarks/RESULTS.md has the measurements.
+
+Numerics: coordinates and Fourier features enter the first layer as fp16 high + low parts (fp32-accurate input),
+weights and activations are fp16, sums fp32, the last layer an fp32 dot product. Vertex embeddings kept for
+repeated queries are fp16 (the same rounding as in the fused kernels, so both give the same answers).
+
+The same kernels run on Warp's CPU device, each warp as 32 cooperative fibers with the warp-wide operations
+emulated; that form is slow and exists so the tests can check the GPU code's data movement against float64.
+"""
+from __future__ import annotations
+
+import contextlib
+import functools
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+from . import mlp
+
+HEADER = (Path(__file__).resolve().parent / "native" / "neurogf_mma.h").read_text()
+BUILD = wp.ModuleBuildOptions(extra_cuda_preamble=HEADER, extra_cpu_preamble=HEADER)
+MODULE_OPTIONS = {"extra_build_options": BUILD, "enable_backward": False}
+
+SUPPORTED_D = (64, 128, 256)  # D = 512 would need 128 registers per lane for one tile's embeddings
+FP16_MAX = 65504.0
+BLOCK_THREADS = 128  # 4 warps per block on CUDA
+WARPS_PER_SM = 16    # persistent grid: enough resident warps per multiprocessor to hide memory latency
+CPU_WARPS = 1        # the CPU emulation runs one warp (32 fibers) through all tiles
+
+
+@wp.struct
+class Lifting:
+    """Packed lifting F -> D/4 -> D/2 -> D: fragment-ordered fp16 weights (uint32 pairs), lane-ordered biases."""
+
+    w0: wp.array(dtype=wp.uint32)
+    b0: wp.array(dtype=wp.float32)
+    w1: wp.array(dtype=wp.uint32)
+    b1: wp.array(dtype=wp.float32)
+    w2: wp.array(dtype=wp.uint32)
+    b2: wp.array(dtype=wp.float32)
+    octaves: int
+
+
+@wp.struct
+class Head:
+    """Packed head D -> D/4 -> D/4 -> 1 (the last layer as lane-ordered fp32 weights)."""
+
+    w0: wp.array(dtype=wp.uint32)
+    b0: wp.array(dtype=wp.float32)
+    w1: wp.array(dtype=wp.uint32)
+    b1: wp.array(dtype=wp.float32)
+    w2: wp.array(dtype=wp.float32)
+
+
+@wp.struct
+class Sources:
+    """Sources of a distance query: packed fp16 embeddings (S, D/2 uint32), user-frame points, component labels."""
+
+    emb: wp.array(dtype=wp.uint32)
+    pos: wp.array(dtype=wp.vec3)
+    comp: wp.array(dtype=wp.int32)  # empty: one component
+    count: int
+
+
+@wp.struct
+class DistanceOut:
+    """Where distances go: out[s * ld + row], or out[row] = the minimum over sources with reduce_min."""
+
+    out: wp.array(dtype=wp.float32)
+    ld: int
+    reduce_min: int
+    euclid: float
+    row_comp: wp.array(dtype=wp.int32)  # empty: one component
+    raw: int                            # 1: the network's value, without clamping or the exact 0 at the source
+
+
+# ---- host-side packing -------------------------------------------------------------------------------------------
+
+def _to_fp16(a: np.ndarray, what: str) -> np.ndarray:
+    if not np.all(np.isfinite(a)) or np.abs(a).max(initial=0.0) > FP16_MAX:
+        raise ValueError(f"{what} has values beyond the fp16 range (|w| <= {FP16_MAX:g}); use precision='fp32'")
+    return a.astype(np.float16)
+
+
+def pack_weights(W: np.ndarray, what: str = "weights", n_multiple: int = 8) -> np.ndarray:
+    """(N, K) weights -> uint32 (KS, NT, 32, 2): the B fragments of every (k-step, n-tile), lane by lane.
+
+    Lane 4g + t holds b0 = (W[8n+g, 16k+2t], W[8n+g, 16k+2t+1]) and b1 = the same 8 columns further, fp16
+    pairs with the lower column in the low half. N is padded with zero rows to a multiple of ``n_multiple`` (16
+    where the output feeds another layer, whose k-steps are 16 wide) and K to a multiple of 16.
+    """
+    N, K = W.shape
+    KS, NT = -(-K // 16), -(-N // n_multiple) * n_multiple // 8
+    Wp = np.zeros((NT * 8, KS * 16))
+    Wp[:N, :K] = W
+    h = _to_fp16(Wp, what).view(np.uint16).astype(np.uint32)
+    lane = np.arange(32)
+    g, t = lane >> 2, lane & 3
+    rows = (np.arange(NT)[:, None] * 8 + g[None, :])[None, :, :]           # (1, NT, 32)
+    col = (np.arange(KS)[:, None, None] * 16 + 2 * t[None, None, :])       # (KS, 1, 32)
+    b0 = h[rows, col] | (h[rows, col + 1] << 16)
+    b1 = h[rows, col + 8] | (h[rows, col + 9] << 16)
+    return np.ascontiguousarray(np.stack([b0, b1], axis=-1), dtype=np.uint32)
+
+
+def pack_lanes(v: np.ndarray, n_multiple: int = 8) -> np.ndarray:
+    """(N, ...) per-column values -> float32 (NT, 4, 2, ...): lane t of n-tile n holds columns 8n + 2t and 8n + 2t + 1
+    (the trailing axes, e.g. xyz, go last: (NT, 4, 3, 2) for (N, 3) input)."""
+    v = np.asarray(v, dtype=np.float64)
+    NT = -(-len(v) // n_multiple) * n_multiple // 8
+    p = np.zeros((NT * 8,) + v.shape[1:])
+    p[: len(v)] = v
+    p = p.reshape((NT, 4, 2) + v.shape[1:])
+    if v.ndim == 2:
+        p = p.transpose(0, 1, 3, 2)
+    return np.ascontiguousarray(p, dtype=np.float32)
+
+
+def split_input_columns(W0: np.ndarray) -> np.ndarray:
+    """First lifting layer for high/low fp16 input pairs: every input column twice (columns 2j and 2j+1)."""
+    return np.repeat(W0, 2, axis=1)
+
+
+def input_ksteps(n_features: int) -> int:
+    return -(-2 * n_features // 16)
+
+
+def _arr(a, dtype, device):
+    return wp.array(np.ascontiguousarray(a).reshape(-1), dtype=dtype, device=device)
+
+
+def lifting_struct(layers, octaves: int, device) -> Lifting:
+    """layers: [(W, b)] x 3 folded float64 lifting layers."""
+    (W0, b0), (W1, b1), (W2, b2) = layers
+    L = Lifting()
+    L.w0 = _arr(pack_weights(split_input_columns(W0), "lifting layer 0"), wp.uint32, device)
+    L.b0 = _arr(pack_lanes(b0), wp.float32, device)
+    L.w1 = _arr(pack_weights(W1, "lifting layer 1"), wp.uint32, device)
+    L.b1 = _arr(pack_lanes(b1), wp.float32, device)
+    L.w2 = _arr(pack_weights(W2, "lifting layer 2"), wp.uint32, device)
+    L.b2 = _arr(pack_lanes(b2), wp.float32, device)
+    L.octaves = int(octaves)
+    return L
+
+
+def head_struct(layers, device) -> Head:
+    """layers: [(W0, b0), (W1, b1), (W2, None)] folded float64 head layers."""
+    (W0, b0), (W1, b1), (W2, _) = layers
+    H = Head()
+    H.w0 = _arr(pack_weights(W0, "head layer 0"), wp.uint32, device)
+    H.b0 = _arr(pack_lanes(b0), wp.float32, device)
+    H.w1 = _arr(pack_weights(W1, "head layer 1"), wp.uint32, device)
+    H.b1 = _arr(pack_lanes(b1), wp.float32, device)
+    H.w2 = _arr(pack_lanes(W2.reshape(-1)), wp.float32, device)
+    return H
+
+
+@wp.struct
+class PathHead:
+    """Packed path head: guidance 2D -> D, the point layer split into guidance (D -> P1) and xyz (3 -> P1) columns,
+    then P1 -> P2 -> P3 -> 3; ``residual`` / ``window`` as in network.NeuroGFNet."""
+
+    wc: wp.array(dtype=wp.uint32)
+    bc: wp.array(dtype=wp.float32)
+    wg: wp.array(dtype=wp.uint32)
+    b0: wp.array(dtype=wp.float32)
+    wx: wp.array(dtype=wp.float32)
+    w1: wp.array(dtype=wp.uint32)
+    b1: wp.array(dtype=wp.float32)
+    w2: wp.array(dtype=wp.uint32)
+    b2: wp.array(dtype=wp.float32)
+    w3: wp.array(dtype=wp.uint32)
+    residual: float
+    window: float
+
+
+def path_widths(layers) -> tuple:
+    """(P1, P2, P3) of a path head as the kernels see them (P3 padded to 16)."""
+    P1, P2, P3 = (layers[i][0].shape[0] for i in range(3))
+    return P1, P2, -(-P3 // 16) * 16
+
+
+def path_struct(guidance, layers, residual: bool, window: bool, device) -> PathHead:
+    """guidance: folded (Wc, bc); layers: folded point-wise layers [(W0, b0), (W1, b1), (W2, b2), (W3, None)]."""
+    (Wc, bc), (W0, b0), (W1, b1), (W2, b2), (W3, _) = guidance, *layers
+    P = PathHead()
+    P.wc = _arr(pack_weights(Wc, "path guidance"), wp.uint32, device)
+    P.bc = _arr(pack_lanes(bc), wp.float32, device)
+    P.wg = _arr(pack_weights(W0[:, 3:], "path layer 0"), wp.uint32, device)
+    P.b0 = _arr(pack_lanes(b0), wp.float32, device)  # also the natural order: column c at 8n + 2t + j = c
+    P.wx = _arr(pack_lanes(W0[:, :3]), wp.float32, device)
+    P.w1 = _arr(pack_weights(W1, "path layer 1", 16), wp.uint32, device)
+    P.b1 = _arr(pack_lanes(b1, 16), wp.float32, device)
+    P.w2 = _arr(pack_weights(W2, "path layer 2", 16), wp.uint32, device)
+    P.b2 = _arr(pack_lanes(b2, 16), wp.float32, device)
+    W3p = np.zeros((W3.shape[0], -(-W3.shape[1] // 16) * 16))
+    W3p[:, : W3.shape[1]] = W3
+    P.w3 = _arr(pack_weights(W3p, "path layer 3"), wp.uint32, device)
+    P.residual = 1.0 if residual else 0.0
+    P.window = 1.0 if window else 0.0
+    return P
+
+
+def empty_int(device) -> wp.array:
+    return wp.empty(0, dtype=wp.int32, device=device)
+
+
+def empty_words(device) -> wp.array:
+    return wp.empty(0, dtype=wp.uint32, device=device)
+
+
+# ---- kernels -------------------------------------------------------------------------------------------------------
+
+def _frame_cpp(name: str) -> str:
+    return (f"ngf::Frame F = {{{name}.center[0], {name}.center[1], {name}.center[2], {name}.xscale, {name}.dscale}};\n")
+
+
+_STRUCTS_CPP = """
+    ngf::Lifting L = {(const ngf::u32x2*)lift.w0.data, (const ngf::f32x2*)lift.b0.data,
+                      (const ngf::u32x2*)lift.w1.data, (const ngf::f32x2*)lift.b1.data,
+                      (const ngf::u32x2*)lift.w2.data, (const ngf::f32x2*)lift.b2.data, lift.octaves};
+    ngf::Head H = {(const ngf::u32x2*)head.w0.data, (const ngf::f32x2*)head.b0.data,
+                   (const ngf::u32x2*)head.w1.data, (const ngf::f32x2*)head.b1.data, (const ngf::f32x2*)head.w2.data};
+"""
+
+
+def _unique(fn, name):
+    fn.__name__ = fn.__qualname__ = name
+    return fn
+
+
+@functools.lru_cache(maxsize=None)
+def distance_kernel(D: int, ks0: int, lift: bool):
+    """Distances from S sources to N rows: lifted points (``lift``) or cached packed vertex embeddings."""
+    snippet = _STRUCTS_CPP + _frame_cpp("frame") + f"""
+    ngf::Sources S = {{(const ngf::u32x4*)src.emb.data, (const float*)src.pos.data,
+                      src.comp.shape[0] ? (const int*)src.comp.data : nullptr, src.count}};
+    ngf::DistanceOut O = {{(float*)dst.out.data, dst.ld, dst.reduce_min, dst.euclid, dst.row_comp.shape[0] ? (const int*)dst.row_comp.data : nullptr, dst.raw}};
+    ngf::distance_rows<{D}, {ks0}, {'true' if lift else 'false'}>(L, H, F, (const float*)pts.data,
+        (const ngf::u32x4*)cached.data, n, S, O, tid >> 5, n_warps);
+"""
+
+    def body(lift: Lifting, head: Head, frame: mlp.Frame, pts: wp.array(dtype=wp.vec3),
+             cached: wp.array(dtype=wp.uint32), n: int, src: Sources, dst: DistanceOut, tid: int, n_warps: int): ...
+
+    native = wp.func_native(snippet)(_unique(body, f"ngf_distance_rows_{D}_{ks0}_{int(lift)}"))
+
+    @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
+    def distance_rows(lift: Lifting, head: Head, frame: mlp.Frame, pts: wp.array(dtype=wp.vec3),
+                      cached: wp.array(dtype=wp.uint32), n: int, src: Sources, dst: DistanceOut, n_warps: int):
+        native(lift, head, frame, pts, cached, n, src, dst, wp.tid(), n_warps)
+
+    return distance_rows
+
+
+@functools.lru_cache(maxsize=None)
+def embed_kernel(D: int, ks0: int):
+    """Packed fp16 embeddings (N, D/2 uint32) of N points."""
+    snippet = _STRUCTS_CPP + _frame_cpp("frame") + f"""
+    ngf::embed_rows<{D}, {ks0}>(L, F, (const float*)pts.data, n, (ngf::u32x4*)out.data, tid >> 5, n_warps);
+"""
+
+    def body(lift: Lifting, head: Head, frame: mlp.Frame, pts: wp.array(dtype=wp.vec3), n: int,
+             out: wp.array(dtype=wp.uint32), tid: int, n_warps: int): ...
+
+    native = wp.func_native(snippet)(_unique(body, f"ngf_embed_rows_{D}_{ks0}"))
+
+    @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
+    def embed_rows(lift: Lifting, head: Head, frame: mlp.Frame, pts: wp.array(dtype=wp.vec3), n: int,
+                   out: wp.array(dtype=wp.uint32), n_warps: int):
+        native(lift, head, frame, pts, n, out, wp.tid(), n_warps)
+
+    return embed_rows
+
+
+@functools.lru_cache(maxsize=None)
+def pair_kernel(D: int, ks0: int, nc: int = 4):
+    """Distances between point pairs (p_i, q_i), both lifted in the same warp."""
+    snippet = _STRUCTS_CPP + _frame_cpp("frame") + f"""
+    ngf::pair_rows<{D}, {ks0}, {nc}>(L, H, F, (const float*)ps.data, (const float*)qs.data, n, euclid, raw,
+                                     (float*)out.data, tid >> 5, n_warps);
+"""
+
+    def body(lift: Lifting, head: Head, frame: mlp.Frame, ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3),
+             n: int, euclid: float, raw: int, out: wp.array(dtype=wp.float32), tid: int, n_warps: int): ...
+
+    native = wp.func_native(snippet)(_unique(body, f"ngf_pair_rows_{D}_{ks0}_{nc}"))
+
+    @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
+    def pair_rows(lift: Lifting, head: Head, frame: mlp.Frame, ps: wp.array(dtype=wp.vec3),
+                  qs: wp.array(dtype=wp.vec3), n: int, euclid: float, raw: int, out: wp.array(dtype=wp.float32),
+                  n_warps: int):
+        native(lift, head, frame, ps, qs, n, euclid, raw, out, wp.tid(), n_warps)
+
+    return pair_rows
+
+
+@functools.lru_cache(maxsize=None)
+def sdf_kernel(D: int, ks0: int, mt: int = 1, nc: int = 8):
+    """Signed distances of N points from the SDF head."""
+    snippet = _STRUCTS_CPP + _frame_cpp("frame") + f"""
+    ngf::sdf_rows<{D}, {ks0}, {mt}, {nc}>(L, H, F, (const float*)pts.data, n, (float*)out.data, tid >> 5, n_warps);
+"""
+
+    def body(lift: Lifting, head: Head, frame: mlp.Frame, pts: wp.array(dtype=wp.vec3), n: int,
+             out: wp.array(dtype=wp.float32), tid: int, n_warps: int): ...
+
+    native = wp.func_native(snippet)(_unique(body, f"ngf_sdf_rows_{D}_{ks0}_{mt}_{nc}"))
+
+    @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
+    def sdf_rows(lift: Lifting, head: Head, frame: mlp.Frame, pts: wp.array(dtype=wp.vec3), n: int,
+                 out: wp.array(dtype=wp.float32), n_warps: int):
+        native(lift, head, frame, pts, n, out, wp.tid(), n_warps)
+
+    return sdf_rows
+
+
+_PATH_CPP = """
+    ngf::PathWeights W = {(const ngf::u32x2*)ph.wc.data, (const ngf::f32x2*)ph.bc.data, (const ngf::u32x2*)ph.wg.data,
+                          (const ngf::f32x2*)ph.b0.data, (const ngf::f32x2*)ph.wx.data, (const ngf::u32x2*)ph.w1.data,
+                          (const ngf::f32x2*)ph.b1.data, (const ngf::u32x2*)ph.w2.data, (const ngf::f32x2*)ph.b2.data,
+                          (const ngf::u32x2*)ph.w3.data, ph.residual, ph.window};
+"""
+
+
+@functools.lru_cache(maxsize=None)
+def path_pre_kernel(D: int, P1: int):
+    """Per path: the guidance vector and the path-constant part of the point layer (N, P1) float32."""
+    snippet = _PATH_CPP + f"""
+    ngf::path_pre_rows<{D}, {P1}>(W, (const ngf::u32x4*)ep.data, (const ngf::u32x4*)eq.data, n, (float*)pre.data,
+                                   tid >> 5, n_warps);
+"""
+
+    def body(ph: PathHead, ep: wp.array(dtype=wp.uint32), eq: wp.array(dtype=wp.uint32), n: int,
+             pre: wp.array(dtype=wp.float32), tid: int, n_warps: int): ...
+
+    native = wp.func_native(snippet)(_unique(body, f"ngf_path_pre_rows_{D}_{P1}"))
+
+    @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
+    def path_pre_rows(ph: PathHead, ep: wp.array(dtype=wp.uint32), eq: wp.array(dtype=wp.uint32), n: int,
+                      pre: wp.array(dtype=wp.float32), n_warps: int):
+        native(ph, ep, eq, n, pre, wp.tid(), n_warps)
+
+    return path_pre_rows
+
+
+@functools.lru_cache(maxsize=None)
+def path_points_kernel(P1: int, P2: int, P3: int):
+    """m points of each of N paths (N, m, 3), user frame."""
+    snippet = _PATH_CPP + _frame_cpp("frame") + f"""
+    ngf::path_point_rows<{P1}, {P2}, {P3}>(W, F, (const float*)ps.data, (const float*)qs.data, (const float*)pre.data,
+                                            n, m, (float*)out.data, tid >> 5, n_warps);
+"""
+
+    def body(ph: PathHead, frame: mlp.Frame, ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3),
+             pre: wp.array(dtype=wp.float32), n: int, m: int, out: wp.array2d(dtype=wp.vec3), tid: int,
+             n_warps: int): ...
+
+    native = wp.func_native(snippet)(_unique(body, f"ngf_path_point_rows_{P1}_{P2}_{P3}"))
+
+    @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
+    def path_point_rows(ph: PathHead, frame: mlp.Frame, ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3),
+                        pre: wp.array(dtype=wp.float32), n: int, m: int, out: wp.array2d(dtype=wp.vec3),
+                        n_warps: int):
+        native(ph, frame, ps, qs, pre, n, m, out, wp.tid(), n_warps)
+
+    return path_point_rows
+
+
+# ---- launching -------------------------------------------------------------------------------------------------
+
+@contextlib.contextmanager
+def _cpu_blocks():
+    """Warp runs a CPU block's lanes as cooperative fibers only while this flag is set."""
+    old = wp.config.enable_cpu_blocks
+    wp.config.enable_cpu_blocks = True
+    try:
+        yield
+    finally:
+        wp.config.enable_cpu_blocks = old
+
+
+def warps_for(device, n_tiles: int) -> int:
+    """Persistent warps for a launch over n_tiles tiles."""
+    if device.is_cpu:
+        return max(1, min(CPU_WARPS, n_tiles))
+    cap = device.sm_count * WARPS_PER_SM
+    return max(1, min(cap, n_tiles))
+
+
+def launch(kernel, n_tiles: int, inputs: list, device):
+    """Launch a per-warp kernel over n_tiles tiles; its last input is the warp count, appended here."""
+    n_warps = warps_for(device, n_tiles)
+    if device.is_cpu:
+        with _cpu_blocks():
+            wp.launch(kernel, dim=32 * n_warps, inputs=[*inputs, n_warps], block_dim=32, device=device)
+    else:
+        wp.launch(kernel, dim=32 * n_warps, inputs=[*inputs, n_warps], block_dim=BLOCK_THREADS, device=device)

@@ -1,0 +1,33 @@
+"""The eval-mode network as plain layers: BatchNorm folded into each layer's weights and bias (float64)."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+__all__ = ["BN_EPS", "fold_batchnorm", "folded_layers"]
+
+BN_EPS = 1e-5
+
+
+def fold_batchnorm(layer) -> tuple[np.ndarray, np.ndarray | None]:
+    """(W', b') in float64 with eval-mode BatchNorm folded in: W' = diag(s) W, b' = beta - mu s.
+
+    layer: a ``network.FC`` or ``network.PointMLP``; W' has shape (out, in), b' (out,) or None (no BatchNorm).
+    """
+    mod = layer.linear if hasattr(layer, "linear") else layer.conv
+    w = mod.weight.detach().double().cpu().reshape(mod.weight.shape[0], -1)
+    if layer.bn is None:
+        return w.numpy(), None
+    bn = layer.bn
+    s = bn.weight.detach().double().cpu() / torch.sqrt(bn.running_var.detach().double().cpu() + BN_EPS)
+    b = bn.bias.detach().double().cpu() - bn.running_mean.detach().double().cpu() * s
+    return (w * s[:, None]).numpy(), b.numpy()
+
+
+def folded_layers(net) -> dict:
+    """{"lifting", "distance", "sdf", "guidance", "path"}: lists of folded (W, b) layers of a NeuroGFNet."""
+    return {"lifting": [fold_batchnorm(m) for m in net.lifting],
+            "distance": [fold_batchnorm(m) for m in net.gdf_head],
+            "sdf": [fold_batchnorm(m) for m in net.sdf_head],
+            "guidance": fold_batchnorm(net.cdw_fc),
+            "path": [fold_batchnorm(m) for m in net.spf_head]}

@@ -1,0 +1,152 @@
+"""The tensor-core kernels (precision="fp16") against a float64 evaluation of the same network.
+
+On the CPU the kernels run as a warp emulation (32 fibers per warp, the warp-wide operations emulated), the
+same native code as on the GPU; it is slow, so the CPU cases are small (D = 64, tens of points). With a GPU
+the same checks run there at every supported width. Fresh random networks and inputs each run; the seed is
+in the failure message.
+"""
+import numpy as np
+import pytest
+import torch
+import warp as wp
+
+import neurogf_warp as ngf
+from neurogf_warp.network import NeuroGFNet
+
+DEVICES = [("cpu", 64)] + [(f"cuda:0", D) for D in (64, 128, 256) if wp.get_cuda_device_count() > 0]
+TOL = 2e-3  # fp16 activations: |error| / max |value|, with margin over the ~2e-4 seen
+
+
+def random_net(D, seed, **options):
+    torch.manual_seed(seed)
+    net = NeuroGFNet(D, **options).double()
+    for m in net.modules():
+        if isinstance(m, (torch.nn.BatchNorm1d, torch.nn.BatchNorm2d)):
+            m.running_mean.uniform_(-0.2, 0.2)
+            m.running_var.uniform_(0.5, 1.5)
+            m.weight.data.uniform_(0.5, 1.5)
+            m.bias.data.uniform_(-0.1, 0.1)
+    return net.eval()
+
+
+def icosphere_mesh(rng, offset):
+    import trimesh
+
+    tm = trimesh.creation.icosphere(subdivisions=2)
+    return ngf.load_mesh((tm.vertices * rng.uniform(0.8, 2.0, 3) + offset, tm.faces))
+
+
+def close(got, ref, what):
+    err = np.abs(np.asarray(got, np.float64) - ref).max() / np.abs(ref).max()
+    assert err <= TOL, f"{what}: relative error {err:.2e}"
+
+
+OPTIONS = [dict(fourier=2, euclid=True, path_residual=True, path_window=True), dict(fourier=0)]
+
+
+@pytest.mark.parametrize("device,D", DEVICES)
+@pytest.mark.parametrize("options", OPTIONS, ids=["default", "paper"])
+def test_point_queries_match_float64(device, D, options):
+    seed = int(np.random.SeedSequence().entropy % 2**31)
+    rng = np.random.default_rng(seed)
+    mesh = icosphere_mesh(rng, rng.normal(0, 3, 3))
+    net = random_net(D, seed, **options)
+    model = ngf.Model(net=net, mesh=mesh, center=mesh.center, scale=mesh.scale)
+    n = 40 if device == "cpu" else 5000
+    p = mesh.vertices[rng.integers(0, len(mesh.vertices), n)] + rng.normal(0, 0.05, (n, 3))
+    q = mesh.vertices[rng.integers(0, len(mesh.vertices), n)] + rng.normal(0, 0.05, (n, 3))
+    to_net = lambda x: torch.from_numpy(mesh.normalize(x))
+    with torch.no_grad():
+        d_ref = net.distance(to_net(p), to_net(q)).numpy() / mesh.scale
+        s_ref = net.sdf(to_net(p)).numpy() / mesh.scale
+        k = 6 if device == "cpu" else 200
+        path_ref = net.path(to_net(p[:k]), to_net(q[:k]), 16).numpy() / mesh.scale + mesh.center
+    msg = f"seed {seed}, {device}, D={D}, {options}"
+    close(ngf.distance(model, p, q, device=device, precision="fp16", raw=True), d_ref, "distance " + msg)
+    close(ngf.sdf(model, p, device=device, precision="fp16"), s_ref, "sdf " + msg)
+    close(ngf.path(model, p[:k], q[:k], m=16, device=device, precision="fp16"), path_ref, "path " + msg)
+    assert np.array_equal(ngf.distance(model, p, q, device=device, precision="fp16", raw=True),
+                          ngf.distance(model, q, p, device=device, precision="fp16", raw=True)), msg
+
+
+@pytest.mark.parametrize("device,D", DEVICES)
+def test_vertex_queries_match_float64_bound_and_cold(device, D):
+    """SSAD / MSAD / distance matrices from vertices and points, with kept embeddings and without; both paths
+    round the embeddings the same way, so they agree exactly."""
+    seed = int(np.random.SeedSequence().entropy % 2**31)
+    rng = np.random.default_rng(seed)
+    mesh = icosphere_mesh(rng, 0.0)
+    net = random_net(D, seed, fourier=2, euclid=True)
+    model = ngf.Model(net=net, mesh=mesh, center=mesh.center, scale=mesh.scale)
+    x = torch.from_numpy(mesh.normalize(mesh.vertices))
+    srcs = rng.choice(len(mesh.vertices), 3, replace=False)
+    with torch.no_grad():
+        ref = np.stack([net.distance(x[[s]].expand(len(x), 3), x).numpy() for s in srcs]) / mesh.scale
+    msg = f"seed {seed}, {device}, D={D}"
+    kw = dict(device=device, precision="fp16", raw=True)
+    cold = ngf.ssad(model, int(srcs[0]), cache=False, **kw)
+    close(cold, ref[0], "ssad cold " + msg)
+    close(ngf.msad(model, srcs, cache=False, **kw), ref.min(0), "msad cold " + msg)
+    bound = ngf.ssad(model, int(srcs[0]), **kw)
+    assert ("bound", str(wp.get_device(device)), "fp16") in model._warp, msg
+    np.testing.assert_array_equal(bound, cold, err_msg=msg)
+    close(ngf.msad(model, srcs, **kw), ref.min(0), "msad bound " + msg)
+    close(ngf.distance_matrix(model, srcs, **kw), ref, "matrix " + msg)
+    close(ngf.distance_matrix(model, srcs, srcs[::-1], **kw), ref[:, srcs[::-1]], "matrix to targets " + msg)
+    pt = mesh.vertices[srcs[1]]
+    close(ngf.ssad(model, pt, **kw), ref[1], "ssad from a point " + msg)
+    # finished answers: exactly 0 at the source, never negative
+    d = ngf.ssad(model, int(srcs[2]), device=device, precision="fp16")
+    assert d[srcs[2]] == 0.0 and np.all(d >= 0), msg
+
+
+@pytest.mark.parametrize("device,D", DEVICES[:2])
+def test_components_and_numbering(device, D):
+    """Two separate parts and an unused vertex: +inf across parts, NaN for the unused vertex, in the file's
+    numbering, from both engines."""
+    import trimesh
+
+    rng = np.random.default_rng(0)
+    a = trimesh.creation.icosphere(subdivisions=1)
+    V = np.vstack([[[9.0, 9.0, 9.0]], a.vertices, a.vertices + [3.0, 0, 0]])
+    F = np.vstack([a.faces + 1, a.faces + 1 + len(a.vertices)])
+    mesh = ngf.load_mesh((V, F))
+    net = random_net(D, 1, fourier=2, euclid=True)
+    model = ngf.Model(net=net, mesh=mesh, center=mesh.center, scale=mesh.scale)
+    for prec in ("fp16", "fp32"):
+        d = ngf.ssad(model, 1, device=device, precision=prec)
+        assert np.isnan(d[0]) and len(d) == len(V)
+        first = slice(1, 1 + len(a.vertices))
+        assert np.all(np.isfinite(d[first])) and np.all(np.isinf(d[1 + len(a.vertices):])), prec
+        pair = ngf.distance(model, V[[1, 1]], V[[2, 1 + len(a.vertices)]], device=device, precision=prec)
+        assert np.isfinite(pair[0]) and np.isinf(pair[1]), prec
+        paths = ngf.path(model, V[[1, 1]], V[[2, 1 + len(a.vertices)]], m=8, device=device, precision=prec)
+        assert np.all(np.isfinite(paths[0])) and np.all(np.isnan(paths[1])), prec
+        m = ngf.msad(model, [1, 1 + len(a.vertices)], device=device, precision=prec)
+        assert np.all(np.isfinite(m[1:])), prec
+
+
+def test_packing_layout():
+    """The B-fragment packing against the mma.m16n8k16 layout, element by element."""
+    from neurogf_warp.kernels import tensorcore as tc
+
+    rng = np.random.default_rng()
+    W = rng.normal(size=(24, 40))
+    pk = tc.pack_weights(W)
+    h = lambda w: np.float16(W[w]) if w[0] < 24 and w[1] < 40 else np.float16(0.0)
+    for ks in range(pk.shape[0]):
+        for nt in range(pk.shape[1]):
+            for lane in range(32):
+                g, t = lane >> 2, lane & 3
+                for j, k0 in enumerate((16 * ks + 2 * t, 16 * ks + 2 * t + 8)):
+                    word = int(pk[ks, nt, lane, j])
+                    lo = np.array([word & 0xFFFF], np.uint16).view(np.float16)[0]
+                    hi = np.array([word >> 16], np.uint16).view(np.float16)[0]
+                    assert lo == h((8 * nt + g, k0)) and hi == h((8 * nt + g, k0 + 1))
+
+
+def test_fp16_range_is_checked():
+    from neurogf_warp.kernels import tensorcore as tc
+
+    with pytest.raises(ValueError, match="fp16 range"):
+        tc.pack_weights(np.full((8, 16), 1e6))
