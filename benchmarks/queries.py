@@ -99,6 +99,23 @@ class Timer:
                 per.append((time.perf_counter() - t) / self.repeats)
         return statistics.median(per)
 
+    def device(self, fn, n: int = 10) -> float:
+        """Median GPU time of one call on an idle GPU (events on Warp's stream around the call)."""
+        import warp as wp
+
+        if not self.cuda:
+            return float("nan")
+        times = []
+        for _ in range(n):
+            self.sync()
+            a, b = wp.Event(enable_timing=True), wp.Event(enable_timing=True)
+            wp.record_event(a)
+            fn()
+            wp.record_event(b)
+            self.sync()
+            times.append(wp.get_event_elapsed_time(a, b) / 1e3)
+        return statistics.median(times)
+
     def sync(self):
         import warp as wp
 
@@ -304,6 +321,26 @@ def run(a) -> dict:
             return net.distance_from_embeddings(es.expand(len(xv), -1), ev_c, xs.expand(len(xv), 3), xv) / scale
         return fn
 
+    from neurogf_warp.kernels import tensorcore as tc
+
+    def tuned(label, fn, settings):
+        """Warp variants of one query under other tile settings (--tune): {name: callable}."""
+        out = {label: fn}
+        if not a.tune or not cuda:
+            return out
+        for setting in settings:
+            def run(setting=setting):
+                old = {k: getattr(tc, k) for k in setting}
+                for k, v in setting.items():
+                    setattr(tc, k, v)
+                try:
+                    return fn()
+                finally:
+                    for k, v in old.items():
+                        setattr(tc, k, v)
+            out[f"{label} [{', '.join(f'{k}={v}' for k, v in setting.items())}]"] = run
+        return out
+
     def add(query, variants, ref, flops, bytes_, extra=None):
         """ref: float64 result on the mesh's internal vertices or the query's rows; Warp's per-vertex results
         (the file's numbering) are compared through mesh.index."""
@@ -322,10 +359,13 @@ def run(a) -> dict:
                 err = rel_err(got, ref)
                 s = timer(fn)
                 rows.append({"query": query, "variant": name, "ms": s * 1e3, "rel_err": err})
+                if name.startswith("warp"):
+                    rows[-1]["device_ms"] = timer.device(fn) * 1e3
             except Exception as e:  # a variant that fails (e.g. out of memory) is reported, not fatal
                 rows.append({"query": query, "variant": name, "error": f"{type(e).__name__}: {e}"[:300]})
-            print(f"  {query}: {name}: " + (f"{rows[-1]['ms']:.4f} ms, err {rows[-1]['rel_err']:.1e}"
-                                            if "ms" in rows[-1] else rows[-1]["error"]), flush=True)
+            print(f"  {query}: {name}: " + (f"{rows[-1]['ms']:.4f} ms (device {rows[-1].get('device_ms', float('nan')):.4f}), "
+                                            f"err {rows[-1]['rel_err']:.1e}" if "ms" in rows[-1] else rows[-1]["error"]),
+                  flush=True)
         torch_best = min((r["ms"] for r in rows if "ms" in r and r["variant"].startswith("torch")
                           and r["rel_err"] < 1e-2), default=float("nan"))
         floor = max(flops / ceil["fp16_flops"], bytes_ / ceil["bandwidth"]) * 1e3
@@ -353,8 +393,8 @@ def run(a) -> dict:
     bytes_kept = model.bind(device)
     res["memory"] = {"bound vertex embeddings (bytes)": bytes_kept}
     n = len(mesh.vertices)
-    v1 = {"warp ssad, bound (fp16 tensor cores)" if cuda else "warp ssad, bound":
-          lambda: ngf.ssad(model, src, device=device, output=warp_out)}
+    v1 = tuned("warp ssad, bound (fp16 tensor cores)" if cuda else "warp ssad, bound",
+               lambda: ngf.ssad(model, src, device=device, output=warp_out), [{"SSAD_MT": 1}])
     if cuda:
         v1["warp ssad, bound, precision=fp32"] = lambda: ngf.ssad(model, src, device=device, output=warp_out,
                                                                     precision="fp32")
@@ -368,7 +408,8 @@ def run(a) -> dict:
     xs_pt = torch.from_numpy(mesh.normalize(pt)[None]).to(tdev)
     with torch.no_grad():
         ref_pt = dist_build(net64, torch.float64)(xs_pt, xv).cpu().numpy()
-    v2 = {"warp ssad, cold, point source": lambda: ngf.ssad(model, pt, device=device, output=warp_out, cache=False)}
+    v2 = tuned("warp ssad, cold, point source", lambda: ngf.ssad(model, pt, device=device, output=warp_out, cache=False),
+               [{"LIFT_SSAD": (1, 4)}])
     if "ssad_cold" in want:
         v2.update(torch_forms.variants("ssad cold", dist_build, {"xs": xs_pt, "xv": xv}))
         add("ssad cold (point source)", v2, ref_pt, 2 * (M["lift"] + M["head"]) * n, n * 16)
@@ -404,7 +445,8 @@ def run(a) -> dict:
     if "msad" in want:
         with torch.no_grad():
             ref_m = sources_build(True, False, 1)(net64, torch.float64)(xss, xv).cpu().numpy()
-        v3 = {"warp msad, bound": lambda: ngf.msad(model, srcs, device=device, output=warp_out)}
+        v3 = tuned("warp msad, bound", lambda: ngf.msad(model, srcs, device=device, output=warp_out),
+                   [{"SOURCE_GROUP": 1}])
         v3.update(torch_forms.variants("msad", sources_build(True, False), {"xss": xss, "xv": xv},
                                        sources_build(True, True)))
         add(f"msad {sizes['S_msad']} sources (bound)", v3, ref_m, 2 * M["head"] * n * sizes["S_msad"],
@@ -418,8 +460,8 @@ def run(a) -> dict:
     if "matrix" in want:
         with torch.no_grad():
             refS = sources_build(False, False, 1)(net64, torch.float64)(xsm, xv).cpu().numpy()
-        v4 = {f"warp distance_matrix ({S}, V), bound": lambda: ngf.distance_matrix(model, srcm, device=device,
-                                                                                   output=warp_out)}
+        v4 = tuned(f"warp distance_matrix ({S}, V), bound",
+                   lambda: ngf.distance_matrix(model, srcm, device=device, output=warp_out), [{"SOURCE_GROUP": 1}])
         tv = torch_forms.variants("matrix", sources_build(False, True), {"xss": xsm, "xv": xv})
         v4.update({f"{k}, cached e(x)": fn for k, fn in tv.items()})
         add(f"distance matrix {S} x V (bound)", v4, refS, 2 * M["head"] * n * S, n * (2 * 256 + 12) + 4 * S * n,
@@ -441,8 +483,9 @@ def run(a) -> dict:
         with torch.no_grad():
             ref_pairs = torch.cat([pair_build(net64, None)(Pn[i:i + 262144], Qn[i:i + 262144])
                                    for i in range(0, N, 262144)]).cpu().numpy()
-        v5 = {"warp distance": lambda: ngf.distance(model, Pt, Qt, device=device, raw=True),
-              "warp distance, check=False": lambda: ngf.distance(model, Pt, Qt, device=device, raw=True, check=False)}
+        v5 = tuned("warp distance", lambda: ngf.distance(model, Pt, Qt, device=device, raw=True), [])
+        v5.update(tuned("warp distance, check=False",
+                        lambda: ngf.distance(model, Pt, Qt, device=device, raw=True, check=False), [{"PAIR_NC": 8}]))
         v5.update(torch_forms.variants("distance", pair_build, {"p": Pn, "q": Qn}))
         add(f"distance {N} pairs", v5, ref_pairs, 2 * (2 * M["lift"] + M["head"]) * N, 28 * N, {"pairs": N})
         del Pt, Qt, Pn, Qn
@@ -459,8 +502,9 @@ def run(a) -> dict:
 
         with torch.no_grad():
             ref_sdf = sdf_build(net64, None)(Xn).cpu().numpy()
-        v6 = {"warp sdf": lambda: ngf.sdf(model, Xt, device=device),
-              "warp sdf, check=False": lambda: ngf.sdf(model, Xt, device=device, check=False)}
+        v6 = tuned("warp sdf", lambda: ngf.sdf(model, Xt, device=device), [])
+        v6.update(tuned("warp sdf, check=False", lambda: ngf.sdf(model, Xt, device=device, check=False),
+                        [{"SDF_TILE": (1, 4)}, {"SDF_TILE": (2, 4)}]))
         v6.update(torch_forms.variants("sdf", sdf_build, {"x": Xn}))
         add(f"sdf {N} points", v6, ref_sdf, 2 * (M["lift"] + M["head"]) * N, 16 * N)
         del Xt, Xn
@@ -520,12 +564,14 @@ def table(res: dict) -> str:
     lines = [f"{res['device_name']} ({res['device']}), {res['date']}, commit {res.get('commit')}, Warp {res['warp']}, "
              f"torch {res['torch']}; ceilings: fp16 {res['ceilings']['fp16_flops'] / 1e12:.0f} TFLOP/s, "
              f"copy {res['ceilings']['bandwidth'] / 1e12:.2f} TB/s",
-             f"{'query':34s} {'variant':52s} {'ms':>9s} {'vs best torch':>13s} {'floor ms':>9s} {'roofline':>8s} "
-             f"{'rel err':>8s}"]
+             f"{'query':34s} {'variant':52s} {'ms/call':>9s} {'device ms':>9s} {'vs best torch':>13s} {'floor ms':>9s} "
+             f"{'roofline':>8s} {'rel err':>8s}"]
     for r in res["rows"]:
         if "ms" in r:
-            lines.append(f"{r['query'][:34]:34s} {r['variant'][:52]:52s} {r['ms']:9.4f} {r['vs_best_torch']:12.2f}x "
-                         f"{r['floor_ms']:9.4f} {r['roofline_fraction']:8.1%} {r['rel_err']:8.1e}")
+            dev_ms = f"{r['device_ms']:9.4f}" if "device_ms" in r else " " * 9
+            lines.append(f"{r['query'][:34]:34s} {r['variant'][:52]:52s} {r['ms']:9.4f} {dev_ms} "
+                         f"{r['vs_best_torch']:12.2f}x {r['floor_ms']:9.4f} {r['roofline_fraction']:8.1%} "
+                         f"{r['rel_err']:8.1e}")
         else:
             lines.append(f"{r['query'][:34]:34s} {r['variant'][:52]:52s} {r['error'][:60]}")
     for k, v in res["compile_s"].items():
@@ -552,6 +598,7 @@ def main(argv=None) -> int:
     ap.add_argument("--torch-out", action="store_true", help="Warp results as torch tensors instead of wp.arrays")
     ap.add_argument("--queries", default="ssad_bound,ssad_cold,msad,matrix,distance,sdf,path",
                     help="comma-separated subset of ssad_bound, ssad_cold, msad, matrix, distance, sdf, path")
+    ap.add_argument("--tune", action="store_true", help="also time the Warp queries under other tile settings")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None, help="output JSON (default: $OUT/queries.json or benchmarks/queries.json)")
     a = ap.parse_args(argv)

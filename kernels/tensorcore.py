@@ -36,6 +36,11 @@ FP16_MAX = 65504.0
 BLOCK_THREADS = 128  # 4 warps per block on CUDA
 WARPS_PER_SM = 16    # persistent grid: enough resident warps per multiprocessor to hide memory latency
 CPU_WARPS = 1        # the CPU emulation runs one warp (32 fibers) through all tiles
+SSAD_MT = 2          # m-tiles per warp of the single-source kernel on kept embeddings
+SOURCE_GROUP = 2     # sources that share each weight load in the multi-source kernels
+LIFT_SSAD = (1, 8)   # (m-tiles per warp, n-tiles per chunk) of the single-source kernel without kept embeddings
+SDF_TILE = (1, 8)    # (m-tiles per warp, n-tiles per chunk) of the SDF kernel
+PAIR_NC = 4          # n-tiles per chunk of the pair kernel (two m-tiles: p and q)
 
 
 @wp.struct
@@ -63,25 +68,28 @@ class Head:
 
 
 @wp.struct
-class Sources:
-    """Sources of a distance query: packed fp16 embeddings (S, D/2 uint32), user-frame points, component labels."""
+class Rows:
+    """The rows of a distance query: user-frame points, their kept packed embeddings (empty: computed in the
+    kernel), component labels (empty: one component)."""
 
-    emb: wp.array(dtype=wp.uint32)
-    pos: wp.array(dtype=wp.vec3)
-    comp: wp.array(dtype=wp.int32)  # empty: one component
-    count: int
+    pts: wp.array(dtype=wp.vec3)
+    cached: wp.array(dtype=wp.uint32)
+    comp: wp.array(dtype=wp.int32)
+    n: int
 
 
 @wp.struct
-class DistanceOut:
-    """Where distances go: out[s * ld + row], or out[row] = the minimum over sources with reduce_min."""
+class Sources:
+    """Tables the sources of a distance query are rows of: packed fp16 embeddings (R * D/2 uint32), user-frame
+    points (R,), component labels (R,) or empty. A call names its rows (``src_ids``, or ``src_row`` + s)."""
 
-    out: wp.array(dtype=wp.float32)
-    ld: int
-    reduce_min: int
-    euclid: float
-    row_comp: wp.array(dtype=wp.int32)  # empty: one component
-    raw: int                            # 1: the network's value, without clamping or the exact 0 at the source
+    emb: wp.array(dtype=wp.uint32)
+    pos: wp.array(dtype=wp.vec3)
+    comp: wp.array(dtype=wp.int32)
+
+
+REDUCE_MIN = 1  # flags of a distance launch: one value per row, the nearest source
+RAW = 2         # the network's own value (no clamping, no exact 0 at the source)
 
 
 # ---- host-side packing -------------------------------------------------------------------------------------------
@@ -239,28 +247,66 @@ def _unique(fn, name):
     return fn
 
 
-@functools.lru_cache(maxsize=None)
-def distance_kernel(D: int, ks0: int, lift: bool):
-    """Distances from S sources to N rows: lifted points (``lift``) or cached packed vertex embeddings."""
-    snippet = _STRUCTS_CPP + _frame_cpp("frame") + f"""
-    ngf::Sources S = {{(const ngf::u32x4*)src.emb.data, (const float*)src.pos.data,
-                      src.comp.shape[0] ? (const int*)src.comp.data : nullptr, src.count}};
-    ngf::DistanceOut O = {{(float*)dst.out.data, dst.ld, dst.reduce_min, dst.euclid, dst.row_comp.shape[0] ? (const int*)dst.row_comp.data : nullptr, dst.raw}};
-    ngf::distance_rows<{D}, {ks0}, {'true' if lift else 'false'}>(L, H, F, (const float*)pts.data,
-        (const ngf::u32x4*)cached.data, n, S, O, tid >> 5, n_warps);
+_DISTANCE_CPP = """
+    ngf::Sources S = {(const ngf::u32x4*)src.emb.data, (const float*)src.pos.data,
+                      src.comp.shape[0] ? (const int*)src.comp.data : nullptr,
+                      src_ids.shape[0] ? (const int*)src_ids.data : nullptr, src_row, n_src};
+    ngf::DistanceOut O = {(float*)out.data, ld, flags & 1, euclid,
+                          rows.comp.shape[0] ? (const int*)rows.comp.data : nullptr, (flags >> 1) & 1};
 """
 
-    def body(lift: Lifting, head: Head, frame: mlp.Frame, pts: wp.array(dtype=wp.vec3),
-             cached: wp.array(dtype=wp.uint32), n: int, src: Sources, dst: DistanceOut, tid: int, n_warps: int): ...
 
-    native = wp.func_native(snippet)(_unique(body, f"ngf_distance_rows_{D}_{ks0}_{int(lift)}"))
+def _distance_kernel(call: str, name: str):
+    """A distance kernel around the native call ``call`` (uses L, H, F, S, O and rows)."""
+    snippet = _STRUCTS_CPP + _frame_cpp("frame") + _DISTANCE_CPP + call
+
+    def body(lift: Lifting, head: Head, frame: mlp.Frame, rows: Rows, src: Sources, src_ids: wp.array(dtype=wp.int32),
+             src_row: int, n_src: int, out: wp.array(dtype=wp.float32), ld: int, flags: int, euclid: float, tid: int,
+             n_warps: int): ...
+
+    native = wp.func_native(snippet)(_unique(body, name))
 
     @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
-    def distance_rows(lift: Lifting, head: Head, frame: mlp.Frame, pts: wp.array(dtype=wp.vec3),
-                      cached: wp.array(dtype=wp.uint32), n: int, src: Sources, dst: DistanceOut, n_warps: int):
-        native(lift, head, frame, pts, cached, n, src, dst, wp.tid(), n_warps)
+    def distance_rows(lift: Lifting, head: Head, frame: mlp.Frame, rows: Rows, src: Sources,
+                      src_ids: wp.array(dtype=wp.int32), src_row: int, n_src: int, out: wp.array(dtype=wp.float32),
+                      ld: int, flags: int, euclid: float, n_warps: int):
+        native(lift, head, frame, rows, src, src_ids, src_row, n_src, out, ld, flags, euclid, wp.tid(), n_warps)
 
     return distance_rows
+
+
+# parameter indices of a distance launch that change from call to call
+DIST_SRC, DIST_IDS, DIST_ROW, DIST_COUNT, DIST_OUT, DIST_LD, DIST_FLAGS = 4, 5, 6, 7, 8, 9, 10
+
+
+@functools.lru_cache(maxsize=None)
+def distance_kernel(D: int, ks0: int, lift: bool, sp: int = 1):
+    """Distances from S sources to N rows: lifted points (``lift``) or kept packed vertex embeddings; ``sp``
+    sources share each weight load."""
+    call = f"""
+    ngf::distance_rows<{D}, {ks0}, {'true' if lift else 'false'}, {sp}>(L, H, F, (const float*)rows.pts.data,
+        (const ngf::u32x4*)rows.cached.data, rows.n, S, O, tid >> 5, n_warps);
+"""
+    return _distance_kernel(call, f"ngf_distance_rows_{D}_{ks0}_{int(lift)}_{sp}")
+
+
+@functools.lru_cache(maxsize=None)
+def ssad_kernel(D: int, mt: int = 2):
+    """One source to every row of kept packed embeddings, mt m-tiles per warp (same arguments as distance_kernel)."""
+    call = f"""
+    ngf::ssad_rows<{D}, {mt}>(H, F, (const float*)rows.pts.data, (const ngf::u32x4*)rows.cached.data, rows.n, S, O,
+                             tid >> 5, n_warps);
+"""
+    return _distance_kernel(call, f"ngf_ssad_rows_{D}_{mt}")
+
+
+@functools.lru_cache(maxsize=None)
+def lift_ssad_kernel(D: int, ks0: int, mt: int = 1, nc: int = 8):
+    """One source to N points embedded in the kernel, chunk by chunk (same arguments as distance_kernel)."""
+    call = f"""
+    ngf::lift_ssad_rows<{D}, {ks0}, {mt}, {nc}>(L, H, F, (const float*)rows.pts.data, rows.n, S, O, tid >> 5, n_warps);
+"""
+    return _distance_kernel(call, f"ngf_lift_ssad_rows_{D}_{ks0}_{mt}_{nc}")
 
 
 @functools.lru_cache(maxsize=None)
@@ -398,11 +444,15 @@ def warps_for(device, n_tiles: int) -> int:
     return max(1, min(cap, n_tiles))
 
 
-def launch(kernel, n_tiles: int, inputs: list, device):
-    """Launch a per-warp kernel over n_tiles tiles; its last input is the warp count, appended here."""
+def launch(kernel, n_tiles: int, inputs: list, device, record: bool = False):
+    """Launch a per-warp kernel over n_tiles tiles; its last input is the warp count, appended here.
+
+    record: return a ``wp.Launch`` to replay (parameters updated with ``set_param_at_index``) instead of launching;
+    its warp count stays the one for n_tiles.
+    """
     n_warps = warps_for(device, n_tiles)
+    kw = dict(dim=32 * n_warps, inputs=[*inputs, n_warps], device=device, record_cmd=record)
     if device.is_cpu:
         with _cpu_blocks():
-            wp.launch(kernel, dim=32 * n_warps, inputs=[*inputs, n_warps], block_dim=32, device=device)
-    else:
-        wp.launch(kernel, dim=32 * n_warps, inputs=[*inputs, n_warps], block_dim=BLOCK_THREADS, device=device)
+            return wp.launch(kernel, block_dim=32, **kw)
+    return wp.launch(kernel, block_dim=BLOCK_THREADS, **kw)

@@ -15,6 +15,8 @@ from .kernels import tensorcore as tc
 
 __all__ = ["Engine", "supported"]
 
+_UNSET = object()
+
 
 def supported(net) -> bool:
     """Whether the tensor-core kernels handle this network's widths."""
@@ -37,13 +39,16 @@ class Engine:
         self.path_head = tc.path_struct(layers["guidance"], layers["path"], net.path_residual, net.path_window, device)
         self.path_widths = tc.path_widths(layers["path"])
         self._none = tc.empty_int(device)
+        self._launches, self._last = {}, {}
 
     # -- kernels, all compiled by warmup() --------------------------------------------------------------------
     def kernels(self) -> dict:
         D, k = self.D, self.ks0
-        return {"embed": tc.embed_kernel(D, k), "distance_cached": tc.distance_kernel(D, k, False),
-                "distance_lifted": tc.distance_kernel(D, k, True), "pairs": tc.pair_kernel(D, k),
-                "sdf": tc.sdf_kernel(D, k), "path_pre": tc.path_pre_kernel(D, self.path_widths[0]),
+        return {"embed": tc.embed_kernel(D, k), "ssad": tc.ssad_kernel(D, tc.SSAD_MT),
+                "ssad_lifted": tc.lift_ssad_kernel(D, k, *tc.LIFT_SSAD),
+                "distance_cached": tc.distance_kernel(D, k, False, tc.SOURCE_GROUP),
+                "distance_lifted": tc.distance_kernel(D, k, True, tc.SOURCE_GROUP), "pairs": tc.pair_kernel(D, k, tc.PAIR_NC),
+                "sdf": tc.sdf_kernel(D, k, *tc.SDF_TILE), "path_pre": tc.path_pre_kernel(D, self.path_widths[0]),
                 "path_points": tc.path_points_kernel(*self.path_widths)}
 
     def row_bytes(self) -> int:
@@ -57,45 +62,87 @@ class Engine:
         if out is None:
             out = wp.empty(n * self.D // 2, dtype=wp.uint32, device=self.device)
         if n:
-            tc.launch(tc.embed_kernel(self.D, self.ks0), -(-n // 16),
-                      [self.lifting, self.dist_head, self.frame, pts, n, out], self.device)
+            kernel = tc.embed_kernel(self.D, self.ks0)
+            key = ("embed", n)
+            if key not in self._launches:
+                if len(self._launches) > 16:  # bounded: a few sizes recur (single sources, paths)
+                    for k in [k for k in self._launches if isinstance(k, tuple) and k[0] == "embed"]:
+                        self._launches.pop(k)
+                        self._last.pop(k, None)
+                self._launches[key] = tc.launch(kernel, -(-n // 16), [self.lifting, self.dist_head, self.frame, pts,
+                                                                       n, out], self.device, record=True)
+            self._replay(key, self._launches[key], {3: pts, 5: out})
         return out
 
+    # -- distances from sources to rows ------------------------------------------------------------------------
+    def rows(self, pts: wp.array, cached: wp.array | None, comp: wp.array | None) -> tc.Rows:
+        """Rows of a distance query: points, with their kept embeddings or None (embedded in the kernel)."""
+        r = tc.Rows()
+        r.pts, r.n = pts, pts.shape[0]
+        r.cached = cached if cached is not None else tc.empty_words(self.device)
+        r.comp = comp if comp is not None else self._none
+        return r
+
     def sources(self, emb: wp.array, pos: wp.array, comp: wp.array | None) -> tc.Sources:
+        """Tables of source rows: packed embeddings, user-frame points, component labels (or None)."""
         s = tc.Sources()
         s.emb, s.pos = emb, pos
         s.comp = comp if comp is not None else self._none
-        s.count = pos.shape[0]
         return s
 
-    def distances(self, rows: wp.array, cached: wp.array | None, src: tc.Sources, out: wp.array, ld: int,
-                  reduce_min: bool, row_comp: wp.array | None, raw: bool = False):
-        """Distances from the sources to the rows (points; with ``cached``, their packed embeddings).
+    def distances(self, rows: tc.Rows, src: tc.Sources, out: wp.array, ld: int, ids: wp.array | None = None,
+                  row0: int = 0, count: int = 1, reduce_min: bool = False, raw: bool = False):
+        """Distances from the sources (rows ``ids`` of ``src``, or row0 .. row0 + count - 1) to ``rows``.
 
-        out: (S * ld,) float32 with reduce_min False (row s of the matrix at s * ld), else (ld,) the nearest.
+        out: (count * ld,) float32, row s of the result at s * ld; with reduce_min (ld,), the nearest source.
+        A single source on kept embeddings takes the streaming kernel. Launches are recorded once per rows and
+        replayed with the call's parameters, which keeps a query's host time to a few parameter updates.
         """
-        n = rows.shape[0]
-        if not n or not src.count:
+        n = rows.n
+        if not n or not count:
             return
-        o = tc.DistanceOut()
-        o.out, o.ld, o.reduce_min, o.euclid = out, int(ld), int(reduce_min), self.euclid
-        o.row_comp = row_comp if row_comp is not None else self._none
-        o.raw = int(raw)
-        kernel = tc.distance_kernel(self.D, self.ks0, cached is None)
-        tc.launch(kernel, -(-n // 16), [self.lifting, self.dist_head, self.frame, rows,
-                                        cached if cached is not None else tc.empty_words(self.device), n, src, o],
-                  self.device)
+        cached = rows.cached.shape[0] > 0
+        if count == 1:
+            kernel, mt = (tc.ssad_kernel(self.D, tc.SSAD_MT), tc.SSAD_MT) if cached else \
+                (tc.lift_ssad_kernel(self.D, self.ks0, *tc.LIFT_SSAD), tc.LIFT_SSAD[0])
+        else:
+            kernel, mt = tc.distance_kernel(self.D, self.ks0, not cached, tc.SOURCE_GROUP), 1
+        key = kernel  # one recorded launch per kernel, re-recorded when the rows change
+        cmd = self._launches.get(key)
+        if cmd is None or cmd[0] is not rows:
+            self._last.pop(key, None)
+            tiles = -(-n // (16 * mt))
+            cmd = (rows, tc.launch(kernel, tiles, [self.lifting, self.dist_head, self.frame, rows, src, self._none,
+                                                   0, 1, out, 0, 0, self.euclid], self.device, record=True))
+            self._launches[key] = cmd
+        flags = (tc.REDUCE_MIN if reduce_min else 0) | (tc.RAW if raw else 0)
+        self._replay(key, cmd[1], {tc.DIST_SRC: src, tc.DIST_IDS: ids if ids is not None else self._none,
+                                   tc.DIST_ROW: int(row0), tc.DIST_COUNT: int(count), tc.DIST_OUT: out,
+                                   tc.DIST_LD: int(ld), tc.DIST_FLAGS: flags})
+
+    def _replay(self, key, launch, params: dict):
+        """Replay a recorded launch, packing only the parameters that differ from its previous call."""
+        last = self._last.setdefault(key, {})
+        for i, v in params.items():
+            if last.get(i, _UNSET) is not v and not (isinstance(v, int) and last.get(i) == v):
+                launch.set_param_at_index(i, v)
+                last[i] = v
+        if self.device.is_cpu:
+            with tc._cpu_blocks():
+                launch.launch()
+        else:
+            launch.launch()
 
     def pairs(self, p: wp.array, q: wp.array, out: wp.array, raw: bool = False):
         n = p.shape[0]
         if n:
-            tc.launch(tc.pair_kernel(self.D, self.ks0), -(-n // 16),
+            tc.launch(tc.pair_kernel(self.D, self.ks0, tc.PAIR_NC), -(-n // 16),
                       [self.lifting, self.dist_head, self.frame, p, q, n, self.euclid, int(raw), out], self.device)
 
     def sdf(self, x: wp.array, out: wp.array):
         n = x.shape[0]
         if n:
-            tc.launch(tc.sdf_kernel(self.D, self.ks0), -(-n // 16),
+            tc.launch(tc.sdf_kernel(self.D, self.ks0, *tc.SDF_TILE), -(-n // (16 * tc.SDF_TILE[0])),
                       [self.lifting, self.sdf_head, self.frame, x, n, out], self.device)
 
     def paths(self, p: wp.array, q: wp.array, out: wp.array):

@@ -71,6 +71,14 @@ def warp_weights(model: Model, device=None) -> mlp.NeuroGFWeights:
 
 
 def _frame(model: Model) -> mlp.Frame:
+    """The model's user -> network frame as the kernels take it (made once per model)."""
+    f = model._warp.get("frame")
+    if f is None:
+        f = model._warp["frame"] = _make_frame(model)
+    return f
+
+
+def _make_frame(model: Model) -> mlp.Frame:
     f = mlp.Frame()
     if model.in_mesh_frame:
         f.center = wp.vec3(*model.center.astype(np.float32))
@@ -116,6 +124,12 @@ class _MeshOnDevice:
         self._wp_mesh = None
         self._face_comp = None
         self.dev = dev
+
+    def lifted_rows(self, eng: Engine):
+        """The vertices as rows embedded inside the kernels (no kept embeddings)."""
+        if getattr(self, "_lifted", None) is None:
+            self._lifted = eng.rows(self.verts, None, self.comp)
+        return self._lifted
 
     def components_of(self, pts: wp.array) -> wp.array:
         """Component label of each point (that of its closest surface point)."""
@@ -205,6 +219,12 @@ def _is_single_point(x) -> bool:
 
 def _sources(model: Model, src, name: str, dev, one: bool = False):
     """Sources as (user-frame points (S, 3) float64, internal vertex ids or None, component labels or None)."""
+    if isinstance(src, (int, np.integer)) and not isinstance(src, (bool, np.bool_)) and model.mesh is not None:
+        m = model.mesh  # the common single-vertex case without array machinery
+        i = int(src)
+        if 0 <= i < m.n_input and m.input_to_internal[i] >= 0:
+            j = int(m.input_to_internal[i])
+            return m.vertices[j:j + 1], np.array([j]), (m.components[j:j + 1] if m.n_components > 1 else None)
     if isinstance(src, wp.array):
         src = src.numpy()
     elif isinstance(src, torch.Tensor):
@@ -262,46 +282,59 @@ def _vertex_distances(model: Model, src, name: str, device, output: str, precisi
     md = _mesh_data(model, dev, name)
     pts, ids, comp = _sources(model, src, name, dev, one=one)
     S, V = len(pts), md.V
-    src_pos = wp.array(pts.astype(np.float32), dtype=wp.vec3, device=dev)
-    src_comp = wp.array(comp.astype(np.int32), dtype=wp.int32, device=dev) if comp is not None else None
     if cache:
         bind(model, dev, prec)
     bound = _binding(model, dev, prec)
     rows_out = 1 if reduce_min else S
-    internal = wp.empty((rows_out, V), dtype=wp.float32, device=dev)
+    internal = wp.empty(rows_out * V, dtype=wp.float32, device=dev)
     if prec == "fp16":
         eng = _engine(model, dev)
-        if bound is not None and ids is not None:
-            words = model.D // 2
-            if S == 1:  # the source's row of the kept embeddings, as a view
-                emb = bound[int(ids[0]) * words: (int(ids[0]) + 1) * words]
+        kw = dict(count=S, reduce_min=reduce_min, raw=raw)
+        if bound is not None and ids is not None:  # rows of the kept tables: nothing to embed or copy
+            rows, table = _bound_tables(model, dev, md, bound)
+            if S == 1:
+                eng.distances(rows, table, internal, V, row0=int(ids[0]), **kw)
             else:
-                emb = wp.empty(S * words, dtype=wp.uint32, device=dev)
-                wp.launch(finish.gather_rows, (S, words), inputs=[bound, wp.array(ids.astype(np.int32), dtype=wp.int32,
-                          device=dev), words], outputs=[emb], device=dev)
+                eng.distances(rows, table, internal, V, ids=wp.array(ids.astype(np.int32), dtype=wp.int32,
+                                                                      device=dev), **kw)
         else:
-            emb = eng.embed(src_pos)
-        eng.distances(md.verts, bound, eng.sources(emb, src_pos, src_comp), internal.reshape(-1), V, reduce_min,
-                      md.comp, raw)
+            src_pos = wp.array(pts.astype(np.float32), dtype=wp.vec3, device=dev)
+            src_comp = wp.array(comp.astype(np.int32), dtype=wp.int32, device=dev) if comp is not None else None
+            rows = _bound_tables(model, dev, md, bound)[0] if bound is not None else md.lifted_rows(eng)
+            eng.distances(rows, eng.sources(eng.embed(src_pos), src_pos, src_comp), internal, V, **kw)
     else:
+        src_pos = wp.array(pts.astype(np.float32), dtype=wp.vec3, device=dev)
+        src_comp = wp.array(comp.astype(np.int32), dtype=wp.int32, device=dev) if comp is not None else None
         head = _head_values_fp32(model, dev, md, src_pos, bound)
-        full = internal if not reduce_min else wp.empty((S, V), dtype=wp.float32, device=dev)
+        full = internal.reshape((rows_out, V)) if not reduce_min else wp.empty((S, V), dtype=wp.float32, device=dev)
         none = wp.empty(0, dtype=wp.int32, device=dev)
         wp.launch(finish.finish_rows, (S, V), inputs=[head, md.verts, md.comp if md.multi else none, src_pos,
                                                       src_comp if src_comp is not None else none, _frame(model),
                                                       1.0 if model.net.euclid else 0.0, int(raw)], outputs=[full],
                   device=dev)
         if reduce_min:
-            wp.launch(finish.min_rows, V, inputs=[full], outputs=[internal.reshape(-1)], device=dev)
-    out = Output(output, dev)
+            wp.launch(finish.min_rows, V, inputs=[full], outputs=[internal], device=dev)
+    flat = rows_out == 1 and (one or reduce_min)
     if md.identity:
-        res = internal
+        res = internal if flat else internal.reshape((rows_out, V))
     else:
         res = wp.empty((rows_out, md.n_input), dtype=wp.float32, device=dev)
-        wp.launch(finish.to_input, res.shape, inputs=[internal, md.inv], outputs=[res], device=dev)
-    if rows_out == 1 and (one or reduce_min):
-        res = res.reshape(-1)
-    return out.result(res)
+        wp.launch(finish.to_input, res.shape, inputs=[internal.reshape((rows_out, V)), md.inv], outputs=[res],
+                  device=dev)
+        if flat:
+            res = res.reshape(-1)
+    return Output(output, dev).result(res)
+
+
+def _bound_tables(model: Model, dev, md, bound):
+    """(rows, sources) tables of a bound model's vertices for the tensor-core kernels (made once per binding)."""
+    key = ("bound_tables", str(dev))
+    t = model._warp.get(key)
+    if t is None or t[0] is not bound:
+        eng = _engine(model, dev)
+        t = (bound, eng.rows(md.verts, bound, md.comp), eng.sources(bound, md.verts, md.comp))
+        model._warp[key] = t
+    return t[1], t[2]
 
 
 def _head_values_fp32(model: Model, dev, md: _MeshOnDevice, src_pos: wp.array, bound) -> wp.array:
@@ -408,8 +441,8 @@ def distance_matrix(model: Model, sources, targets=None, device=None, output: st
     sc_arr = wp.array(scomp.astype(np.int32), dtype=wp.int32, device=dev) if multi else None
     if prec == "fp16":
         eng = _engine(model, dev)
-        eng.distances(tgt_pos, eng.embed(tgt_pos), eng.sources(eng.embed(src_pos), src_pos, sc_arr),
-                      res.reshape(-1), T, False, tc_arr, raw)
+        eng.distances(eng.rows(tgt_pos, eng.embed(tgt_pos), tc_arr), eng.sources(eng.embed(src_pos), src_pos, sc_arr),
+                      res.reshape(-1), T, count=S, raw=raw)
     else:
         es = embed(model, src_pos, device=dev)
         head = wp.empty((S, T), dtype=wp.float32, device=dev)

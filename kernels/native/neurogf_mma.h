@@ -445,30 +445,36 @@ NGF_FN void store_embeddings(const u32 (&e)[1][KS][4], int b0, u32x4* rows, int 
 
 // ---- heads ------------------------------------------------------------------------------------------------------
 
-// Distance head on |e - s| for one m-tile: e in A fragments (fp16), s a packed embedding row; y = head(|e - s|)
-// for rows g and g+8 (the |x - s| term of euclid networks is added by the caller).
-template <int D>
-NGF_FN void distance_head(const Head& W, const u32 (&e)[1][D / 16][4], const u32x4* s_row, float (&y)[1][2])
+// Distance heads of SP sources on one m-tile: e in A fragments (fp16), each source a packed embedding row;
+// y[j] = head(|e - s_j|) for rows g and g+8 (the |x - s| term of euclid networks is added by the caller). The
+// SP sources share every weight fragment load.
+template <int D, int SP>
+NGF_FN void distance_heads(const Head& W, const u32 (&e)[1][D / 16][4], const u32x4* const (&s_rows)[SP],
+                           float (&y)[SP][2])
 {
     const int t = lane_id() & 3;
-    float c0[1][D / 32][4];
-    zero<1, D / 32>(c0);
+    float c0[SP][D / 32][4];
+    zero<SP, D / 32>(c0);
 #pragma unroll
     for (int b = 0; b < D / 32; ++b)
     {
-        const u32x4 s = ld_table4(s_row + 4 * b + t);
-        u32 d[1][2][4];
-        d[0][0][0] = habs_diff2(e[0][2 * b][0], s.x);
-        d[0][0][1] = habs_diff2(e[0][2 * b][1], s.x);
-        d[0][0][2] = habs_diff2(e[0][2 * b][2], s.y);
-        d[0][0][3] = habs_diff2(e[0][2 * b][3], s.y);
-        d[0][1][0] = habs_diff2(e[0][2 * b + 1][0], s.z);
-        d[0][1][1] = habs_diff2(e[0][2 * b + 1][1], s.z);
-        d[0][1][2] = habs_diff2(e[0][2 * b + 1][2], s.w);
-        d[0][1][3] = habs_diff2(e[0][2 * b + 1][3], s.w);
-        dense<1, 2, D / 32>(d, W.w0, D / 32, 2 * b, 0, c0);
+        u32 d[SP][2][4];
+#pragma unroll
+        for (int j = 0; j < SP; ++j)
+        {
+            const u32x4 s = ld_table4(s_rows[j] + 4 * b + t);
+            d[j][0][0] = habs_diff2(e[0][2 * b][0], s.x);
+            d[j][0][1] = habs_diff2(e[0][2 * b][1], s.x);
+            d[j][0][2] = habs_diff2(e[0][2 * b][2], s.y);
+            d[j][0][3] = habs_diff2(e[0][2 * b][3], s.y);
+            d[j][1][0] = habs_diff2(e[0][2 * b + 1][0], s.z);
+            d[j][1][1] = habs_diff2(e[0][2 * b + 1][1], s.z);
+            d[j][1][2] = habs_diff2(e[0][2 * b + 1][2], s.w);
+            d[j][1][3] = habs_diff2(e[0][2 * b + 1][3], s.w);
+        }
+        dense<SP, 2, D / 32>(d, W.w0, D / 32, 2 * b, 0, c0);
     }
-    head_tail<1, D / 32>(W, c0, y);
+    head_tail<SP, D / 32>(W, c0, y);
 }
 
 // ---- per-row inputs and outputs -----------------------------------------------------------------------------------
@@ -511,12 +517,19 @@ struct DistanceOut
     int raw;              // 1: the network's own value (no clamping at 0, no exact 0 at the source)
 };
 
+// Sources are rows of three tables (packed embeddings, user-frame points, component labels): rows ids[s], or
+// row0 + s without ids. A bound model's vertex sources are rows of its kept tables; point sources are rows of
+// tables computed for the call.
 struct Sources
 {
-    const u32x4* emb;    // (S, D/8) packed fp16 embeddings
-    const float* pos;    // (S, 3) user frame
-    const int* comp;     // (S,) component label (null: one component)
+    const u32x4* emb;    // (R, D/8) packed fp16 embeddings
+    const float* pos;    // (R, 3) user frame
+    const int* comp;     // (R,) component labels (null: one component)
+    const int* ids;      // (S,) rows (null: row0 + s)
+    int row0;
     int count;
+
+    NGF_FN int row(int s) const { return ids ? ids[s] : row0 + s; }
 };
 
 // d = (head + euclid |x - s|) scaled to user units; exactly 0 where the row is the source point itself, never
@@ -538,9 +551,28 @@ NGF_FN float finish_distance(float y, const Frame& f, const float* p, const floa
 
 // ---- kernels (one call per warp; the warp loops over its tiles) ---------------------------------------------------
 
+// Writes the distances of source s (rows g and g+8) or folds them into the running minimum.
+NGF_FN void emit_distance(const DistanceOut& o, int s, float d0, float d1, int r0, int r1, bool ok0, bool ok1,
+                          float& best0, float& best1)
+{
+    const int t = lane_id() & 3;
+    if (o.reduce_min)
+    {
+        best0 = min2(best0, d0);
+        best1 = min2(best1, d1);
+        return;
+    }
+    float* row = o.out + (size_t)s * o.ld;
+    if (t == 0 && ok0)
+        row[r0] = d0;
+    if (t == 1 && ok1)
+        row[r1] = d1;
+}
+
 // Distances from S sources to N rows (points, or vertices with cached embeddings): the persistent loop of the
 // SSAD / MSAD / distance-matrix kernels. LIFT: embed the rows here (points); else read packed embeddings `cached`.
-template <int D, int KS0, bool LIFT>
+// SP sources at a time share each weight fragment load.
+template <int D, int KS0, bool LIFT, int SP>
 NGF_FN void distance_rows(const Lifting& L, const Head& H, const Frame& f, const float* pts, const u32x4* cached,
                           int n, const Sources& S, const DistanceOut& o, int warp, int n_warps)
 {
@@ -580,26 +612,28 @@ NGF_FN void distance_rows(const Lifting& L, const Head& H, const Frame& f, const
         const int comp0 = o.row_comp ? o.row_comp[r0] : 0;
         const int comp1 = o.row_comp ? o.row_comp[r1] : 0;
         float best0 = INFINITY, best1 = INFINITY;
-        for (int s = 0; s < S.count; ++s)
+        for (int s = 0; s < S.count; s += SP)
         {
-            float y[1][2];
-            distance_head<D>(H, e, S.emb + (size_t)s * (D / 8), y);
-            const float* sp = S.pos + 3 * s;
-            const int sc = S.comp ? S.comp[s] : 0;
-            const float d0 = finish_distance(y[0][0], f, p0, sp, o.euclid, o.row_comp && sc != comp0, o.raw);
-            const float d1 = finish_distance(y[0][1], f, p1, sp, o.euclid, o.row_comp && sc != comp1, o.raw);
-            if (o.reduce_min)
+            const u32x4* rows[SP];
+            int src[SP];
+#pragma unroll
+            for (int j = 0; j < SP; ++j)  // a short last group repeats its last source
             {
-                best0 = min2(best0, d0);
-                best1 = min2(best1, d1);
+                src[j] = S.row(s + j < S.count ? s + j : S.count - 1);
+                rows[j] = S.emb + (size_t)src[j] * (D / 8);
             }
-            else
+            float y[SP][2];
+            distance_heads<D, SP>(H, e, rows, y);
+#pragma unroll
+            for (int j = 0; j < SP; ++j)
             {
-                float* row = o.out + (size_t)s * o.ld;
-                if (t == 0 && ok0)
-                    row[r0] = d0;
-                if (t == 1 && ok1)
-                    row[r1] = d1;
+                if (s + j >= S.count)
+                    break;
+                const float* sp = S.pos + 3 * src[j];
+                const int sc = S.comp ? S.comp[src[j]] : 0;
+                const float d0 = finish_distance(y[j][0], f, p0, sp, o.euclid, o.row_comp && sc != comp0, o.raw);
+                const float d1 = finish_distance(y[j][1], f, p1, sp, o.euclid, o.row_comp && sc != comp1, o.raw);
+                emit_distance(o, s + j, d0, d1, r0, r1, ok0, ok1, best0, best1);
             }
         }
         if (o.reduce_min)
@@ -608,6 +642,142 @@ NGF_FN void distance_rows(const Lifting& L, const Head& H, const Frame& f, const
                 o.out[r0] = best0;
             if (t == 1 && ok1)
                 o.out[r1] = best1;
+        }
+    }
+}
+
+// One source to every row of kept embeddings (SSAD on a bound model): MT m-tiles per warp share each weight
+// fragment load, and the embeddings stream through registers block by block instead of being held.
+template <int D, int MT>
+NGF_FN void ssad_rows(const Head& H, const Frame& f, const float* pts, const u32x4* cached, int n, const Sources& S,
+                      const DistanceOut& o, int warp, int n_warps)
+{
+    const int t = lane_id() & 3;
+    const int n_tiles = (n + 16 * MT - 1) / (16 * MT);
+    const int srow = S.row(0);
+    const u32x4* s_row = S.emb + (size_t)srow * (D / 8);
+    const float* sp = S.pos + 3 * srow;
+    const int sc = S.comp ? S.comp[srow] : 0;
+    for (int tile = warp; tile < n_tiles; tile += n_warps)
+    {
+        int r[MT][2];
+        bool ok[MT][2];
+#pragma unroll
+        for (int m = 0; m < MT; ++m)
+            tile_rows(tile, MT, m, n, r[m][0], r[m][1], ok[m][0], ok[m][1]);
+        u32x4 seg[MT][2][D / 32];
+#pragma unroll
+        for (int b = 0; b < D / 32; ++b)
+#pragma unroll
+            for (int m = 0; m < MT; ++m)
+#pragma unroll
+                for (int i = 0; i < 2; ++i) seg[m][i][b] = ld_stream(cached + (size_t)r[m][i] * (D / 8) + 4 * b + t);
+        float c0[MT][D / 32][4];
+        zero<MT, D / 32>(c0);
+#pragma unroll
+        for (int b = 0; b < D / 32; ++b)
+        {
+            const u32x4 s = ld_table4(s_row + 4 * b + t);
+            u32 d[MT][2][4];
+#pragma unroll
+            for (int m = 0; m < MT; ++m)
+            {
+                const u32x4 g = seg[m][0][b], h = seg[m][1][b];
+                d[m][0][0] = habs_diff2(g.x, s.x);
+                d[m][0][1] = habs_diff2(h.x, s.x);
+                d[m][0][2] = habs_diff2(g.y, s.y);
+                d[m][0][3] = habs_diff2(h.y, s.y);
+                d[m][1][0] = habs_diff2(g.z, s.z);
+                d[m][1][1] = habs_diff2(h.z, s.z);
+                d[m][1][2] = habs_diff2(g.w, s.w);
+                d[m][1][3] = habs_diff2(h.w, s.w);
+            }
+            dense<MT, 2, D / 32>(d, H.w0, D / 32, 2 * b, 0, c0);
+        }
+        float y[MT][2];
+        head_tail<MT, D / 32>(H, c0, y);
+#pragma unroll
+        for (int m = 0; m < MT; ++m)
+        {
+            const int c0r = o.row_comp ? o.row_comp[r[m][0]] : 0;
+            const int c1r = o.row_comp ? o.row_comp[r[m][1]] : 0;
+            const float d0 = finish_distance(y[m][0], f, pts + 3 * r[m][0], sp, o.euclid, o.row_comp && sc != c0r, o.raw);
+            const float d1 = finish_distance(y[m][1], f, pts + 3 * r[m][1], sp, o.euclid, o.row_comp && sc != c1r, o.raw);
+            if (t == 0 && ok[m][0])
+                o.out[r[m][0]] = d0;
+            if (t == 1 && ok[m][1])
+                o.out[r[m][1]] = d1;
+        }
+    }
+}
+
+// One source to N points embedded here (SSAD without kept embeddings): the last lifting layer is produced NC
+// n-tiles at a time and each chunk's |e - s| goes straight into the head's first layer, so the embedding is never
+// held whole. MT m-tiles per warp share each weight load.
+template <int D, int KS0, int MT, int NC>
+NGF_FN void lift_ssad_rows(const Lifting& L, const Head& H, const Frame& f, const float* pts, int n, const Sources& S,
+                           const DistanceOut& o, int warp, int n_warps)
+{
+    const int t = lane_id() & 3;
+    const int n_tiles = (n + 16 * MT - 1) / (16 * MT);
+    const int srow = S.row(0);
+    const u32x4* s_row = S.emb + (size_t)srow * (D / 8);
+    const float* sp = S.pos + 3 * srow;
+    const int sc = S.comp ? S.comp[srow] : 0;
+    for (int tile = warp; tile < n_tiles; tile += n_warps)
+    {
+        int r[MT][2];
+        bool ok[MT][2];
+        float x[MT][2][3];
+#pragma unroll
+        for (int m = 0; m < MT; ++m)
+        {
+            tile_rows(tile, MT, m, n, r[m][0], r[m][1], ok[m][0], ok[m][1]);
+            to_net(f, pts + 3 * r[m][0], x[m][0]);
+            to_net(f, pts + 3 * r[m][1], x[m][1]);
+        }
+        u32 h1[MT][D / 32][4];
+        lift_hidden<MT, D, KS0>(L, x, h1);
+        float c0[MT][D / 32][4];
+        zero<MT, D / 32>(c0);
+#pragma unroll
+        for (int q = 0; q < D / 8 / NC; ++q)
+        {
+            float c[MT][NC][4];
+            lift_chunk<MT, D, NC>(L, h1, q, c);
+            u32 a[MT][NC / 2][4];
+            to_a<MT, NC>(c, a);
+            // k-steps NC/2 q .. of the embedding; source pairs of k-step k: block k/2, x/y (even k) or z/w (odd k)
+#pragma unroll
+            for (int k = 0; k < NC / 2; ++k)
+            {
+                const int ks = NC / 2 * q + k;
+                const u32x4 s = ld_table4(s_row + 4 * (ks / 2) + t);
+                const u32 lo = (ks & 1) ? s.z : s.x, hi = (ks & 1) ? s.w : s.y;
+#pragma unroll
+                for (int m = 0; m < MT; ++m)
+                {
+                    a[m][k][0] = habs_diff2(a[m][k][0], lo);
+                    a[m][k][1] = habs_diff2(a[m][k][1], lo);
+                    a[m][k][2] = habs_diff2(a[m][k][2], hi);
+                    a[m][k][3] = habs_diff2(a[m][k][3], hi);
+                }
+            }
+            dense<MT, NC / 2, D / 32>(a, H.w0, D / 32, NC / 2 * q, 0, c0);
+        }
+        float y[MT][2];
+        head_tail<MT, D / 32>(H, c0, y);
+#pragma unroll
+        for (int m = 0; m < MT; ++m)
+        {
+            const int c0r = o.row_comp ? o.row_comp[r[m][0]] : 0;
+            const int c1r = o.row_comp ? o.row_comp[r[m][1]] : 0;
+            const float d0 = finish_distance(y[m][0], f, pts + 3 * r[m][0], sp, o.euclid, o.row_comp && sc != c0r, o.raw);
+            const float d1 = finish_distance(y[m][1], f, pts + 3 * r[m][1], sp, o.euclid, o.row_comp && sc != c1r, o.raw);
+            if (t == 0 && ok[m][0])
+                o.out[r[m][0]] = d0;
+            if (t == 1 && ok[m][1])
+                o.out[r[m][1]] = d1;
         }
     }
 }
