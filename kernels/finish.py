@@ -20,7 +20,7 @@ def finish_distance(head: float, x: wp.vec3, s: wp.vec3, frame: mlp.Frame, eucli
         return INF
     if raw == 0 and x[0] == s[0] and x[1] == s[1] and x[2] == s[2]:
         return 0.0
-    d = (head + euclid * wp.length(mlp.to_net(frame, x) - mlp.to_net(frame, s))) * frame.dscale
+    d = (head + euclid * (wp.length(x - s) * frame.xscale)) * frame.dscale  # user-frame difference: symmetric
     if raw != 0:
         return d
     return wp.max(d, 0.0)

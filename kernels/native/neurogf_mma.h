@@ -541,11 +541,9 @@ NGF_FN float finish_distance(float y, const Frame& f, const float* p, const floa
         return INFINITY;
     if (!raw && p[0] == sp[0] && p[1] == sp[1] && p[2] == sp[2])
         return 0.0f;
-    float x[3], s[3];
-    to_net(f, p, x);
-    to_net(f, sp, s);
-    const float dx = x[0] - s[0], dy = x[1] - s[1], dz = x[2] - s[2];
-    const float d = (y + euclid * sqrtf(dx * dx + dy * dy + dz * dz)) * f.dscale;
+    // |x - s| from the user-frame difference, so that d(p, q) and d(q, p) round the same way
+    const float dx = p[0] - sp[0], dy = p[1] - sp[1], dz = p[2] - sp[2];
+    const float d = (y + euclid * (sqrtf(dx * dx + dy * dy + dz * dz) * f.xscale)) * f.dscale;
     return raw ? d : relu(d);
 }
 
