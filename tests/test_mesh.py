@@ -221,3 +221,103 @@ def test_bad_meshes(tmp_path):
         unreadable.chmod(0)
         with pytest.raises(PermissionError):
             ngf.load_mesh(unreadable)
+
+
+# --- property tests: the numbering survives every way in ------------------------------------------------------
+
+from hypothesis import HealthCheck, assume, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+PROPERTY = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+
+
+@st.composite
+def numbered_meshes(draw):
+    """Vertex records in random order with unused ones among them, and random triangles over the used ones."""
+    n_used = draw(st.integers(3, 12))
+    n_unused = draw(st.integers(0, 4))
+    coord = st.one_of(st.integers(-5, 5).map(float), st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False))
+    pts = np.array(draw(st.lists(st.tuples(coord, coord, coord), min_size=n_used + n_unused,
+                                 max_size=n_used + n_unused)), dtype=np.float64).reshape(-1, 3)
+    order = np.array(draw(st.permutations(range(len(pts)))))
+    used_ids = order[:n_used]  # input positions of the used vertices, in random order
+    tri = st.lists(st.sampled_from(range(n_used)), min_size=3, max_size=3, unique=True)
+    faces = np.array(draw(st.lists(tri, min_size=1, max_size=2 * n_used)), dtype=np.int64)
+    faces = used_ids[faces]
+    referenced = np.unique(faces)
+    assume(np.ptp(pts[referenced], axis=0).max() > 0)  # not all referenced vertices at one point
+    return pts, faces
+
+
+def write_obj(path, v, f, style):
+    lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in v.tolist()]
+    n = len(v)
+    for a, b, c in f.tolist():
+        if style == "relative":
+            idx = [str(k - n) for k in (a, b, c)]
+        elif style == "slashes":
+            idx = [f"{k + 1}/1/{k + 1}" for k in (a, b, c)]
+        else:
+            idx = [str(k + 1) for k in (a, b, c)]
+        lines.append("f " + " ".join(idx))
+    path.write_text("\n".join(["# generated", "vt 0 0"] + lines) + "\n")
+
+
+def check_numbering(m, v, f, welded_ok):
+    """Every input vertex lands on an internal vertex with its own coordinates; faces are the input's."""
+    inv = m.input_to_internal
+    used = np.zeros(len(v), bool)
+    used[f.ravel()] = True
+    assert m.n_input == len(v)
+    assert np.all((inv >= 0) == used)
+    np.testing.assert_array_equal(m.vertices[inv[used]], v[used])
+    np.testing.assert_array_equal(m.faces, inv[f])
+    if not welded_ok:
+        assert len(np.unique(inv[used])) == used.sum()
+    # a per-vertex value computed on the internal mesh comes back on the right input vertices
+    val = m.vertices @ np.array([1.0, 1e-3, 1e-6])
+    back = m.to_input(val)
+    np.testing.assert_array_equal(back[used], v[used] @ np.array([1.0, 1e-3, 1e-6]))
+    assert np.all(np.isnan(back[~used]))
+
+
+@PROPERTY
+@given(mesh=numbered_meshes(), style=st.sampled_from(["plain", "relative", "slashes"]))
+def test_property_obj_numbering(tmp_path, mesh, style):
+    v, f = mesh
+    path = tmp_path / "r.obj"
+    write_obj(path, v, f, style)
+    m = ngf.load_mesh(path)
+    check_numbering(m, v, f, welded_ok=m.welded)
+    arrays = ngf.load_mesh((v, f))
+    np.testing.assert_array_equal(arrays.input_to_internal, m.input_to_internal)
+    assert arrays.fingerprint == m.fingerprint
+
+
+@PROPERTY
+@given(mesh=numbered_meshes(), binary=st.booleans())
+def test_property_ply_numbering(tmp_path, mesh, binary):
+    v, f = mesh
+    path = tmp_path / "r.ply"
+    path.write_bytes(ply_text(v, f.tolist(), binary))
+    m = ngf.load_mesh(path)
+    check_numbering(m, v, f, welded_ok=m.welded)
+
+
+@PROPERTY
+@given(mesh=numbered_meshes())
+def test_property_stl_numbering(tmp_path, mesh):
+    """STL numbers the corners of its triangles; welded vertices give every corner its vertex's value."""
+    v, f = mesh
+    path = tmp_path / "r.stl"
+    trimesh.Trimesh(v, f, process=False).export(path)
+    corners = v[f.ravel()].astype(np.float32).astype(np.float64)  # STL stores float32
+    assume(np.ptp(corners, axis=0).max() > 0)
+    m = ngf.load_mesh(path)
+    soup_f = np.arange(len(corners)).reshape(-1, 3)
+    check_numbering(m, corners, soup_f, welded_ok=True)
+    # exactly the corners with equal coordinates share a vertex
+    _, groups = np.unique(corners + 0.0, axis=0, return_inverse=True)
+    inv = m.input_to_internal
+    same = inv[:, None] == inv[None, :]
+    np.testing.assert_array_equal(same, groups.reshape(-1)[:, None] == groups.reshape(-1)[None, :])
