@@ -121,7 +121,7 @@ def _read_obj(data: bytes, path: str):
     try:
         verts = np.array(coords, dtype=np.float64).reshape(n, 3)
     except ValueError:
-        bad = next(i for i, c in enumerate(coords) if not _is_float(c))
+        bad = next(i for i, c in enumerate(coords) if not _parses(float, c))
         raise ValueError(f"{path}, line {v_lines[bad // 3]}: vertex coordinate {coords[bad]!r} is not a number") from None
     counts = np.asarray(counts, dtype=np.int64)
     face_of = np.repeat(np.arange(len(counts)), counts)  # face of each corner
@@ -129,7 +129,7 @@ def _read_obj(data: bytes, path: str):
     try:
         idx = np.array(corners, dtype=np.int64)
     except (ValueError, OverflowError):
-        bad = next(i for i, c in enumerate(corners) if not _is_int(c))
+        bad = next(i for i, c in enumerate(corners) if not _parses(int, c))
         raise ValueError(f"{path}, line {f_lines[face_of[bad]]}: face vertex {corners[bad]!r} is not an index") from None
     before = np.asarray(seen, dtype=np.int64)[face_of]
     # OBJ indices are 1-based; negative ones are relative: -1 is the last vertex defined before the face
@@ -147,17 +147,9 @@ def _read_obj(data: bytes, path: str):
     return verts, _triangulate(k, counts)
 
 
-def _is_float(s: str) -> bool:
+def _parses(convert, s: str) -> bool:
     try:
-        float(s)
-    except ValueError:
-        return False
-    return True
-
-
-def _is_int(s: str) -> bool:
-    try:
-        int(s)
+        convert(s)
     except ValueError:
         return False
     return True
@@ -185,12 +177,14 @@ def _triangulate(k: np.ndarray, counts: np.ndarray) -> np.ndarray:
 
 # --- PLY ------------------------------------------------------------------------------------------------------
 
-_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
-              "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+_PLY_TYPES = {"char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1", "short": "i2", "ushort": "u2",
+              "int16": "i2", "uint16": "u2", "int": "i4", "uint": "u4", "int32": "i4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+_PLY_FACE_LISTS = ("vertex_indices", "vertex_index")
 
 
-def _ply_header(data: bytes, path: str) -> tuple[str, int, int, int]:
-    """(encoding, vertex count, bytes per vertex record or 0 if not fixed, header length)."""
+def _ply_header(data: bytes, path: str) -> tuple[str, list, int]:
+    """(encoding, elements as [name, count, [(property, type) or (property, count type, item type)]], header bytes)."""
     if not data.startswith(b"ply"):
         raise ValueError(f"{path} is not a mesh file: a PLY file starts with 'ply' (found {data[:12]!r})")
     end = data.find(b"end_header")
@@ -198,45 +192,99 @@ def _ply_header(data: bytes, path: str) -> tuple[str, int, int, int]:
         raise ValueError(f"{path} is not a valid PLY file: its header has no 'end_header' line")
     nl = data.find(b"\n", end)
     header_len = len(data) if nl < 0 else nl + 1
-    lines = data[:end].decode("ascii", errors="replace").splitlines()
-    enc, n_vert, rec, element = None, None, 0, None
-    for line in lines:
+    enc, elements = None, []
+    for line in data[:end].decode("ascii", errors="replace").splitlines():
         tok = line.split()
         if not tok:
             continue
         if tok[0] == "format" and len(tok) >= 2:
             enc = tok[1]
         elif tok[0] == "element" and len(tok) >= 3:
-            element = tok[1]
-            if element == "vertex":
-                try:
-                    n_vert = int(tok[2])
-                except ValueError:
-                    raise ValueError(f"{path}: PLY vertex count {tok[2]!r} is not a number") from None
-        elif tok[0] == "property" and element == "vertex":
-            if len(tok) >= 2 and tok[1] == "list":
-                rec = -1  # variable-size records
-            elif rec >= 0 and len(tok) >= 2:
-                rec += _PLY_SIZES.get(tok[1], 0)
+            try:
+                count = int(tok[2])
+            except ValueError:
+                raise ValueError(f"{path}: PLY element {tok[1]!r} has a count {tok[2]!r} that is not a number") from None
+            if count < 0:
+                raise ValueError(f"{path}: PLY element {tok[1]!r} has a negative count {count}")
+            elements.append([tok[1], count, []])
+        elif tok[0] == "property" and elements:
+            types = tok[2:4] if len(tok) >= 5 and tok[1] == "list" else tok[1:2]
+            if len(types) not in (1, 2) or any(t not in _PLY_TYPES for t in types):
+                raise ValueError(f"{path}: PLY property line {line.strip()!r} has an unknown type")
+            elements[-1][2].append((tok[-1], *types))
     if enc not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise ValueError(f"{path}: unknown PLY format {enc!r} (expected ascii or binary_little/big_endian)")
-    if n_vert is None or n_vert < 0:
+    if not any(e[0] == "vertex" for e in elements):
         raise ValueError(f"{path}: the PLY header declares no vertex element")
-    return enc, n_vert, max(rec, 0), header_len
+    return enc, elements, header_len
 
 
 def _read_ply(data: bytes, path: str):
-    enc, n_vert, rec, header_len = _ply_header(data, path)
+    enc, elements, header_len = _ply_header(data, path)
+    n_vert = next(e[1] for e in elements if e[0] == "vertex")
     body = len(data) - header_len
-    if enc != "ascii" and rec and n_vert * rec > body:
-        raise ValueError(f"{path}: the PLY header declares {n_vert} vertices ({n_vert * rec} bytes) but only "
-                         f"{body} bytes follow it: the file is truncated or corrupt")
-    if enc == "ascii" and n_vert > body:  # every ascii record takes at least a byte
-        raise ValueError(f"{path}: the PLY header declares {n_vert} vertices but the file is too short for them")
-    v, f = _trimesh_arrays(path, "ply")
+    if enc == "ascii":
+        if n_vert > body:  # every ascii record takes at least a byte
+            raise ValueError(f"{path}: the PLY header declares {n_vert} vertices but the file is too short for them")
+    else:
+        need = sum(e[1] * sum(np.dtype(_PLY_TYPES[p[1]]).itemsize for p in e[2]) for e in elements
+                   if all(len(p) == 2 for p in e[2]))
+        if need > body:
+            raise ValueError(f"{path}: the PLY header declares {need} bytes of fixed-size records but only {body} "
+                             "bytes follow it: the file is truncated or corrupt")
+    try:
+        v, f = _trimesh_arrays(path, "ply")
+    except ValueError:
+        if enc == "ascii":
+            raise
+        # trimesh reads binary polygon lists of one length only; read mixed polygons record by record
+        v, f = _ply_binary(data, header_len, elements, "<" if enc == "binary_little_endian" else ">", path)
     if len(v) != n_vert:
         raise ValueError(f"{path}: the PLY header declares {n_vert} vertices but {len(v)} were read")
     return v, f
+
+
+def _ply_binary(data: bytes, off: int, elements: list, endian: str, path: str):
+    """Vertices and triangulated faces of a binary PLY file, element by element."""
+    verts, counts, corners = None, [], []
+    for name, count, props in elements:
+        if all(len(p) == 2 for p in props):  # fixed-size records
+            dt = np.dtype([(p[0], endian + _PLY_TYPES[p[1]]) for p in props])
+            if off + count * dt.itemsize > len(data):
+                raise ValueError(f"{path}: PLY element {name!r} runs past the end of the file (truncated or corrupt)")
+            rec = np.frombuffer(data, dtype=dt, count=count, offset=off)
+            off += count * dt.itemsize
+            if name == "vertex":
+                if not all(c in dt.names for c in "xyz"):
+                    raise ValueError(f"{path}: the PLY vertex element has no x, y, z properties")
+                verts = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(np.float64)
+            continue
+        for _ in range(count):
+            for p in props:
+                if len(p) == 2:
+                    off += np.dtype(_PLY_TYPES[p[1]]).itemsize
+                    continue
+                cdt, idt = np.dtype(endian + _PLY_TYPES[p[1]]), np.dtype(endian + _PLY_TYPES[p[2]])
+                if off + cdt.itemsize > len(data):
+                    raise ValueError(f"{path}: PLY element {name!r} runs past the end of the file (truncated or corrupt)")
+                n = int(np.frombuffer(data, dtype=cdt, count=1, offset=off)[0])
+                off += cdt.itemsize
+                if n < 0 or off + n * idt.itemsize > len(data):
+                    raise ValueError(f"{path}: PLY element {name!r} runs past the end of the file (truncated or corrupt)")
+                if name == "face" and p[0] in _PLY_FACE_LISTS:
+                    if n < 3:
+                        raise ValueError(f"{path}: a PLY face has {n} vertices; a face needs at least 3")
+                    counts.append(n)
+                    corners.append(np.frombuffer(data, dtype=idt, count=n, offset=off))
+                off += n * idt.itemsize
+    if verts is None:
+        raise ValueError(f"{path}: could not read the PLY vertex element")
+    if not counts:
+        return verts, np.zeros((0, 3), dtype=np.int64)
+    k = np.concatenate(corners).astype(np.int64)
+    if k.min() < 0 or k.max() >= len(verts):
+        raise ValueError(f"{path}: PLY face indices must lie in [0, {len(verts)}), found {k.min()}..{k.max()}")
+    return verts, _triangulate(k, np.asarray(counts, dtype=np.int64))
 
 
 # --- STL ------------------------------------------------------------------------------------------------------

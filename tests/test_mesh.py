@@ -118,8 +118,6 @@ def ply_text(V, F, binary=False):
 def test_ply_keeps_unused_vertices_and_order(tmp_path, binary):
     V = np.array([[9, 9, 9], [0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 1.0], [7, 7, 7]])
     F = [[1, 2, 3, 4], [1, 2, 5], [2, 3, 5], [3, 4, 5], [4, 1, 5]]
-    if binary:  # trimesh reads binary polygon lists of one length only
-        F = [[1, 2, 3], [1, 3, 4]] + F[1:]
     path = tmp_path / "q.ply"
     path.write_bytes(ply_text(V, F, binary))
     m = ngf.load_mesh(path)
@@ -127,11 +125,18 @@ def test_ply_keeps_unused_vertices_and_order(tmp_path, binary):
     np.testing.assert_array_equal(m.input_to_internal, [-1, 0, 1, 2, 3, 4, -1])
     np.testing.assert_array_equal(m.vertices, V[1:6])
     assert len(m.faces) == 6 and m.n_components == 1
+    np.testing.assert_array_equal(m.index[m.faces], [[1, 2, 3], [3, 4, 1], [1, 2, 5], [2, 3, 5], [3, 4, 5], [4, 1, 5]]
+                                  if binary else  # trimesh (ascii) lists triangles before split quads
+                                  [[1, 2, 5], [2, 3, 5], [3, 4, 5], [4, 1, 5], [1, 2, 3], [3, 4, 1]])
     # a header that promises more vertices than the file holds is refused before parsing
     data = ply_text(V, F, binary).replace(b"element vertex 7", b"element vertex 70000000")
     path.write_bytes(data)
-    with pytest.raises(ValueError, match="vertices"):
+    with pytest.raises(ValueError, match="truncated or corrupt" if binary else "too short"):
         ngf.load_mesh(path)
+    if binary:  # a face list running past the end of the file
+        path.write_bytes(ply_text(V, F, binary)[:-6])
+        with pytest.raises(ValueError, match="past the end of the file"):
+            ngf.load_mesh(path)
 
 
 def test_stl_of_closed_mesh_is_welded_with_the_map_kept(tmp_path):
