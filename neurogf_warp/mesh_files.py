@@ -46,6 +46,8 @@ def read_mesh_file(path) -> tuple[np.ndarray, np.ndarray, str]:
         When the file is not a mesh of its kind (the message names the file, and the line for OBJ).
     """
     path = os.fspath(path)
+    if os.path.isdir(path):
+        raise ValueError(f"{path} is a folder, not a mesh file")
     if not os.path.isfile(path):
         raise FileNotFoundError(f"mesh file not found: {path}")
     kind = os.path.splitext(path)[1].lower().lstrip(".")

@@ -193,6 +193,8 @@ def test_welding_rules(tmp_path):
 def test_bad_meshes(tmp_path):
     with pytest.raises(FileNotFoundError, match="mesh file not found"):
         ngf.load_mesh(tmp_path / "nope.obj")
+    with pytest.raises(ValueError, match="is a folder"):
+        ngf.load_mesh(tmp_path)
     with pytest.raises(ValueError, match="no faces"):
         ngf.load_mesh((np.zeros((3, 3)), np.zeros((0, 3), int)))
     with pytest.raises(ValueError, match="non-finite"):
