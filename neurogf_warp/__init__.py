@@ -6,6 +6,7 @@ The pipeline, one module each: mesh -> geodesics (ground truth) -> dataset -> tr
     model = ngf.load("bunny.ngf")          # or a released *_final.pth with mesh=...
     d = ngf.ssad(model, 0)                 # distance from vertex 0 to every vertex
 """
+from .checkpoint_match import MeshMismatchWarning
 from .dataset import build_dataset, load_dataset, sample_sdf_points, sdf_truth
 from .evaluate import evaluate
 from .geodesics import geodesic_distances, geodesic_paths, steiner_dijkstra
@@ -19,7 +20,7 @@ from .train import train  # after the submodule import, so `neurogf_warp.train` 
 __version__ = "0.1.0"
 
 __all__ = [
-    "Mesh", "Model", "load_mesh", "load", "load_querier", "save",
+    "Mesh", "Model", "load_mesh", "load", "load_querier", "save", "MeshMismatchWarning",
     "ssad", "msad", "distance_matrix", "distance", "sdf", "path", "project", "embed", "warmup", "warp_weights",
     "geodesic_distances", "geodesic_paths", "steiner_dijkstra",
     "build_dataset", "load_dataset", "sdf_truth", "sample_sdf_points", "train", "evaluate",

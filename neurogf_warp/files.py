@@ -1,17 +1,51 @@
-"""Atomic file writes: a failed write leaves any previous file as it was."""
+"""Atomic file writes: a failed or killed write leaves any previous file as it was.
+
+The data goes to a temporary file beside the target, ``.tmp-<pid>-<random>-<name>``, which is flushed,
+synced and renamed over the target. A writer killed outright (SIGKILL, power loss) leaves its temporary
+file behind; the next write to the same target removes such leftovers when they are stale: their writer
+process is gone, or they have not been written to for ``STALE_SECONDS``. Only files named after this target
+in our pattern are touched, never the target itself or anything else in the folder. (On a folder shared
+between machines, a writer on another machine counts as gone: its write then fails, and its target, as
+always, keeps its previous content.)
+"""
 from __future__ import annotations
 
+import errno
 import os
+import re
 import tempfile
+import time
+
+__all__ = ["atomic_write", "atomic_write_bytes", "remove_stale_temp_files"]
+
+TEMP_PREFIX = ".tmp-"
+# A temporary file whose writer is still alive (or whose pid may have been reused) counts as stale after
+# this long without a write; temp files of older versions, which carry no pid, after OLD_STYLE_SECONDS.
+STALE_SECONDS = 3600.0
+OLD_STYLE_SECONDS = 60.0
 
 
 def atomic_write(path, write) -> str:
-    """Call ``write(binary_file)`` on a temporary file beside ``path``, then move it into place."""
+    """Call ``write(binary_file)`` on a temporary file beside ``path``, then move it into place.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The target. Its folder must exist. An existing target keeps its permissions; a new one gets the
+        umask's (not ``mkstemp``'s 0600).
+    write : callable
+        ``write(f)`` writes the whole content to the binary file object ``f``.
+
+    Returns
+    -------
+    str, the path written.
+    """
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(folder):
         raise FileNotFoundError(f"cannot write {path}: folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix="-" + os.path.basename(path), dir=folder)
+    remove_stale_temp_files(path)
+    fd, tmp = tempfile.mkstemp(prefix=f"{TEMP_PREFIX}{os.getpid()}-", suffix="-" + os.path.basename(path), dir=folder)
     try:
         os.chmod(tmp, _mode_for(path))  # mkstemp makes 0600; a saved file should look like any other
         with os.fdopen(fd, "wb") as f:
@@ -29,7 +63,57 @@ def atomic_write(path, write) -> str:
 
 
 def atomic_write_bytes(path, data: bytes) -> str:
+    """``atomic_write`` of a bytes object."""
     return atomic_write(path, lambda f: f.write(data))
+
+
+def remove_stale_temp_files(path) -> list[str]:
+    """Remove leftover temporary files of killed atomic writes to ``path``; returns the paths removed.
+
+    A temporary file is stale when the process that wrote it no longer exists, or when it has not been
+    modified for ``STALE_SECONDS`` (``OLD_STYLE_SECONDS`` for names without a pid). Errors while cleaning
+    (a file removed meanwhile, no permission) are ignored: cleaning never makes a write fail.
+    """
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    name = re.escape(os.path.basename(path))
+    # mkstemp's random part is 8 characters of [a-z0-9_]
+    ours = re.compile(rf"^{re.escape(TEMP_PREFIX)}(?:(\d+)-)?[a-z0-9_]{{8}}-{name}$")
+    removed = []
+    try:
+        entries = os.listdir(folder)
+    except OSError:
+        return removed
+    now = time.time()
+    for entry in entries:
+        m = ours.match(entry)
+        if m is None:
+            continue
+        full = os.path.join(folder, entry)
+        try:
+            age = now - os.lstat(full).st_mtime
+        except OSError:
+            continue
+        pid = int(m.group(1)) if m.group(1) else None
+        if pid is None:
+            stale = age > OLD_STYLE_SECONDS
+        else:
+            stale = age > STALE_SECONDS or (pid != os.getpid() and not _alive(pid))
+        if stale:
+            try:
+                os.unlink(full)
+                removed.append(full)
+            except OSError:
+                pass
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except OSError as e:
+        return e.errno == errno.EPERM  # exists, owned by someone else
+    return True
 
 
 def _mode_for(path: str) -> int:

@@ -1,5 +1,7 @@
-"""Model files and meshes: round trips, released checkpoints, atomic saves and clear errors."""
+"""Model files: round trips, released checkpoints, integrity checks on load, atomic saves and clear errors."""
+import json
 import os
+import warnings
 
 import numpy as np
 import pytest
@@ -28,7 +30,7 @@ def test_load_mesh_normalization_and_index_map(tmp_path):
     path = tmp_path / "tet.obj"
     trimesh.Trimesh(v, f, process=False).export(path)
     m = ngf.load_mesh(path)
-    assert m.n_input in (4, 5)  # trimesh's OBJ reader may drop the unused vertex itself
+    assert m.n_input == 5 and list(m.index) == [1, 2, 3, 4]  # the file's own numbering
     m = ngf.load_mesh((v, f))
     assert m.n_input == 5 and list(m.index) == [1, 2, 3, 4]
     np.testing.assert_allclose(m.center, [1, 2, 0.5])
@@ -127,23 +129,6 @@ def test_bad_model_files(tmp_path):
         ngf.load(shared_path("checkpoints", "official", "SDist_Querier_Offline_Pretrainer__bunny.pth"))
 
 
-def test_bad_meshes(tmp_path):
-    with pytest.raises(FileNotFoundError, match="mesh file not found"):
-        ngf.load_mesh(tmp_path / "nope.obj")
-    with pytest.raises(ValueError, match="no faces"):
-        ngf.load_mesh((np.zeros((3, 3)), np.zeros((0, 3), int)))
-    with pytest.raises(ValueError, match="non-finite"):
-        ngf.load_mesh((np.array([[0, 0, 0], [1, 0, 0], [0, np.nan, 0]]), np.array([[0, 1, 2]])))
-    with pytest.raises(ValueError, match="face indices"):
-        ngf.load_mesh((np.eye(3), np.array([[0, 1, 5]])))
-    with pytest.raises(ValueError, match=r"shape \(V, 3\)"):
-        ngf.load_mesh((np.zeros((3, 2)), np.array([[0, 1, 2]])))
-    empty = tmp_path / "empty.obj"
-    empty.write_text("# nothing here\n")
-    with pytest.raises(ValueError):
-        ngf.load_mesh(empty)
-
-
 def test_cli_writes_ssad(tmp_path):
     from neurogf_warp.cli import main
 
@@ -154,3 +139,301 @@ def test_cli_writes_ssad(tmp_path):
     model = ngf.load(ck, mesh=mesh)
     np.testing.assert_array_equal(d, ngf.ssad(model, 3, device=DEV))
     assert main(["ssad", str(ck), "--mesh", str(mesh), "--source", "999999", "-o", str(out)]) == 1
+
+
+# --- model files checked on load ---------------------------------------------------------------------------
+
+def small_model(weld_soup=False, euclid=True):
+    """A D=64 model on two tetrahedra (two components) with an unused vertex first; optionally a welded soup."""
+    from neurogf_warp.model import Model
+    from neurogf_warp.network import NeuroGFNet
+
+    tet = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
+    tf = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    v = np.vstack([[[9, 9, 9]], tet, tet + [3, 0, 0]])
+    f = np.vstack([tf, tf + 4]) + 1
+    if weld_soup:
+        v, f = v[f.ravel()], np.arange(3 * len(f)).reshape(-1, 3)
+    mesh = ngf.load_mesh((v, f))
+    torch.manual_seed(0)
+    net = NeuroGFNet(64, euclid=euclid)
+    for mod in net.modules():  # non-trivial BatchNorm statistics, so that a wrong load shows
+        if isinstance(mod, torch.nn.BatchNorm1d):
+            mod.running_mean.uniform_(-0.1, 0.1)
+            mod.running_var.uniform_(0.5, 2.0)
+    return Model(net=net, mesh=mesh, center=mesh.center, scale=mesh.scale, config={"note": "test", "lr": 1e-3})
+
+
+def read_raw(path):
+    from safetensors import safe_open
+
+    with safe_open(str(path), framework="pt") as f:
+        meta = json.loads(f.metadata()["neurogf"])
+        tensors = {k: f.get_tensor(k) for k in f.keys()}
+    return meta, tensors
+
+
+def write_raw(path, meta, tensors, fix_checksums=False):
+    """Write a model file from parts; ``fix_checksums`` recomputes them, so later checks are reached."""
+    from safetensors.torch import save_file
+
+    from neurogf_warp import model_io
+
+    if fix_checksums and "checksums" in meta:
+        body = {k: v for k, v in meta.items() if k != "checksums"}
+        meta["checksums"] = {"tensors": {k: model_io._digest_tensor(k, v) for k, v in tensors.items()},
+                             "meta": {k: model_io._digest_value(v) for k, v in body.items()}}
+    save_file({k: v.contiguous() for k, v in tensors.items()}, str(path), metadata={"neurogf": json.dumps(meta)})
+
+
+def as_format_1(meta, tensors):
+    """What format 1 wrote: no checksums, no stored map or labels."""
+    meta = {k: v for k, v in meta.items() if k != "checksums"}
+    meta["format_version"] = 1
+    return meta, {k: v for k, v in tensors.items() if k not in ("mesh.input_to_internal", "mesh.components")}
+
+
+def assert_same_model(a, b):
+    sa, sb = a.net.state_dict(), b.net.state_dict()
+    assert sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
+    np.testing.assert_array_equal(a.center, b.center)
+    assert a.scale == b.scale and a.config == b.config and a.net.options == b.net.options
+    for k in ("vertices", "faces", "index", "input_to_internal", "components"):
+        np.testing.assert_array_equal(getattr(a.mesh, k), getattr(b.mesh, k))
+    assert (a.mesh.n_input, a.mesh.fingerprint) == (b.mesh.n_input, b.mesh.fingerprint)
+
+
+def test_format_2_round_trip_keeps_numbering_map_and_labels(tmp_path):
+    for soup in (False, True):
+        model = small_model(weld_soup=soup)
+        assert model.mesh.n_components == 2 and model.mesh.welded == soup
+        out = tmp_path / "m.ngf"
+        ngf.save(model, out)
+        meta, tensors = read_raw(out)
+        assert meta["format_version"] == 2
+        np.testing.assert_array_equal(tensors["mesh.components"].numpy(), model.mesh.components)
+        back = ngf.load(out)
+        assert_same_model(model, back)
+        assert back.mesh.welded == soup and back.mesh.n_components == 2
+
+
+def test_format_1_files_still_load(tmp_path):
+    model = small_model()
+    out = tmp_path / "m.ngf"
+    ngf.save(model, out)
+    meta, tensors = as_format_1(*read_raw(out))
+    # format 1 stored the fingerprint of the arrays as given, unused vertex included
+    v = np.vstack([[[9, 9, 9]], model.mesh.vertices])
+    f = model.mesh.faces.astype(np.int64) + 1
+    meta["mesh_fingerprint"] = ngf.mesh.mesh_fingerprint(v, f)
+    write_raw(out, meta, tensors)
+    back = ngf.load(out)
+    assert back.mesh.n_input == 9 and back.mesh.n_components == 2
+    np.testing.assert_array_equal(back.mesh.input_to_internal, model.mesh.input_to_internal)
+    ngf.load(out, mesh=(v, f))  # the same arrays pass the stored (old-rule) fingerprint
+    # without unused vertices the format-1 fingerprint is the stored mesh's own, so it is checked
+    ck, mesh = fandisk()
+    ngf.save(ngf.load(ck, mesh=mesh), out)
+    meta, tensors = as_format_1(*read_raw(out))
+    write_raw(out, meta, tensors)
+    assert ngf.load(out).mesh.n_input == 6475
+    tensors["mesh.vertices"][100, 1] += 1e-3
+    write_raw(out, meta, tensors)
+    with pytest.raises(ValueError, match="does not match 'mesh_fingerprint'"):
+        ngf.load(out)
+
+
+# (what, edit of (meta, tensors), message of the field's own check; None where only the checksum sees it).
+# Format 1 runs the same checks, except the fingerprint one for meshes with unused vertices (V1_SKIP; "version"
+# is skipped because rewriting as format 1 undoes that edit).
+EDITS = [
+    ("scale 0", lambda m, t: m.update(scale=0), r"'scale' must be a finite number > 0"),
+    ("scale x2", lambda m, t: m.update(scale=m["scale"] * 2), None),
+    ("scale text", lambda m, t: m.update(scale="1.0"), r"'scale' must be a finite number"),
+    ("center", lambda m, t: m.update(center=[c + 0.1 for c in m["center"]]), None),
+    ("center nan", lambda m, t: m.update(center=[float("nan"), 0, 0]), r"'center' must be 3 finite numbers"),
+    ("center short", lambda m, t: m.update(center=[0, 0]), r"'center' must be 3 finite numbers"),
+    ("euclid flipped", lambda m, t: m["net_options"].update(euclid=False), None),
+    ("euclid text", lambda m, t: m["net_options"].update(euclid="no"), r"option 'euclid' must be bool"),
+    ("unknown option", lambda m, t: m["net_options"].update(wings=2), r"unknown network option 'wings'"),
+    ("D", lambda m, t: m.update(D=256), r"'D' is 256 but the stored weights have D=64"),
+    ("fingerprint removed", lambda m, t: m.pop("mesh_fingerprint"), r"'mesh_fingerprint' is missing"),
+    ("fingerprint edited", lambda m, t: m.update(mesh_fingerprint="0" * 64), r"does not match 'mesh_fingerprint'"),
+    ("scale removed", lambda m, t: m.pop("scale"), r"'scale' is missing"),
+    ("n_input", lambda m, t: m.update(mesh_n_input=3), r"'mesh_n_input' must be an integer >="),
+    ("mesh_scale", lambda m, t: m.update(mesh_scale=m["mesh_scale"] * 1.01), r"'mesh_center'/'mesh_scale' do not match"),
+    ("config", lambda m, t: m["config"].update(lr=1.0), None),
+    ("config type", lambda m, t: m.update(config=[1, 2]), r"'config' must be a JSON object"),
+    ("version", lambda m, t: m.update(format_version=99), r"newer neurogf-warp"),
+    ("index short", lambda m, t: t.update({"mesh.index": t["mesh.index"][:-1]}), r"mesh.index must be \(8,\) int64"),
+    ("index range", lambda m, t: t["mesh.index"].__setitem__(-1, 10 ** 6), r"mesh.index must increase strictly"),
+    ("index order", lambda m, t: t["mesh.index"].__setitem__(0, 5), r"mesh.index must increase strictly"),
+    ("index dtype", lambda m, t: t.update({"mesh.index": t["mesh.index"].int()}), r"mesh.index must be \(8,\) int64"),
+    ("faces range", lambda m, t: t["mesh.faces"].__setitem__((0, 0), 99), r"mesh.faces indexes vertices"),
+    ("faces negative", lambda m, t: t["mesh.faces"].__setitem__((0, 0), -1), r"mesh.faces indexes vertices"),
+    ("vertex moved", lambda m, t: t["mesh.vertices"].__setitem__((0, 0), 0.25), r"does not match 'mesh_fingerprint'"),
+    ("vertex nan", lambda m, t: t["mesh.vertices"].__setitem__((0, 0), float("nan")), r"mesh.vertices holds NaN"),
+    ("weight nan", lambda m, t: t["net.gdf_head.0.linear.weight"].__setitem__((0, 0), float("nan")), r"holds NaN or inf"),
+    ("weight changed", lambda m, t: t["net.gdf_head.0.linear.weight"].mul_(1.5), None),
+    ("negative variance", lambda m, t: t["net.lifting.0.bn.running_var"].__setitem__(0, -1.0), r"negative variances"),
+    ("weight removed", lambda m, t: t.pop("net.gdf_head.0.linear.weight"), r"missing keys \(1\)"),
+    ("mesh tensor removed", lambda m, t: t.pop("mesh.faces"), r"stored mesh is incomplete"),
+    ("tensor added", lambda m, t: t.update({"extra": torch.zeros(2)}), r"unexpected tensors extra"),
+]
+
+
+V1_SKIP = ("fingerprint edited", "vertex moved", "version")
+
+
+@pytest.mark.parametrize("what, edit, v1_message", EDITS, ids=[e[0] for e in EDITS])
+def test_edited_or_damaged_files_are_refused(tmp_path, what, edit, v1_message):
+    """Format 2: every edit breaks a checksum named in the message; with the checksums recomputed (or in format 1)
+    the field's own check refuses it before anything reaches a kernel."""
+    model = small_model()
+    out = tmp_path / "m.ngf"
+    ngf.save(model, out)
+    meta, tensors = read_raw(out)
+    edit(meta, tensors)
+    write_raw(out, meta, tensors)
+    with pytest.raises(ValueError, match=r"is missing|was added|checksum|newer|malformed") as e:
+        ngf.load(out)
+    assert str(out) in str(e.value)
+    write_raw(out, meta, tensors, fix_checksums=True)
+    if v1_message is None:
+        ngf.load(out)  # a consistent edit of a value nothing else pins down loads: only the checksum saw it
+    else:
+        with pytest.raises(ValueError, match=v1_message):
+            ngf.load(out)
+    meta, tensors = as_format_1(meta, tensors)
+    write_raw(out, meta, tensors)
+    if v1_message is not None and what not in V1_SKIP:
+        with pytest.raises(ValueError, match=v1_message):
+            ngf.load(out)
+
+
+def test_format_2_only_checks(tmp_path):
+    """The stored numbering map and component labels are checked against the mesh (checksums recomputed)."""
+    model = small_model()
+    out = tmp_path / "m.ngf"
+    for name, edit, match in [
+        ("labels", lambda t: t["mesh.components"].fill_(0), "does not match the connected components"),
+        ("map short", lambda t: t.update({"mesh.input_to_internal": t["mesh.input_to_internal"][:-1]}),
+         r"input_to_internal must be \(9,\) int64"),
+        ("map wrong", lambda t: t["mesh.input_to_internal"].__setitem__(1, 5), "does not map the stored vertices"),
+        ("map range", lambda t: t["mesh.input_to_internal"].__setitem__(0, 99), "does not map the stored vertices"),
+    ]:
+        ngf.save(model, out)
+        meta, tensors = read_raw(out)
+        edit(tensors)
+        write_raw(out, meta, tensors, fix_checksums=True)
+        with pytest.raises(ValueError, match=match):
+            ngf.load(out)
+
+
+def test_short_index_never_reaches_a_kernel(tmp_path):
+    """The issue's crash: a stored mesh.index shorter than the vertex list used to load, then segfault in ssad."""
+    model = small_model()
+    out = tmp_path / "m.ngf"
+    ngf.save(model, out)
+    meta, tensors = as_format_1(*read_raw(out))
+    tensors["mesh.index"] = tensors["mesh.index"][:4]
+    write_raw(out, meta, tensors)
+    with pytest.raises(ValueError, match=r"mesh.index must be \(8,\) int64"):
+        ngf.load(out)
+
+
+def test_pickled_code_in_a_checkpoint_is_not_run(tmp_path):
+    marker = tmp_path / "ran"
+
+    class Payload:
+        def __reduce__(self):
+            return (open, (str(marker), "w"))
+
+    bad = tmp_path / "evil.pth"
+    torch.save({"lifting.2.linear.weight": Payload()}, bad)
+    with pytest.raises(ValueError, match="could not read"):
+        ngf.load(bad)
+    assert not marker.exists()
+
+
+def test_released_checkpoint_with_another_mesh_warns():
+    from neurogf_warp.checkpoint_match import MAX_MEAN_ABS_SDF, MeshMismatchWarning, mesh_sdf_residual
+
+    ck, mesh = fandisk()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        right = ngf.load(ck, mesh=mesh)  # no warning
+    assert mesh_sdf_residual(right) < MAX_MEAN_ABS_SDF / 10
+    with pytest.warns(MeshMismatchWarning, match="does not lie on this checkpoint's surface"):
+        wrong = ngf.load(ck, mesh=shared_path("meshes", "spot.obj"))
+    assert mesh_sdf_residual(wrong) > MAX_MEAN_ABS_SDF * 3
+    # the right surface with a stray triangle beyond its bounding box: the normalization moves
+    m = ngf.load_mesh(mesh)
+    far = m.vertices.max(0) + 0.05 * (m.vertices.max(0) - m.vertices.min(0))
+    v = np.vstack([m.vertices, far, far + [1e-3, 0, 0], far + [0, 1e-3, 0]])
+    f = np.vstack([m.faces, [[len(m.vertices), len(m.vertices) + 1, len(m.vertices) + 2]]])
+    with pytest.warns(MeshMismatchWarning):
+        ngf.load(ck, mesh=(v, f))
+
+
+# --- property tests: round trips and damaged files -----------------------------------------------------------
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+PROPERTY = settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+json_scalars = st.one_of(st.none(), st.booleans(), st.integers(-10 ** 6, 10 ** 6), st.text(max_size=8),
+                         st.floats(allow_nan=False, allow_infinity=False))
+
+
+@PROPERTY
+@given(options=st.fixed_dictionaries({"fourier": st.integers(0, 2), "euclid": st.booleans(),
+                                      "path_residual": st.booleans(), "path_width": st.sampled_from([1, 2])}),
+       window=st.booleans(), soup=st.booleans(), include_mesh=st.booleans(),
+       config=st.dictionaries(st.text(max_size=6), json_scalars, max_size=4),
+       frame=st.tuples(st.floats(-1e3, 1e3), st.floats(-1e3, 1e3), st.floats(-1e3, 1e3), st.floats(1e-3, 1e3)))
+def test_property_model_file_round_trip(tmp_path, options, window, soup, include_mesh, config, frame):
+    from neurogf_warp.network import NeuroGFNet
+
+    model = small_model(weld_soup=soup)
+    options["path_window"] = window and options["path_residual"]
+    model.net = NeuroGFNet(64, **options).eval()
+    model.config = config
+    model.center, model.scale = np.array(frame[:3]), frame[3]
+    out = tmp_path / "p.ngf"
+    ngf.save(model, out, include_mesh=include_mesh)
+    back = ngf.load(out)
+    if include_mesh:
+        assert_same_model(model, back)
+    else:
+        assert back.mesh is None
+        ngf.load(out, mesh=model.mesh)  # the stored fingerprint still recognises the mesh
+    assert back.net.options == model.net.options and back.config == config
+
+
+@pytest.fixture(scope="module")
+def saved_small_model(tmp_path_factory):
+    model = small_model(weld_soup=True)
+    path = tmp_path_factory.mktemp("flips") / "m.ngf"
+    ngf.save(model, path)
+    return model, path.read_bytes()
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(flips=st.lists(st.tuples(st.floats(0, 1, exclude_max=True), st.integers(1, 255), st.booleans()),
+                      min_size=1, max_size=3))
+def test_property_damaged_files_are_refused(tmp_path, saved_small_model, flips):
+    """Random byte flips (half of them in the header) give a ValueError, or, where a flip changes nothing the
+    file means (e.g. JSON whitespace), exactly the saved model: never a crash and never a silent change."""
+    model, data = saved_small_model
+    header = 8 + int.from_bytes(data[:8], "little")
+    b = bytearray(data)
+    for where, mask, in_header in flips:
+        b[int(where * (header if in_header else len(b)))] ^= mask
+    path = tmp_path / "damaged.ngf"
+    path.write_bytes(bytes(b))
+    try:
+        back = ngf.load(path)
+    except ValueError:
+        return
+    assert_same_model(model, back)
