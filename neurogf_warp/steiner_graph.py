@@ -1,0 +1,96 @@
+"""The ground-truth solver's mesh tables: unique edges, face/edge incidence, and which faces windows may cross.
+
+Built once per solver on the host (numpy), then uploaded as one `SteinerGraph` struct (kernels/geodesic/graph.py).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["Topology", "window_faces"]
+
+
+class Topology:
+    """Unique edges, face->edge and edge->face tables (numpy), with degenerate faces removed.
+
+    Attributes: faces (F, 3) int32 (faces that repeat a vertex dropped); edges (E, 2) int32, lower vertex first;
+    face_edges (F, 3) int32, the edge of local edge le (vertices le, (le + 1) % 3); edge_faces (E, 2) int32, the
+    first two faces of each edge (-1: none); vertex_face_start / vertex_faces and edge_face_start / edge_faces_all:
+    CSR lists of the faces around each vertex and of every face of each edge; nonmanifold_edges: count of face
+    incidences beyond two; face_ok (F,) int8: window faces (`window_faces`).
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        f = np.asarray(faces, dtype=np.int64)
+        # faces repeating a vertex carry no area and would create zero-length edges
+        keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])
+        f = f[keep]
+        half = np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1).reshape(-1, 2)
+        half = np.sort(half, axis=1)
+        edges, inv = np.unique(half, axis=0, return_inverse=True)
+        inv = inv.reshape(-1)
+        self.faces = f.astype(np.int32)
+        self.edges = edges.astype(np.int32)
+        self.face_edges = inv.reshape(-1, 3).astype(np.int32)
+        ne = len(edges)
+        ef = np.full((ne, 2), -1, dtype=np.int32)
+        order = np.argsort(inv, kind="stable")
+        e_sorted = inv[order]
+        first = np.r_[True, e_sorted[1:] != e_sorted[:-1]]
+        rank = np.arange(len(order)) - np.maximum.accumulate(np.where(first, np.arange(len(order)), 0))
+        face_of = order // 3
+        m = rank < 2  # non-manifold edges keep their first two faces here; the CSR lists below hold them all
+        ef[e_sorted[m], rank[m]] = face_of[m]
+        self.edge_faces = ef
+        self.nonmanifold_edges = int(np.sum(rank >= 2))
+        nvtx = len(vertices)
+        fo = np.argsort(f.reshape(-1), kind="stable")
+        self.vertex_faces = (fo // 3).astype(np.int32)
+        self.vertex_face_start = np.r_[0, np.cumsum(np.bincount(f.reshape(-1), minlength=nvtx))].astype(np.int32)
+        self.edge_faces_all = face_of.astype(np.int32)
+        self.edge_face_start = np.r_[0, np.cumsum(np.bincount(inv, minlength=ne))].astype(np.int32)
+        self.face_ok = window_faces(vertices, f)
+
+    def to_warp(self, positions: np.ndarray, k: int, windows: bool, device):
+        """The `SteinerGraph` struct of these tables on `device`; positions (V, 3) float32, normalized frame."""
+        import warp as wp
+
+        from .kernels.geodesic.graph import SteinerGraph
+
+        g = SteinerGraph()
+        g.nv = len(positions)
+        g.k = int(k)
+        g.windows = int(bool(windows))
+        g.pos = wp.array(np.asarray(positions, dtype=np.float32), dtype=wp.vec3, device=device)
+        g.faces = wp.array(self.faces, dtype=int, device=device)
+        g.edges = wp.array(self.edges, dtype=int, device=device)
+        g.face_edges = wp.array(self.face_edges, dtype=int, device=device)
+        g.edge_faces = wp.array(self.edge_faces, dtype=int, device=device)
+        g.window_face = wp.array(self.face_ok, dtype=wp.int8, device=device)
+        g.vertex_face_start = wp.array(self.vertex_face_start, dtype=int, device=device)
+        g.vertex_faces = wp.array(self.vertex_faces, dtype=int, device=device)
+        g.edge_face_start = wp.array(self.edge_face_start, dtype=int, device=device)
+        g.edge_face_list = wp.array(self.edge_faces_all, dtype=int, device=device)
+        return g
+
+
+def window_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F,) int8: 1 where unfolding windows may cross the face, 0 for graph-only faces.
+
+    Unfolding a virtual source across an edge uses the in-plane normal towards the face's third vertex; when that
+    vertex is (nearly) on the edge's line (zero-area faces, needles, caps, coincident vertices) the normal is float
+    noise and the unfolded source lands anywhere: values below the exact distance, paths the tracer cannot walk.
+    Such faces keep only their graph edges (always real segments). A face is kept for windows when its smallest
+    height (2 area / longest edge) is at least 1% of its longest edge (smallest angle about 0.6 degrees or more)
+    and at least 1% of the mean edge length and 1e-5 absolute (pass the float32 positions the kernels use, in the
+    normalized unit-sphere frame, for the absolute part to mean anything)."""
+    f = np.asarray(faces, dtype=np.int64)
+    if len(f) == 0:
+        return np.zeros(0, np.int8)
+    p = np.asarray(vertices, dtype=np.float64)[f]
+    area2 = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    elen = np.linalg.norm(p - p[:, [1, 2, 0]], axis=2)
+    lmax = elen.max(axis=1)
+    hmin = area2 / np.maximum(lmax, 1e-300)
+    floor = max(1e-2 * float(elen.mean()), 1e-5)
+    ok = (hmin >= 1e-2 * lmax) & (hmin >= floor) & np.isfinite(hmin)
+    return ok.astype(np.int8)
