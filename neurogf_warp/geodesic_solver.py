@@ -17,12 +17,15 @@ from .arrays import resolve_device
 from .mesh import load_mesh
 from .steiner_graph import Topology
 
-__all__ = ["GeodesicSolver", "load_kernels", "DEFAULT_K", "DEFAULT_DELTA", "PATH_DELTA", "BYTES_PER_NODE"]
+__all__ = ["GeodesicSolver", "load_kernels", "DEFAULT_K", "DEFAULT_DELTA", "PATH_DELTA", "PATH_TOLERANCE",
+           "BYTES_PER_NODE"]
 
 DEFAULT_K = 3  # Steiner points per edge at default accuracy (windows on); see benchmarks/geodesics_notes.md
 DEFAULT_DELTA = 2.0  # delta-stepping bucket (mean edge lengths): few iterations, ~2.4 improvements per node
 PATH_DELTA = DEFAULT_DELTA  # paths come from the same run as distances (every node keeps a path record)
 BYTES_PER_NODE = 109  # solver state per (source row, node): see GeodesicSolver._alloc
+PATH_TOLERANCE = 1e-3  # a traced path longer than its distance by more than this (relative) is not returned
+PATH_ABS_TOLERANCE = 1e-6  # and by more than this (normalized units: float32 rounding of short paths)
 MAX_BATCH = 512
 
 
@@ -242,11 +245,23 @@ class GeodesicSolver:
     def trace(self, rows: np.ndarray, targets: np.ndarray, max_steps: int | None = None):
         """Shortest paths of the last run: row r's source to internal vertex targets[i].
 
-        Returns (points (P,3) float32 normalized, offsets (T+1,), stale (T,)); path i is
-        points[offsets[i]:offsets[i+1]] ordered from the source. Paths follow each node's path record (a graph
-        edge, or a straight unfolded ray walked face by face to its origin node), so a path's length equals the
-        node's distance up to float rounding. stale counts rays whose walk failed numerically (the path then
-        bends at the ray's parent); -1 = truncated (max_steps).
+        Parameters
+        ----------
+        rows : (T,) int, source rows of the last `run`
+        targets : (T,) int, internal vertex ids
+        max_steps : int, optional cap on the walk per path
+
+        Returns
+        -------
+        points : (P, 3) float32, normalized frame; path i is points[offsets[i]:offsets[i+1]], from the source
+        offsets : (T + 1,) int64
+        flags : (T,) int32, 0 for a path returned; 1 for a path that could not be traced or came out longer
+            than its distance by more than PATH_TOLERANCE, -1 for one truncated at max_steps: the points of a
+            flagged path are NaN. Unreachable targets have no points (flag 0).
+
+        Paths follow each node's path record (a graph edge, or a straight unfolded ray walked face by face to its
+        origin node), so a path's length equals the node's distance up to float rounding. Flagged paths are
+        counted in ``timings["paths_flagged"]``.
         """
         kg = _kernels()
         rows = np.asarray(rows, dtype=np.int32).reshape(-1)
@@ -267,7 +282,8 @@ class GeodesicSolver:
         q.points = wp.zeros(1, dtype=wp.vec3, device=d)
         q.max_steps = int(max_steps)
         q.write = 0
-        wp.launch(kg.paths.walk_paths, dim=T, inputs=[self.graph, self.state.rec, q], device=d)
+        inputs = [self.graph, self.state.rec, self.state.dist, q]
+        wp.launch(kg.paths.walk_paths, dim=T, inputs=inputs, device=d)
         c = q.counts.numpy().astype(np.int64)
         offsets = np.zeros(T + 1, dtype=np.int64)
         np.cumsum(c, out=offsets[1:])
@@ -276,10 +292,28 @@ class GeodesicSolver:
         q.offsets.assign(offsets[:-1].astype(np.int32))
         q.points = wp.zeros(max(int(offsets[-1]), 1), dtype=wp.vec3, device=d)
         q.write = 1
-        wp.launch(kg.paths.walk_paths, dim=T, inputs=[self.graph, self.state.rec, q], device=d)
+        wp.launch(kg.paths.walk_paths, dim=T, inputs=inputs, device=d)
         p = q.points.numpy()[: offsets[-1]]
         # written target->source: reverse each path so it starts at the source
         seg = np.repeat(np.arange(T), c)
         local = np.arange(len(p)) - offsets[seg]
         p = p[offsets[seg] + (c[seg] - 1 - local)]
-        return p, offsets, q.stale.numpy()
+        flags = self._check_paths(p, offsets, q.stale.numpy(), self.state.dist.numpy()[rows, targets])
+        p[np.repeat(flags != 0, c)] = np.nan
+        return p, offsets, flags
+
+    def _check_paths(self, points, offsets, walk_status, dist) -> np.ndarray:
+        """Per-path flags (see trace): a truncated walk, or a path longer than its distance by more than
+        PATH_TOLERANCE (a ray walk that failed and bent at its parent, or went through the wrong faces)."""
+        length = np.zeros(len(dist))
+        if len(points) > 1:
+            step = np.linalg.norm(np.diff(points.astype(np.float64), axis=0), axis=1)
+            cum = np.r_[0.0, np.cumsum(step)]
+            n = np.diff(offsets) > 0
+            length[n] = cum[offsets[1:][n] - 1] - cum[offsets[:-1][n]]
+        d = dist.astype(np.float64)
+        too_long = np.isfinite(d) & (length > d * (1.0 + PATH_TOLERANCE) + PATH_ABS_TOLERANCE)
+        flags = np.where(walk_status < 0, -1, np.where(too_long, 1, 0)).astype(np.int32)
+        self.timings["paths_traced"] = self.timings.get("paths_traced", 0) + len(flags)
+        self.timings["paths_flagged"] = self.timings.get("paths_flagged", 0) + int(np.sum(flags != 0))
+        return flags

@@ -13,10 +13,10 @@ class Topology:
     """Unique edges, face->edge and edge->face tables (numpy), with degenerate faces removed.
 
     Attributes: faces (F, 3) int32 (faces that repeat a vertex dropped); edges (E, 2) int32, lower vertex first;
-    face_edges (F, 3) int32, the edge of local edge le (vertices le, (le + 1) % 3); edge_faces (E, 2) int32, the
-    first two faces of each edge (-1: none); vertex_face_start / vertex_faces and edge_face_start / edge_faces_all:
-    CSR lists of the faces around each vertex and of every face of each edge; nonmanifold_edges: count of face
-    incidences beyond two; face_ok (F,) int8: window faces (`window_faces`).
+    face_edges (F, 3) int32, the edge of local edge le (vertices le, (le + 1) % 3); vertex_face_start /
+    vertex_faces and edge_face_start / edge_faces: CSR lists of the faces around each vertex and of every face of
+    each edge (in face order); nonmanifold_edges, boundary_edges: counts of edges with three or more faces and
+    with one; face_ok (F,) int8: window faces (`window_faces`).
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
@@ -32,22 +32,15 @@ class Topology:
         self.edges = edges.astype(np.int32)
         self.face_edges = inv.reshape(-1, 3).astype(np.int32)
         ne = len(edges)
-        ef = np.full((ne, 2), -1, dtype=np.int32)
-        order = np.argsort(inv, kind="stable")
-        e_sorted = inv[order]
-        first = np.r_[True, e_sorted[1:] != e_sorted[:-1]]
-        rank = np.arange(len(order)) - np.maximum.accumulate(np.where(first, np.arange(len(order)), 0))
-        face_of = order // 3
-        m = rank < 2  # non-manifold edges keep their first two faces here; the CSR lists below hold them all
-        ef[e_sorted[m], rank[m]] = face_of[m]
-        self.edge_faces = ef
-        self.nonmanifold_edges = int(np.sum(rank >= 2))
+        counts = np.bincount(inv, minlength=ne)
+        self.nonmanifold_edges = int(np.sum(counts > 2))  # edges with three or more faces
+        self.boundary_edges = int(np.sum(counts == 1))
         nvtx = len(vertices)
         fo = np.argsort(f.reshape(-1), kind="stable")
         self.vertex_faces = (fo // 3).astype(np.int32)
         self.vertex_face_start = np.r_[0, np.cumsum(np.bincount(f.reshape(-1), minlength=nvtx))].astype(np.int32)
-        self.edge_faces_all = face_of.astype(np.int32)
-        self.edge_face_start = np.r_[0, np.cumsum(np.bincount(inv, minlength=ne))].astype(np.int32)
+        self.edge_faces = np.argsort(inv, kind="stable").astype(np.int32) // 3
+        self.edge_face_start = np.r_[0, np.cumsum(counts)].astype(np.int32)
         self.face_ok = window_faces(vertices, f)
 
     def to_warp(self, positions: np.ndarray, k: int, windows: bool, device):
@@ -64,12 +57,11 @@ class Topology:
         g.faces = wp.array(self.faces, dtype=int, device=device)
         g.edges = wp.array(self.edges, dtype=int, device=device)
         g.face_edges = wp.array(self.face_edges, dtype=int, device=device)
-        g.edge_faces = wp.array(self.edge_faces, dtype=int, device=device)
         g.window_face = wp.array(self.face_ok, dtype=wp.int8, device=device)
         g.vertex_face_start = wp.array(self.vertex_face_start, dtype=int, device=device)
         g.vertex_faces = wp.array(self.vertex_faces, dtype=int, device=device)
         g.edge_face_start = wp.array(self.edge_face_start, dtype=int, device=device)
-        g.edge_face_list = wp.array(self.edge_faces_all, dtype=int, device=device)
+        g.edge_face_list = wp.array(self.edge_faces, dtype=int, device=device)
         return g
 
 

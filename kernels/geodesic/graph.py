@@ -24,7 +24,6 @@ class SteinerGraph:
     faces: wp.array2d(dtype=int)  # (F, 3)
     edges: wp.array2d(dtype=int)  # (E, 2) unique edges, lower vertex id first
     face_edges: wp.array2d(dtype=int)  # (F, 3) edge of each local edge
-    edge_faces: wp.array2d(dtype=int)  # (E, 2) the first two faces of each edge (-1: none)
     window_face: wp.array(dtype=wp.int8)  # (F,) 1 where windows may cross the face, 0 graph-only
     vertex_face_start: wp.array(dtype=int)  # (V + 1,) CSR offsets into vertex_faces
     vertex_faces: wp.array(dtype=int)  # faces around each vertex
@@ -106,7 +105,8 @@ def face_has_node(graph: SteinerGraph, face: int, n: int) -> bool:
 
 @wp.func
 def common_face(graph: SteinerGraph, u: int, x: int) -> int:
-    """The face holding nodes u and x: >= 0, -2 when they share an edge (or are both vertices), -1 if none."""
+    """The face holding nodes u and x: >= 0, -2 when they share an edge (or are both vertices), -1 if none.
+    All faces of the edge are searched (three or more on a non-manifold edge)."""
     e = -1
     other = u
     if x >= graph.nv:
@@ -116,20 +116,32 @@ def common_face(graph: SteinerGraph, u: int, x: int) -> int:
         other = x
     else:
         return -2
-    f0 = graph.edge_faces[e, 0]
-    f1 = graph.edge_faces[e, 1]
-    c0 = False
-    c1 = False
-    if f0 >= 0:
-        c0 = face_has_node(graph, f0, other)
-    if f1 >= 0:
-        c1 = face_has_node(graph, f1, other)
-    if c0 and c1:
+    found = int(-1)
+    count = int(0)
+    for i in range(graph.edge_face_start[e], graph.edge_face_start[e + 1]):
+        f = graph.edge_face_list[i]
+        if face_has_node(graph, f, other):
+            count += 1
+            if found < 0:
+                found = f
+    if count >= 2:
         return -2
-    if c0:
-        return f0
-    if c1:
-        return f1
+    return found
+
+
+@wp.func
+def other_face(graph: SteinerGraph, e: int, face: int, choice: int) -> int:
+    """A face of edge e other than `face`: the only one on a manifold edge (-1 on a boundary edge), the
+    `choice`-th (mod their number) on a non-manifold edge."""
+    start = graph.edge_face_start[e]
+    count = graph.edge_face_start[e + 1] - start
+    pick = choice % wp.max(count - 1, 1)
+    for i in range(start, start + count):
+        f = graph.edge_face_list[i]
+        if f != face:
+            if pick == 0:
+                return f
+            pick -= 1
     return -1
 
 

@@ -12,11 +12,14 @@ virtual source face by face (unfolding the source across each crossed edge) and 
 """
 import warp as wp
 
-from .graph import (INF, SteinerGraph, edge_frame, face_has_node, face_normal_in_plane, node_pos, steiner_edge)
+from .graph import (INF, SteinerGraph, edge_frame, face_has_node, face_normal_in_plane, node_pos, other_face,
+                    steiner_edge)
 from .relax import NodeState, PathRecords
 from .unfolding import unfold_source
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
+
+MAX_CHOICES = wp.constant(64)  # face choices tried per ray at non-manifold crossings
 
 
 @wp.struct
@@ -86,18 +89,27 @@ def unfold_point(graph: SteinerGraph, e: int, face: int, S: wp.vec3) -> wp.vec3:
 
 
 @wp.func
-def walk_ray(graph: SteinerGraph, cur: int, o: int, g: int, S_in: wp.vec3, max_steps: int, q: PathQuery, write: int,
-             at: int):
+def walk_ray(graph: SteinerGraph, cur: int, o: int, g: int, S_in: wp.vec3, max_steps: int, choice: int,
+             q: PathQuery, write: int, at: int):
     """Walk the straight unfolded ray from node cur (in face g) towards the virtual source S_in until the face
-    holding the origin o. Returns (number of crossing points (written at q.points[at...] when write = 1),
-    vertex): vertex = -1 when the walk reached the origin's face; (n, v) when the walk stopped (circling, no exit,
-    a boundary, a graph-only face) with its last crossing point on mesh vertex v (the ray ran through v within
-    rounding): the caller ends the ray at v and goes on along v's own path; (-1, -1) when the walk fails."""
+    holding the origin o, where the unfolded source must land on o (else the walk went wrong).
+
+    On a non-manifold edge the face the ray came from is not known: `choice` picks one (its digits in the mixed
+    radix of the candidate counts, one digit per such crossing), and the caller tries the choices in turn.
+    Returns (number of crossing points (written at q.points[at...] when write = 1), vertex, choices, length):
+    vertex = -1 when the walk reached o; (n, v) when the walk stopped (circling, no exit, a boundary, a
+    graph-only face) with its last crossing point on mesh vertex v (the ray ran through v within rounding): the
+    caller ends the ray at v and goes on along v's own path; n = -1 when the walk fails. choices: how many choice
+    values the crossings met on this walk allow (1 on a manifold). length: of the walk from cur to v."""
     S = S_in
     n = int(0)
     steps = int(0)
     Q = node_pos(graph, cur)
     face = g
+    ray_len = wp.length(S_in - Q)
+    walked = float(0.0)
+    digits = choice
+    choices = int(1)
     # edges the walk must not leave through: those holding the start point, then the entry edge
     ex0 = int(-1)
     ex1 = int(-1)
@@ -148,41 +160,47 @@ def walk_ray(graph: SteinerGraph, cur: int, o: int, g: int, S_in: wp.vec3, max_s
             break
         ed = graph.face_edges[face, best_le]
         B0 = graph.pos[graph.faces[face, best_le]]
-        Q = B0 + wp.clamp(best_w, 0.0, 1.0) * (graph.pos[graph.faces[face, (best_le + 1) % 3]] - B0)
+        Q_next = B0 + wp.clamp(best_w, 0.0, 1.0) * (graph.pos[graph.faces[face, (best_le + 1) % 3]] - B0)
+        walked += wp.length(Q_next - Q)
+        Q = Q_next
         if write != 0:
             q.points[at + n] = Q
         n += 1
-        f0 = graph.edge_faces[ed, 0]
-        nf = graph.edge_faces[ed, 1]
-        if f0 != face:
-            nf = f0
-        if nf < 0 or nf == face or graph.window_face[nf] == wp.int8(0):
+        nfaces = graph.edge_face_start[ed + 1] - graph.edge_face_start[ed]
+        nf = other_face(graph, ed, face, digits)
+        if nfaces > 2:
+            digits = digits // (nfaces - 1)
+            choices = choices * (nfaces - 1)
+        if nf < 0 or graph.window_face[nf] == wp.int8(0):
             break  # windows never cross graph-only faces: the walk has strayed (or left through a vertex)
         S = unfold_point(graph, ed, nf, S)
         face = nf
         ex0 = ed
         ex1 = int(-1)
-    if not ok:
-        # The ray left through (or circles) a vertex within rounding: end it at that vertex (it lies on the ray, so
-        # its own distance is at most the ray's value there) when Q is on it; otherwise fail (the caller bends at
-        # the parent).
-        lmax = float(0.0)
-        dbest = float(INF)
-        for lv in range(3):
-            pv = graph.pos[graph.faces[face, lv]]
-            lmax = wp.max(lmax, wp.length(graph.pos[graph.faces[face, (lv + 1) % 3]] - pv))
-            dq = wp.length(pv - Q)
-            if dq < dbest and graph.faces[face, lv] != cur:
-                dbest = dq
-                snap = graph.faces[face, lv]
-        if n > 0 and snap >= 0 and dbest <= 1.0e-3 * lmax:
-            return n, snap
-        return int(-1), int(-1)
-    return n, int(-1)
+    if ok:
+        if digits != 0 or wp.length(S - node_pos(graph, o)) > 1.0e-4 * ray_len + 1.0e-6:
+            # a choice left unused repeats a smaller one; a source landing off the origin: wrong faces
+            return int(-1), int(-1), choices, walked
+        return n, int(-1), choices, walked
+    # The ray left through (or circles) a vertex within rounding: end it at that vertex (it lies on the ray, so
+    # its own distance is at most the ray's value there) when Q is on it; otherwise fail (the caller bends at the
+    # parent).
+    lmax = float(0.0)
+    dbest = float(INF)
+    for lv in range(3):
+        pv = graph.pos[graph.faces[face, lv]]
+        lmax = wp.max(lmax, wp.length(graph.pos[graph.faces[face, (lv + 1) % 3]] - pv))
+        dq = wp.length(pv - Q)
+        if dq < dbest and graph.faces[face, lv] != cur:
+            dbest = dq
+            snap = graph.faces[face, lv]
+    if n > 0 and snap >= 0 and dbest <= 1.0e-3 * lmax and digits == 0:
+        return n, snap, choices, walked + dbest
+    return int(-1), int(-1), choices, walked
 
 
 @wp.kernel
-def walk_paths(graph: SteinerGraph, rec: PathRecords, q: PathQuery):
+def walk_paths(graph: SteinerGraph, rec: PathRecords, dist: wp.array2d(dtype=float), q: PathQuery):
     """Walk each path back from its target to the source along the path records (target -> source order)."""
     t = wp.tid()
     s = q.rows[t]
@@ -215,7 +233,28 @@ def walk_paths(graph: SteinerGraph, rec: PathRecords, q: PathQuery):
             cur = par
             continue
         S = unfold_source(graph, steiner_edge(graph, par), g, rec.ray_along[s, cur], rec.ray_height[s, cur])
-        m, snap = walk_ray(graph, cur, o, g, S, q.max_steps, q, 0, 0)
+        # try the face choices at non-manifold crossings until one walk lands on the origin; of the walks that
+        # end at a vertex they ran through (a wrong sheet can pass a vertex too) the shortest path is kept
+        m = int(-1)
+        snap = int(-1)
+        best = int(-1)
+        best_len = float(INF)
+        choice = int(0)
+        limit = int(1)
+        while choice < wp.min(limit, MAX_CHOICES):
+            mc, sc, allowed, walked = walk_ray(graph, cur, o, g, S, q.max_steps, choice, q, 0, 0)
+            limit = wp.max(limit, allowed)
+            if mc >= 0 and sc < 0:
+                m = mc
+                snap = sc
+                best = choice
+                break
+            if mc >= 0 and walked + dist[s, sc] < best_len:
+                best_len = walked + dist[s, sc]
+                m = mc
+                snap = sc
+                best = choice
+            choice += 1
         if m < 0:
             # numerically failed walk: bend at the parent (shares face g with cur) and go on from there
             nstale += 1
@@ -226,7 +265,7 @@ def walk_paths(graph: SteinerGraph, rec: PathRecords, q: PathQuery):
             continue
         steps += m
         if q.write != 0:
-            walk_ray(graph, cur, o, g, S, q.max_steps, q, 1, base + n)
+            walk_ray(graph, cur, o, g, S, q.max_steps, best, q, 1, base + n)
         n += m
         nxt = o
         if snap >= 0:
