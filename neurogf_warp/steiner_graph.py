@@ -8,6 +8,9 @@ import numpy as np
 
 __all__ = ["Topology", "window_faces"]
 
+WINDOW_FACE_MIN_RELATIVE_HEIGHT = 1e-6  # smallest height / longest edge of a face windows may cross
+WINDOW_FACE_MIN_HEIGHT = 1e-7  # and smallest height in the normalized frame (float32 positions)
+
 
 class Topology:
     """Unique edges, face->edge and edge->face tables (numpy), with degenerate faces removed.
@@ -68,13 +71,14 @@ class Topology:
 def window_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(F,) int8: 1 where unfolding windows may cross the face, 0 for graph-only faces.
 
-    Unfolding a virtual source across an edge uses the in-plane normal towards the face's third vertex; when that
-    vertex is (nearly) on the edge's line (zero-area faces, needles, caps, coincident vertices) the normal is float
-    noise and the unfolded source lands anywhere: values below the exact distance, paths the tracer cannot walk.
-    Such faces keep only their graph edges (always real segments). A face is kept for windows when its smallest
-    height (2 area / longest edge) is at least 1% of its longest edge (smallest angle about 0.6 degrees or more)
-    and at least 1% of the mean edge length and 1e-5 absolute (pass the float32 positions the kernels use, in the
-    normalized unit-sphere frame, for the absolute part to mean anything)."""
+    Unfolding a virtual source across an edge needs the in-plane direction towards the face's third vertex. The
+    kernels compute it in float64 from the float32 positions, which define it exactly for any face whose third
+    vertex is off the edge's line by more than the positions' rounding; thin faces (needles from split edges,
+    slivers) are crossed like any other. Faces at the rounding level (zero area, coincident or collinear vertices)
+    keep only their graph edges (always real segments): there the direction is noise, and the unfolded source
+    would land anywhere. A face is kept for windows when its smallest height (2 area / longest edge) is at least
+    1e-6 of its longest edge and 1e-7 absolute (pass the float32 positions the kernels use, in the normalized
+    unit-sphere frame, where 1e-7 is about two float32 steps)."""
     f = np.asarray(faces, dtype=np.int64)
     if len(f) == 0:
         return np.zeros(0, np.int8)
@@ -83,6 +87,5 @@ def window_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     elen = np.linalg.norm(p - p[:, [1, 2, 0]], axis=2)
     lmax = elen.max(axis=1)
     hmin = area2 / np.maximum(lmax, 1e-300)
-    floor = max(1e-2 * float(elen.mean()), 1e-5)
-    ok = (hmin >= 1e-2 * lmax) & (hmin >= floor) & np.isfinite(hmin)
+    ok = (hmin >= WINDOW_FACE_MIN_RELATIVE_HEIGHT * lmax) & (hmin >= WINDOW_FACE_MIN_HEIGHT) & np.isfinite(hmin)
     return ok.astype(np.int8)

@@ -168,17 +168,26 @@ def edge_frame(graph: SteinerGraph, e: int):
 
 
 @wp.func
-def in_plane_normal(A: wp.vec3, eh: wp.vec3, C: wp.vec3) -> wp.vec3:
-    """Unit vector in the plane of (edge A + t eh, point C), normal to the edge and pointing towards C."""
-    w = C - A
+def position64(graph: SteinerGraph, v: int) -> wp.vec3d:
+    return wp.vec3d(graph.pos[v])
+
+
+@wp.func
+def face_normal_in_plane64(graph: SteinerGraph, e: int, face: int) -> wp.vec3d:
+    """Unit vector in the plane of a face holding edge e, normal to the edge and pointing to the face's third
+    vertex. Computed in float64 from the float32 positions: for a thin face (the third vertex close to the edge's
+    line) the float32 difference would lose the direction, while the positions themselves define it exactly."""
+    A = position64(graph, graph.edges[e, 0])
+    ev = position64(graph, graph.edges[e, 1]) - A
+    eh = ev / wp.length(ev)
+    w = position64(graph, opposite_vertex(graph, face, e)) - A
     n = w - wp.dot(w, eh) * eh
     ln = wp.length(n)
-    if ln <= 0.0:
-        return wp.vec3(0.0, 0.0, 0.0)
+    if ln <= wp.float64(0.0):
+        return wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
     return n / ln
 
 
 @wp.func
-def face_normal_in_plane(graph: SteinerGraph, e: int, face: int, A: wp.vec3, eh: wp.vec3) -> wp.vec3:
-    """in_plane_normal of edge e (frame A, eh) towards the third vertex of a face holding it."""
-    return in_plane_normal(A, eh, graph.pos[opposite_vertex(graph, face, e)])
+def face_normal_in_plane(graph: SteinerGraph, e: int, face: int) -> wp.vec3:
+    return wp.vec3(face_normal_in_plane64(graph, e, face))

@@ -12,7 +12,7 @@ virtual source face by face (unfolding the source across each crossed edge) and 
 """
 import warp as wp
 
-from .graph import (INF, SteinerGraph, edge_frame, face_has_node, face_normal_in_plane, node_pos, other_face,
+from .graph import (INF, SteinerGraph, face_has_node, face_normal_in_plane64, node_pos, other_face, position64,
                     steiner_edge)
 from .relax import NodeState, PathRecords
 from .unfolding import unfold_source
@@ -80,19 +80,21 @@ def slack_apply(acc: wp.array2d(dtype=float), dist: wp.array2d(dtype=float)):
 
 
 @wp.func
-def unfold_point(graph: SteinerGraph, e: int, face: int, S: wp.vec3) -> wp.vec3:
+def unfold_point(graph: SteinerGraph, e: int, face: int, S: wp.vec3d) -> wp.vec3d:
     """Point S (in the plane of a face on one side of edge e) rotated about e into the plane of `face`."""
-    A, eh, elen = edge_frame(graph, e)
+    A = position64(graph, graph.edges[e, 0])
+    ev = position64(graph, graph.edges[e, 1]) - A
+    eh = ev / wp.length(ev)
     r = S - A
-    n = face_normal_in_plane(graph, e, face, A, eh)
-    return A + wp.dot(r, eh) * eh + wp.length(wp.cross(r, eh)) * n
+    return A + wp.dot(r, eh) * eh + wp.length(wp.cross(r, eh)) * face_normal_in_plane64(graph, e, face)
 
 
 @wp.func
 def walk_ray(graph: SteinerGraph, cur: int, o: int, g: int, S_in: wp.vec3, max_steps: int, choice: int,
              q: PathQuery, write: int, at: int):
     """Walk the straight unfolded ray from node cur (in face g) towards the virtual source S_in until the face
-    holding the origin o, where the unfolded source must land on o (else the walk went wrong).
+    holding the origin o, where the unfolded source must land on o (else the walk went wrong). float64 inside,
+    so thin faces (thin in float32 too) are crossed like any other.
 
     On a non-manifold edge the face the ray came from is not known: `choice` picks one (its digits in the mixed
     radix of the candidate counts, one digit per such crossing), and the caller tries the choices in turn.
@@ -101,13 +103,15 @@ def walk_ray(graph: SteinerGraph, cur: int, o: int, g: int, S_in: wp.vec3, max_s
     graph-only face) with its last crossing point on mesh vertex v (the ray ran through v within rounding): the
     caller ends the ray at v and goes on along v's own path; n = -1 when the walk fails. choices: how many choice
     values the crossings met on this walk allow (1 on a manifold). length: of the walk from cur to v."""
-    S = S_in
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    S = wp.vec3d(S_in)
     n = int(0)
     steps = int(0)
-    Q = node_pos(graph, cur)
+    Q = wp.vec3d(node_pos(graph, cur))
     face = g
-    ray_len = wp.length(S_in - Q)
-    walked = float(0.0)
+    ray_len = wp.length(S - Q)
+    walked = zero
     digits = choice
     choices = int(1)
     # edges the walk must not leave through: those holding the start point, then the entry edge
@@ -129,42 +133,48 @@ def walk_ray(graph: SteinerGraph, cur: int, o: int, g: int, S_in: wp.vec3, max_s
         if face_has_node(graph, face, o):
             ok = True  # the origin is on this face: the rest of the ray is the straight segment to it
             break
-        p0 = graph.pos[graph.faces[face, 0]]
-        nrm = wp.cross(graph.pos[graph.faces[face, 1]] - p0, graph.pos[graph.faces[face, 2]] - p0)
+        p0 = position64(graph, graph.faces[face, 0])
+        p1 = position64(graph, graph.faces[face, 1])
+        p2 = position64(graph, graph.faces[face, 2])
+        nrm = wp.cross(p1 - p0, p2 - p0)
         dv = S - Q
-        best_t = float(2.0)
+        # tolerances in units of the face's size (thin faces are crossed in small steps), as ray parameters
+        size = wp.max(wp.length(p1 - p0), wp.max(wp.length(p2 - p1), wp.length(p0 - p2)))
+        dv_len = wp.max(wp.length(dv), wp.float64(1.0e-300))
+        behind = wp.float64(1.0e-7) * size / dv_len
+        best_t = wp.float64(2.0)
         best_le = int(-1)
-        best_w = float(0.0)
+        best_w = zero
         for le in range(3):
             ed = graph.face_edges[face, le]
             if ed == ex0 or ed == ex1:
                 continue
-            B0 = graph.pos[graph.faces[face, le]]
-            evl = graph.pos[graph.faces[face, (le + 1) % 3]] - B0
+            B0 = position64(graph, graph.faces[face, le])
+            evl = position64(graph, graph.faces[face, (le + 1) % 3]) - B0
             den = wp.dot(wp.cross(dv, evl), nrm)
-            if wp.abs(den) <= 0.0:
+            if wp.abs(den) <= zero:
                 continue
             tt = wp.dot(wp.cross(B0 - Q, evl), nrm) / den
             ww = wp.dot(wp.cross(B0 - Q, dv), nrm) / den
-            if tt > -1.0e-4 and ww >= -1.0e-4 and ww <= 1.0001 and tt < best_t:
+            if tt > -behind and ww >= wp.float64(-1.0e-4) and ww <= wp.float64(1.0001) and tt < best_t:
                 best_t = tt
                 best_le = le
                 best_w = ww
         if best_le < 0:
             break
-        if best_t <= 1.0e-6:
+        if best_t * dv_len <= wp.float64(1.0e-9) * size:
             # no progress: the ray passes (within rounding) through a vertex of this face and circles it
             break
-        if best_t >= 1.0 - 1.0e-5:
+        if best_t >= wp.float64(1.0 - 1.0e-5):
             ok = True  # the virtual source (the origin node) lies on this face's boundary
             break
         ed = graph.face_edges[face, best_le]
-        B0 = graph.pos[graph.faces[face, best_le]]
-        Q_next = B0 + wp.clamp(best_w, 0.0, 1.0) * (graph.pos[graph.faces[face, (best_le + 1) % 3]] - B0)
+        B0 = position64(graph, graph.faces[face, best_le])
+        Q_next = B0 + wp.clamp(best_w, zero, one) * (position64(graph, graph.faces[face, (best_le + 1) % 3]) - B0)
         walked += wp.length(Q_next - Q)
         Q = Q_next
         if write != 0:
-            q.points[at + n] = Q
+            q.points[at + n] = wp.vec3(Q)
         n += 1
         nfaces = graph.edge_face_start[ed + 1] - graph.edge_face_start[ed]
         nf = other_face(graph, ed, face, digits)
@@ -178,25 +188,25 @@ def walk_ray(graph: SteinerGraph, cur: int, o: int, g: int, S_in: wp.vec3, max_s
         ex0 = ed
         ex1 = int(-1)
     if ok:
-        if digits != 0 or wp.length(S - node_pos(graph, o)) > 1.0e-4 * ray_len + 1.0e-6:
+        if digits != 0 or wp.length(S - wp.vec3d(node_pos(graph, o))) > wp.float64(1.0e-4) * ray_len + wp.float64(1.0e-6):
             # a choice left unused repeats a smaller one; a source landing off the origin: wrong faces
-            return int(-1), int(-1), choices, walked
-        return n, int(-1), choices, walked
+            return int(-1), int(-1), choices, float(walked)
+        return n, int(-1), choices, float(walked)
     # The ray left through (or circles) a vertex within rounding: end it at that vertex (it lies on the ray, so
     # its own distance is at most the ray's value there) when Q is on it; otherwise fail (the caller bends at the
     # parent).
-    lmax = float(0.0)
-    dbest = float(INF)
+    lmax = zero
+    dbest = wp.float64(1.0e300)
     for lv in range(3):
-        pv = graph.pos[graph.faces[face, lv]]
-        lmax = wp.max(lmax, wp.length(graph.pos[graph.faces[face, (lv + 1) % 3]] - pv))
+        pv = position64(graph, graph.faces[face, lv])
+        lmax = wp.max(lmax, wp.length(position64(graph, graph.faces[face, (lv + 1) % 3]) - pv))
         dq = wp.length(pv - Q)
         if dq < dbest and graph.faces[face, lv] != cur:
             dbest = dq
             snap = graph.faces[face, lv]
-    if n > 0 and snap >= 0 and dbest <= 1.0e-3 * lmax and digits == 0:
-        return n, snap, choices, walked + dbest
-    return int(-1), int(-1), choices, walked
+    if n > 0 and snap >= 0 and dbest <= wp.float64(1.0e-3) * lmax and digits == 0:
+        return n, snap, choices, float(walked + dbest)
+    return int(-1), int(-1), choices, float(walked)
 
 
 @wp.kernel

@@ -17,7 +17,7 @@ import warp as wp
 
 from .graph import (INF, SteinerGraph, common_face, edge_frame, node_pos, slot_node, slot_of, slots_share_edge,
                     steiner_edge)
-from .unfolding import Windows, crossing_param, edge_coords, unfold_source, window_ray_length
+from .unfolding import Windows, crossing_param, edge_coords, ray_length, unfold_source, window_interval
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
@@ -93,15 +93,15 @@ def unpack_parent(key: wp.uint64) -> int:
 
 @wp.func
 def face_candidate(graph: SteinerGraph, win: Windows, s: int, u: int, du: float, pu: wp.vec3, iu: int, j: int,
-                   face: int, through: bool, A: wp.vec3, eh: wp.vec3, elen: float):
+                   face: int, through: bool, A: wp.vec3, eh: wp.vec3, elen: float, lo: float, hi: float):
     """Candidate from node u (slot iu of `face`, distance du, position pu) to the node x in slot j: the graph
     edge, or the straight ray of u's window when shorter (through: u's window continues into the face; A, eh,
-    elen: the frame of u's edge). Returns (x, d)."""
+    elen: the frame of u's edge; [lo, hi]: the window's interval). Returns (x, d)."""
     x = slot_node(graph, face, j)
     px = node_pos(graph, x)
     d = du + wp.length(px - pu)
     if through and not slots_share_edge(iu, j, graph.k):
-        dw = window_ray_length(win, s, u, A, eh, elen, px)
+        dw = ray_length(win.along[s, u], win.height[s, u], win.sigma[s, u], lo, hi, A, eh, elen, px)
         if dw < d:
             d = dw
     return x, d
@@ -196,12 +196,15 @@ def relax_frontier(graph: SteinerGraph, state: NodeState, front: Frontier):
         A = wp.vec3()
         eh = wp.vec3()
         elen = float(0.0)
+        lo = float(0.0)
+        hi = float(0.0)
         f_in = int(-1)
         if graph.windows != 0 and u >= graph.nv:
             f_in = state.win.face[s, u]
             if f_in >= 0:
                 has_window = True
                 A, eh, elen = edge_frame(graph, ue)
+                lo, hi = window_interval(graph, state.win, s, u, elen)
         for fi in range(f0, f1):
             face = int(0)
             if u < graph.nv:
@@ -213,7 +216,7 @@ def relax_frontier(graph: SteinerGraph, state: NodeState, front: Frontier):
             for j in range(ns):
                 if j == iu:
                     continue
-                x, d = face_candidate(graph, state.win, s, u, du, pu, iu, j, face, through, A, eh, elen)
+                x, d = face_candidate(graph, state.win, s, u, du, pu, iu, j, face, through, A, eh, elen, lo, hi)
                 if propose(state.key, s, x, d, u):
                     # first improvement of x this iteration: append it to the decode list
                     if wp.atomic_max(front.touched_stamp, s, x, it) < it:
@@ -265,7 +268,8 @@ def decode_node(graph: SteinerGraph, state: NodeState, staged: Staging, s: int, 
                 A, eh, elen = edge_frame(graph, e)
                 ua = state.win.along[s, u]
                 uh = state.win.height[s, u]
-                dw = window_ray_length(state.win, s, u, A, eh, elen, px)
+                ulo, uhi = window_interval(graph, state.win, s, u, elen)
+                dw = ray_length(ua, uh, state.win.sigma[s, u], ulo, uhi, A, eh, elen, px)
                 if dw < sg + wp.length(px - pu):
                     via = True
                     sg = state.win.sigma[s, u]
@@ -277,8 +281,8 @@ def decode_node(graph: SteinerGraph, state: NodeState, staged: Staging, s: int, 
                         c_start = (ua + (P0[0] - ua) * uh / (uh + P0[1])) / elen
                         c_end = (ua + (P1[0] - ua) * uh / (uh + P1[1])) / elen
                         source_2d = wp.vec2(ua, -uh)
-                        t0 = crossing_param(state.win.lo[s, u], c_start, c_end, source_2d, elen, P0, P1)
-                        t1 = crossing_param(state.win.hi[s, u], c_start, c_end, source_2d, elen, P0, P1)
+                        t0 = crossing_param(ulo, c_start, c_end, source_2d, elen, P0, P1)
+                        t1 = crossing_param(uhi, c_start, c_end, source_2d, elen, P0, P1)
                         lo = wp.min(t0, t1)
                         hi = wp.max(t0, t1)
         if via:

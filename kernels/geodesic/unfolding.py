@@ -13,6 +13,7 @@ from .graph import INF, SteinerGraph, edge_frame, face_normal_in_plane
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 TINY = wp.constant(1.0e-12)
+SAME_SOURCE_TOLERANCE = wp.constant(1.0e-6)
 
 
 @wp.struct
@@ -53,10 +54,33 @@ def ray_length(along: float, height: float, sigma: float, lo: float, hi: float, 
 
 
 @wp.func
-def window_ray_length(win: Windows, s: int, u: int, A: wp.vec3, eh: wp.vec3, elen: float, p: wp.vec3) -> float:
-    """ray_length through the window of node u (row s); A, eh, elen: the frame of u's edge."""
-    return ray_length(win.along[s, u], win.height[s, u], win.sigma[s, u], win.lo[s, u], win.hi[s, u], A, eh, elen,
-                      p)
+def same_source(win: Windows, s: int, u: int, w: int, elen: float) -> bool:
+    """Whether nodes u and w (on one edge) hold windows in the same face with the same virtual source, up to
+    float32 rounding (SAME_SOURCE_TOLERANCE of the window's size)."""
+    if win.face[s, w] != win.face[s, u]:
+        return False
+    size = win.height[s, u] + win.sigma[s, u] + elen
+    tol = SAME_SOURCE_TOLERANCE * size
+    return (wp.abs(win.along[s, w] - win.along[s, u]) <= tol and wp.abs(win.height[s, w] - win.height[s, u]) <= tol
+            and wp.abs(win.sigma[s, w] - win.sigma[s, u]) <= tol)
+
+
+@wp.func
+def window_interval(graph: SteinerGraph, win: Windows, s: int, u: int, elen: float):
+    """The edge interval of u's window, widened by the windows of the other nodes on u's edge that hold the same
+    source in the same face where their intervals overlap (every ray in the union is a real path through one of
+    them). Returns (lo, hi)."""
+    lo = win.lo[s, u]
+    hi = win.hi[s, u]
+    first = graph.nv + ((u - graph.nv) // graph.k) * graph.k
+    for _round in range(graph.k - 1):
+        for j in range(graph.k):
+            w = first + j
+            if w != u and same_source(win, s, u, w, elen):
+                if win.lo[s, w] <= hi and win.hi[s, w] >= lo:
+                    lo = wp.min(lo, win.lo[s, w])
+                    hi = wp.max(hi, win.hi[s, w])
+    return lo, hi
 
 
 @wp.func
@@ -89,4 +113,4 @@ def crossing_param(edge_param: float, c_start: float, c_end: float, source: wp.v
 def unfold_source(graph: SteinerGraph, e: int, face: int, along: float, height: float) -> wp.vec3:
     """The virtual source (along, height) of a window on edge e, unfolded into the plane of `face` (3-D)."""
     A, eh, elen = edge_frame(graph, e)
-    return A + along * eh - height * face_normal_in_plane(graph, e, face, A, eh)
+    return A + along * eh - height * face_normal_in_plane(graph, e, face)
