@@ -145,7 +145,7 @@ def main(argv=None) -> int:
         wp.synchronize_device(dev)
         dt = time.perf_counter() - t0
         res.update(total_s=dt, sources_per_s=n_src / dt, dist_s=dt - t_path, dist_sources_per_s=n_src / (dt - t_path),
-                   iterations=solver.timings["iterations"], captured_graph=bool(solver._graph),
+                   iterations=solver.timings["iterations"], captured_graph=solver.captured,
                    peak_mem_bytes=peak_mem(dev), state_bytes=solver.batch * solver.bytes_per_row,
                    node_visits_per_source=visits / n_src, relaxed_per_source=relaxed / n_src)
         if n_psrc:

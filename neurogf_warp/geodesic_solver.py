@@ -27,6 +27,16 @@ BYTES_PER_NODE = 109  # solver state per (source row, node): see GeodesicSolver.
 PATH_TOLERANCE = 1e-3  # a traced path longer than its distance by more than this (relative) is not returned
 PATH_ABS_TOLERANCE = 1e-6  # and by more than this (normalized units: float32 rounding of short paths)
 MAX_BATCH = 512
+CPU_CHUNK_SECONDS = 0.25  # one CPU launch of the relaxation loop; Ctrl-C is seen between launches
+
+
+def _count(name: str, value) -> int:
+    """An integer setting >= 1, or a clear error naming it."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name} must be an integer, got {value!r}")
+    if value < 1:
+        raise ValueError(f"{name} must be >= 1, got {value}")
+    return int(value)
 
 
 def _kernels():
@@ -64,12 +74,13 @@ class GeodesicSolver:
                  max_iter: int = 100000, memory_budget: float | None = None, max_rows: int | None = None,
                  delta: float = DEFAULT_DELTA):
         self.mesh = load_mesh(mesh)
-        if k < 1:
-            raise ValueError("k (Steiner points per edge) must be >= 1")
-        self.k = int(k)
+        self.k = _count("k (Steiner points per edge)", k)
         self.windows = bool(windows)
         self.device = resolve_device(device)
-        self.max_iter = int(max_iter)
+        self.max_iter = _count("max_iter", max_iter)
+        if isinstance(delta, bool) or not isinstance(delta, (int, float, np.integer, np.floating)) \
+                or not np.isfinite(delta) or delta < 0:
+            raise ValueError(f"delta must be a finite number >= 0 (0: plain Bellman-Ford), got {delta!r}")
         t0 = time.perf_counter()
         # window-face test on the float32 normalized positions the kernels use (see window_faces)
         self.topo = Topology(self.mesh.normalized_vertices.astype(np.float32), self.mesh.faces)
@@ -78,10 +89,11 @@ class GeodesicSolver:
         e = self.topo.edges
         nvx = self.mesh.normalized_vertices
         mean_len = float(np.linalg.norm(nvx[e[:, 0]] - nvx[e[:, 1]], axis=1).mean()) if len(e) else 1.0
-        self.delta = float(delta) * mean_len if delta and delta > 0 else float("inf")
+        self.delta = float(delta) * mean_len if delta > 0 else float("inf")
         self.n_nodes = self.nv + len(self.topo.edges) * self.k
         if self.n_nodes >= 2**31 - 1:
-            raise ValueError("mesh too large for int32 node ids; lower k")
+            raise ValueError(f"mesh too large for int32 node ids at k={self.k} ({self.n_nodes} nodes); lower k")
+        free = None
         if memory_budget is None:
             memory_budget = 1e9
             if self.device.is_cuda:
@@ -91,11 +103,27 @@ class GeodesicSolver:
             batch = int(max(1, min(MAX_BATCH, memory_budget // self.bytes_per_row)))
             if max_rows:
                 batch = min(batch, int(max_rows))
-        self.batch = int(batch)
+        self.batch = _count("batch", batch)
+        need = self.batch * self.bytes_per_row
+        if free is not None and need > free:
+            raise MemoryError(f"one batch of {self.batch} source rows needs {need / 1e9:.2f} GB of solver state "
+                              f"({self.bytes_per_row / 1e9:.3f} GB per row at k={self.k}) but {self.device} has "
+                              f"{free / 1e9:.2f} GB free; lower batch or k, or use a smaller mesh")
         self.timings = {"setup_s": time.perf_counter() - t0, "solve_s": 0.0, "iterations": []}
-        self._alloc()
-        self._graph = None
+        try:
+            self._alloc()
+        except Exception as e:  # noqa: BLE001 - allocation failures come as several types
+            raise MemoryError(f"could not allocate the solver state on {self.device}: {need / 1e9:.2f} GB for "
+                              f"{self.batch} source rows ({self.bytes_per_row / 1e9:.3f} GB per row at k={self.k}); "
+                              f"lower batch or k ({e})") from e
+        self._graphs = {}
+        self._chunk = 16  # loop iterations per CPU launch, adapted to CPU_CHUNK_SECONDS
         self.rows = None
+
+    @property
+    def captured(self) -> bool:
+        """Whether the relaxation loop runs as a captured graph (else from a host loop)."""
+        return bool(self._graphs.get("loop"))
 
     @property
     def bytes_per_row(self) -> int:
@@ -132,7 +160,8 @@ class GeodesicSolver:
                       touched_stamp=z(int), threshold=wp.zeros(b, dtype=float, device=d),
                       min_pending=wp.zeros(b, dtype=float, device=d), delta=self.delta,
                       iteration=wp.zeros(1, dtype=int, device=d), go=wp.zeros(1, dtype=int, device=d),
-                      max_iter=self.max_iter, work=wp.zeros((b, 3), dtype=int, device=d), threads=self.row_threads)
+                      iteration_limit=wp.zeros(1, dtype=int, device=d), work=wp.zeros((b, 3), dtype=int, device=d),
+                      threads=self.row_threads)
         # two iterations per loop body, ping-pong: the second swaps `active` and `next`
         self.fronts = []
         for c in (0, 1):
@@ -171,35 +200,64 @@ class GeodesicSolver:
                       inputs=[ptr[r % 2], acc[r % 2], ptr[(r + 1) % 2], acc[(r + 1) % 2]])
         wp.launch(kg.paths.slack_apply, dim=dims, inputs=[acc[rounds % 2], self.state.dist], device=d)
 
-    def _program(self):
+    def _start(self):
         kg = _kernels()
         sh = self._front_shared
         wp.launch(kg.relax.init_rows, dim=(self.batch, self.n_nodes), inputs=[self.src_w, self.state],
                   device=self.device)
-        sh["go"].fill_(1)
         sh["iteration"].zero_()
         sh["min_pending"].zero_()  # the sources sit at distance 0
         sh["work"].zero_()
         sh["queued"].zero_()
         sh["touched_stamp"].zero_()
         wp.launch(kg.relax.init_frontier, dim=self.batch, inputs=[self.src_w, self.fronts[0]], device=self.device)
-        wp.capture_while(sh["go"], self._loop_body)
-        self._consistent()
 
-    def _run_program(self):
-        # One graph replay per batch: the loop runs on the device without host syncs. If capture is not
-        # available (old driver, CPU quirks) the same program runs with a host-side loop.
-        if self._graph is None and self._graph is not False:
+    def _loop(self):
+        wp.capture_while(self._front_shared["go"], self._loop_body)
+
+    def _launch(self, name: str, program):
+        # Each program is captured once and replayed (the loop then runs on the device without host syncs);
+        # where capture is not available the same program runs from the host.
+        graph = self._graphs.get(name)
+        if graph is None:
             try:
                 with wp.ScopedCapture(device=self.device, force_module_load=True) as cap:
-                    self._program()
-                self._graph = cap.graph
+                    program()
+                graph = cap.graph
             except Exception:  # noqa: BLE001 - any capture failure falls back to the host loop
-                self._graph = False
-        if self._graph:
-            wp.capture_launch(self._graph)
+                graph = False
+            self._graphs[name] = graph
+        if graph:
+            wp.capture_launch(graph)
         else:
-            self._program()
+            program()
+
+    def _run_program(self):
+        """Initialize, relax to convergence, make distances equal to path lengths. On the CPU the relaxation runs
+        in chunks of about CPU_CHUNK_SECONDS (between chunks Python sees Ctrl-C); on CUDA in one launch."""
+        sh = self._front_shared
+        self._launch("start", self._start)
+        done = 0
+        while True:
+            step = self.max_iter if self.device.is_cuda else self._chunk
+            sh["iteration_limit"].fill_(min(done + step, self.max_iter))
+            sh["go"].fill_(1)
+            t0 = time.perf_counter()
+            self._launch("loop", self._loop)
+            self.timings["loop_launches"] = self.timings.get("loop_launches", 0) + 1
+            done = int(sh["iteration"].numpy()[0])
+            if not self.fronts[0].active_count.numpy().any():
+                break
+            if done >= self.max_iter:
+                raise RuntimeError(f"the geodesic solver did not converge in max_iter={self.max_iter} iterations; "
+                                   "raise max_iter")
+            # keep each CPU chunk near the target time
+            took = time.perf_counter() - t0
+            if took < 0.5 * CPU_CHUNK_SECONDS:
+                self._chunk = min(self._chunk * 2, 1 << 20)
+            elif took > 2.0 * CPU_CHUNK_SECONDS:
+                self._chunk = max(self._chunk // 2, 2)
+        self._launch("finish", self._consistent)
 
     def run(self, sources: np.ndarray) -> None:
         """Solve for up to `batch` internal source vertex ids; results stay on the device (rows 0..len-1)."""

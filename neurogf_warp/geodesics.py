@@ -8,30 +8,47 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geodesic_solver import DEFAULT_DELTA, DEFAULT_K, PATH_DELTA, GeodesicSolver, load_kernels
+from .geodesic_solver import DEFAULT_DELTA, DEFAULT_K, PATH_DELTA, PATH_TOLERANCE, GeodesicSolver, load_kernels
 from .mesh import Mesh, load_mesh
 
 __all__ = ["geodesic_distances", "geodesic_paths", "GeodesicSolver", "resample_polyline", "load_kernels",
-           "DEFAULT_K", "DEFAULT_DELTA", "PATH_DELTA"]
+           "DEFAULT_K", "DEFAULT_DELTA", "PATH_DELTA", "PATH_TOLERANCE"]
 
 
-def _sources(mesh: Mesh, sources) -> np.ndarray:
-    s = np.asarray(sources)
+def _vertices(mesh: Mesh, indices, name: str) -> np.ndarray:
+    """Internal ids of user vertex indices (an int or a 1-D sequence); an empty sequence gives an empty array."""
+    s = np.asarray(indices)
     if s.ndim > 1:
-        raise ValueError("sources must be an int or a 1-D array of vertex indices")
+        raise ValueError(f"{name} must be an int or a 1-D sequence of vertex indices, got shape {s.shape}")
+    if s.size == 0:
+        return np.zeros(0, dtype=np.int64)
     return np.atleast_1d(mesh.vertex(s)).astype(np.int64)
 
 
 def geodesic_distances(mesh, sources, device=None, k: int = DEFAULT_K, windows: bool = True,
                        batch: int | None = None, delta: float = DEFAULT_DELTA) -> np.ndarray:
-    """Geodesic distances (S, V_input) float32 in the mesh's units from user vertex indices `sources`.
+    """Geodesic distances from mesh vertices to every vertex.
 
-    Unreferenced vertices are NaN, unreachable ones inf. Accuracy: `k` Steiner points per edge and
-    `windows` (exact unfolding); every value is an upper bound of the exact distance. `delta`: bucket
-    width of the delta-stepping order (speed only; 0 = plain Bellman-Ford).
+    Parameters
+    ----------
+    mesh : path, (V, F) pair, trimesh.Trimesh or Mesh
+    sources : int or (S,) int, vertex indices in the mesh's own numbering
+    device : str or warp.Device, optional
+    k : int, Steiner points per edge (accuracy)
+    windows : bool, exact unfolding windows (on: default accuracy)
+    batch : int, optional, source rows solved together (default: from free memory)
+    delta : float, delta-stepping bucket in mean edge lengths (speed only; 0 = plain Bellman-Ford)
+
+    Returns
+    -------
+    (S, V_input) float32, mesh units: inf between parts no surface path joins, NaN at vertices no face uses.
+    Every value is the length of a real surface path (an upper bound of the exact distance). An empty
+    `sources` gives a (0, V_input) array.
     """
     m = load_mesh(mesh)
-    src = _sources(m, sources)
+    src = _vertices(m, sources, "sources")
+    if len(src) == 0:
+        return np.zeros((0, m.n_input), dtype=np.float32)
     solver = GeodesicSolver(m, k=k, windows=windows, device=device, batch=batch, max_rows=len(src),
                             delta=delta)
     d = solver.solve(src) / np.float32(m.scale)
@@ -39,7 +56,19 @@ def geodesic_distances(mesh, sources, device=None, k: int = DEFAULT_K, windows: 
 
 
 def resample_polyline(points: np.ndarray, offsets: np.ndarray, m: int) -> np.ndarray:
-    """Resample each polyline points[offsets[i]:offsets[i+1]] to m points equally spaced by arc length."""
+    """Resample polylines to m points each, equally spaced by arc length.
+
+    Parameters
+    ----------
+    points : (P, 3) float, the polylines one after the other
+    offsets : (T + 1,) int, polyline i is points[offsets[i]:offsets[i+1]]
+    m : int >= 2, points per resampled polyline
+
+    Returns
+    -------
+    (T, m, 3) float32: a polyline of one point is repeated; an empty one (or one with NaN points) gives NaN.
+    """
+    m = _points_per_path(m)
     T = len(offsets) - 1
     out = np.empty((T, m, 3), dtype=np.float32)
     u = np.linspace(0.0, 1.0, m)
@@ -60,22 +89,52 @@ def resample_polyline(points: np.ndarray, offsets: np.ndarray, m: int) -> np.nda
     return out
 
 
+def _points_per_path(m) -> int:
+    if isinstance(m, bool) or not isinstance(m, (int, np.integer)):
+        raise TypeError(f"m (points per resampled path) must be an integer, got {m!r}")
+    if m < 2:
+        raise ValueError(f"m (points per resampled path) must be >= 2 (both ends), got {m}")
+    return int(m)
+
+
 def geodesic_paths(mesh, source, targets, m: int | None = None, device=None, k: int = DEFAULT_K,
                    windows: bool = True, delta: float = PATH_DELTA):
-    """Shortest surface paths from user vertex `source` to user vertices `targets`, in mesh units.
+    """Shortest surface paths from one vertex to others.
 
-    Returns a list of (n_i, 3) float64 polylines ordered from the source (empty (0,3) for unreachable
-    targets), or a (T, m, 3) array resampled by arc length when m is given (NaN rows if unreachable).
+    Parameters
+    ----------
+    mesh : path, (V, F) pair, trimesh.Trimesh or Mesh
+    source : int, vertex index in the mesh's own numbering
+    targets : int or (T,) int, vertex indices
+    m : int >= 2, optional: resample every path to m points equally spaced by arc length
+    device, k, windows, delta : as in `geodesic_distances`
+
+    Returns
+    -------
+    A list of T (n_i, 3) float64 polylines in mesh units, ordered from the source, or with m a (T, m, 3)
+    float64 array. A target no surface path reaches gives an empty (0, 3) polyline (NaN row with m); a path the
+    solver could not trace to within PATH_TOLERANCE of its distance gives a polyline of NaN (NaN row with m)
+    and is counted in the warning it raises. An empty `targets` gives [] (a (0, m, 3) array with m).
     """
+    if m is not None:
+        m = _points_per_path(m)
     msh = load_mesh(mesh)
-    s = _sources(msh, source)
+    s = _vertices(msh, source, "source")
     if len(s) != 1:
-        raise ValueError("geodesic_paths takes one source vertex")
-    tg = _sources(msh, targets)
+        raise ValueError(f"geodesic_paths takes one source vertex, got {len(s)}")
+    tg = _vertices(msh, targets, "targets")
+    if len(tg) == 0:
+        return [] if m is None else np.zeros((0, m, 3), dtype=np.float64)
     solver = GeodesicSolver(msh, k=k, windows=windows, device=device, batch=1, delta=delta)
     solver.run(s)
-    pts, offs, _ = solver.trace(np.zeros(len(tg), np.int32), tg)
+    pts, offs, flags = solver.trace(np.zeros(len(tg), np.int32), tg)
+    if np.any(flags != 0):
+        import warnings
+
+        warnings.warn(f"{int(np.sum(flags != 0))} of {len(tg)} paths could not be traced to within "
+                      f"{PATH_TOLERANCE:.1%} of their distance; they are returned as NaN", RuntimeWarning,
+                      stacklevel=2)
     pts = msh.denormalize(pts)
     if m is not None:
-        return resample_polyline(pts, offs, int(m)).astype(np.float64)
+        return resample_polyline(pts, offs, m).astype(np.float64)
     return [pts[offs[i]: offs[i + 1]] for i in range(len(tg))]

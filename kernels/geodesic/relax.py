@@ -71,7 +71,7 @@ class Frontier:
     delta: float  # bucket width (normalized units; inf: plain Bellman-Ford)
     iteration: wp.array(dtype=int)  # (1,)
     go: wp.array(dtype=int)  # (1,) 1 while any row has work (the capture_while condition)
-    max_iter: int
+    iteration_limit: wp.array(dtype=int)  # (1,) the loop stops after this iteration (work may remain)
     work: wp.array2d(dtype=int)  # (S, 3) relaxed nodes, list entries read, decoded entries
     threads: int  # threads per row of the list launches
 
@@ -224,7 +224,7 @@ def relax_frontier(graph: SteinerGraph, state: NodeState, front: Frontier):
                         front.touched[s, slot] = x
     if pmin < INF:
         wp.atomic_min(front.min_pending, s, pmin)
-        if it < front.max_iter:
+        if it < front.iteration_limit[0]:
             front.go[0] = 1
     if nread > 0:
         wp.atomic_add(front.work, s, 0, nrel)
@@ -368,5 +368,5 @@ def commit_touched(state: NodeState, staged: Staging, front: Frontier):
             front.next[s, slot] = x
     if dmin < INF:
         wp.atomic_min(front.min_pending, s, dmin)
-        if it < front.max_iter:
+        if it < front.iteration_limit[0]:
             front.go[0] = 1
