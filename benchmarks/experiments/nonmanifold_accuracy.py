@@ -3,9 +3,10 @@
     python benchmarks/experiments/nonmanifold_accuracy.py [--json out.json] [--cases a,b]
 
 Cases (tests/geodesic_meshes.py): flat discs glued at their centres and spheres touching at a vertex (analytic /
-gdist on a cut copy), cow.obj (its pinch vertex 253; shared exact reference), a book of three flat pages on one
-spine and an ellipsoid with four fins (edges with three faces), an ellipsoid with ten holes, and the same with
-150 edges split near an end (needles). Distances: relative error over all vertices except the source; paths:
+gdist on a cut copy), cow.obj (its pinch vertex 253; shared exact reference; all pairs, then only the pairs whose
+geodesic passes vertex 253), a book of three flat pages on one spine, an ellipsoid with four fins and a coarser
+one with one fin (edges with three faces), an ellipsoid with ten holes, and the same with 150 edges split near
+an end (needles). Distances: relative error over all vertices except the source; paths:
 every vertex traced from two sources, the traced length against the solver's own distance.
 """
 from __future__ import annotations
@@ -40,14 +41,20 @@ def cases():
     tm = trimesh.load(find_shared("meshes", "cow.obj"), process=False, force="mesh")
     inv = np.full(len(tm.vertices), -1)
     inv[ref["orig_index"]] = np.arange(len(ref["orig_index"]))
-    yield "cow", ref["positions"].astype(np.float64), inv[np.asarray(tm.faces)], ref["sources"], \
-        ref["dist"].astype(np.float64)
+    V, F, ex = ref["positions"].astype(np.float64), inv[np.asarray(tm.faces)], ref["dist"].astype(np.float64)
+    yield "cow", V, F, ref["sources"], ex
+    # only the pairs whose exact geodesic passes the pinch vertex 253
+    through = np.abs(ex - (ex[:, [253]] + exact_distances(V, F, [253])[0])) < 1e-6 * ex
+    yield "cow-through-pinch", V, F, ref["sources"], np.where(through, ex, np.nan)
     V, F, uv, page = M.book()
     src = np.r_[rng.choice(len(V), 5, replace=False)]
     yield "book-3-pages", V, F, src, M.book_distances(uv, page, src)
     V, F, nv = M.finned_sphere()
     src = np.r_[F[-1, 0], F[-3, 1], rng.choice(nv, 3, replace=False)]
     yield "finned-ellipsoid", V, F, src, exact_distances(V, F, src, samples=256)
+    V, F, nv = M.finned_sphere(subdivisions=2, fins=1)
+    src = np.array([F[-1, 0], 7, nv])
+    yield "finned-ellipsoid-coarse", V, F, src, exact_distances(V, F, src, samples=256)
 
     V, F = M.holed_ellipsoid()
     src = rng.choice(len(V), 5, replace=False)
