@@ -14,34 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
 from common import find_shared  # noqa: E402
-
-
-def grid_square(n=10, seed=0):
-    x, y = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
-    V = np.c_[x.ravel(), y.ravel(), np.zeros(n * n)]
-    rng = np.random.default_rng(seed)
-    F = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a, b, c, d = i * n + j, i * n + j + 1, (i + 1) * n + j, (i + 1) * n + j + 1
-            F += [[a, c, b], [b, c, d]] if rng.random() < 0.5 else [[a, c, d], [a, d, b]]
-    return V, np.array(F)
-
-
-def squashed_square(n=16, seed=1, m=60):
-    V, F = grid_square(n, seed)
-    rng = np.random.default_rng(seed)
-    interior = [i * n + j for i in range(1, n - 1) for j in range(1, n - 1)]
-    moved = set()
-    for i in rng.permutation(interior)[:m]:
-        nb = [j for j in np.unique(F[(F == i).any(1)]) if j != i and j not in moved]
-        if nb:
-            j = rng.choice(nb)
-            V[i] = V[j] + rng.choice([0.0, 1e-9, 1e-6, 1e-4]) * (V[i] - V[j])
-            moved.add(i)
-    return V, F
+from tests.geodesic_meshes import squashed_square  # noqa: E402
 
 
 def finned_sphere():

@@ -117,6 +117,15 @@ def propose(key: wp.array2d(dtype=wp.uint64), s: int, x: int, d: float, u: int) 
     return False
 
 
+@wp.func
+def pending(front: Frontier, s: int, d: float, it: int):
+    """Row s has a node left at distance d (inf: none): record the nearest, and go on unless at the limit."""
+    if d < INF:
+        wp.atomic_min(front.min_pending, s, d)
+        if it < front.iteration_limit[0]:
+            front.go[0] = 1
+
+
 @wp.kernel
 def init_rows(sources: wp.array(dtype=int), state: NodeState):
     """Every node unreached, the row's source at distance 0."""
@@ -222,10 +231,7 @@ def relax_frontier(graph: SteinerGraph, state: NodeState, front: Frontier):
                     if wp.atomic_max(front.touched_stamp, s, x, it) < it:
                         slot = wp.atomic_add(front.touched_count, s, 1)
                         front.touched[s, slot] = x
-    if pmin < INF:
-        wp.atomic_min(front.min_pending, s, pmin)
-        if it < front.iteration_limit[0]:
-            front.go[0] = 1
+    pending(front, s, pmin, it)
     if nread > 0:
         wp.atomic_add(front.work, s, 0, nrel)
         wp.atomic_add(front.work, s, 1, nread)
@@ -366,7 +372,4 @@ def commit_touched(state: NodeState, staged: Staging, front: Frontier):
             front.queued[s, x] = it
             slot = wp.atomic_add(front.next_count, s, 1)
             front.next[s, slot] = x
-    if dmin < INF:
-        wp.atomic_min(front.min_pending, s, dmin)
-        if it < front.iteration_limit[0]:
-            front.go[0] = 1
+    pending(front, s, dmin, it)
