@@ -134,7 +134,7 @@ def main(argv=None) -> int:
                 seg = np.linalg.norm(np.diff(pts.astype(np.float64), axis=0), axis=1)
                 cs = np.r_[0, np.cumsum(seg)]
                 L = cs[offs[1:] - 1] - cs[offs[:-1]]
-                ok = np.isfinite(d) & (d > 0)
+                ok = np.isfinite(d) & (d > 0) & (st == 0)  # flagged paths come back as NaN
                 lens_err.extend((np.abs(L[ok] - d[ok]) / d[ok]).tolist())
                 del P
             el = time.perf_counter() - t0

@@ -119,7 +119,8 @@ def main(argv=None):
     print(f"\n| case | V | MRE | max rel | min rel | > 0.5% | paths | flagged | path > +0.1% | max path excess |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['case']} | {r['vertices']} | {100 * r['mre']:.4f}% | {100 * r['max_rel']:.3f}% | {r['min_rel']:.1e} "
+        print(f"| {r['case']} | {r['vertices']} | {100 * r['mre']:.4f}% | {100 * r['max_rel']:.3f}% "
+              f"| {r['min_rel']:.1e} "
               f"| {r['over_0p5pct']} | {r['paths']} | {r['flagged']} | {r['path_over_0p1pct']} | "
               f"{100 * r['path_max_excess']:.3f}% |")
     if a.json:

@@ -188,7 +188,8 @@ def walk_ray(graph: SteinerGraph, cur: int, o: int, g: int, S_in: wp.vec3, max_s
         ex0 = ed
         ex1 = int(-1)
     if ok:
-        if digits != 0 or wp.length(S - wp.vec3d(node_pos(graph, o))) > wp.float64(1.0e-4) * ray_len + wp.float64(1.0e-6):
+        miss = wp.length(S - wp.vec3d(node_pos(graph, o)))
+        if digits != 0 or miss > wp.float64(1.0e-4) * ray_len + wp.float64(1.0e-6):
             # a choice left unused repeats a smaller one; a source landing off the origin: wrong faces
             return int(-1), int(-1), choices, float(walked)
         return n, int(-1), choices, float(walked)
