@@ -9,7 +9,7 @@ The pipeline, one module each: mesh -> geodesics (ground truth) -> dataset -> tr
 from .checkpoint_match import MeshMismatchWarning
 from .dataset import build_dataset, load_dataset, sample_sdf_points, sdf_truth
 from .evaluate import evaluate
-from .geodesics import geodesic_distances, geodesic_paths, steiner_dijkstra
+from .geodesics import geodesic_distances, geodesic_paths
 from .inference import distance, distance_matrix, embed, msad, path, project, sdf, ssad, warmup, warp_weights
 from .mesh import Mesh, load_mesh
 from .model import Model
@@ -22,6 +22,6 @@ __version__ = "0.1.0"
 __all__ = [
     "Mesh", "Model", "load_mesh", "load", "load_querier", "save", "MeshMismatchWarning",
     "ssad", "msad", "distance_matrix", "distance", "sdf", "path", "project", "embed", "warmup", "warp_weights",
-    "geodesic_distances", "geodesic_paths", "steiner_dijkstra",
+    "geodesic_distances", "geodesic_paths",
     "build_dataset", "load_dataset", "sdf_truth", "sample_sdf_points", "train", "evaluate",
 ]

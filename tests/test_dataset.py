@@ -6,7 +6,6 @@ import sys
 import numpy as np
 import pytest
 import trimesh
-import warp as wp
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from neurogf_warp import dataset as D  # noqa: E402
@@ -26,9 +25,9 @@ def two_blobs():
 
 @pytest.fixture(scope="module")
 def built(two_blobs, tmp_path_factory):
-    from neurogf_warp.kernels import geodesic as kg
+    from neurogf_warp.geodesics import load_kernels
 
-    wp.load_module(kg, device="cpu")
+    load_kernels("cpu")
     path = tmp_path_factory.mktemp("ds") / "blobs.npz"
     data = D.build_dataset(two_blobs, path, **SMALL)
     return path, data

@@ -1,0 +1,193 @@
+"""The Steiner graph on a triangle mesh as the solver's kernels see it: node ids, positions, face slots, edge frames.
+
+Nodes: the V mesh vertices, then k Steiner points per unique edge (node V + e*k + j sits at t = (j+1)/(k+1) from
+the edge's lower vertex to its higher one). The graph is never stored: all 3 + 3k boundary nodes of a face are
+joined to each other, so relaxing face by face visits every graph edge. A face's boundary nodes are its "slots":
+0..2 its vertices, 3 + le*k + j the j-th Steiner point of its local edge le (which joins its vertices le and
+(le + 1) % 3).
+"""
+import warp as wp
+
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})
+
+INF = wp.constant(float("inf"))
+
+
+@wp.struct
+class SteinerGraph:
+    """The mesh tables of one solver (all int32 ids; positions in the normalized frame)."""
+
+    nv: int  # mesh vertices: node ids 0..nv-1
+    k: int  # Steiner points per edge
+    windows: int  # 1: unfolding windows on; 0: the plain Steiner graph
+    pos: wp.array(dtype=wp.vec3)  # (V,) vertex positions
+    faces: wp.array2d(dtype=int)  # (F, 3)
+    edges: wp.array2d(dtype=int)  # (E, 2) unique edges, lower vertex id first
+    face_edges: wp.array2d(dtype=int)  # (F, 3) edge of each local edge
+    window_face: wp.array(dtype=wp.int8)  # (F,) 1 where windows may cross the face, 0 graph-only
+    vertex_face_start: wp.array(dtype=int)  # (V + 1,) CSR offsets into vertex_faces
+    vertex_faces: wp.array(dtype=int)  # faces around each vertex
+    edge_face_start: wp.array(dtype=int)  # (E + 1,) CSR offsets into edge_face_list
+    edge_face_list: wp.array(dtype=int)  # all faces of each edge (three or more on a non-manifold edge)
+
+
+@wp.func
+def steiner_edge(graph: SteinerGraph, n: int) -> int:
+    """The edge a Steiner node lies on (n >= nv)."""
+    return (n - graph.nv) // graph.k
+
+
+@wp.func
+def node_pos(graph: SteinerGraph, n: int) -> wp.vec3:
+    if n < graph.nv:
+        return graph.pos[n]
+    m = n - graph.nv
+    e = m // graph.k
+    j = m - e * graph.k
+    t = float(j + 1) / float(graph.k + 1)
+    a = graph.pos[graph.edges[e, 0]]
+    b = graph.pos[graph.edges[e, 1]]
+    return a + t * (b - a)
+
+
+@wp.func
+def slot_node(graph: SteinerGraph, face: int, i: int) -> int:
+    """The node in slot i of a face."""
+    if i < 3:
+        return graph.faces[face, i]
+    le = (i - 3) // graph.k
+    return graph.nv + graph.face_edges[face, le] * graph.k + (i - 3 - le * graph.k)
+
+
+@wp.func
+def slot_of(graph: SteinerGraph, face: int, n: int) -> int:
+    """The slot of node n in a face that holds it."""
+    if n < graph.nv:
+        if graph.faces[face, 0] == n:
+            return 0
+        if graph.faces[face, 1] == n:
+            return 1
+        return 2
+    m = n - graph.nv
+    e = m // graph.k
+    le = int(0)
+    if graph.face_edges[face, 1] == e:
+        le = 1
+    elif graph.face_edges[face, 2] == e:
+        le = 2
+    return 3 + le * graph.k + (m - e * graph.k)
+
+
+@wp.func
+def slots_share_edge(i: int, j: int, k: int) -> bool:
+    """Whether slots i and j of a face lie on one of its edges (a vertex slot lies on two)."""
+    # local edge le joins face vertices le and (le+1)%3: vertex slot i lies on edges i and (i+2)%3
+    ei0 = i
+    ei1 = (i + 2) % 3
+    if i >= 3:
+        ei0 = (i - 3) // k
+        ei1 = ei0
+    ej0 = j
+    ej1 = (j + 2) % 3
+    if j >= 3:
+        ej0 = (j - 3) // k
+        ej1 = ej0
+    return ei0 == ej0 or ei0 == ej1 or ei1 == ej0 or ei1 == ej1
+
+
+@wp.func
+def face_has_node(graph: SteinerGraph, face: int, n: int) -> bool:
+    if n < graph.nv:
+        return graph.faces[face, 0] == n or graph.faces[face, 1] == n or graph.faces[face, 2] == n
+    e = steiner_edge(graph, n)
+    return graph.face_edges[face, 0] == e or graph.face_edges[face, 1] == e or graph.face_edges[face, 2] == e
+
+
+@wp.func
+def common_face(graph: SteinerGraph, u: int, x: int) -> int:
+    """The face holding nodes u and x: >= 0, -2 when they share an edge (or are both vertices), -1 if none.
+    All faces of the edge are searched (three or more on a non-manifold edge)."""
+    e = -1
+    other = u
+    if x >= graph.nv:
+        e = steiner_edge(graph, x)
+    elif u >= graph.nv:
+        e = steiner_edge(graph, u)
+        other = x
+    else:
+        return -2
+    found = int(-1)
+    count = int(0)
+    for i in range(graph.edge_face_start[e], graph.edge_face_start[e + 1]):
+        f = graph.edge_face_list[i]
+        if face_has_node(graph, f, other):
+            count += 1
+            if found < 0:
+                found = f
+    if count >= 2:
+        return -2
+    return found
+
+
+@wp.func
+def other_face(graph: SteinerGraph, e: int, face: int, choice: int) -> int:
+    """A face of edge e other than `face`: the only one on a manifold edge (-1 on a boundary edge), the
+    `choice`-th (mod their number) on a non-manifold edge."""
+    start = graph.edge_face_start[e]
+    count = graph.edge_face_start[e + 1] - start
+    pick = choice % wp.max(count - 1, 1)
+    for i in range(start, start + count):
+        f = graph.edge_face_list[i]
+        if f != face:
+            if pick == 0:
+                return f
+            pick -= 1
+    return -1
+
+
+@wp.func
+def opposite_vertex(graph: SteinerGraph, face: int, e: int) -> int:
+    """The vertex of a face that is not on its edge e."""
+    a = graph.edges[e, 0]
+    b = graph.edges[e, 1]
+    c = graph.faces[face, 0]
+    if c == a or c == b:
+        c = graph.faces[face, 1]
+        if c == a or c == b:
+            c = graph.faces[face, 2]
+    return c
+
+
+@wp.func
+def edge_frame(graph: SteinerGraph, e: int):
+    """Frame of edge e: its lower vertex A, unit direction eh and length elen."""
+    A = graph.pos[graph.edges[e, 0]]
+    ev = graph.pos[graph.edges[e, 1]] - A
+    elen = wp.length(ev)
+    return A, ev / elen, elen
+
+
+@wp.func
+def position64(graph: SteinerGraph, v: int) -> wp.vec3d:
+    return wp.vec3d(graph.pos[v])
+
+
+@wp.func
+def face_normal_in_plane64(graph: SteinerGraph, e: int, face: int) -> wp.vec3d:
+    """Unit vector in the plane of a face holding edge e, normal to the edge and pointing to the face's third
+    vertex. Computed in float64 from the float32 positions: for a thin face (the third vertex close to the edge's
+    line) the float32 difference would lose the direction, while the positions themselves define it exactly."""
+    A = position64(graph, graph.edges[e, 0])
+    ev = position64(graph, graph.edges[e, 1]) - A
+    eh = ev / wp.length(ev)
+    w = position64(graph, opposite_vertex(graph, face, e)) - A
+    n = w - wp.dot(w, eh) * eh
+    ln = wp.length(n)
+    if ln <= wp.float64(0.0):
+        return wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    return n / ln
+
+
+@wp.func
+def face_normal_in_plane(graph: SteinerGraph, e: int, face: int) -> wp.vec3:
+    return wp.vec3(face_normal_in_plane64(graph, e, face))
