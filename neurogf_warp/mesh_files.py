@@ -327,8 +327,8 @@ def _trimesh_arrays(path: str, kind: str):
         # trimesh reaches for an optional text-encoding detector when a file is not UTF-8: it is not text
         raise ValueError(f"{path} is not a mesh file: it is not text that the {kind.upper()} reader understands") from None
     except Exception as e:  # trimesh raises many types for bad or unknown files
-        raise ValueError(f"could not read mesh file {path} ({kind or 'no suffix'}): "
-                         f"{type(e).__name__}: {e}") from None
+        raise ValueError(f"{path} is not a mesh file that the {kind.upper() or 'trimesh'} reader understands "
+                         f"({type(e).__name__}: {e})") from None
     faces = getattr(tm, "faces", None)
     verts = getattr(tm, "vertices", None)
     if faces is None or verts is None or len(faces) == 0:
