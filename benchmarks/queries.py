@@ -323,6 +323,8 @@ def run(a) -> dict:
 
     from neurogf_warp.kernels import tensorcore as tc
 
+    W = dict(tc.WARPS)
+
     def tuned(label, fn, settings):
         """Warp variants of one query under other tile settings (--tune): {name: callable}."""
         out = {label: fn}
@@ -394,7 +396,9 @@ def run(a) -> dict:
     res["memory"] = {"bound vertex embeddings (bytes)": bytes_kept}
     n = len(mesh.vertices)
     v1 = tuned("warp ssad, bound (fp16 tensor cores)" if cuda else "warp ssad, bound",
-               lambda: ngf.ssad(model, src, device=device, output=warp_out), [{"SSAD_MT": 1}])
+               lambda: ngf.ssad(model, src, device=device, output=warp_out),
+               [{"SSAD": (1, True)}, {"SSAD": (2, False)}, {"WARPS": {**W, "ssad": 20}},
+                {"SSAD": (1, True), "WARPS": {**W, "ssad": 12}}, {"WARPS": {**W, "ssad": 32}}])
     if cuda:
         v1["warp ssad, bound, precision=fp32"] = lambda: ngf.ssad(model, src, device=device, output=warp_out,
                                                                     precision="fp32")
@@ -409,7 +413,7 @@ def run(a) -> dict:
     with torch.no_grad():
         ref_pt = dist_build(net64, torch.float64)(xs_pt, xv).cpu().numpy()
     v2 = tuned("warp ssad, cold, point source", lambda: ngf.ssad(model, pt, device=device, output=warp_out, cache=False),
-               [{"LIFT_SSAD": (1, 4)}])
+               [{"LIFT_SSAD": (1, 4)}, {"WARPS": {**W, "lift_ssad": 12}}, {"WARPS": {**W, "lift_ssad": 24}}])
     if "ssad_cold" in want:
         v2.update(torch_forms.variants("ssad cold", dist_build, {"xs": xs_pt, "xv": xv}))
         add("ssad cold (point source)", v2, ref_pt, 2 * (M["lift"] + M["head"]) * n, n * 16)
@@ -446,7 +450,7 @@ def run(a) -> dict:
         with torch.no_grad():
             ref_m = sources_build(True, False, 1)(net64, torch.float64)(xss, xv).cpu().numpy()
         v3 = tuned("warp msad, bound", lambda: ngf.msad(model, srcs, device=device, output=warp_out),
-                   [{"SOURCE_GROUP": 1}])
+                   [{"SOURCE_GROUP": 1}, {"WARPS": {**W, "distance": 8}}, {"WARPS": {**W, "distance": 12}}])
         v3.update(torch_forms.variants("msad", sources_build(True, False), {"xss": xss, "xv": xv},
                                        sources_build(True, True)))
         add(f"msad {sizes['S_msad']} sources (bound)", v3, ref_m, 2 * M["head"] * n * sizes["S_msad"],
@@ -461,7 +465,8 @@ def run(a) -> dict:
         with torch.no_grad():
             refS = sources_build(False, False, 1)(net64, torch.float64)(xsm, xv).cpu().numpy()
         v4 = tuned(f"warp distance_matrix ({S}, V), bound",
-                   lambda: ngf.distance_matrix(model, srcm, device=device, output=warp_out), [{"SOURCE_GROUP": 1}])
+                   lambda: ngf.distance_matrix(model, srcm, device=device, output=warp_out),
+                   [{"WARPS": {**W, "distance": 8}}])
         tv = torch_forms.variants("matrix", sources_build(False, True), {"xss": xsm, "xv": xv})
         v4.update({f"{k}, cached e(x)": fn for k, fn in tv.items()})
         add(f"distance matrix {S} x V (bound)", v4, refS, 2 * M["head"] * n * S, n * (2 * 256 + 12) + 4 * S * n,
@@ -485,7 +490,8 @@ def run(a) -> dict:
                                    for i in range(0, N, 262144)]).cpu().numpy()
         v5 = tuned("warp distance", lambda: ngf.distance(model, Pt, Qt, device=device, raw=True), [])
         v5.update(tuned("warp distance, check=False",
-                        lambda: ngf.distance(model, Pt, Qt, device=device, raw=True, check=False), [{"PAIR_NC": 8}]))
+                        lambda: ngf.distance(model, Pt, Qt, device=device, raw=True, check=False),
+                        [{"PAIR_NC": 8}, {"PAIR_NC": 8, "WARPS": {**W, "pairs": 12}}]))
         v5.update(torch_forms.variants("distance", pair_build, {"p": Pn, "q": Qn}))
         add(f"distance {N} pairs", v5, ref_pairs, 2 * (2 * M["lift"] + M["head"]) * N, 28 * N, {"pairs": N})
         del Pt, Qt, Pn, Qn
@@ -504,7 +510,7 @@ def run(a) -> dict:
             ref_sdf = sdf_build(net64, None)(Xn).cpu().numpy()
         v6 = tuned("warp sdf", lambda: ngf.sdf(model, Xt, device=device), [])
         v6.update(tuned("warp sdf, check=False", lambda: ngf.sdf(model, Xt, device=device, check=False),
-                        [{"SDF_TILE": (1, 4)}, {"SDF_TILE": (2, 4)}]))
+                        [{"SDF_TILE": (1, 8)}, {"SDF_TILE": (2, 2)}, {"WARPS": {**W, "sdf": 8}}]))
         v6.update(torch_forms.variants("sdf", sdf_build, {"x": Xn}))
         add(f"sdf {N} points", v6, ref_sdf, 2 * (M["lift"] + M["head"]) * N, 16 * N)
         del Xt, Xn

@@ -95,16 +95,26 @@ def point_components(mesh: wp.uint64, pts: wp.array(dtype=wp.vec3), face_comp: w
     out[i] = face_comp[q.face]
 
 
-@wp.kernel(enable_backward=False)
-def check_points(pts: wp.array(dtype=wp.vec3), frame: mlp.Frame, limit: float, bad: wp.array(dtype=wp.int32)):
-    """bad[0] = 1 + the smallest index of a non-finite point or one outside the domain cube (normalized frame)."""
-    i = wp.tid()
-    x = mlp.to_net(frame, pts[i])
+@wp.func
+def in_domain(p: wp.vec3, frame: mlp.Frame, limit: float) -> bool:
+    x = mlp.to_net(frame, p)
     ok = wp.isfinite(x[0]) and wp.isfinite(x[1]) and wp.isfinite(x[2])
     if ok:
         ok = wp.abs(x[0]) <= limit and wp.abs(x[1]) <= limit and wp.abs(x[2]) <= limit
-    if not ok:
+    return ok
+
+
+@wp.kernel(enable_backward=False)
+def check_points(a: wp.array(dtype=wp.vec3), b: wp.array(dtype=wp.vec3), frame: mlp.Frame, limit: float,
+                 bad: wp.array(dtype=wp.int32)):
+    """bad[k] = 1 + the smallest index of a non-finite point, or one outside the domain cube (normalized frame),
+    of array k (a, then b; b may be empty)."""
+    i = wp.tid()
+    if not in_domain(a[i], frame, limit):
         wp.atomic_min(bad, 0, i + 1)
+    if b.shape[0] > 0:
+        if not in_domain(b[i], frame, limit):
+            wp.atomic_min(bad, 1, i + 1)
 
 
 @wp.kernel(enable_backward=False)

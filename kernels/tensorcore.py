@@ -34,13 +34,14 @@ MODULE_OPTIONS = {"extra_build_options": BUILD, "enable_backward": False}
 SUPPORTED_D = (64, 128, 256)  # D = 512 would need 128 registers per lane for one tile's embeddings
 FP16_MAX = 65504.0
 BLOCK_THREADS = 128  # 4 warps per block on CUDA
-WARPS_PER_SM = 16    # persistent grid: enough resident warps per multiprocessor to hide memory latency
+WARPS_PER_SM = 16    # persistent grid: resident warps per multiprocessor (the register use allows 8-20)
 CPU_WARPS = 1        # the CPU emulation runs one warp (32 fibers) through all tiles
-SSAD_MT = 2          # m-tiles per warp of the single-source kernel on kept embeddings
+SSAD = (1, False)    # (m-tiles per warp, prefetch) of the single-source kernel on kept embeddings
 SOURCE_GROUP = 2     # sources that share each weight load in the multi-source kernels
 LIFT_SSAD = (1, 8)   # (m-tiles per warp, n-tiles per chunk) of the single-source kernel without kept embeddings
-SDF_TILE = (1, 8)    # (m-tiles per warp, n-tiles per chunk) of the SDF kernel
+SDF_TILE = (2, 4)    # (m-tiles per warp, n-tiles per chunk) of the SDF kernel
 PAIR_NC = 4          # n-tiles per chunk of the pair kernel (two m-tiles: p and q)
+WARPS = {"ssad": 16, "lift_ssad": 16, "distance": 16, "pairs": 16, "sdf": 16}  # persistent warps per SM
 
 
 @wp.struct
@@ -291,13 +292,14 @@ def distance_kernel(D: int, ks0: int, lift: bool, sp: int = 1):
 
 
 @functools.lru_cache(maxsize=None)
-def ssad_kernel(D: int, mt: int = 2):
-    """One source to every row of kept packed embeddings, mt m-tiles per warp (same arguments as distance_kernel)."""
+def ssad_kernel(D: int, mt: int = 1, prefetch: bool = False):
+    """One source to every row of kept packed embeddings, mt m-tiles per warp, optionally loading the next tile
+    during this one (same arguments as distance_kernel)."""
     call = f"""
-    ngf::ssad_rows<{D}, {mt}>(H, F, (const float*)rows.pts.data, (const ngf::u32x4*)rows.cached.data, rows.n, S, O,
-                             tid >> 5, n_warps);
+    ngf::ssad_rows<{D}, {mt}, {'true' if prefetch else 'false'}>(H, F, (const float*)rows.pts.data,
+        (const ngf::u32x4*)rows.cached.data, rows.n, S, O, tid >> 5, n_warps);
 """
-    return _distance_kernel(call, f"ngf_ssad_rows_{D}_{mt}")
+    return _distance_kernel(call, f"ngf_ssad_rows_{D}_{mt}_{int(prefetch)}")
 
 
 @functools.lru_cache(maxsize=None)
@@ -436,21 +438,21 @@ def _cpu_blocks():
         wp.config.enable_cpu_blocks = old
 
 
-def warps_for(device, n_tiles: int) -> int:
+def warps_for(device, n_tiles: int, warps_per_sm: int | None = None) -> int:
     """Persistent warps for a launch over n_tiles tiles."""
     if device.is_cpu:
         return max(1, min(CPU_WARPS, n_tiles))
-    cap = device.sm_count * WARPS_PER_SM
+    cap = device.sm_count * (warps_per_sm or WARPS_PER_SM)
     return max(1, min(cap, n_tiles))
 
 
-def launch(kernel, n_tiles: int, inputs: list, device, record: bool = False):
+def launch(kernel, n_tiles: int, inputs: list, device, record: bool = False, warps_per_sm: int | None = None):
     """Launch a per-warp kernel over n_tiles tiles; its last input is the warp count, appended here.
 
     record: return a ``wp.Launch`` to replay (parameters updated with ``set_param_at_index``) instead of launching;
     its warp count stays the one for n_tiles.
     """
-    n_warps = warps_for(device, n_tiles)
+    n_warps = warps_for(device, n_tiles, warps_per_sm)
     kw = dict(dim=32 * n_warps, inputs=[*inputs, n_warps], device=device, record_cmd=record)
     if device.is_cpu:
         with _cpu_blocks():

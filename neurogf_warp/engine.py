@@ -44,7 +44,7 @@ class Engine:
     # -- kernels, all compiled by warmup() --------------------------------------------------------------------
     def kernels(self) -> dict:
         D, k = self.D, self.ks0
-        return {"embed": tc.embed_kernel(D, k), "ssad": tc.ssad_kernel(D, tc.SSAD_MT),
+        return {"embed": tc.embed_kernel(D, k), "ssad": tc.ssad_kernel(D, *tc.SSAD),
                 "ssad_lifted": tc.lift_ssad_kernel(D, k, *tc.LIFT_SSAD),
                 "distance_cached": tc.distance_kernel(D, k, False, tc.SOURCE_GROUP),
                 "distance_lifted": tc.distance_kernel(D, k, True, tc.SOURCE_GROUP), "pairs": tc.pair_kernel(D, k, tc.PAIR_NC),
@@ -102,18 +102,20 @@ class Engine:
         if not n or not count:
             return
         cached = rows.cached.shape[0] > 0
-        if count == 1:
-            kernel, mt = (tc.ssad_kernel(self.D, tc.SSAD_MT), tc.SSAD_MT) if cached else \
-                (tc.lift_ssad_kernel(self.D, self.ks0, *tc.LIFT_SSAD), tc.LIFT_SSAD[0])
+        if count == 1 and cached:
+            kind, kernel, mt = "ssad", tc.ssad_kernel(self.D, *tc.SSAD), tc.SSAD[0]
+        elif count == 1:
+            kind, kernel, mt = "lift_ssad", tc.lift_ssad_kernel(self.D, self.ks0, *tc.LIFT_SSAD), tc.LIFT_SSAD[0]
         else:
-            kernel, mt = tc.distance_kernel(self.D, self.ks0, not cached, tc.SOURCE_GROUP), 1
-        key = kernel  # one recorded launch per kernel, re-recorded when the rows change
+            kind, kernel, mt = "distance", tc.distance_kernel(self.D, self.ks0, not cached, tc.SOURCE_GROUP), 1
+        key = (kernel, tc.WARPS[kind])  # one recorded launch per kernel, re-recorded when the rows change
         cmd = self._launches.get(key)
         if cmd is None or cmd[0] is not rows:
             self._last.pop(key, None)
             tiles = -(-n // (16 * mt))
             cmd = (rows, tc.launch(kernel, tiles, [self.lifting, self.dist_head, self.frame, rows, src, self._none,
-                                                   0, 1, out, 0, 0, self.euclid], self.device, record=True))
+                                                   0, 1, out, 0, 0, self.euclid], self.device, record=True,
+                                   warps_per_sm=tc.WARPS[kind]))
             self._launches[key] = cmd
         flags = (tc.REDUCE_MIN if reduce_min else 0) | (tc.RAW if raw else 0)
         self._replay(key, cmd[1], {tc.DIST_SRC: src, tc.DIST_IDS: ids if ids is not None else self._none,
@@ -137,13 +139,14 @@ class Engine:
         n = p.shape[0]
         if n:
             tc.launch(tc.pair_kernel(self.D, self.ks0, tc.PAIR_NC), -(-n // 16),
-                      [self.lifting, self.dist_head, self.frame, p, q, n, self.euclid, int(raw), out], self.device)
+                      [self.lifting, self.dist_head, self.frame, p, q, n, self.euclid, int(raw), out], self.device,
+                      warps_per_sm=tc.WARPS["pairs"])
 
     def sdf(self, x: wp.array, out: wp.array):
         n = x.shape[0]
         if n:
             tc.launch(tc.sdf_kernel(self.D, self.ks0, *tc.SDF_TILE), -(-n // (16 * tc.SDF_TILE[0])),
-                      [self.lifting, self.sdf_head, self.frame, x, n, out], self.device)
+                      [self.lifting, self.sdf_head, self.frame, x, n, out], self.device, warps_per_sm=tc.WARPS["sdf"])
 
     def paths(self, p: wp.array, q: wp.array, out: wp.array):
         """out: (N, m) vec3, the path head's points."""

@@ -186,19 +186,42 @@ def unbind(model: Model, device=None) -> None:
 
 # ---- inputs ---------------------------------------------------------------------------------------------------------
 
-def _check_domain(model: Model, pts: wp.array, name: str):
-    """Refuse non-finite points and points outside the domain cube (one device-side pass)."""
+_NO_BAD = 2**31 - 1
+
+
+def _check_domain(model: Model, pts: wp.array, name: str, other: wp.array | None = None, other_name: str = ""):
+    """Refuse non-finite points and points outside the domain cube: one device pass over one or two arrays and
+    one read-back of two integers (the only synchronization a checked query makes)."""
     n = pts.shape[0]
     if not n:
         return
-    bad = wp.full(1, 2**31 - 1, dtype=wp.int32, device=pts.device)
-    wp.launch(finish.check_points, n, inputs=[pts, _frame(model), DOMAIN, bad], device=pts.device)
-    i = int(bad.numpy()[0])
-    if i != 2**31 - 1:
-        x = pts[i - 1: i].numpy()[0]
-        where = ("outside the model's domain (the cube of half-side 1.5 bounding radii around the mesh's "
-                 "bounding-box centre)") if np.all(np.isfinite(x)) else "non-finite (NaN or inf)"
-        raise ValueError(f"{name}[{i - 1}] = {x.tolist()} is {where}")
+    dev = pts.device
+    key = ("check", str(dev))
+    if key not in model._warp:
+        model._warp[key] = (wp.empty(2, dtype=wp.int32, device=dev),
+                            wp.empty(2, dtype=wp.int32, device="cpu", pinned=dev.is_cuda))
+    bad, host = model._warp[key]
+    bad.fill_(_NO_BAD)
+    wp.launch(finish.check_points, n, inputs=[pts, other if other is not None else _empty_vec3(model, dev),
+                                              _frame(model), DOMAIN, bad], device=dev)
+    wp.copy(host, bad)
+    if dev.is_cuda:
+        wp.synchronize_stream(dev.stream)
+    flags = host.numpy()
+    for k, (arr, label) in enumerate(((pts, name), (other, other_name))):
+        i = int(flags[k])
+        if i != _NO_BAD:
+            x = arr[i - 1: i].numpy()[0]
+            where = ("outside the model's domain (the cube of half-side 1.5 bounding radii around the mesh's "
+                     "bounding-box centre)") if np.all(np.isfinite(x)) else "non-finite (NaN or inf)"
+            raise ValueError(f"{label}[{i - 1}] = {x.tolist()} is {where}")
+
+
+def _empty_vec3(model: Model, dev) -> wp.array:
+    key = ("no_points", str(dev))
+    if key not in model._warp:
+        model._warp[key] = wp.empty(0, dtype=wp.vec3, device=dev)
+    return model._warp[key]
 
 
 def _points(model: Model, x, name: str, dev, check: bool = True):
@@ -465,8 +488,7 @@ def _pair_inputs(model, p, q, device, check: bool = True):
     if P.shape != Q.shape:
         raise ValueError(f"p and q must have the same shape (N, 3), got {P.shape[0]} and {Q.shape[0]} points")
     if check:
-        _check_domain(model, P, "p")
-        _check_domain(model, Q, "q")
+        _check_domain(model, P, "p", Q, "q")
     return dev, P, Q, kind, single_p and single_q
 
 

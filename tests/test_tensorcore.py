@@ -152,3 +152,33 @@ def test_fp16_range_is_checked():
 
     with pytest.raises(ValueError, match="fp16 range"):
         tc.pack_weights(np.full((8, 16), 1e6))
+
+
+@pytest.mark.parametrize("setting", [{"SSAD": (1, True)}, {"SSAD": (2, False)}, {"SOURCE_GROUP": 1},
+                                     {"LIFT_SSAD": (1, 4)}, {"SDF_TILE": (1, 8)}, {"PAIR_NC": 8}], ids=str)
+def test_tile_variants_agree(setting):
+    """Every tile layout the benchmarks tune computes the same numbers (same roundings, same sums per row)."""
+    from neurogf_warp.kernels import tensorcore as tc
+
+    device = "cpu" if wp.is_cpu_available() else "cuda:0"
+    rng = np.random.default_rng(3)
+    mesh = icosphere_mesh(rng, 0.0)
+    model = ngf.Model(net=random_net(64, 3, fourier=2, euclid=True), mesh=mesh, center=mesh.center, scale=mesh.scale)
+    p = mesh.vertices[rng.integers(0, len(mesh.vertices), 40)]
+    kw = dict(device=device, precision="fp16")
+
+    def run():
+        return (ngf.ssad(model, 5, **kw), ngf.ssad(model, 7, cache=False, **kw), ngf.msad(model, [1, 2, 3], **kw),
+                ngf.distance(model, p, p[::-1], **kw), ngf.sdf(model, p, **kw))
+
+    base = run()
+    old = {k: getattr(tc, k) for k in setting}
+    try:
+        for k, v in setting.items():
+            setattr(tc, k, v)
+        other = run()
+    finally:
+        for k, v in old.items():
+            setattr(tc, k, v)
+    for a, b in zip(base, other):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)

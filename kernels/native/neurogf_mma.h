@@ -645,31 +645,33 @@ NGF_FN void distance_rows(const Lifting& L, const Head& H, const Frame& f, const
 }
 
 // One source to every row of kept embeddings (SSAD on a bound model): MT m-tiles per warp share each weight
-// fragment load, and the embeddings stream through registers block by block instead of being held.
+// fragment load. PF: two register buffers take turns, the next tile's embeddings loading into one while the
+// other's tile computes, so each warp keeps memory busy.
 template <int D, int MT>
-NGF_FN void ssad_rows(const Head& H, const Frame& f, const float* pts, const u32x4* cached, int n, const Sources& S,
-                      const DistanceOut& o, int warp, int n_warps)
+struct SsadTile
 {
-    const int t = lane_id() & 3;
-    const int n_tiles = (n + 16 * MT - 1) / (16 * MT);
-    const int srow = S.row(0);
-    const u32x4* s_row = S.emb + (size_t)srow * (D / 8);
-    const float* sp = S.pos + 3 * srow;
-    const int sc = S.comp ? S.comp[srow] : 0;
-    for (int tile = warp; tile < n_tiles; tile += n_warps)
+    u32x4 seg[MT][2][D / 32];
+    int r[MT][2];
+    bool ok[MT][2];
+
+    NGF_FN void load(const u32x4* cached, int tile, int n)
     {
-        int r[MT][2];
-        bool ok[MT][2];
+        const int t = lane_id() & 3;
 #pragma unroll
         for (int m = 0; m < MT; ++m)
             tile_rows(tile, MT, m, n, r[m][0], r[m][1], ok[m][0], ok[m][1]);
-        u32x4 seg[MT][2][D / 32];
 #pragma unroll
         for (int b = 0; b < D / 32; ++b)
 #pragma unroll
             for (int m = 0; m < MT; ++m)
 #pragma unroll
                 for (int i = 0; i < 2; ++i) seg[m][i][b] = ld_stream(cached + (size_t)r[m][i] * (D / 8) + 4 * b + t);
+    }
+
+    NGF_FN void finish(const Head& H, const Frame& f, const float* pts, const u32x4* s_row, const float* sp, int sc,
+                       const DistanceOut& o) const
+    {
+        const int t = lane_id() & 3;
         float c0[MT][D / 32][4];
         zero<MT, D / 32>(c0);
 #pragma unroll
@@ -706,6 +708,42 @@ NGF_FN void ssad_rows(const Head& H, const Frame& f, const float* pts, const u32
             if (t == 1 && ok[m][1])
                 o.out[r[m][1]] = d1;
         }
+    }
+};
+
+template <int D, int MT, bool PF>
+NGF_FN void ssad_rows(const Head& H, const Frame& f, const float* pts, const u32x4* cached, int n, const Sources& S,
+                      const DistanceOut& o, int warp, int n_warps)
+{
+    const int n_tiles = (n + 16 * MT - 1) / (16 * MT);
+    const int srow = S.row(0);
+    const u32x4* s_row = S.emb + (size_t)srow * (D / 8);
+    const float* sp = S.pos + 3 * srow;
+    const int sc = S.comp ? S.comp[srow] : 0;
+    if (!PF)
+    {
+        for (int tile = warp; tile < n_tiles; tile += n_warps)
+        {
+            SsadTile<D, MT> a;
+            a.load(cached, tile, n);
+            a.finish(H, f, pts, s_row, sp, sc, o);
+        }
+        return;
+    }
+    SsadTile<D, MT> a, b;
+    if (warp < n_tiles)
+        a.load(cached, warp, n);
+    for (int tile = warp; tile < n_tiles; tile += 2 * n_warps)
+    {
+        const int next = tile + n_warps;
+        if (next < n_tiles)
+            b.load(cached, next, n);
+        a.finish(H, f, pts, s_row, sp, sc, o);
+        if (next >= n_tiles)
+            break;
+        if (next + n_warps < n_tiles)
+            a.load(cached, next + n_warps, n);
+        b.finish(H, f, pts, s_row, sp, sc, o);
     }
 }
 
