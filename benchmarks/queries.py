@@ -397,8 +397,7 @@ def run(a) -> dict:
     n = len(mesh.vertices)
     v1 = tuned("warp ssad, bound (fp16 tensor cores)" if cuda else "warp ssad, bound",
                lambda: ngf.ssad(model, src, device=device, output=warp_out),
-               [{"SSAD": (1, True)}, {"SSAD": (2, False)}, {"WARPS": {**W, "ssad": 20}},
-                {"SSAD": (1, True), "WARPS": {**W, "ssad": 12}}, {"WARPS": {**W, "ssad": 32}}])
+               [{"SSAD": (1, False)}, {"SSAD": (1, True)}, {"WARPS": {**W, "ssad": 12}}, {"WARPS": {**W, "ssad": 24}}])
     if cuda:
         v1["warp ssad, bound, precision=fp32"] = lambda: ngf.ssad(model, src, device=device, output=warp_out,
                                                                     precision="fp32")
@@ -491,7 +490,7 @@ def run(a) -> dict:
         v5 = tuned("warp distance", lambda: ngf.distance(model, Pt, Qt, device=device, raw=True), [])
         v5.update(tuned("warp distance, check=False",
                         lambda: ngf.distance(model, Pt, Qt, device=device, raw=True, check=False),
-                        [{"PAIR_NC": 8}, {"PAIR_NC": 8, "WARPS": {**W, "pairs": 12}}]))
+                        [{"PAIR_NC": 4}, {"WARPS": {**W, "pairs": 12}}]))
         v5.update(torch_forms.variants("distance", pair_build, {"p": Pn, "q": Qn}))
         add(f"distance {N} pairs", v5, ref_pairs, 2 * (2 * M["lift"] + M["head"]) * N, 28 * N, {"pairs": N})
         del Pt, Qt, Pn, Qn

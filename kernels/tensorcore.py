@@ -36,11 +36,11 @@ FP16_MAX = 65504.0
 BLOCK_THREADS = 128  # 4 warps per block on CUDA
 WARPS_PER_SM = 16    # persistent grid: resident warps per multiprocessor (the register use allows 8-20)
 CPU_WARPS = 1        # the CPU emulation runs one warp (32 fibers) through all tiles
-SSAD = (1, False)    # (m-tiles per warp, prefetch) of the single-source kernel on kept embeddings
+SSAD = (2, False)    # (m-tiles per warp, prefetch) of the single-source kernel on kept embeddings
 SOURCE_GROUP = 2     # sources that share each weight load in the multi-source kernels
 LIFT_SSAD = (1, 8)   # (m-tiles per warp, n-tiles per chunk) of the single-source kernel without kept embeddings
 SDF_TILE = (2, 4)    # (m-tiles per warp, n-tiles per chunk) of the SDF kernel
-PAIR_NC = 4          # n-tiles per chunk of the pair kernel (two m-tiles: p and q)
+PAIR_NC = 8          # n-tiles per chunk of the pair kernel (two m-tiles: p and q)
 WARPS = {"ssad": 16, "lift_ssad": 16, "distance": 16, "pairs": 16, "sdf": 16}  # persistent warps per SM
 
 
@@ -102,14 +102,16 @@ def _to_fp16(a: np.ndarray, what: str) -> np.ndarray:
 
 
 def pack_weights(W: np.ndarray, what: str = "weights", n_multiple: int = 8) -> np.ndarray:
-    """(N, K) weights -> uint32 (KS, NT, 32, 2): the B fragments of every (k-step, n-tile), lane by lane.
+    """(N, K) weights -> uint32 (KS, NT/2, 32, 4): the B fragments of every (k-step, n-tile), lane by lane.
 
-    Lane 4g + t holds b0 = (W[8n+g, 16k+2t], W[8n+g, 16k+2t+1]) and b1 = the same 8 columns further, fp16
-    pairs with the lower column in the low half. N is padded with zero rows to a multiple of ``n_multiple`` (16
-    where the output feeds another layer, whose k-steps are 16 wide) and K to a multiple of 16.
+    Lane 4g + t of n-tile n holds b0 = (W[8n+g, 16k+2t], W[8n+g, 16k+2t+1]) and b1 = the same 8 columns further,
+    fp16 pairs with the lower column in the low half; n-tiles 2j and 2j + 1 sit side by side, so a lane reads
+    both with one 16-byte load. N is padded with zero rows to a multiple of ``n_multiple`` (16 where the output
+    feeds another layer, whose k-steps are 16 wide) and to an even number of n-tiles; K to a multiple of 16.
     """
     N, K = W.shape
-    KS, NT = -(-K // 16), -(-N // n_multiple) * n_multiple // 8
+    NT = -(-N // n_multiple) * n_multiple // 8
+    KS, NT = -(-K // 16), NT + (NT & 1)
     Wp = np.zeros((NT * 8, KS * 16))
     Wp[:N, :K] = W
     h = _to_fp16(Wp, what).view(np.uint16).astype(np.uint32)
@@ -119,7 +121,9 @@ def pack_weights(W: np.ndarray, what: str = "weights", n_multiple: int = 8) -> n
     col = (np.arange(KS)[:, None, None] * 16 + 2 * t[None, None, :])       # (KS, 1, 32)
     b0 = h[rows, col] | (h[rows, col + 1] << 16)
     b1 = h[rows, col + 8] | (h[rows, col + 9] << 16)
-    return np.ascontiguousarray(np.stack([b0, b1], axis=-1), dtype=np.uint32)
+    frag = np.stack([b0, b1], axis=-1)                                      # (KS, NT, 32, 2)
+    pairs = frag.reshape(KS, NT // 2, 2, 32, 2).transpose(0, 1, 3, 2, 4)   # (KS, NT/2, 32, n-tile, word)
+    return np.ascontiguousarray(pairs.reshape(KS, NT // 2, 32, 4), dtype=np.uint32)
 
 
 def pack_lanes(v: np.ndarray, n_multiple: int = 8) -> np.ndarray:

@@ -16,7 +16,7 @@ from neurogf_warp.network import NeuroGFNet
 # the CPU emulation wherever Warp has its CPU backend (the GPU machines' installs may not), every width on a GPU
 DEVICES = ([("cpu", 64)] if wp.is_cpu_available() else []) + \
     [("cuda:0", D) for D in (64, 128, 256) if wp.get_cuda_device_count() > 0]
-TOL = 2e-3  # fp16 activations: |error| / max |value|, with margin over the ~2e-4 seen
+TOL = 2e-3  # fp16 activations against float64: |error| / max |value| (trained networks: ~1e-4)
 
 
 def random_net(D, seed, **options):
@@ -38,9 +38,73 @@ def icosphere_mesh(rng, offset):
     return ngf.load_mesh((tm.vertices * rng.uniform(0.8, 2.0, 3) + offset, tm.faces))
 
 
-def close(got, ref, what):
+def close(got, ref, what, tol=TOL):
     err = np.abs(np.asarray(got, np.float64) - ref).max() / np.abs(ref).max()
-    assert err <= TOL, f"{what}: relative error {err:.2e}"
+    assert err <= tol, f"{what}: relative error {err:.2e}"
+
+
+# ---- the kernels' arithmetic in numpy: fp16 weights and activations at the same places, sums in float64 ----------
+
+def h(x):
+    return np.asarray(x, np.float64).astype(np.float16).astype(np.float64)
+
+
+def emu_layers(net):
+    from neurogf_warp.folded import folded_layers
+
+    return folded_layers(net)
+
+
+def to_net32(mesh, x):
+    """The kernels' frame mapping in float32: (x - center) * scale."""
+    x32 = np.asarray(x, np.float32)
+    return ((x32 - mesh.center.astype(np.float32)) * np.float32(mesh.scale)).astype(np.float64)
+
+
+def emu_embed(layers, fourier, x_net):
+    """fp16 embeddings as the kernels compute them from float32 network-frame points."""
+    x = x_net.astype(np.float32).astype(np.float64)
+    feats = [x]
+    if fourier:
+        f = x[:, :, None] * (np.pi * 2.0 ** np.arange(fourier))
+        feats += [np.sin(f).reshape(len(x), -1), np.cos(f).reshape(len(x), -1)]
+    v = np.concatenate(feats, 1).astype(np.float32).astype(np.float64)
+    hi = h(v)
+    v = hi + h(v - hi)  # the high + low fp16 input of the first layer
+    (W0, b0), (W1, b1), (W2, b2) = layers["lifting"]
+    a = h(np.maximum(v @ h(W0).T + b0.astype(np.float32), 0))
+    a = h(np.maximum(a @ h(W1).T + b1.astype(np.float32), 0))
+    return h(np.maximum(a @ h(W2).T + b2.astype(np.float32), 0))
+
+
+def emu_head(head, z):
+    (W0, b0), (W1, b1), (W2, _) = head
+    a = h(np.maximum(z @ h(W0).T + b0.astype(np.float32), 0))
+    a = np.maximum(a @ h(W1).T + b1.astype(np.float32), 0)  # fp32 into the last (fp32) layer
+    return a @ W2.astype(np.float32).astype(np.float64).T[:, 0]
+
+
+def emu_distance(net, mesh, p, q):
+    L = emu_layers(net)
+    ep, eq = emu_embed(L, net.fourier, to_net32(mesh, p)), emu_embed(L, net.fourier, to_net32(mesh, q))
+    y = emu_head(L["distance"], h(np.abs(ep - eq)))
+    if net.euclid:
+        y = y + np.linalg.norm(p - q, axis=1) * mesh.scale
+    return y / mesh.scale
+
+
+def emu_sdf(net, mesh, x):
+    L = emu_layers(net)
+    return emu_head(L["sdf"], emu_embed(L, net.fourier, to_net32(mesh, x))) / mesh.scale
+
+
+def close_emu(got, ref, what):
+    """Against the emulation the kernels agree to fp32 sums, except where a sum lands on the other side of an fp16
+    rounding boundary (a few activations per run): the bulk must agree tightly, the worst point loosely. A wrong
+    fragment layout or lane mapping gives O(1) errors on most points."""
+    err = np.abs(np.asarray(got, np.float64) - ref) / np.abs(ref).max()
+    assert np.percentile(err, 90) <= 3e-5 and err.max() <= 2e-3, \
+        f"{what}: 90th percentile {np.percentile(err, 90):.1e}, max {err.max():.1e}"
 
 
 OPTIONS = [dict(fourier=2, euclid=True, path_residual=True, path_window=True), dict(fourier=0)]
@@ -64,8 +128,12 @@ def test_point_queries_match_float64(device, D, options):
         k = 6 if device == "cpu" else 200
         path_ref = net.path(to_net(p[:k]), to_net(q[:k]), 16).numpy() / mesh.scale + mesh.center
     msg = f"seed {seed}, {device}, D={D}, {options}"
-    close(ngf.distance(model, p, q, device=device, precision="fp16", raw=True), d_ref, "distance " + msg)
-    close(ngf.sdf(model, p, device=device, precision="fp16"), s_ref, "sdf " + msg)
+    d = ngf.distance(model, p, q, device=device, precision="fp16", raw=True)
+    s = ngf.sdf(model, p, device=device, precision="fp16")
+    close_emu(d, emu_distance(net, mesh, p, q), "distance (fp16 emulation) " + msg)
+    close_emu(s, emu_sdf(net, mesh, p), "sdf (fp16 emulation) " + msg)
+    close(d, d_ref, "distance " + msg, 1e-2)  # float64: fp16 rounding of random networks' activations
+    close(s, s_ref, "sdf " + msg, 1e-2)
     close(ngf.path(model, p[:k], q[:k], m=16, device=device, precision="fp16"), path_ref, "path " + msg)
     assert np.array_equal(ngf.distance(model, p, q, device=device, precision="fp16", raw=True),
                           ngf.distance(model, q, p, device=device, precision="fp16", raw=True)), msg
@@ -129,19 +197,20 @@ def test_components_and_numbering(device, D):
 
 
 def test_packing_layout():
-    """The B-fragment packing against the mma.m16n8k16 layout, element by element."""
+    """The B-fragment packing against the mma.m16n8k16 layout, element by element (odd n-tile count padded)."""
     from neurogf_warp.kernels import tensorcore as tc
 
     rng = np.random.default_rng()
-    W = rng.normal(size=(24, 40))
+    W = rng.normal(size=(24, 40))  # 3 n-tiles (padded to 4), 3 k-steps
     pk = tc.pack_weights(W)
+    assert pk.shape == (3, 2, 32, 4)
     h = lambda w: np.float16(W[w]) if w[0] < 24 and w[1] < 40 else np.float16(0.0)
     for ks in range(pk.shape[0]):
-        for nt in range(pk.shape[1]):
+        for nt in range(2 * pk.shape[1]):
             for lane in range(32):
                 g, t = lane >> 2, lane & 3
                 for j, k0 in enumerate((16 * ks + 2 * t, 16 * ks + 2 * t + 8)):
-                    word = int(pk[ks, nt, lane, j])
+                    word = int(pk[ks, nt // 2, lane, 2 * (nt % 2) + j])
                     lo = np.array([word & 0xFFFF], np.uint16).view(np.float16)[0]
                     hi = np.array([word >> 16], np.uint16).view(np.float16)[0]
                     assert lo == h((8 * nt + g, k0)) and hi == h((8 * nt + g, k0 + 1))
@@ -154,8 +223,8 @@ def test_fp16_range_is_checked():
         tc.pack_weights(np.full((8, 16), 1e6))
 
 
-@pytest.mark.parametrize("setting", [{"SSAD": (1, True)}, {"SSAD": (2, False)}, {"SOURCE_GROUP": 1},
-                                     {"LIFT_SSAD": (1, 4)}, {"SDF_TILE": (1, 8)}, {"PAIR_NC": 8}], ids=str)
+@pytest.mark.parametrize("setting", [{"SSAD": (1, True)}, {"SSAD": (1, False)}, {"SOURCE_GROUP": 1},
+                                     {"LIFT_SSAD": (1, 4)}, {"SDF_TILE": (1, 8)}, {"PAIR_NC": 4}], ids=str)
 def test_tile_variants_agree(setting):
     """Every tile layout the benchmarks tune computes the same numbers (same roundings, same sums per row)."""
     from neurogf_warp.kernels import tensorcore as tc

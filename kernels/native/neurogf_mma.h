@@ -45,6 +45,12 @@ NGF_FN u32x2 ld_weights(const u32x2* p)
     asm("ld.global.nc.v2.u32 {%0,%1}, [%2];" : "=r"(r.x), "=r"(r.y) : "l"(p));
     return r;
 }
+NGF_FN u32x4 ld_weights4(const u32x4* p)
+{
+    u32x4 r;
+    asm("ld.global.nc.v4.u32 {%0,%1,%2,%3}, [%4];" : "=r"(r.x), "=r"(r.y), "=r"(r.z), "=r"(r.w) : "l"(p));
+    return r;
+}
 NGF_FN f32x2 ld_table(const f32x2* p)
 {
     f32x2 r;
@@ -153,6 +159,7 @@ inline float shfl_xor(float v, int mask)
 }
 
 inline u32x2 ld_weights(const u32x2* p) { return *p; }
+inline u32x4 ld_weights4(const u32x4* p) { return *p; }
 inline f32x2 ld_table(const f32x2* p) { return *p; }
 inline u32x4 ld_table4(const u32x4* p) { return *p; }
 inline u32x4 ld_stream(const u32x4* p) { return *p; }
@@ -179,7 +186,9 @@ NGF_FN float relu(float x) { return x > 0.0f ? x : 0.0f; }
 NGF_FN float min2(float a, float b) { return b < a ? b : a; }
 
 // ---- layers -------------------------------------------------------------------------------------------------
-// A layer of K inputs and N outputs is packed as KS = K/16 k-steps x NT = N/8 n-tiles of 32 lanes x (b0, b1).
+// A layer of K inputs and N outputs is packed as KS = K/16 k-steps x NT = N/8 n-tiles (NT even, padded with a zero
+// n-tile), n-tiles in pairs: for k-step k, pair j, lane l the 16 bytes (b0, b1) of n-tile 2j and of n-tile 2j + 1,
+// so one load serves two n-tiles.
 
 template <int MT, int NT>
 NGF_FN void zero(float (&c)[MT][NT][4])
@@ -193,19 +202,33 @@ NGF_FN void zero(float (&c)[MT][NT][4])
 }
 
 // c[m] += a[m] W for k-steps [KS0, KS0 + KS) of the packed layer w (NTW n-tiles per k-step), n-tiles [NT0, NT0 + NT)
+// (NT0 even)
 template <int MT, int KS, int NT>
 NGF_FN void dense(const u32 (&a)[MT][KS][4], const u32x2* w, int ntw, int ks0, int nt0, float (&c)[MT][NT][4])
 {
     const int lane = lane_id();
 #pragma unroll
     for (int k = 0; k < KS; ++k)
+    {
+        const u32x2* row = w + (size_t)(ks0 + k) * ntw * 32;
 #pragma unroll
-        for (int n = 0; n < NT; ++n)
+        for (int n = 0; n + 1 < NT; n += 2)
         {
-            const u32x2 b = ld_weights(w + ((ks0 + k) * ntw + nt0 + n) * 32 + lane);
+            const u32x4 b = ld_weights4((const u32x4*)row + ((nt0 + n) / 2) * 32 + lane);
 #pragma unroll
-            for (int m = 0; m < MT; ++m) mma(c[m][n], a[m][k], b);
+            for (int m = 0; m < MT; ++m)
+            {
+                mma(c[m][n], a[m][k], u32x2{b.x, b.y});
+                mma(c[m][n + 1], a[m][k], u32x2{b.z, b.w});
+            }
         }
+        if (NT & 1)  // a last single n-tile: the even one of its pair
+        {
+            const u32x2 b = ld_weights(row + (((nt0 + NT - 1) / 2) * 32 + lane) * 2);
+#pragma unroll
+            for (int m = 0; m < MT; ++m) mma(c[m][NT - 1], a[m][k], b);
+        }
+    }
 }
 
 // bias (lane-packed: n-tile n, lane t holds the bias of columns 8n + 2t, 8n + 2t + 1) and ReLU, in place
@@ -1064,7 +1087,7 @@ NGF_FN void path_point_rows(const PathWeights& W, const Frame& f, const float* p
         to_a<1, P3 / 8>(c2, a3);
         float y[1][1][4];
         zero<1, 1>(y);
-        dense<1, P3 / 16, 1>(a3, W.w3, 1, 0, 0, y);
+        dense<1, P3 / 16, 1>(a3, W.w3, 2, 0, 0, y);
         // lane t holds output columns 2t, 2t+1 of rows g and g+8: columns 0, 1 (t = 0) and 2 (t = 1) are xyz
         if (t < 2)
         {
