@@ -140,6 +140,13 @@ def ceilings(device: str) -> dict:
     return {"fp16_flops": 2 * 8192**3 / gemm, "bandwidth": 2 * 4 * (1 << 30) / copy}
 
 
+def _levels_of(m: int) -> list:
+    out = [m]
+    while len(out) < 3 and out[0] // 2 >= 8:
+        out.insert(0, out[0] // 2)
+    return out
+
+
 def rel_err(got, ref) -> float:
     g = np.asarray(got, dtype=np.float64).reshape(-1)
     r = np.asarray(ref, dtype=np.float64).reshape(-1)
@@ -246,9 +253,11 @@ def run(a) -> dict:
     cuda = dev.is_cuda
     quick = a.quick or not cuda
     M = macs()
-    sizes = dict(V=436_000, S_msad=8, S_matrix=64, pairs=4_000_000, sdf=1_000_000, paths=10_000, m=128)
+    sizes = dict(V=436_000, S_msad=8, S_matrix=64, pairs=4_000_000, sdf=1_000_000, paths=10_000, m=128,
+                 refine_pairs=1000, refine=50, refine_check=64)
     if quick:
-        sizes = dict(V=6_000, S_msad=8, S_matrix=16, pairs=20_000, sdf=20_000, paths=200, m=128)
+        sizes = dict(V=6_000, S_msad=8, S_matrix=16, pairs=20_000, sdf=20_000, paths=200, m=128,
+                     refine_pairs=4, refine=3, refine_check=2)
     for kv in a.size:
         k, v = kv.split("=")
         sizes[k] = int(v)
@@ -536,6 +545,37 @@ def run(a) -> dict:
         add(f"path {N} pairs x {m} points", v7, ref_path, 2 * (M["per_path"] + m * M["point"]) * N, (24 + 12 * m) * N)
 
 
+    # path refinement (no PyTorch form exists): time at the issue's size, agreement with the fp32 method
+    if "refine" in want:
+        N, m, sweeps = sizes["refine_pairs"], sizes["m"], sizes["refine"]
+        vi = rng.integers(0, n, (N, 2))
+        P = wp.array(mesh.vertices[vi[:, 0]].astype(np.float32), dtype=wp.vec3, device=device)
+        Q = wp.array(mesh.vertices[vi[:, 1]].astype(np.float32), dtype=wp.vec3, device=device)
+        run16 = lambda: ngf.path(model, P, Q, m=m, refine=sweeps, device=device)
+        out16 = run16().numpy()
+        t16 = Timer(device, 2, 3)(run16)
+        k = min(sizes["refine_check"], N)
+        t = time.perf_counter()
+        out32 = ngf.path(model, P[:k], Q[:k], m=m, refine=sweeps, device=device, precision="fp32").numpy()
+        wp.synchronize()
+        t32 = (time.perf_counter() - t) * N / k
+        length = lambda x: np.linalg.norm(np.diff(x, axis=1), axis=2).sum(1)
+        from neurogf_warp.losses import chamfer_l1
+
+        cd = chamfer_l1(mesh.normalize(out16[:k].reshape(-1, 3)).reshape(k, m, 3),
+                        mesh.normalize(out32.reshape(-1, 3)).reshape(k, m, 3))
+        sdf_res = np.abs(ngf.sdf(model, out16[:, 1:-1].reshape(-1, 3), device=device, precision="fp32")) * mesh.scale
+        row = {"query": f"path refine={sweeps}, {N} pairs x {m} points", "variant": "warp path(refine) fp16",
+               "ms": t16 * 1e3, "fp32_ms_scaled": t32 * 1e3,
+               "length_rel_diff_vs_fp32": float(np.mean(np.abs(length(out16[:k]) - length(out32)) / length(out32))),
+               "chamfer_vs_fp32": float(cd.mean()), "surface_residual_max": float(sdf_res.max()),
+               "surface_residual_mean": float(sdf_res.mean()), "sdf_evaluations": 4 * 3 * N * sum(
+                   mm * (sweeps + (2 if i == 0 else 2)) for i, mm in enumerate(_levels_of(m))) + 4 * 3 * N * m * 4}
+        res["rows"].append(row)
+        print(f"  refine: fp16 {t16 * 1e3:.1f} ms for {N} pairs; fp32 {t32 * 1e3:.0f} ms (scaled from {k}); length "
+              f"diff {row['length_rel_diff_vs_fp32']:.2e}, Chamfer vs fp32 {row['chamfer_vs_fp32']:.2e}, surface "
+              f"residual max {row['surface_residual_max']:.1e} (normalized)", flush=True)
+
     res["compile_s"].update(torch_forms.compile_s)
     if not a.no_mre:
         res["released_mre"] = released_mre(device, cuda)
@@ -572,6 +612,11 @@ def table(res: dict) -> str:
              f"{'query':34s} {'variant':52s} {'ms/call':>9s} {'device ms':>9s} {'vs best torch':>13s} {'floor ms':>9s} "
              f"{'roofline':>8s} {'rel err':>8s}"]
     for r in res["rows"]:
+        if "fp32_ms_scaled" in r:
+            lines.append(f"{r['query'][:34]:34s} {r['variant'][:52]:52s} {r['ms']:9.1f} (fp32 method {r['fp32_ms_scaled']:.0f}"
+                         f" ms; lengths within {r['length_rel_diff_vs_fp32']:.1e}, Chamfer to it "
+                         f"{r['chamfer_vs_fp32']:.1e}, on-surface max {r['surface_residual_max']:.1e})")
+            continue
         if "ms" in r:
             dev_ms = f"{r['device_ms']:9.4f}" if "device_ms" in r else " " * 9
             lines.append(f"{r['query'][:34]:34s} {r['variant'][:52]:52s} {r['ms']:9.4f} {dev_ms} "
@@ -601,8 +646,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-compile", action="store_true", help="skip the torch.compile variants")
     ap.add_argument("--no-mre", action="store_true", help="skip the released checkpoints' MRE")
     ap.add_argument("--torch-out", action="store_true", help="Warp results as torch tensors instead of wp.arrays")
-    ap.add_argument("--queries", default="ssad_bound,ssad_cold,msad,matrix,distance,sdf,path",
-                    help="comma-separated subset of ssad_bound, ssad_cold, msad, matrix, distance, sdf, path")
+    ap.add_argument("--queries", default="ssad_bound,ssad_cold,msad,matrix,distance,sdf,path,refine",
+                    help="comma-separated subset of ssad_bound, ssad_cold, msad, matrix, distance, sdf, path, refine")
     ap.add_argument("--tune", action="store_true", help="also time the Warp queries under other tile settings")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None, help="output JSON (default: $OUT/queries.json or benchmarks/queries.json)")

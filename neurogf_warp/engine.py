@@ -10,7 +10,7 @@ import numpy as np
 import warp as wp
 
 from .folded import folded_layers
-from .kernels import mlp
+from .kernels import mlp, refine
 from .kernels import tensorcore as tc
 
 __all__ = ["Engine", "supported"]
@@ -162,3 +162,25 @@ class Engine:
                   [self.path_head, ends[: n * D // 2], ends[n * D // 2:], n, pre], self.device)
         tc.launch(tc.path_points_kernel(*self.path_widths), -(-(n * m) // 16),
                   [self.path_head, self.frame, p, q, pre, n, m, out], self.device)
+
+    # -- path shortening on the SDF surface ----------------------------------------------------------------------
+    def newton_steps(self, x: wp.array, starts: wp.array, ends: wp.array, steps: int, midpoints: bool, h: float,
+                     scratch: dict) -> wp.array:
+        """``steps`` Newton steps onto the SDF surface for the inner points of paths x (N, m) (ends pinned to
+        starts/ends), each from the midpoint of its neighbours when ``midpoints`` (a shortening sweep); every
+        SDF value in one batched launch per step. Returns the result (x itself is left unchanged)."""
+        n, m = x.shape
+        if (n, m) != scratch.get("shape"):
+            scratch.update(shape=(n, m), pts=wp.empty(4 * n * m, dtype=wp.vec3, device=self.device),
+                           s=wp.empty(4 * n * m, dtype=wp.float32, device=self.device),
+                           y=[wp.empty((n, m), dtype=wp.vec3, device=self.device) for _ in range(2)])
+        pts, s, ys = scratch["pts"], scratch["s"], scratch["y"]
+        cur = x
+        for k in range(steps):
+            y = ys[k % 2] if ys[k % 2] is not cur else ys[(k + 1) % 2]
+            wp.launch(refine.stencil, (n, m), inputs=[cur, int(midpoints and k == 0), h], outputs=[pts],
+                      device=self.device)
+            self.sdf(pts, s)
+            wp.launch(refine.newton, (n, m), inputs=[pts, s, h, starts, ends], outputs=[y], device=self.device)
+            cur = y
+        return cur

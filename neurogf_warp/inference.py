@@ -36,6 +36,7 @@ from .arrays import Output, as_points, resolve_device
 from .engine import Engine, supported
 from .folded import BN_EPS, fold_batchnorm  # noqa: F401  (fold_batchnorm: public since the first release)
 from .kernels import finish, head_fp32, mlp
+from .kernels import refine as refine_kernels
 from .model import Model
 
 __all__ = ["fold_batchnorm", "warp_weights", "ssad", "msad", "distance_matrix", "distance", "sdf", "path",
@@ -589,7 +590,7 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, device=None, precisi
         else:
             _head_paths(model, P, Q, res, dev)
     elif n:
-        _refined_paths(model, P, Q, res, int(refine), dev)
+        _refined_paths(model, P, Q, res, int(refine), dev, prec)
     if n:
         comps = _pair_components(model, P, Q, dev)
         if comps is not None:
@@ -603,32 +604,52 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, device=None, precisi
     return r[0] if single else r
 
 
-def _refined_paths(model: Model, P, Q, res, refine: int, dev):
+def _refined_paths(model: Model, P, Q, res, refine: int, dev, prec: str):
     n, m = res.shape
-    w, frame, levels = warp_weights(model, dev), _frame(model), _levels(m)
+    levels = _levels(m)
     cand = wp.empty((3 * n, levels[0]), dtype=wp.vec3, device=dev)
-    _head_paths(model, P, Q, cand[:n], dev)
-    _head_paths(model, Q, P, cand[n:2 * n], dev)
+    if prec == "fp16":
+        eng = _engine(model, dev)
+        eng.paths(P, Q, cand[:n])
+        eng.paths(Q, P, cand[n:2 * n])
+    else:
+        _head_paths(model, P, Q, cand[:n], dev)
+        _head_paths(model, Q, P, cand[n:2 * n], dev)
     wp.launch(mlp.straight_paths, (n, levels[0]), inputs=[P, Q], outputs=[cand[2 * n:]], device=dev)
     starts, ends = wp.empty(3 * n, dtype=wp.vec3, device=dev), wp.empty(3 * n, dtype=wp.vec3, device=dev)
     for c, (a, b) in enumerate(((P, Q), (Q, P), (P, Q))):
         wp.copy(starts, a, dest_offset=c * n, count=n)
         wp.copy(ends, b, dest_offset=c * n, count=n)
-    for level, ml in enumerate(levels):
-        if level:
-            finer = wp.empty((3 * n, ml), dtype=wp.vec3, device=dev)
-            wp.launch(mlp.resample_paths, finer.shape, inputs=[cand], outputs=[finer], device=dev)
-            cand = finer
-        wp.launch(mlp.pin_and_project, cand.shape, inputs=[w, starts, ends, frame, PROJECT_STEPS],
+    if prec == "fp16":
+        # the same schedule with batched tensor-core SDF evaluations (kernels/refine.py)
+        h = refine_kernels.FD_STEP / (model.scale if model.in_mesh_frame else 1.0)
+        scratch = {}
+        for level, ml in enumerate(levels):
+            if level:
+                finer = wp.empty((3 * n, ml), dtype=wp.vec3, device=dev)
+                wp.launch(mlp.resample_paths, finer.shape, inputs=[cand], outputs=[finer], device=dev)
+                cand = finer
+            cand = wp.clone(eng.newton_steps(cand, starts, ends, PROJECT_STEPS, False, h, scratch))
+            for _ in range(refine):
+                cand = eng.newton_steps(cand, starts, ends, 1, True, h, scratch)
+        cand = eng.newton_steps(cand, starts, ends, 2 * PROJECT_STEPS, False, h, scratch)
+    else:
+        w, frame = warp_weights(model, dev), _frame(model)
+        for level, ml in enumerate(levels):
+            if level:
+                finer = wp.empty((3 * n, ml), dtype=wp.vec3, device=dev)
+                wp.launch(mlp.resample_paths, finer.shape, inputs=[cand], outputs=[finer], device=dev)
+                cand = finer
+            wp.launch(mlp.pin_and_project, cand.shape, inputs=[w, starts, ends, frame, PROJECT_STEPS],
+                      outputs=[cand], device=dev)
+            tmp = wp.empty_like(cand)
+            for _ in range(refine):
+                wp.launch(mlp.relax_paths, cand.shape, inputs=[w, cand, frame, 1], outputs=[tmp], device=dev)
+                cand, tmp = tmp, cand
+        # a sweep takes one Newton step from the midpoint; at a crease the chord's midpoint lies deeper than
+        # one step reaches, so the result gets a full projection
+        wp.launch(mlp.pin_and_project, cand.shape, inputs=[w, starts, ends, frame, 2 * PROJECT_STEPS],
                   outputs=[cand], device=dev)
-        tmp = wp.empty_like(cand)
-        for _ in range(refine):
-            wp.launch(mlp.relax_paths, cand.shape, inputs=[w, cand, frame, 1], outputs=[tmp], device=dev)
-            cand, tmp = tmp, cand
-    # a sweep takes one Newton step from the midpoint; at a crease the chord's midpoint lies deeper than
-    # one step reaches, so the result gets a full projection
-    wp.launch(mlp.pin_and_project, cand.shape, inputs=[w, starts, ends, frame, 2 * PROJECT_STEPS],
-              outputs=[cand], device=dev)
     rev = wp.array([0, 1, 0], dtype=wp.int32, device=dev)
     wp.launch(mlp.pick_shortest, (n, m), inputs=[cand, 3, rev], outputs=[res], device=dev)
 
