@@ -107,3 +107,180 @@ def test_snap_to_mesh_shapes_kinds_and_errors():
         snap_to_mesh(tm, np.full((2, 3), np.nan), device=DEV)
     with pytest.raises(ValueError, match="has no mesh"):
         snap_to_mesh(ngf.Model(net=ngf.network.NeuroGFNet(64)), paths, device=DEV)
+
+
+# ---- gradients inside user kernels ------------------------------------------------------------------
+
+from neurogf_warp.kernels import field  # noqa: E402
+from neurogf_warp.warp_structs import frame, source_set  # noqa: E402
+from tests.test_inference import random_net, released  # noqa: E402
+
+FD_STEP = 1e-6  # finite differences of the float64 torch forward pass, normalized frame
+
+
+def _fd_error(got, sided):
+    """Relative error of gradients (N, 3) against one-sided differences (2, N, 3): per component the closer of
+    the forward and backward difference, so that a ReLU kink within FD_STEP on one side does not count."""
+    err = np.abs(got[None] - sided).min(0)
+    return np.linalg.norm(err, axis=-1) / np.maximum(np.linalg.norm(got, axis=-1), 1e-12)
+
+
+@wp.kernel(enable_backward=False)
+def _pair_queries(net: field.NeuroGFWeights, p: wp.array(dtype=wp.vec3), q: wp.array(dtype=wp.vec3),
+                  d: wp.array(dtype=float), gp: wp.array(dtype=wp.vec3), gq: wp.array(dtype=wp.vec3),
+                  s: wp.array(dtype=float), gs: wp.array(dtype=wp.vec3)):
+    """What a user kernel does: distance and both gradients, SDF and its gradient."""
+    i = wp.tid()
+    a, g = field.distance_and_gradient(net, p[i], q[i])
+    b, h = field.distance_and_gradient(net, q[i], p[i])
+    d[i] = a
+    gp[i] = g
+    gq[i] = h
+    c, n = field.signed_distance_and_gradient(net, p[i])
+    s[i] = c
+    gs[i] = n
+
+
+@wp.kernel(enable_backward=False)
+def _source_queries(net: field.NeuroGFWeights, src: field.SourceSet, fr: field.Frame, x: wp.array(dtype=wp.vec3),
+                    d: wp.array(dtype=float), d2: wp.array(dtype=float), g: wp.array(dtype=wp.vec3),
+                    arg: wp.array(dtype=int), d3: wp.array(dtype=float), t: wp.array(dtype=wp.vec3)):
+    """Mesh-frame points through the frame; distances back in mesh units."""
+    i = wp.tid()
+    y = field.to_net(fr, x[i])
+    d[i] = field.distance_to_sources(net, src, y) * fr.dscale
+    a, b, c = field.distance_to_sources_and_gradient(net, src, y)
+    d2[i] = a * fr.dscale
+    g[i] = b
+    arg[i] = c
+    e, f = field.geodesic_direction(net, src, y)
+    d3[i] = e * fr.dscale
+    t[i] = f
+
+
+def _run_pairs(model, p, q):
+    n = len(p)
+    P, Q = (wp.array(a.astype(np.float32), dtype=wp.vec3, device=DEV) for a in (p, q))
+    outs = [wp.zeros(n, dtype=float, device=DEV), wp.zeros(n, dtype=wp.vec3, device=DEV),
+            wp.zeros(n, dtype=wp.vec3, device=DEV), wp.zeros(n, dtype=float, device=DEV),
+            wp.zeros(n, dtype=wp.vec3, device=DEV)]
+    wp.launch(_pair_queries, n, inputs=[model.warp_struct(DEV), P, Q], outputs=outs, device=DEV)
+    return [o.numpy() for o in outs]
+
+
+def _torch_grads(net, p, q):
+    """float64 torch autograd at the float32-rounded points: d, d/dp, d/dq, sdf, d sdf/dp."""
+    P = torch.from_numpy(p.astype(np.float32).astype(np.float64)).requires_grad_(True)
+    Q = torch.from_numpy(q.astype(np.float32).astype(np.float64)).requires_grad_(True)
+    d = net.distance(P, Q)
+    gp, gq = torch.autograd.grad(d.sum(), (P, Q))
+    X = P.detach().clone().requires_grad_(True)
+    s = net.sdf(X)
+    gs, = torch.autograd.grad(s.sum(), X)
+    with torch.no_grad():  # one-sided differences, independent of autograd: (forward, backward), (2, N, 3)
+        eye = FD_STEP * torch.eye(3, dtype=torch.float64)
+        P0, Q0 = P.detach(), Q.detach()
+        sided = lambda f: torch.stack([torch.stack([(f(P0 + h * eye[c]) - f(P0)) / (h * FD_STEP) for c in range(3)], -1)
+                                       for h in (1.0, -1.0)])
+        fd = sided(lambda x: net.distance(x, Q0))
+        fds = sided(net.sdf)
+    return d.detach().numpy(), gp.numpy(), gq.numpy(), s.detach().numpy(), gs.numpy(), fd.numpy(), fds.numpy()
+
+
+def _rel(a, b):
+    return np.linalg.norm(a - b, axis=-1) / np.maximum(np.linalg.norm(b, axis=-1), 1e-12)
+
+
+def _check_gradients(model, p, q, msg):
+    d, gp, gq, s, gs = _run_pairs(model, p, q)
+    rd, rgp, rgq, rs, rgs, fd, fds = _torch_grads(model.net.double().eval(), p, q)
+    assert np.abs(d - rd).max() <= 1e-5 * np.abs(rd).max(), msg
+    assert np.abs(s - rs).max() <= 1e-5 * np.abs(rs).max() + 1e-7, msg
+    # against float64 autograd and float64 finite differences: float32 weights and activations give ~1e-6; a
+    # point whose float32 pre-activation falls on the other side of a ReLU kink than in float64 may differ more,
+    # so allow 1% of such points
+    for r, what in ((_rel(gp, rgp), "d/dp"), (_rel(gq, rgq), "d/dq"), (_rel(gs, rgs), "d sdf/dx"),
+                    (_fd_error(gp, fd), "d/dp vs FD"), (_fd_error(gs, fds), "d sdf/dx vs FD")):
+        assert np.median(r) <= 1e-5 and np.mean(r > 1e-4) <= 0.01, f"{msg}, {what}: {np.quantile(r, [0.5, 0.99, 1])}"
+    return _rel(gp, rgp), _fd_error(gp, fd)
+
+
+@pytest.mark.parametrize("D,options", [(64, {}), (128, dict(fourier=3, euclid=True)), (512, dict(euclid=True))])
+def test_gradients_match_autograd_and_differences_random_nets(D, options):
+    seed = fresh_seed()
+    rng = np.random.default_rng(seed)
+    model = ngf.Model(net=random_net(D, seed, **options))
+    p, q = rng.uniform(-1, 1, (96, 3)), rng.uniform(-1, 1, (96, 3))
+    _check_gradients(model, p, q, f"seed {seed}, D={D}, {options}")
+
+
+@pytest.mark.parametrize("name", ["fandisk", "bunny"])
+def test_gradients_match_autograd_and_differences_released(name):
+    seed = fresh_seed()
+    rng = np.random.default_rng(seed)
+    model = released(name)
+    ref = np.load(shared_path_official(name))
+    p = ref["p"][rng.permutation(256)[:64]]
+    q = ref["q"][rng.permutation(256)[:64]]
+    _check_gradients(model, p + rng.normal(0, 0.01, p.shape), q, f"seed {seed}, {name}")
+
+
+def shared_path_official(name):
+    from tests.conftest import shared_path
+
+    return shared_path("reference", "official", f"{name}.npz")
+
+
+def test_source_set_in_mesh_frame():
+    """A bound source set on the released fandisk model: distances in mesh units equal msad(); the gradient is
+    the nearest source's, against float64 autograd; the direction is a unit tangent vector going downhill."""
+    seed = fresh_seed()
+    rng = np.random.default_rng(seed)
+    model = released("fandisk", mesh=True)
+    mesh = model.mesh
+    srcs = rng.choice(mesh.n_input, 3, replace=False)
+    verts = rng.choice(len(mesh.vertices), 48, replace=False)
+    x = mesh.vertices[verts]
+    n = len(x)
+    outs = [wp.zeros(n, dtype=float, device=DEV), wp.zeros(n, dtype=float, device=DEV),
+            wp.zeros(n, dtype=wp.vec3, device=DEV), wp.zeros(n, dtype=int, device=DEV),
+            wp.zeros(n, dtype=float, device=DEV), wp.zeros(n, dtype=wp.vec3, device=DEV)]
+    wp.launch(_source_queries, n, inputs=[model.warp_struct(DEV), source_set(model, srcs, DEV), frame(model),
+                                          wp.array(x.astype(np.float32), dtype=wp.vec3, device=DEV)],
+              outputs=outs, device=DEV)
+    d, d2, g, arg, d3, t = (o.numpy() for o in outs)
+    msg = f"seed {seed}"
+    ref = ngf.msad(model, srcs, device=DEV)[mesh.index[verts]]
+    np.testing.assert_allclose(d, ref, rtol=1e-5, atol=1e-6 * ref.max(), err_msg=msg)
+    np.testing.assert_array_equal(d, d2)
+    np.testing.assert_array_equal(d, d3)
+    net = model.net.double().eval()
+    X = torch.from_numpy(mesh.normalize(x).astype(np.float32).astype(np.float64)).requires_grad_(True)
+    S = torch.from_numpy(mesh.normalize(mesh.vertices[mesh.vertex(srcs)]).astype(np.float32).astype(np.float64))
+    all_d = torch.stack([net.distance(X, S[k].expand_as(X)) for k in range(len(S))])  # (3, n)
+    best = all_d.argmin(0)
+    gap = (all_d.sort(0).values[1] - all_d.min(0).values).detach().numpy()
+    clear = gap > 1e-4  # not on a ridge between two sources
+    assert np.all(arg[clear] == best.numpy()[clear]), msg
+    gx, = torch.autograd.grad(all_d.min(0).values.sum(), X)
+    r = _rel(g, gx.numpy())[clear]
+    assert np.median(r) <= 1e-5 and np.mean(r > 1e-4) <= 0.02, f"{msg}: {np.quantile(r, [0.5, 1])}"
+    Y = X.detach().clone().requires_grad_(True)
+    nrm, = torch.autograd.grad(net.sdf(Y).sum(), Y)
+    nn = np.linalg.norm(nrm.numpy(), axis=1, keepdims=True)
+    nrm = nrm.numpy() / np.maximum(nn, 1e-30)
+    # away from the sources, where the direction is defined, and where the SDF head is not flat (a trained head
+    # can have every unit of a layer off at a few points: gradient 0, no tangent plane)
+    far = clear & (d > 0.05 * d.max()) & (nn[:, 0] > 1e-3)
+    tl = np.linalg.norm(t, axis=1)
+    assert np.allclose(tl[far], 1, atol=1e-5), msg
+    assert np.abs((t * nrm).sum(1))[far].max() <= 1e-4, msg  # tangent to the SDF level set
+    assert np.all((t * gx.numpy()).sum(1)[far] < 0), msg  # downhill
+
+
+def test_source_set_bad_input():
+    model = released("fandisk", mesh=True)
+    with pytest.raises(ValueError, match="sources is empty"):
+        source_set(model, np.zeros((0, 3)), DEV)
+    with pytest.raises(IndexError, match="out of range"):
+        source_set(model, [10**7], DEV)
