@@ -13,6 +13,7 @@ from .inference import distance, embed, msad, path, project, sdf, ssad, warp_wei
 from .mesh import Mesh, load_mesh
 from .model import Model
 from .model_io import load, load_querier, save
+from .render import render, write_ply  # after the submodule import, so `neurogf_warp.render` is the function
 from .train import train  # after the submodule import, so `neurogf_warp.train` is the function
 
 
@@ -22,5 +23,5 @@ __all__ = [
     "Mesh", "Model", "load_mesh", "load", "load_querier", "save",
     "ssad", "msad", "distance", "sdf", "path", "project", "embed", "warp_weights",
     "geodesic_distances", "geodesic_paths", "steiner_dijkstra",
-    "build_dataset", "load_dataset", "sdf_truth", "sample_sdf_points", "train", "evaluate",
+    "build_dataset", "load_dataset", "sdf_truth", "sample_sdf_points", "train", "evaluate", "render", "write_ply",
 ]
