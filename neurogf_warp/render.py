@@ -37,7 +37,7 @@ COLOR_STOPS = np.array([
 ])
 SOURCE_COLOR = (1.00, 0.80, 0.08)  # gold spheres at the sources
 POINT_COLOR = (0.96, 0.96, 0.96)  # white spheres at other marked points
-PATH_COLORS = ((0.86, 0.08, 0.20), (0.98, 0.45, 0.05), (0.80, 0.15, 0.75), (0.10, 0.10, 0.10))  # cycled over paths
+PATH_COLORS = ((0.86, 0.08, 0.20), (0.98, 0.45, 0.05), (0.80, 0.15, 0.75))  # crimson, orange, magenta: cycled
 BACKGROUND = (1.0, 1.0, 1.0)
 
 
@@ -63,6 +63,19 @@ class View:
     center: tuple | None = None
 
     @classmethod
+    def toward(cls, direction, up: str = "y", **kw) -> "View":
+        """The view from the bounding box's centre out along ``direction`` (a 3-vector, mesh axes), e.g. a
+        point's offset from the centre, to look at that side of the mesh."""
+        d = np.asarray(direction, dtype=np.float64).reshape(3)
+        if not np.linalg.norm(d) > 0:
+            raise ValueError(f"direction must be a non-zero 3-vector, got {direction!r}")
+        u, front, right = _axes(up)
+        d = d / np.linalg.norm(d)
+        az = math.degrees(math.atan2(d @ right, d @ front))
+        el = math.degrees(math.asin(np.clip(d @ u, -1.0, 1.0)))
+        return cls(azimuth=az, elevation=el, up=up, **kw)
+
+    @classmethod
     def of(cls, view) -> "View":
         """A View from None (the default), a View, a dict of its fields or an (azimuth, elevation) pair."""
         if view is None:
@@ -83,17 +96,21 @@ class View:
 _AXES = {"x": 0, "y": 1, "z": 2}
 
 
-def _camera(vertices: np.ndarray, view: View, width: int, height: int) -> raycast.Camera:
-    u = view.up.strip().lower()
+def _axes(up: str):
+    """(up, front, right) unit vectors for an up-axis name."""
+    u = str(up).strip().lower()
     if u.lstrip("+-") not in _AXES or len(u.lstrip("+-")) != 1:
-        raise ValueError(f"view.up must be one of x, y, z, -x, -y, -z; got {view.up!r}")
+        raise ValueError(f"view.up must be one of x, y, z, -x, -y, -z; got {up!r}")
+    i = _AXES[u.lstrip("+-")]
+    a, front = np.zeros(3), np.zeros(3)
+    a[i], front[(i + 1) % 3] = (-1.0 if u.startswith("-") else 1.0), 1.0
+    return a, front, np.cross(a, front)
+
+
+def _camera(vertices: np.ndarray, view: View, width: int, height: int) -> raycast.Camera:
+    up, front, right = _axes(view.up)
     if not (0.0 < view.fov < 179.0) or not view.zoom > 0:
         raise ValueError(f"view.fov must lie in (0, 179) degrees and view.zoom be > 0, got {view.fov}, {view.zoom}")
-    i = _AXES[u.lstrip("+-")]
-    sign = -1.0 if u.startswith("-") else 1.0
-    up, front = np.zeros(3), np.zeros(3)
-    up[i], front[(i + 1) % 3] = sign, 1.0
-    right = np.cross(up, front)
     lo, hi = vertices.min(0), vertices.max(0)
     center = (lo + hi) / 2 if view.center is None else np.asarray(view.center, dtype=np.float64).reshape(3)
     radius = max(float(np.linalg.norm(vertices - center, axis=1).max()), 1e-12)
