@@ -14,6 +14,8 @@ Local vectors are sized for the largest supported D (512); loops run to the actu
 read from the weight shapes, so one compiled module serves every D and every network option
 (Fourier input octaves from the first layer's width; ``euclid`` and ``residual`` are 0/1 flags).
 """
+from typing import Any
+
 import warp as wp
 
 MAX_D = 512
@@ -202,6 +204,20 @@ def signed_distance(net: NeuroGFWeights, x: wp.vec3) -> float:
 # ---- gradients with respect to the query point -----------------------------------------------------
 
 @wp.func
+def _back_relu(w: wp.array2d(dtype=wp.float32), g: Any, h: vec_h) -> vec_h:
+    """The gradient at a layer's input h (its ReLU output) from the gradient g at its output: W^T g where
+    h > 0, else 0 (float64 sums over a weight column)."""
+    out = vec_h()
+    for i in range(w.shape[1]):
+        if h[i] > 0.0:
+            acc = wp.float64(0.0)
+            for k in range(w.shape[0]):
+                acc += wp.float64(w[k, i]) * wp.float64(g[k])
+            out[i] = wp.float32(acc)
+    return out
+
+
+@wp.func
 def _lift_backward(net: NeuroGFWeights, x: wp.vec3, h0: vec_h, h1: vec_h, e: vec_d, ge: vec_d) -> wp.vec3:
     """d(out)/dx from d(out)/de = ge, back through the three lifting layers (h0, h1, e: their ReLU outputs at x)
     and the Fourier features. Transposed products run over weight columns with float64 sums."""
@@ -209,20 +225,7 @@ def _lift_backward(net: NeuroGFWeights, x: wp.vec3, h0: vec_h, h1: vec_h, e: vec
     for k in range(net.l2_w.shape[0]):
         if e[k] > 0.0:
             gz[k] = ge[k]
-    g1 = vec_h()
-    for i in range(net.l2_w.shape[1]):
-        if h1[i] > 0.0:
-            acc = wp.float64(0.0)
-            for k in range(net.l2_w.shape[0]):
-                acc += wp.float64(net.l2_w[k, i]) * wp.float64(gz[k])
-            g1[i] = wp.float32(acc)
-    g0 = vec_h()
-    for i in range(net.l1_w.shape[1]):
-        if h0[i] > 0.0:
-            acc = wp.float64(0.0)
-            for k in range(net.l1_w.shape[0]):
-                acc += wp.float64(net.l1_w[k, i]) * wp.float64(g1[k])
-            g0[i] = wp.float32(acc)
+    g0 = _back_relu(net.l1_w, _back_relu(net.l2_w, gz, h1), h0)
     # features (x, sin(w x_c), cos(w x_c)), w = 2^l pi: d/dx_c = 1, w cos(w x_c), -w sin(w x_c)
     n = net.l0_w.shape[1]
     L = (n - 3) // 6
@@ -262,13 +265,7 @@ def _head_and_gradient(w0: wp.array2d(dtype=wp.float32), b0: wp.array(dtype=wp.f
     for j in range(w1.shape[0]):
         if h1[j] > 0.0:
             d1[j] = w2[0, j]
-    d0 = vec_h()
-    for i in range(w1.shape[1]):
-        if h[i] > 0.0:
-            acc = wp.float64(0.0)
-            for j in range(w1.shape[0]):
-                acc += wp.float64(w1[j, i]) * wp.float64(d1[j])
-            d0[i] = wp.float32(acc)
+    d0 = _back_relu(w1, d1, h)
     da = vec_d()
     for k in range(w0.shape[1]):
         acc = wp.float64(0.0)

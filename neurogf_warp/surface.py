@@ -11,7 +11,7 @@ import weakref
 import numpy as np
 import warp as wp
 
-from .arrays import Output, as_points, resolve_device
+from .arrays import Output, _is_torch, as_points, resolve_device
 from .kernels import surface as kernels
 from .mesh import Mesh, load_mesh
 
@@ -55,7 +55,7 @@ def _flat_points(x, name: str, dev):
         else:
             raise TypeError(f"{name} must be a wp.array of vec3 or of float32 with last dimension 3, got dtype "
                             f"{wp.types.type_repr(x.dtype)} with shape {x.shape}")
-    elif type(x).__module__.startswith("torch"):
+    elif _is_torch(x):
         if x.ndim < 2 or x.shape[-1] != 3:
             raise ValueError(f"{name} must have shape (N, 3) or (N, m, 3), got {tuple(x.shape)}")
         lead, flat = tuple(x.shape[:-1]), x.reshape(-1, 3)
