@@ -29,15 +29,19 @@ def main(argv=None) -> int:
     model = sh / "checkpoints" / "official" / "NeuroGF_Pretrainer__bunny_final.pth"
     mesh = sh / "meshes" / "stanford-bunny.obj"
     ref = sh / "reference" / "exact" / "stanford-bunny.npz"
+    import neurogf_warp as ngf
+
     z = np.load(ref)
-    src = [int(s) for s in z["orig_index"][z["sources"]]]  # the reference's 8 sources, mesh numbering
+    m = ngf.load_mesh(mesh)
+    idx = render_field.reference_index(z, m)
+    src = [int(s) for s in idx[z["sources"]]]  # the reference's 8 sources, mesh numbering
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     ssad, msad = [src[1]], [src[0], src[1], src[2], src[3], src[7]]
-    targets = ["--targets", *map(str, [src[2], src[3], src[0], 1000, 20000])]
+    targets = ["--targets", *map(str, [src[2], src[3], src[0], m.index[1000], m.index[20000]])]
 
     def hi(sources):
-        rows = [z["dist"][list(z["orig_index"][z["sources"]]).index(s)] for s in sources]
+        rows = [z["dist"][src.index(s)] for s in sources]
         return f"{float(np.min(rows, axis=0).max()):.6g}"
 
     jobs = []

@@ -19,18 +19,32 @@ import numpy as np
 import neurogf_warp as ngf
 
 
+def reference_index(z, mesh) -> np.ndarray:
+    """The reference file's vertices in the mesh's numbering: its ``file_index`` (the file's vertex records) or
+    ``orig_index`` (trimesh's order), whichever puts its positions on the mesh's vertices."""
+    pos = z["positions"]
+    for key in ("file_index", "orig_index"):
+        idx = z[key].astype(np.int64) if key in z.files else None
+        try:
+            if idx is not None and np.abs(mesh.vertices[mesh.vertex(idx)] - pos).max() <= 1e-5 * np.abs(pos).max():
+                return idx
+        except IndexError:  # that numbering does not fit this mesh
+            pass
+    raise SystemExit("the reference file's vertices do not match this mesh")
+
+
 def exact_field(ref_path, mesh, sources):
     """Exact distances to the nearest source from a reference .npz, one per vertex in the mesh's numbering."""
     z = np.load(ref_path)
+    idx = reference_index(z, mesh)
     rows = []
     for s in sources:
-        hit = np.flatnonzero(z["orig_index"][z["sources"]] == s)
+        hit = np.flatnonzero(idx[z["sources"]] == s)
         if not len(hit):
-            raise SystemExit(f"source {s} is not a source of {ref_path}: it has "
-                             f"{list(z['orig_index'][z['sources']])}")
+            raise SystemExit(f"source {s} is not a source of {ref_path}: it has {list(idx[z['sources']])}")
         rows.append(z["dist"][hit[0]].astype(np.float64))
     out = np.full(mesh.n_input, np.nan)
-    out[z["orig_index"]] = np.min(rows, axis=0)
+    out[idx] = np.min(rows, axis=0)
     return out
 
 

@@ -22,7 +22,7 @@ import warp as wp
 from .arrays import resolve_device
 from .files import atomic_write
 from .kernels import raycast
-from .surface import as_mesh
+from .surface import as_mesh, as_numpy, points_of
 
 __all__ = ["render", "write_ply", "colorize", "View", "COLOR_STOPS"]
 
@@ -184,40 +184,20 @@ def _spheres(points: np.ndarray, radius: float):
     return verts, np.tile(n, (k, 1)), faces
 
 
-def _as_numpy(a) -> np.ndarray:
-    if isinstance(a, wp.array):
-        return a.numpy()
-    if type(a).__module__.startswith("torch"):
-        return a.detach().cpu().numpy()
-    return np.asarray(a)
-
-
 def _vertex_values(mesh, values) -> np.ndarray:
     """Per-vertex values (the mesh's numbering, or internal order when that is the same length) -> internal."""
-    v = _as_numpy(values).astype(np.float64).reshape(-1) if np.ndim(_as_numpy(values)) else None
+    v = as_numpy(values).astype(np.float64).reshape(-1) if np.ndim(as_numpy(values)) else None
     if v is None or len(v) not in (mesh.n_input, len(mesh.vertices)):
         raise ValueError(f"values must hold one number per mesh vertex ({mesh.n_input} in the mesh's numbering), "
-                         f"got shape {np.shape(_as_numpy(values))}")
+                         f"got shape {np.shape(as_numpy(values))}")
     return v[mesh.index] if len(v) == mesh.n_input else v
-
-
-def _marker_points(mesh, sources, name: str) -> np.ndarray:
-    a = _as_numpy(sources)
-    if np.issubdtype(a.dtype, np.integer):
-        return mesh.vertices[mesh.vertex(a.reshape(-1))]
-    if not np.issubdtype(a.dtype, np.floating):
-        raise TypeError(f"{name} must be vertex indices (integers) or points (floats), got dtype {a.dtype}")
-    a = a.reshape(1, 3) if a.shape == (3,) else a
-    if a.ndim != 2 or a.shape[1] != 3:
-        raise ValueError(f"{name} must be vertex indices or points of shape (S, 3), got shape {a.shape}")
-    return a.astype(np.float64)
 
 
 def _polylines(paths) -> list:
     if isinstance(paths, (list, tuple)):
-        out = [_as_numpy(p).astype(np.float64) for p in paths]
+        out = [as_numpy(p).astype(np.float64) for p in paths]
     else:
-        a = _as_numpy(paths).astype(np.float64)
+        a = as_numpy(paths).astype(np.float64)
         out = [a] if a.ndim == 2 else list(a) if a.ndim == 3 else None
         if out is None:
             raise ValueError(f"paths must be (N, m, 3), (m, 3) or a list of (m_i, 3) arrays, got shape {a.shape}")
@@ -231,7 +211,7 @@ def colorize(values, vrange=None) -> np.ndarray:
     """Colours of the package's colour map: (N,) values -> (N, 3) uint8; NaN -> grey.
 
     vrange : (low, high), the values mapped to the two ends (default: the finite values' min and max)."""
-    v = _as_numpy(values).astype(np.float64).reshape(-1)
+    v = as_numpy(values).astype(np.float64).reshape(-1)
     lo, hi = _range(v, vrange)
     t = np.clip((v - lo) / (hi - lo), 0, 1) * (len(COLOR_STOPS) - 1)
     k = np.minimum(np.floor(np.nan_to_num(t)).astype(int), len(COLOR_STOPS) - 2)
@@ -296,7 +276,7 @@ def render(model_or_mesh, values=None, *, sources=None, paths=None, isolines: in
     if values is None and model is not None and sources is not None:
         from .inference import msad, ssad
 
-        src = _as_numpy(sources)
+        src = as_numpy(sources)
         one = src.size == 1 or (np.issubdtype(src.dtype, np.floating) and src.size == 3)
         values = (ssad(model, src.reshape(-1)[0] if src.size == 1 else src.reshape(3), device=dev) if one
                   else msad(model, src, device=dev))
@@ -309,9 +289,9 @@ def render(model_or_mesh, values=None, *, sources=None, paths=None, isolines: in
     rp = path_radius if path_radius is not None else 0.006 * r0
     palette = [SOURCE_COLOR, POINT_COLOR, *PATH_COLORS]
     if sources is not None:
-        parts.append((*_spheres(_marker_points(mesh, sources, "sources"), rm), 0))
+        parts.append((*_spheres(points_of(mesh, sources, "sources"), rm), 0))
     if points is not None:
-        parts.append((*_spheres(_marker_points(mesh, np.asarray(_as_numpy(points), dtype=np.float64), "points"),
+        parts.append((*_spheres(points_of(mesh, np.asarray(as_numpy(points), dtype=np.float64), "points"),
                                 0.75 * rm), 1))
     if paths is not None:
         for i, P in enumerate(_polylines(paths)):

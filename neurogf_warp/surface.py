@@ -15,7 +15,7 @@ from .arrays import Output, _is_torch, as_points, resolve_device
 from .kernels import surface as kernels
 from .mesh import Mesh, load_mesh
 
-__all__ = ["snap_to_mesh", "warp_mesh", "as_mesh"]
+__all__ = ["snap_to_mesh", "warp_mesh", "as_mesh", "points_of"]
 
 REACH = 1.0e18  # search radius: every point has its closest point within it (its square stays finite in float32)
 _BVH: "weakref.WeakKeyDictionary[Mesh, dict]" = weakref.WeakKeyDictionary()
@@ -29,6 +29,32 @@ def as_mesh(mesh) -> Mesh:
                              "or pass the mesh itself")
         return mesh.mesh
     return load_mesh(mesh)
+
+
+def as_numpy(a) -> np.ndarray:
+    """numpy view or copy of a numpy, torch or Warp array (or anything np.asarray takes)."""
+    if isinstance(a, wp.array):
+        return a.numpy()
+    if _is_torch(a):
+        return a.detach().cpu().numpy()
+    return np.asarray(a)
+
+
+def points_of(mesh: Mesh | None, x, name: str) -> np.ndarray:
+    """Vertex indices (the mesh's numbering) or (S, 3) float points, mesh units -> (S, 3) float64 points."""
+    a = as_numpy(x)
+    if np.issubdtype(a.dtype, np.integer):
+        if mesh is None:
+            raise ValueError(f"{name} given as vertex indices, but there is no mesh: pass points instead")
+        return mesh.vertices[mesh.vertex(a.reshape(-1))]
+    if not np.issubdtype(a.dtype, np.floating):
+        raise TypeError(f"{name} must be vertex indices (integers) or points (floats), got dtype {a.dtype}")
+    a = a.reshape(1, 3) if a.shape == (3,) else a
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{name} must be vertex indices or points of shape (S, 3), got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains non-finite coordinates (NaN or inf)")
+    return a.astype(np.float64)
 
 
 def warp_mesh(mesh, device=None) -> wp.Mesh:

@@ -16,8 +16,9 @@ import numpy as np
 import warp as wp
 
 from .arrays import resolve_device
-from .inference import _frame, _source_points, embed, warp_weights
+from .inference import _frame, embed, warp_weights
 from .kernels import field, mlp
+from .surface import points_of
 
 __all__ = ["weights", "frame", "source_set"]
 
@@ -45,7 +46,7 @@ def source_set(model, sources, device=None) -> field.SourceSet:
     device : Warp device (default: Warp's preferred one)
     """
     dev = resolve_device(device)
-    pts = _source_points(model, sources, "sources")
+    pts = points_of(model.mesh, sources, "sources")
     if len(pts) == 0:
         raise ValueError("sources is empty: give at least one vertex index or point")
     s = field.SourceSet()
