@@ -70,7 +70,8 @@ class NeuroGFWeights:
 
 
 @wp.func
-def _dense_relu(w: wp.array2d(dtype=wp.float32), b: wp.array(dtype=wp.float32), x: vec_h) -> vec_h:
+def _dense_relu(w: wp.array2d(dtype=wp.float32), b: wp.array(dtype=wp.float32), x: Any) -> vec_h:
+    """relu(W x + b) for x a vec_h or a vec_d (float64 sums)."""
     y = vec_h()
     for i in range(w.shape[0]):
         acc = wp.float64(b[i])
@@ -253,12 +254,7 @@ def _head_and_gradient(w0: wp.array2d(dtype=wp.float32), b0: wp.array(dtype=wp.f
                        w1: wp.array2d(dtype=wp.float32), b1: wp.array(dtype=wp.float32),
                        w2: wp.array2d(dtype=wp.float32), a: vec_d):
     """A head (D -> H -> H -> 1) at input a: its output (the same sums as the forward functions) and d(out)/da."""
-    h = vec_h()
-    for j in range(w0.shape[0]):
-        acc = wp.float64(b0[j])
-        for k in range(w0.shape[1]):
-            acc += wp.float64(w0[j, k]) * wp.float64(a[k])
-        h[j] = wp.max(wp.float32(acc), 0.0)
+    h = _dense_relu(w0, b0, a)
     h1 = _dense_relu(w1, b1, h)
     out = _dot_row(w2, 0, h1)
     d1 = vec_h()
