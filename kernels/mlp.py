@@ -4,10 +4,18 @@ The ``@wp.func`` functions take a ``NeuroGFWeights`` struct and one query, so th
 user kernel (one thread per query, no tiles, no shared memory). The kernels below batch them.
 All coordinates here are in the network's normalized unit-sphere frame.
 
+Gradients with respect to the query point (``distance_and_gradient``, ``signed_distance_and_gradient``) are
+backpropagated by hand through the head, the lifting layers and the Fourier features: Warp's autodiff does not
+replay these dynamic loops correctly. At a ReLU kink (pre-activation exactly 0) the unit counts as off, and where
+e_p = e_q in a channel |e_p - e_q| has slope 0, as in torch's autograd: the result is one subgradient of the
+piecewise-smooth network. ``kernels.field`` gathers the functions meant for user kernels.
+
 Local vectors are sized for the largest supported D (512); loops run to the actual widths, which are
 read from the weight shapes, so one compiled module serves every D and every network option
 (Fourier input octaves from the first layer's width; ``euclid`` and ``residual`` are 0/1 flags).
 """
+from typing import Any
+
 import warp as wp
 
 MAX_D = 512
@@ -62,7 +70,8 @@ class NeuroGFWeights:
 
 
 @wp.func
-def _dense_relu(w: wp.array2d(dtype=wp.float32), b: wp.array(dtype=wp.float32), x: vec_h) -> vec_h:
+def _dense_relu(w: wp.array2d(dtype=wp.float32), b: wp.array(dtype=wp.float32), x: Any) -> vec_h:
+    """relu(W x + b) for x a vec_h or a vec_d (float64 sums)."""
     y = vec_h()
     for i in range(w.shape[0]):
         acc = wp.float64(b[i])
@@ -97,8 +106,8 @@ def features(x: wp.vec3, n: int) -> vec_feat:
 
 
 @wp.func
-def lift_hidden(net: NeuroGFWeights, x: wp.vec3) -> vec_h:
-    """The first two lifting layers (features -> D/4 -> D/2)."""
+def _lift_first(net: NeuroGFWeights, x: wp.vec3) -> vec_h:
+    """The first lifting layer (features -> D/4)."""
     n = net.l0_w.shape[1]
     f = features(x, n)
     h0 = vec_h()
@@ -107,17 +116,27 @@ def lift_hidden(net: NeuroGFWeights, x: wp.vec3) -> vec_h:
         for k in range(n):
             acc += wp.float64(net.l0_w[i, k]) * f[k]
         h0[i] = wp.max(wp.float32(acc), 0.0)
-    return _dense_relu(net.l1_w, net.l1_b, h0)
+    return h0
+
+
+@wp.func
+def lift_hidden(net: NeuroGFWeights, x: wp.vec3) -> vec_h:
+    """The first two lifting layers (features -> D/4 -> D/2)."""
+    return _dense_relu(net.l1_w, net.l1_b, _lift_first(net, x))
+
+
+@wp.func
+def _embed_from_hidden(net: NeuroGFWeights, h1: vec_h) -> vec_d:
+    e = vec_d()
+    for k in range(net.l2_w.shape[0]):
+        e[k] = wp.max(net.l2_b[k] + _dot_row(net.l2_w, k, h1), 0.0)
+    return e
 
 
 @wp.func
 def embed(net: NeuroGFWeights, x: wp.vec3) -> vec_d:
     """The point embedding e(x) (first D entries used)."""
-    h1 = lift_hidden(net, x)
-    e = vec_d()
-    for k in range(net.l2_w.shape[0]):
-        e[k] = wp.max(net.l2_b[k] + _dot_row(net.l2_w, k, h1), 0.0)
-    return e
+    return _embed_from_hidden(net, lift_hidden(net, x))
 
 
 @wp.func
@@ -183,27 +202,133 @@ def signed_distance(net: NeuroGFWeights, x: wp.vec3) -> float:
     return _head_tail(net.s1_w, net.s1_b, net.s2_w, h)
 
 
-SDF_FD_STEP = 1.0e-4  # forward-difference step (unit-sphere frame); far above float32 rounding of x
+# ---- gradients with respect to the query point -----------------------------------------------------
+
+@wp.func
+def _back_relu(w: wp.array2d(dtype=wp.float32), g: Any, h: vec_h) -> vec_h:
+    """The gradient at a layer's input h (its ReLU output) from the gradient g at its output: W^T g where
+    h > 0, else 0 (float64 sums over a weight column)."""
+    out = vec_h()
+    for i in range(w.shape[1]):
+        if h[i] > 0.0:
+            acc = wp.float64(0.0)
+            for k in range(w.shape[0]):
+                acc += wp.float64(w[k, i]) * wp.float64(g[k])
+            out[i] = wp.float32(acc)
+    return out
+
+
+@wp.func
+def _lift_backward(net: NeuroGFWeights, x: wp.vec3, h0: vec_h, h1: vec_h, e: vec_d, ge: vec_d) -> wp.vec3:
+    """d(out)/dx from d(out)/de = ge, back through the three lifting layers (h0, h1, e: their ReLU outputs at x)
+    and the Fourier features. Transposed products run over weight columns with float64 sums."""
+    gz = vec_d()  # through the last ReLU
+    for k in range(net.l2_w.shape[0]):
+        if e[k] > 0.0:
+            gz[k] = ge[k]
+    g0 = _back_relu(net.l1_w, _back_relu(net.l2_w, gz, h1), h0)
+    # features (x, sin(w x_c), cos(w x_c)), w = 2^l pi: d/dx_c = 1, w cos(w x_c), -w sin(w x_c)
+    n = net.l0_w.shape[1]
+    L = (n - 3) // 6
+    dx = wp.vec3()
+    for c in range(3):
+        xc = wp.float64(x[c])
+        acc = wp.float64(0.0)
+        for k in range(net.l0_w.shape[0]):
+            acc += wp.float64(net.l0_w[k, c]) * wp.float64(g0[k])
+        w = wp.float64(3.141592653589793)
+        for l in range(L):
+            gs = wp.float64(0.0)
+            gc = wp.float64(0.0)
+            for k in range(net.l0_w.shape[0]):
+                gs += wp.float64(net.l0_w[k, 3 + c * L + l]) * wp.float64(g0[k])
+                gc += wp.float64(net.l0_w[k, 3 + 3 * L + c * L + l]) * wp.float64(g0[k])
+            acc += w * (wp.cos(w * xc) * gs - wp.sin(w * xc) * gc)
+            w = w * wp.float64(2.0)
+        dx[c] = wp.float32(acc)
+    return dx
+
+
+@wp.func
+def _head_and_gradient(w0: wp.array2d(dtype=wp.float32), b0: wp.array(dtype=wp.float32),
+                       w1: wp.array2d(dtype=wp.float32), b1: wp.array(dtype=wp.float32),
+                       w2: wp.array2d(dtype=wp.float32), a: vec_d):
+    """A head (D -> H -> H -> 1) at input a: its output (the same sums as the forward functions) and d(out)/da."""
+    h = _dense_relu(w0, b0, a)
+    h1 = _dense_relu(w1, b1, h)
+    out = _dot_row(w2, 0, h1)
+    d1 = vec_h()
+    for j in range(w1.shape[0]):
+        if h1[j] > 0.0:
+            d1[j] = w2[0, j]
+    d0 = _back_relu(w1, d1, h)
+    da = vec_d()
+    for k in range(w0.shape[1]):
+        acc = wp.float64(0.0)
+        for i in range(w0.shape[0]):
+            acc += wp.float64(w0[i, k]) * wp.float64(d0[i])
+        da[k] = wp.float32(acc)
+    return out, da
+
+
+@wp.func
+def signed_distance_and_gradient(net: NeuroGFWeights, x: wp.vec3):
+    """(SDF head value, its gradient) at x: the gradient is the outward surface normal direction near the
+    surface (unit length where the head is a true SDF). About the cost of two SDF evaluations."""
+    h0 = _lift_first(net, x)
+    h1 = _dense_relu(net.l1_w, net.l1_b, h0)
+    e = _embed_from_hidden(net, h1)
+    s, ge = _head_and_gradient(net.s0_w, net.s0_b, net.s1_w, net.s1_b, net.s2_w, e)
+    return s, _lift_backward(net, x, h0, h1, e, ge)
 
 
 @wp.func
 def sdf_gradient(net: NeuroGFWeights, x: wp.vec3, s: float) -> wp.vec3:
-    """Gradient of the SDF head at x (s = its value there) by forward differences: the head is piecewise
-    linear (ReLU), so away from a kink this is its exact gradient, at the cost of three more evaluations."""
-    h = float(SDF_FD_STEP)
-    return wp.vec3(signed_distance(net, x + wp.vec3(h, 0.0, 0.0)) - s,
-                   signed_distance(net, x + wp.vec3(0.0, h, 0.0)) - s,
-                   signed_distance(net, x + wp.vec3(0.0, 0.0, h)) - s) / h
+    """Gradient of the SDF head at x (``s``, its value there, is not needed; kept for existing callers)."""
+    v, g = signed_distance_and_gradient(net, x)
+    return g
+
+
+@wp.func
+def _distance_and_gradient_to(net: NeuroGFWeights, p: wp.vec3, h0: vec_h, h1: vec_h, ep: vec_d, eq: vec_d,
+                              q: wp.vec3):
+    """d(p, q) and d/dp from p's lifting activations and q's embedding."""
+    a = vec_d()
+    for k in range(net.g0_w.shape[1]):
+        a[k] = wp.abs(ep[k] - eq[k])
+    d, ga = _head_and_gradient(net.g0_w, net.g0_b, net.g1_w, net.g1_b, net.g2_w, a)
+    ge = vec_d()
+    for k in range(net.g0_w.shape[1]):  # d|u|/du = sign(u), 0 at u = 0
+        if ep[k] > eq[k]:
+            ge[k] = ga[k]
+        elif ep[k] < eq[k]:
+            ge[k] = -ga[k]
+    g = _lift_backward(net, p, h0, h1, ep, ge)
+    r = p - q
+    n = wp.length(r)
+    if n > 0.0:  # d|p - q|/dp = (p - q)/|p - q|, 0 at p = q
+        g = g + (net.euclid / n) * r
+    return d + net.euclid * n, g
+
+
+@wp.func
+def distance_and_gradient(net: NeuroGFWeights, p: wp.vec3, q: wp.vec3):
+    """(d(p, q), its gradient with respect to p), normalized frame. -gradient points from p along the geodesic
+    toward q (plus a normal part off the surface; project it onto the tangent plane). About the cost of
+    ``geodesic_distance`` plus one lifting backward pass. Swap p and q for the gradient with respect to q."""
+    h0 = _lift_first(net, p)
+    h1 = _dense_relu(net.l1_w, net.l1_b, h0)
+    return _distance_and_gradient_to(net, p, h0, h1, _embed_from_hidden(net, h1), embed(net, q), q)
 
 
 @wp.func
 def project_to_surface(net: NeuroGFWeights, x: wp.vec3, steps: int) -> wp.vec3:
-    """Newton steps onto the SDF head's zero level set, x -= s grad / |grad|^2, each step at most 2|s| long
-    (a flat spot in a poorly fitted SDF must not throw the point away). Callable from user kernels."""
+    """Newton steps onto the SDF head's zero level set, x -= s grad / |grad|^2 with the analytic gradient, each
+    step at most 2|s| long (a flat spot in a poorly fitted SDF must not throw the point away). Callable from
+    user kernels."""
     y = x
     for _ in range(steps):
-        s = signed_distance(net, y)
-        g = sdf_gradient(net, y, s)
+        s, g = signed_distance_and_gradient(net, y)
         n = wp.length(g)
         if n > 1.0e-12:
             y = y - (s / (n * wp.max(n, 0.5))) * g

@@ -14,6 +14,7 @@ from .inference import distance, distance_matrix, embed, msad, path, project, sd
 from .mesh import Mesh, load_mesh
 from .model import Model
 from .model_io import load, load_querier, save
+from .rendering import render, write_ply
 from .train import train  # after the submodule import, so `neurogf_warp.train` is the function
 
 
@@ -23,5 +24,5 @@ __all__ = [
     "Mesh", "Model", "load_mesh", "load", "load_querier", "save", "MeshMismatchWarning",
     "ssad", "msad", "distance_matrix", "distance", "sdf", "path", "project", "embed", "warmup", "warp_weights",
     "geodesic_distances", "geodesic_paths",
-    "build_dataset", "load_dataset", "sdf_truth", "sample_sdf_points", "train", "evaluate",
+    "build_dataset", "load_dataset", "sdf_truth", "sample_sdf_points", "train", "evaluate", "render", "write_ply",
 ]
