@@ -561,8 +561,8 @@ def embed(model: Model, x, device=None) -> wp.array:
     return out
 
 
-def path(model: Model, p, q, m: int = 128, refine: int = 0, device=None, precision: str = "auto",
-         check: bool = True):
+def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None = None, return_faces: bool = False,
+         device=None, precision: str = "auto", check: bool = True):
     """Shortest paths as m points each (ends included): (N, 3), (N, 3) -> (N, m, 3) float32 mesh coordinates.
 
     Straight-line samples between p and q go through the network's path head, which moves them onto the
@@ -573,8 +573,21 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, device=None, precisi
     projected midpoint of its neighbours, ends pinned to p and q) at m/4, then m/2, then m points, from
     three starts: the head's path p -> q, its path q -> p, and the straight line; the shortest result that
     does not jump between sheets is kept. 25-50 sweeps suffice for m=128 (benchmarks/RESULTS.md); a sweep
-    costs about as much as four SDF queries per point. Refinement runs the float32 per-thread kernels.
+    costs about as much as four SDF queries per point. With precision "fp16" the SDF values come from batched
+    tensor-core launches (points end within ~2e-4 of the SDF surface, normalized frame; fp32: ~2e-5).
+
+    project: None (the points as computed), "sdf" (every point moved onto the SDF head's surface by Newton steps:
+    mesh-free) or "mesh" (every point snapped to the exact closest point of the mesh, ``surface.snap_to_mesh``).
+    return_faces (with project="mesh"): also return, per point, the face it lies on ((N, m) int32, rows of the
+    mesh's face list as given) and its barycentric coordinates ((N, m, 3) float32): (points, faces, bary).
     """
+    if project not in (None, "sdf", "mesh"):
+        raise ValueError(f"project must be None, 'sdf' or 'mesh', got {project!r}")
+    if return_faces and project != "mesh":
+        raise ValueError("return_faces=True needs project='mesh' (faces are those of the mesh)")
+    if project == "mesh" and model.mesh is None:
+        raise ValueError("project='mesh' needs the model's mesh: load it with neurogf_warp.load(path, mesh=...), or "
+                         "use project='sdf'")
     if not isinstance(m, (int, np.integer)) or isinstance(m, bool) or m < 2:
         raise ValueError(f"m (points per path) must be an integer >= 2, got {m!r}")
     if not isinstance(refine, (int, np.integer)) or isinstance(refine, bool) or refine < 0:
@@ -591,6 +604,16 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, device=None, precisi
             _head_paths(model, P, Q, res, dev)
     elif n:
         _refined_paths(model, P, Q, res, int(refine), dev, prec)
+    if n and project == "sdf":
+        flat = res.reshape(-1)
+        wp.launch(mlp.project_points, flat.shape[0], inputs=[warp_weights(model, dev), flat, _frame(model),
+                                                             2 * PROJECT_STEPS], outputs=[flat], device=dev)
+    faces = None
+    if n and project == "mesh":
+        from .surface import snap_to_mesh
+
+        snapped, faces, bary = snap_to_mesh(model, res, device=dev)
+        wp.copy(res, snapped)
     if n:
         comps = _pair_components(model, P, Q, dev)
         if comps is not None:
@@ -601,6 +624,13 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, device=None, precisi
         r = res
     else:
         r = res.numpy()
+    if return_faces:
+        conv = (lambda a: wp.to_torch(a)) if kind == "torch" else (lambda a: a) if kind == "warp" else \
+            (lambda a: a.numpy())
+        f, b = conv(faces.reshape((n, m))), conv(bary.reshape((n, m)))
+        if kind == "torch":
+            b = b.view(n, m, 3)
+        return (r[0], f[0], b[0]) if single else (r, f, b)
     return r[0] if single else r
 
 

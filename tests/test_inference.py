@@ -396,3 +396,32 @@ def test_bad_inputs():
         ngf.project(model, np.zeros((1, 3)), steps=2.5, device=DEV)
     with pytest.raises(ValueError, match="one source"):
         ngf.ssad(model, [1, 2], device=DEV)
+
+
+def test_paths_projected_onto_the_mesh_or_the_sdf():
+    """project='mesh': every point on the mesh, with the face and barycentric weights that rebuild it;
+    project='sdf': every point on the SDF head's surface; both keep the array kind and single-pair shapes."""
+    model = released("fandisk", mesh=True)
+    rng = np.random.default_rng()
+    V = model.mesh.vertices
+    i, j = rng.integers(0, len(V), 6), rng.integers(0, len(V), 6)
+    pts, faces, bary = ngf.path(model, V[i], V[j], m=12, project="mesh", return_faces=True, device=DEV)
+    assert pts.shape == (6, 12, 3) and faces.shape == (6, 12) and bary.shape == (6, 12, 3)
+    corners = V[model.mesh.input_to_internal[_file_faces(model)[faces]]]  # (6, 12, 3 corners, 3)
+    np.testing.assert_allclose((bary[..., None] * corners).sum(-2), pts, atol=1e-5 * np.abs(V).max())
+    assert np.all(bary >= -1e-6) and np.allclose(bary.sum(-1), 1.0, atol=1e-5)
+    on_sdf = ngf.path(model, V[i], V[j], m=12, project="sdf", device=DEV)
+    raw = ngf.path(model, V[i], V[j], m=12, device=DEV)
+    s = lambda x: np.abs(ngf.sdf(model, x.reshape(-1, 3), device=DEV))
+    assert s(on_sdf).mean() < 0.1 * s(raw).mean()
+    one = ngf.path(model, V[i[0]], V[j[0]], m=12, project="mesh", return_faces=True, device=DEV)
+    assert [a.shape for a in one] == [(12, 3), (12,), (12, 3)]
+    with pytest.raises(ValueError, match="project"):
+        ngf.path(model, V[i], V[j], project="plane", device=DEV)
+    with pytest.raises(ValueError, match="return_faces"):
+        ngf.path(model, V[i], V[j], return_faces=True, device=DEV)
+
+
+def _file_faces(model):
+    """The mesh's faces in the file's vertex numbering (what snap_to_mesh's face indices refer to)."""
+    return model.mesh.index[model.mesh.faces]
