@@ -745,6 +745,7 @@ def warmup(model: Model, device=None, precision: str = "auto") -> dict:
     distance(model, x[:1], x[1:], **kw)
     sdf(model, x, **kw)
     path(model, x[:1], x[1:], m=16, **kw)
+    path(model, x[:1], x[1:], m=8, refine=1, project="mesh" if model.mesh is not None else "sdf", **kw)
     if model.mesh is not None:
         ssad(model, 0 if model.mesh.input_to_internal[0] >= 0 else int(model.mesh.index[0]), cache=False, **kw)
         ssad(model, x[0], cache=False, **kw)
