@@ -5,7 +5,8 @@
 
 642-vertex ellipsoid, a small dataset (seed 0), D=64 with small batches, 2 x 100 joint steps and the other
 stages by their ratios, one torch thread. Records the dataset arrays' checksums, every logged loss, the
-validation MREs and a checksum of the final weights.
+validation MREs and a checksum of the final weights. The recording was made with the single-module train.py
+(commit 5b0b88f, ``T.train(mesh, out, dataset=arrays, epochs=2, iters_per_epoch=100, seed=0, **TRAIN)``).
 """
 from __future__ import annotations
 
@@ -37,25 +38,14 @@ def run() -> dict:
     mesh = (np.asarray(tm.vertices), np.asarray(tm.faces))
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "m.ngf"
-        try:  # the training package
-            import neurogf_warp as ngf
-            from neurogf_warp.training import TrainConfig
+        import neurogf_warp as ngf
+        from neurogf_warp.training import preset
 
-            ds = ngf.build_dataset(mesh, device="cpu", progress=False, seed=0, **DATA)
-            arrays = ds.arrays()
-            cfg = TrainConfig.from_flat(dict(TRAIN, epochs=2, iters_per_epoch=100, seed=0))
-            model = ngf.train(mesh, out, config=cfg, dataset=ds, device="cpu", progress=False)
-            log = json.loads((Path(tmp) / "m.train.json").read_text())
-        except ImportError:  # the single train.py module this was recorded with
-            import importlib
-
-            from neurogf_warp.dataset import build_dataset
-
-            T = importlib.import_module("neurogf_warp.train")
-            arrays = build_dataset(mesh, None, device="cpu", progress=False, seed=0, **DATA)
-            model = T.train(mesh, out, dataset=arrays, epochs=2, iters_per_epoch=100, seed=0, device="cpu",
-                            progress=False, **TRAIN)
-            log = json.loads((Path(tmp) / "m.train.json").read_text())
+        ds = ngf.build_dataset(mesh, device="cpu", progress=False, seed=0, **DATA)
+        arrays = ds.arrays()
+        cfg = preset("default", **TRAIN, epochs=2, iters_per_epoch=100, seed=0)
+        model = ngf.train(mesh, out, config=cfg, dataset=ds, device="cpu", progress=False)
+        log = json.loads((Path(tmp) / "m.train" / "log.json").read_text())
     keys = ("vertices", "faces", "surface_points", "gd_global", "gd_local1", "gd_local2", "path_global",
             "path_local", "test_src", "test_dist")
     weights = np.concatenate([v.detach().double().cpu().numpy().ravel() for v in model.net.state_dict().values()])
