@@ -20,7 +20,8 @@ __all__ = ["main", "build_parser", "BadInput"]
 
 PROG = "neurogf-warp"
 PRESET_HELP = ("training preset: default (the GPU recipe), paper (the published network and recipe), cpu (a few "
-               "minutes on a CPU), cpu_small (a seconds-long smoke run); default: cpu on a CPU, default on a GPU")
+               "minutes on a CPU), cpu_large (cpu for meshes above 15,000 vertices), cpu_small (a seconds-long smoke "
+               "run); default: chosen by the device and the mesh size")
 VALUE_FORMATS = (".npy", ".csv", ".ply")
 CUDA_WARNING = "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver. GPU execution will not be available."
 
@@ -47,9 +48,17 @@ def _model_args(p: argparse.ArgumentParser):
                    help="the model's mesh file; required for a released .pth (an .ngf carries its own)")
 
 
-def _point_or_file(name: str):
-    return dict(nargs="+", metavar=("X Y Z | FILE", ""), required=True,
-                help=f"{name}: one point as three numbers (mesh coordinates), or a .npy / .csv file of (N, 3) points")
+def _pair_args(p: argparse.ArgumentParser):
+    _model_args(p)
+    for flag, name in (("--p", "start points p"), ("--q", "end points q (as many as p)")):
+        p.add_argument(flag, nargs="+", metavar=("X Y Z | FILE", ""), required=True,
+                       help=f"{name}: one point as three numbers (mesh coordinates), or a .npy / .csv file of (N, 3) "
+                            "points")
+
+
+def _values_output(p: argparse.ArgumentParser):
+    p.add_argument("-o", "--output", default="distances.npy",
+                   help="output file: .npy, .csv (vertex,distance) or .ply (the mesh coloured by distance)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -141,8 +150,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--source", type=int, default=None, help="source vertex index, 0-based, the mesh's own numbering "
                    "(default 0)")
     g.add_argument("--point", type=float, nargs=3, metavar=("X", "Y", "Z"), help="source point in mesh coordinates")
-    s.add_argument("-o", "--output", default="distances.npy",
-                   help="output file: .npy, .csv (vertex,distance) or .ply (the mesh coloured by distance)")
+    _values_output(s)
 
     s = sub.add_parser("msad", parents=[common], help="distance from every vertex to the nearest of several sources",
                        description="Multiple sources, all destinations: each vertex's geodesic distance to its "
@@ -150,22 +158,17 @@ def build_parser() -> argparse.ArgumentParser:
     _model_args(s)
     s.add_argument("--sources", type=int, nargs="+", required=True, metavar="V",
                    help="source vertex indices, 0-based, the mesh's own numbering")
-    s.add_argument("-o", "--output", default="distances.npy",
-                   help="output file: .npy, .csv (vertex,distance) or .ply (the mesh coloured by distance)")
+    _values_output(s)
 
     s = sub.add_parser("distance", parents=[common], help="geodesic distances between point pairs",
                        description="Geodesic distance between points p and q (mesh coordinates and units), pair by "
                        "pair; points should lie on or near the surface.")
-    _model_args(s)
-    s.add_argument("--p", **_point_or_file("start points p"))
-    s.add_argument("--q", **_point_or_file("end points q (as many as p)"))
+    _pair_args(s)
     s.add_argument("-o", "--output", default=None, help="output .npy or .csv (default: print the distances)")
 
     s = sub.add_parser("path", parents=[common], help="shortest paths between point pairs",
                        description="Shortest surface paths from p to q as m points each (mesh coordinates).")
-    _model_args(s)
-    s.add_argument("--p", **_point_or_file("start points p"))
-    s.add_argument("--q", **_point_or_file("end points q (as many as p)"))
+    _pair_args(s)
     s.add_argument("--m", type=int, default=128, help="points per path, ends included (default 128)")
     s.add_argument("--refine", type=int, default=0, metavar="N",
                    help="N shortening sweeps per level on the SDF surface (e.g. 50; default 0: the network's path)")

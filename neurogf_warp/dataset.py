@@ -40,6 +40,17 @@ FORMAT_VERSION = 2  # 2: paths stored flat (K, M, 3) with their source per path;
 MIN_VERTICES = 16  # below this there is nothing to hold out or sample paths from
 GLOBAL_PATH_POINTS = 128  # points per resampled ground-truth path (the official num_pp_g / num_pp_l)
 LOCAL_PATH_POINTS = 32
+# sources per solver launch on the CPU, where one launch cannot be interrupted: small enough that Ctrl-C is
+# honoured within about a second (each source is solved on its own, so results do not depend on it)
+CPU_SOLVER_BATCH = 8
+
+
+def solver_batch(batch: int | None, device) -> int | None:
+    """Sources per solver launch: ``batch`` if given, else ``CPU_SOLVER_BATCH`` on the CPU and the solver's own
+    choice (a memory budget) on a GPU."""
+    if batch is not None:
+        return batch
+    return CPU_SOLVER_BATCH if resolve_device(device).is_cpu else None
 
 
 @dataclass
@@ -164,13 +175,7 @@ class Dataset:
         """Read and check a dataset file; with ``mesh`` (anything ``load_mesh`` takes), also check that the
         dataset was built for that mesh (fingerprint). Raises ValueError naming what is wrong."""
         path = os.fspath(path)
-        if not os.path.isfile(path):
-            raise FileNotFoundError(f"dataset file not found: {path}")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                raw = {k: z[k] for k in z.files}
-        except Exception as e:  # noqa: BLE001 - zip/npy errors of a truncated or foreign file
-            raise ValueError(f"{path} is not a readable dataset .npz (corrupt or truncated?): {e}") from e
+        raw = read_npz(path, "dataset")
         if "meta" not in raw:
             raise ValueError(f"{path} is not a NeuroGF dataset: no 'meta' entry")
         try:
@@ -226,6 +231,18 @@ def _from_format_1(raw: dict) -> dict:
         out[f"path_{kind}_src"] = np.repeat(raw["path_src"].astype(np.int64), p.shape[1])
     del out["path_src"]
     return out
+
+
+def read_npz(path, what: str) -> dict:
+    """All arrays of an ``.npz`` (no pickles); FileNotFoundError / ValueError naming ``what`` it should be."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{what} file not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except Exception as e:  # noqa: BLE001 - zip/npy errors of a truncated or foreign file
+        raise ValueError(f"{path} is not a readable {what} .npz (corrupt or truncated?): {e}") from e
 
 
 def load_dataset(path, mesh=None) -> Dataset:
@@ -426,7 +443,8 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     target_set = np.asarray(spread) if st.target_pool == "spread" else np.arange(V)
     kept, rows = [], {"global": [], "local1": [], "local2": []}
 
-    solver = GeodesicSolver(m, k=st.k, device=device, batch=st.batch, max_rows=max(len(gd_src), len(test_src), 1))
+    batch = solver_batch(st.batch, device)
+    solver = GeodesicSolver(m, k=st.k, device=device, batch=batch, max_rows=max(len(gd_src), len(test_src), 1))
     bar = tqdm(total=len(gd_src) + len(test_src) + n_path_sources, desc="ground truth", disable=not progress,
                unit="source", dynamic_ncols=True)
     t0 = time.perf_counter()
@@ -449,9 +467,9 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     if not kept:
         raise ValueError("no training source reaches any other vertex: the mesh has no usable connected part")
     test_dist = np.zeros((len(test_src), V), np.float32)
-    if len(test_src):
-        test_dist[:] = solver.solve(test_src)
-        bar.update(len(test_src))
+    for i in range(0, len(test_src), solver.batch):
+        test_dist[i: i + solver.batch] = solver.solve(test_src[i: i + solver.batch])
+        bar.update(len(test_src[i: i + solver.batch]))
     timings["distances_s"] = time.perf_counter() - t0
     timings["distance_iterations"] = solver.timings["iterations"]
     del solver
@@ -462,7 +480,7 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     path_of = {"global": [], "local": []}
     stale = 0
     if n_path_sources:
-        ps = GeodesicSolver(m, k=st.k, device=device, batch=st.batch, delta=PATH_DELTA, max_rows=n_path_sources)
+        ps = GeodesicSolver(m, k=st.k, device=device, batch=batch, delta=PATH_DELTA, max_rows=n_path_sources)
         for i in range(0, n_path_sources, ps.batch):
             src = path_src[i: i + ps.batch]
             ps.run(src)

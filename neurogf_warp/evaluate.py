@@ -40,14 +40,10 @@ def load_reference(path, mesh: Mesh):
     vertex_ids : (Vr,) int64 internal vertex ids; source_ids : (S,) int64 internal ids;
     dist : (S, Vr) float64 exact distances in mesh units (inf between components).
     """
+    from .dataset import read_npz
+
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"reference file not found: {path}")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except Exception as e:  # noqa: BLE001 - zip/npy errors of a foreign or truncated file
-        raise ValueError(f"{path} is not a readable reference .npz ({e})") from e
+    data = read_npz(path, "reference")
     missing = [k for k in ("positions", "sources", "dist") if k not in data]
     if missing or not ({"orig_index", "file_index"} & set(data)):
         raise ValueError(f"{path} is not a distance reference: it needs positions, orig_index or file_index, sources "
@@ -95,10 +91,11 @@ def _bar(total: int, desc: str, on: bool, unit: str = "source"):
 
 
 def _solver_truth(mesh: Mesh, sids, k, device, progress):
+    from .dataset import solver_batch
     from .geodesics import GeodesicSolver
 
     kw = {} if k is None else {"k": k}
-    solver = GeodesicSolver(mesh, device=device, max_rows=len(sids), **kw)
+    solver = GeodesicSolver(mesh, device=device, max_rows=len(sids), batch=solver_batch(None, device), **kw)
     out = np.empty((len(sids), len(mesh.vertices)), np.float64)
     with _bar(len(sids), "ground truth", progress) as bar:
         for i in range(0, len(sids), solver.batch):

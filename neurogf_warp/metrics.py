@@ -18,6 +18,7 @@ def _np(x) -> np.ndarray:
 def relative_errors(pred, gt) -> np.ndarray:
     """|pred - gt| / gt over the pairs with a finite, positive gt (the source itself is dropped).
 
+    pred, gt : arrays of the same shape (numpy or torch), same units -> (n,) float64, n = the kept pairs.
     The paper's MRE has no epsilon; excluding gt == 0 is the same as excluding the source vertex.
     """
     p = _np(pred).astype(np.float64).ravel()
@@ -27,7 +28,7 @@ def relative_errors(pred, gt) -> np.ndarray:
 
 
 def mre(pred, gt) -> float:
-    """Mean relative error (a fraction, not %)."""
+    """Mean relative error (a fraction, not %) of ``relative_errors(pred, gt)``; NaN when no pair is kept."""
     r = relative_errors(pred, gt)
     return float(r.mean()) if r.size else float("nan")
 
@@ -35,7 +36,8 @@ def mre(pred, gt) -> float:
 def chamfer_l1(pred, gt, chunk: int = 256) -> np.ndarray:
     """Per-path Chamfer-L1 (reference §6): 0.5 * (mean NN distance pred->gt + mean NN distance gt->pred).
 
-    pred (K, M, 3), gt (K, N, 3); Euclidean, not squared. Returns (K,) float64.
+    pred : (K, M, 3), gt : (K, N, 3) points (or one path (M, 3), (N, 3)); Euclidean, not squared.
+    Returns (K,) float64 in the points' units; ``chunk`` paths are compared at a time.
     """
     import torch
 

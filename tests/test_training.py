@@ -107,12 +107,14 @@ def test_finished_run_repeats_resumes_and_refuses_other_settings(tmp_path, ellip
 
     # killed between the last checkpoint and the model file: the finished checkpoint gives the model back
     out.unlink()
-    with open(os.path.join(files.folder, ".tmp-x1y2-checkpoint.pt"), "wb") as f:  # a save killed mid-write
-        f.write(b"partial")
+    for orphan in (os.path.join(files.folder, ".tmp-x1y2-checkpoint.pt"), tmp_path / ".tmp-x1y2-m.ngf"):
+        with open(orphan, "wb") as f:  # saves killed mid-write
+            f.write(b"partial")
     back = train(ellipsoid, out, resume=True, device="cpu", progress=False, callback=count)
     assert not calls and out.exists()
     assert all(torch.equal(a, b) for a, b in zip(first.net.state_dict().values(), back.net.state_dict().values()))
-    assert sorted(os.listdir(files.folder)) == ["checkpoint.pt", "log.json"]  # the orphaned temporary is gone
+    assert sorted(os.listdir(files.folder)) == ["checkpoint.pt", "log.json"]  # the orphaned temporaries are gone
+    assert sorted(os.listdir(tmp_path)) == ["m.ngf", "m.train"]
 
     with pytest.raises(ValueError, match="other settings.*lr.*--force"):
         train(ellipsoid, out, config=cfg.set(lr=3e-3), dataset=tiny_dataset, device="cpu", progress=False)

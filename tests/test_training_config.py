@@ -60,6 +60,10 @@ def test_round_trips_and_the_flat_format_of_older_checkpoints():
     assert old.network.D == 64 and old.schedule.epochs == 3 and old.data.n_sources == 64
     with pytest.raises(ValueError, match="unknown batches settings"):
         TrainConfig.from_dict({"batches": {"batch_x": 1}})
+    # settings removed since: their "off" value loads, anything else is refused
+    assert TrainConfig.from_dict(dict(flat, refine_amp=True, refine_batch_paths=None)) == old
+    with pytest.raises(ValueError, match="refine_batch_paths=8192 was removed"):
+        TrainConfig.from_dict(dict(flat, refine_batch_paths=8192))
 
 
 def test_presets():

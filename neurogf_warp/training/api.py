@@ -107,7 +107,18 @@ def train(mesh, out, *, config: TrainConfig | str | None = None, device=None, da
     if ck is not None:
         cfg = ck["config"]
         request = ck["request"] or request
+    threads = torch.get_num_threads()
+    if cfg.runtime.threads:
+        torch.set_num_threads(cfg.runtime.threads)
+    try:
+        return _run(mesh, files, cfg, request, ck, dataset, dev, budget_seconds, progress, callback, t_call)
+    finally:
+        torch.set_num_threads(threads)
 
+
+def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, dev, budget_seconds, progress,
+         callback, t_call: float):
+    """Dataset, set-up, budget, the stages and the model file of a run (new, or continued from ``ck``)."""
     t_data = time.perf_counter()
     ds = obtain_dataset(mesh, dataset, files.dataset if dataset is None else None, cfg.data, cfg.seed, dev, progress)
     dataset_s = time.perf_counter() - t_data

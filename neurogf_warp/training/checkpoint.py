@@ -69,10 +69,12 @@ class RunFiles:
         os.makedirs(self.folder, exist_ok=True)
 
     def clean_stale_temporaries(self) -> int:
-        """Remove temporary files that a killed save left in the run folder; returns how many."""
+        """Remove temporary files that a killed save left in the run folder or beside the model; returns how many."""
         n = 0
-        for name in ("checkpoint.pt", "dataset.npz", "log.json"):
-            for tmp in glob.glob(os.path.join(glob.escape(self.folder), f".tmp-*-{name}")):
+        places = [(self.folder, name) for name in ("checkpoint.pt", "dataset.npz", "log.json")]
+        places.append(os.path.split(self.model))
+        for folder, name in places:
+            for tmp in glob.glob(os.path.join(glob.escape(folder), f".tmp-*-{glob.escape(name)}")):
                 try:
                     os.unlink(tmp)
                     n += 1

@@ -22,7 +22,10 @@ STAGES = ("querier", "joint", "refine_dist", "refine_sdf", "refine_path")
 # default steps of each stage per joint step (an explicit <stage>_steps overrides; querier capped, below)
 RATIOS = {"querier": 0.25, "joint": 1.0, "refine_dist": 1.0, "refine_sdf": 0.1, "refine_path": 0.3}
 QUERIER_MAX = 4000  # default querier steps: 0.25 x joint steps, at most this (it only guides the surface term)
-DIST_LOSSES = ("l1", "relative", "relative_global")
+DIST_LOSSES = ("l1", "relative_global")
+# settings of older versions whose sweeps lost (benchmarks/RESULTS.md), with the value that meant "off":
+# old configs that carry that value still load; any other value is refused
+REMOVED = {"refine_amp": True, "refine_batch_paths": None}
 SUPPORTED_D = (64, 128, 256, 512)  # as network.SUPPORTED_D (not imported: this module must not need torch)
 
 
@@ -71,8 +74,8 @@ class ScheduleConfig:
     refine_dist_lr: float = 3e-3
     refine_path_lr: float = 3e-3           # the official scripts use 1e-3
     weight_decay: float = 1e-8
-    # "l1" = the paper's L1; "relative" = |pred - gt| / gt on all three target sets (the MRE itself);
-    # "relative_global" = relative on global targets, L1 on the local ones
+    # "l1" = the paper's L1; "relative_global" = |pred - gt| / gt (the MRE itself) on global targets, L1 on the
+    # local ones, where relative errors of near-zero distances would dominate
     dist_loss: str = "relative_global"
     loss_weights: dict = field(default_factory=dict)  # overrides of training.losses.WEIGHTS (the paper's)
     resample_every: int = 1                # steps between fresh batches
@@ -118,7 +121,6 @@ class BatchConfig:
     batch_paths_l: int = 2048       # local paths (+ reversed)
     batch_surf: int = 256           # global paths whose points the surface term checks (0: no surface term)
     batch_querier: int = 90000      # SDF points, querier and refine_sdf stages
-    refine_batch_paths: int | None = None  # global paths per refine_path step; None: batch_paths_g
     sdf_pool: int = 1_000_000       # SDF ground-truth points computed once; batches are drawn from them
 
     def validate(self):
@@ -134,15 +136,17 @@ class RuntimeConfig:
     """How the steps run (none of these change the maths on the CPU) and how often the loop reports."""
 
     amp: bool = True           # bf16 autocast for the path head (CUDA; ignored on CPU)
-    refine_amp: bool = True    # bf16 path head in refine_path too (CUDA)
     tf32: bool = True          # TF32 matmuls while training on CUDA (validation and saved weights stay fp32)
     cuda_graph: bool = True    # CUDA: each stage's step captured once as a CUDA graph and replayed
     compile: bool = True       # CUDA: torch.compile the loss functions (eager where compiling fails)
     val_every: int = 500       # joint / refine_dist steps between validation MREs (0: at stage ends only)
     log_every: int = 50        # steps between logged loss rows
     ckpt_every_s: float = 120.0  # seconds between checkpoints (also written at stage ends and on Ctrl-C)
+    threads: int | None = None  # torch CPU threads during the run (None: torch's own choice)
 
     def validate(self):
+        if self.threads is not None and self.threads < 1:
+            raise ValueError(f"threads must be None or >= 1, got {self.threads}")
         if self.val_every < 0 or self.log_every < 1:
             raise ValueError(f"val_every must be >= 0 and log_every >= 1, got {self.val_every}, {self.log_every}")
         if not self.ckpt_every_s > 0:
@@ -251,7 +255,7 @@ class TrainConfig:
             raise ValueError(f"unknown config groups {sorted(unknown)}; known: {sorted(GROUPS)}")
         kw = {}
         for group, gcls in GROUPS.items():
-            sub = dict(d.get(group) or {})
+            sub = _without_removed(dict(d.get(group) or {}))
             names = {f.name for f in dataclasses.fields(gcls)}
             bad = set(sub) - names
             if bad:
@@ -263,13 +267,23 @@ class TrainConfig:
     def from_flat(cls, flat: dict) -> "TrainConfig":
         """From flat names, e.g. {"D": 64, "lr": 3e-3, "n_sources": 256}; ``dataset_options`` (a dict of dataset
         settings, as format-3 checkpoints store them) is unpacked."""
-        flat = dict(flat)
+        flat = _without_removed(dict(flat))
         data = flat.pop("dataset_options", None) or {}
         flat.pop("preset", None)
         return cls().set(**{k: v for k, v in data.items() if k != "seed"}, **flat)
 
     def __str__(self):
         return json.dumps(self.to_dict(), indent=1)
+
+
+def _without_removed(d: dict) -> dict:
+    for name, off in REMOVED.items():
+        if name in d:
+            if d[name] != off:
+                raise ValueError(f"setting {name}={d[name]!r} was removed (its sweep lost, benchmarks/RESULTS.md); this "
+                                 "version cannot continue a run that used it")
+            del d[name]
+    return d
 
 
 def _number(v) -> bool:

@@ -108,7 +108,7 @@ class Trainer:
         if stage in ("querier", "refine_sdf"):
             return [sdf(b.batch_querier)]
         if stage == "refine_path":
-            return [("pg", len(d.pg), b.refine_batch_paths or b.batch_paths_g)]
+            return [("pg", len(d.pg), b.batch_paths_g)]
         dist = [(k, len(d.gd[k]), n) for k, n in (("global", b.batch_g), ("local1", b.batch_l1), ("local2", b.batch_l2))]
         if stage == "refine_dist":
             return dist
@@ -215,12 +215,12 @@ class Trainer:
         x, y = b["sdf"]
         return {"querier_mse": F.mse_loss(self.querier(x), y)}
 
-    def _paths(self, es, et, gt, amp=True):
+    def _paths(self, es, et, gt):
         """Predicted paths for gt and for its reversed copy (swapped endpoints): (2K, M, 3) each."""
         p, q = gt[:, 0], gt[:, -1]
         m = gt.shape[1]
         lines = torch.cat([straight_lines(p, q, m), straight_lines(q, p, m)])
-        ctx = torch.autocast("cuda", dtype=torch.bfloat16, cache_enabled=False) if self.amp and amp \
+        ctx = torch.autocast("cuda", dtype=torch.bfloat16, cache_enabled=False) if self.amp \
             else contextlib.nullcontext()
         with ctx:
             pred = fast_path(self.net, torch.cat([es, et]), torch.cat([et, es]), lines)
@@ -258,7 +258,7 @@ class Trainer:
         loss = self.cfg.schedule.dist_loss
         for i, key in enumerate(keys):
             name = {"global": "dist_g", "local1": "dist_l1", "local2": "dist_l2"}[key]
-            rel = loss == "relative" or (loss == "relative_global" and key == "global")
+            rel = loss == "relative_global" and key == "global"
             t[name] = L.relative_l1(d[i], b[key][2]) if rel else L.l1(d[i], b[key][2])
         return t
 
@@ -279,7 +279,7 @@ class Trainer:
     def _loss_refine_path(self, b):
         pg = b["pg"]
         e = self._eval_features(torch.cat([pg[:, 0], pg[:, -1]]))
-        pred, gt = self._paths(e[: len(pg)], e[len(pg):], pg, amp=self.cfg.runtime.refine_amp)
+        pred, gt = self._paths(e[: len(pg)], e[len(pg):], pg)
         return {"path_g": L.l1(pred, gt)}
 
     # -- validation: MRE on held-out sources, eval-mode BN (what inference sees)
