@@ -59,10 +59,12 @@ def run_demo(out_dir="neurogf-demo", *, mesh=None, device=None, budget_seconds: 
     budget = budget_seconds or (GPU_BUDGET_S if dev.type == "cuda" else CPU_BUDGET_S)
     _say(progress, f"mesh: {name}, {m.n_input} vertices, {len(m.faces)} faces; device {dev}; output folder {folder}")
 
+    reuse = not force and os.path.exists(files.model) and os.path.exists(files.checkpoint)
     t0 = time.perf_counter()
     model = train(m, files.model, device=dev, budget_seconds=budget, force=force, progress=progress)
-    _say(progress, f"model: {files.model} ({time.perf_counter() - t0:.0f} s: dataset, querier, joint training, "
-                   "refinement)")
+    took = time.perf_counter() - t0
+    _say(progress, f"model: {files.model} " + ("(the finished run's; --force trains again)" if reuse and took < 30 else
+                                               f"({took:.0f} s: dataset, querier, joint training, refinement)"))
 
     heat = importlib.util.find_spec("potpourri3d") is not None  # the heat method beside it, when installed
     _say(progress, "\naccuracy on random vertices (ground truth: the Warp geodesic solver"

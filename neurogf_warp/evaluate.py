@@ -16,8 +16,13 @@ import time
 
 import numpy as np
 
+from typing import TYPE_CHECKING
+
 from . import metrics
 from .mesh import Mesh, load_mesh
+
+if TYPE_CHECKING:
+    from .model import Model
 
 __all__ = ["evaluate", "load_reference", "format_table", "require_heat"]
 
@@ -32,7 +37,7 @@ def require_heat() -> None:
         raise ImportError(HEAT_HINT)
 
 
-def load_reference(path, mesh: Mesh):
+def load_reference(path: "str | os.PathLike", mesh: Mesh) -> tuple:
     """Exact distances of a reference ``.npz`` on the mesh's internal vertices.
 
     Returns
@@ -205,7 +210,8 @@ def _sdf(model, mesh: Mesh, rng, n, device) -> dict:
     return out
 
 
-def evaluate(model, mesh=None, reference=None, *, heat: bool = False, n_sources: int = 8,
+def evaluate(model: "Model | str | os.PathLike", mesh=None, reference: "str | os.PathLike | None" = None, *,
+             heat: bool = False, n_sources: int = 8,
              n_path_sources: int = 8, n_path_targets: int = 8, n_sdf: int = 30000, paths: bool = True,
              sdf: bool = True, solver_k: int | None = None, path_refine: int = 0, device=None, seed: int = 0,
              progress: bool = False, verbose: bool = True) -> dict:

@@ -11,6 +11,7 @@ import json
 import os
 import sys
 import time
+from typing import TYPE_CHECKING
 
 from ..dataset import check_trainable
 from ..mesh import load_mesh
@@ -20,6 +21,11 @@ from .config import STAGES, TrainConfig
 from .data import TrainingData, make_sdf_pool, obtain_dataset
 from .loop import Runner
 from .presets import choose_preset, preset
+
+if TYPE_CHECKING:
+    import torch
+
+    from ..model import Model
 
 __all__ = ["train", "resolve_config", "torch_device"]
 
@@ -31,7 +37,7 @@ def _say(on: bool, msg: str):
         print(msg, file=sys.stderr, flush=True)
 
 
-def torch_device(device=None):
+def torch_device(device=None) -> "torch.device":
     """The torch device to train on, through ``arrays.resolve_device`` (default: Warp's preferred device)."""
     import torch
     import warp as wp
@@ -55,9 +61,9 @@ def resolve_config(config=None, device=None, n_vertices: int = 0, **settings) ->
     return cfg.set(**settings) if settings else cfg.validate()
 
 
-def train(mesh, out, *, config: TrainConfig | str | None = None, device=None, dataset=None,
+def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = None, device=None, dataset=None,
           resume: bool = False, force: bool = False, budget_seconds: float | None = None, progress: bool = True,
-          callback=None, **settings):
+          callback=None, **settings) -> "Model":
     """Train a NeuroGF for ``mesh`` and write it to ``out``; returns the saved Model.
 
     Parameters

@@ -37,7 +37,8 @@ class TrainingData:
         self.surface_points = np.asarray(ds.surface_points, dtype=np.float32)
         for k, v in list(self.gd.items()) + [("path_global", self.pg), ("path_local", self.pl)]:
             if len(v) == 0:
-                raise ValueError(f"the dataset has no {k} samples; the mesh is too small to sample from")
+                raise ValueError(f"the dataset has no {k} samples: the mesh is too small to sample from, or the "
+                                 "solver could trace none of its paths (see the dataset's meta: dropped_paths)")
 
 
 def make_sdf_pool(mesh: Mesh, surface_points, n: int, seed: int, device):
