@@ -94,14 +94,6 @@ class DatasetSettings:
             raise ValueError(f"target_pool must be 'spread' or 'all', got {self.target_pool!r}")
         return self
 
-    def estimated_bytes(self, n_vertices: int) -> int:
-        """Size of the arrays this builds for a mesh of ``n_vertices`` (float32), before compression."""
-        S = min(self.n_sources, max(n_vertices // 2, 1))
-        P = min(self.n_path_sources, S)
-        rows = S * (self.n_global + self.n_local1 + self.n_local2) * 7
-        paths = P * (self.n_path_global * GLOBAL_PATH_POINTS + self.n_path_local * LOCAL_PATH_POINTS) * 3
-        return 4 * (rows + paths + max(self.n_surface, 30000) * 3 + self.n_test * n_vertices + n_vertices * 6)
-
 
 @dataclass(eq=False)
 class Dataset:

@@ -272,9 +272,6 @@ class TrainConfig:
         flat.pop("preset", None)
         return cls().set(**{k: v for k, v in data.items() if k != "seed"}, **flat)
 
-    def __str__(self):
-        return json.dumps(self.to_dict(), indent=1)
-
 
 def _without_removed(d: dict) -> dict:
     for name, off in REMOVED.items():

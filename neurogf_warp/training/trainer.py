@@ -115,9 +115,11 @@ class Trainer:
         return [sdf(b.batch_sdf)] + dist + [("pg", len(d.pg), b.batch_paths_g), ("pl", len(d.pl), b.batch_paths_l)]
 
     def draw(self, stage):
+        """Fresh index vectors for one step of ``stage``: {name: (count,) long tensor}."""
         return {k: self._idx(n, m) for k, n, m in self._draws(stage)}
 
     def gather(self, idx):
+        """The batch of index vectors ``idx``: SDF (points, values), distance (p, q, d) rows, (K, M, 3) paths."""
         d, b = self.data, {}
         for k, i in idx.items():
             if k == "sdf":
@@ -170,6 +172,7 @@ class Trainer:
                 m.train().requires_grad_(True)
 
     def lr_at(self, stage, step):
+        """Learning rate of ``stage`` at ``step`` (cosine from the stage's rate to ``lr_min``)."""
         s, n = self.cfg.schedule, self.steps[stage]
         hi = {"querier": s.lr, "joint": s.lr, "refine_dist": s.refine_dist_lr,
               "refine_path": s.refine_path_lr}.get(stage, s.refine_lr)
@@ -304,6 +307,7 @@ class Trainer:
 
     # -- step state (what a checkpoint stores besides the run's bookkeeping)
     def state(self) -> dict:
+        """Networks, optimizer, step counts and generator state (what a checkpoint needs to resume exactly)."""
         return {"steps": dict(self.steps), "net": self.net.state_dict(), "querier": self.querier.state_dict(),
                 "opt": self._opt_state(), "opt_stage": self.opt_stage, "gen": self.gen.get_state(),
                 "gen_at_batch": self._gen_at_batch}
@@ -317,6 +321,7 @@ class Trainer:
         return sd
 
     def load_state(self, ck: dict):
+        """Restore ``state()`` from a checkpoint."""
         self.net.load_state_dict(ck["net"])
         self.querier.load_state_dict(ck["querier"])
         self.steps = dict(ck["steps"])
