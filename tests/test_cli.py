@@ -151,3 +151,20 @@ def test_demo_twice_in_the_same_folder(tmp_path, capsys, ellipsoid):
     assert code == 0 and "already trained" in err and "SSAD from vertex 0" in second
     assert sorted(os.listdir(tmp_path)) == ["blob.obj", "demo"]
     assert sorted(os.listdir(out)) == ["evaluation.json", "model.ngf", "model.train", "ssad_vertex0.npy"]
+
+
+def test_compile_note_follows_the_kernel_cache(tmp_path, monkeypatch):
+    """The ssad/msad timing line says 'includes kernel compilation' only when a module was built into the cache."""
+    import warp as wp
+
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
+    built = []
+
+    def compiling():  # a first call that builds a module: a new folder in the kernel cache
+        if not built:
+            (tmp_path / "module_abc").mkdir()
+            built.append(1)
+        return 1
+
+    assert cli._timed_twice(compiling)[3] is True
+    assert cli._timed_twice(compiling)[3] is False  # now cached
