@@ -240,8 +240,9 @@ def _check_output(path: str, formats: tuple, what: str = "output") -> str:
     if ext == ".ply":
         import importlib.util
 
-        if importlib.util.find_spec("neurogf_warp.render") is None:
-            raise BadInput("writing .ply needs neurogf_warp.render, which this installation lacks; use .npy or .csv")
+        if importlib.util.find_spec("neurogf_warp.rendering") is None:
+            raise BadInput("writing .ply needs neurogf_warp.rendering, which this installation lacks; use .npy or "
+                           ".csv")
     full = os.path.abspath(path)
     if os.path.isdir(full):
         raise BadInput(f"{what} {path!r} is a folder; give a file name")
@@ -268,7 +269,7 @@ def _write_values(path: str, values, mesh):
         atomic_write(path, lambda f: np.savetxt(f, rows, fmt=["%d", "%.9g"], delimiter=",", header="vertex,distance",
                                                 comments=""))
     else:
-        from .render import write_ply
+        from .rendering import write_ply
 
         write_ply(path, mesh, values)
 
@@ -580,12 +581,12 @@ def _cmd_render(args) -> int:
         raise BadInput("--isolines must be >= 0 and --size at least 16 x 16 pixels")
     import importlib.util
 
-    if importlib.util.find_spec("neurogf_warp.render") is None:
-        raise BadInput("rendering needs neurogf_warp.render, which this installation lacks")
+    if importlib.util.find_spec("neurogf_warp.rendering") is None:
+        raise BadInput("rendering needs neurogf_warp.rendering, which this installation lacks")
     import numpy as np
 
     import neurogf_warp as ngf
-    from .render import render
+    from .rendering import render
 
     model = _load_model(args, needs_mesh=True)
     src = _vertex_indices(model, args.source, "--source")

@@ -10,7 +10,7 @@ import pytest
 
 from neurogf_warp import cli
 
-HAS_RENDER = importlib.util.find_spec("neurogf_warp.render") is not None
+HAS_RENDER = importlib.util.find_spec("neurogf_warp.rendering") is not None
 
 
 def run(argv, capsys):
@@ -120,12 +120,25 @@ def test_eval_heat_without_potpourri3d_names_the_extra(trained, monkeypatch, cap
     assert code == 2 and 'pip install "neurogf-warp[heat]"' in err and "Traceback" not in err
 
 
-@pytest.mark.skipif(HAS_RENDER, reason="neurogf_warp.render is installed: .ply and render are tested with it")
-def test_ply_and_render_without_the_render_module_are_refused(trained, tmp_path, capsys):
+@pytest.mark.skipif(HAS_RENDER, reason="neurogf_warp.rendering is installed: the test below runs instead")
+def test_ply_and_render_without_the_rendering_module_are_refused(trained, tmp_path, capsys):
     code, _, err = run(["ssad", trained[1], "-o", tmp_path / "d.ply"], capsys)
-    assert code == 2 and "neurogf_warp.render" in err
+    assert code == 2 and "neurogf_warp.rendering" in err
     code, _, err = run(["render", trained[1], "-o", tmp_path / "p.png"], capsys)
-    assert code == 2 and "neurogf_warp.render" in err
+    assert code == 2 and "neurogf_warp.rendering" in err
+
+
+@pytest.mark.skipif(not HAS_RENDER, reason="needs neurogf_warp.rendering (render, write_ply)")
+def test_ply_and_render(trained, tmp_path, capsys):
+    """A coloured .ply with one vertex per mesh vertex, and a picture with two paths."""
+    import trimesh
+
+    assert run(["ssad", trained[1], "--source", 3, "-o", tmp_path / "d.ply", "-q"], capsys)[0] == 0
+    assert len(trimesh.load(tmp_path / "d.ply", process=False).vertices) == 642
+    code, _, err = run(["render", trained[1], "--source", 0, "--paths", 5, 9, "--size", 64, 64, "-o",
+                        tmp_path / "p.png", "-q"], capsys)
+    assert code == 0, err
+    assert (tmp_path / "p.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_warp_stays_quiet_unless_verbose(trained):

@@ -6,7 +6,6 @@ import os
 import numpy as np
 import pytest
 import trimesh
-import warp as wp
 
 from neurogf_warp import dataset as D
 from neurogf_warp.mesh import load_mesh
@@ -25,9 +24,6 @@ def two_blobs():
 
 @pytest.fixture(scope="module")
 def built(two_blobs, tmp_path_factory):
-    from neurogf_warp.kernels import geodesic as kg
-
-    wp.load_module(kg, device="cpu")
     path = tmp_path_factory.mktemp("ds") / "blobs.npz"
     data = D.build_dataset(two_blobs, path, **SMALL)
     return path, data
@@ -107,9 +103,9 @@ def test_source_in_a_component_without_spread_targets(two_blobs, monkeypatch):
 def test_meshes_without_a_usable_part_are_refused(what, match):
     if what == "single triangle":
         mesh = (np.eye(3), np.array([[0, 1, 2]]))
-    else:  # 20 unwelded triangles: every corner its own vertex, as many STL files load
-        s = trimesh.creation.icosphere(subdivisions=0)
-        mesh = (s.vertices[s.faces].reshape(-1, 3), np.arange(3 * len(s.faces)).reshape(-1, 3))
+    else:  # 20 triangles apart from each other: 20 pieces of 3 vertices (no welding can join them)
+        tri = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+        mesh = (np.concatenate([tri + [2.0 * i, 0, 0] for i in range(20)]), np.arange(60).reshape(-1, 3))
     with pytest.raises(ValueError, match=match):
         D.build_dataset(mesh, None, **SMALL)
 

@@ -3,6 +3,7 @@ finished runs, budget re-planning, checkpoints, bad input."""
 import json
 import os
 import signal
+import time
 
 import numpy as np
 import pytest
@@ -107,9 +108,11 @@ def test_finished_run_repeats_resumes_and_refuses_other_settings(tmp_path, ellip
 
     # killed between the last checkpoint and the model file: the finished checkpoint gives the model back
     out.unlink()
-    for orphan in (os.path.join(files.folder, ".tmp-x1y2-checkpoint.pt"), tmp_path / ".tmp-x1y2-m.ngf"):
-        with open(orphan, "wb") as f:  # saves killed mid-write
+    for orphan in (os.path.join(files.folder, ".tmp-999999-abcdefgh-checkpoint.pt"),
+                   tmp_path / ".tmp-999999-abcdefgh-m.ngf"):
+        with open(orphan, "wb") as f:  # saves killed mid-write, two hours ago
             f.write(b"partial")
+        os.utime(orphan, (time.time() - 7200, time.time() - 7200))
     back = train(ellipsoid, out, resume=True, device="cpu", progress=False, callback=count)
     assert not calls and out.exists()
     assert all(torch.equal(a, b) for a, b in zip(first.net.state_dict().values(), back.net.state_dict().values()))

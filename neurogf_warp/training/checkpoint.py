@@ -10,6 +10,7 @@ import glob
 import os
 import sys
 import tempfile
+import time
 from dataclasses import dataclass
 
 import torch
@@ -68,16 +69,19 @@ class RunFiles:
     def make_folder(self) -> None:
         os.makedirs(self.folder, exist_ok=True)
 
-    def clean_stale_temporaries(self) -> int:
-        """Remove temporary files that a killed save left in the run folder or beside the model; returns how many."""
+    def clean_stale_temporaries(self, min_age_s: float = 60.0) -> int:
+        """Remove temporary files that a killed save left in the run folder or beside the model (untouched for
+        ``min_age_s`` seconds, so a save in progress is never hit); returns how many."""
         n = 0
         places = [(self.folder, name) for name in ("checkpoint.pt", "dataset.npz", "log.json")]
         places.append(os.path.split(self.model))
+        now = time.time()
         for folder, name in places:
             for tmp in glob.glob(os.path.join(glob.escape(folder), f".tmp-*-{glob.escape(name)}")):
                 try:
-                    os.unlink(tmp)
-                    n += 1
+                    if now - os.path.getmtime(tmp) > min_age_s:
+                        os.unlink(tmp)
+                        n += 1
                 except OSError:
                     pass
         return n
