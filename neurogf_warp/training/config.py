@@ -14,6 +14,7 @@ import math
 from dataclasses import dataclass, field
 
 from ..dataset import DatasetSettings
+from ..network import MAX_FOURIER, SUPPORTED_D, NeuroGFNet
 
 __all__ = ["TrainConfig", "NetworkConfig", "ScheduleConfig", "BatchConfig", "RuntimeConfig", "DatasetSettings",
            "STAGES", "RATIOS", "QUERIER_MAX", "DIST_LOSSES", "parse_assignments"]
@@ -26,7 +27,6 @@ DIST_LOSSES = ("l1", "relative_global")
 # settings of older versions whose sweeps lost (benchmarks/RESULTS.md), with the value that meant "off":
 # old configs that carry that value still load; any other value is refused
 REMOVED = {"refine_amp": True, "refine_batch_paths": None}
-SUPPORTED_D = (64, 128, 256, 512)  # as network.SUPPORTED_D (not imported: this module must not need torch)
 
 
 @dataclass
@@ -34,7 +34,7 @@ class NetworkConfig:
     """The network's width and options (``network.NeuroGFNet``; all options off = the paper's network)."""
 
     D: int = 256                   # embedding width: 64, 128, 256 or 512
-    fourier: int = 2               # Fourier input octaves of the lifting (0..8)
+    fourier: int = 2               # Fourier input octaves of the lifting (0..MAX_FOURIER)
     euclid: bool = True            # distance = |p - q| + head
     path_residual: bool = True     # path head outputs offsets from the straight line
     path_width: int = 1            # path head hidden widths x1 or x2
@@ -43,17 +43,15 @@ class NetworkConfig:
     def validate(self):
         if self.D not in SUPPORTED_D:
             raise ValueError(f"D must be one of {SUPPORTED_D}, got {self.D}")
-        if not 0 <= self.fourier <= 8:
-            raise ValueError(f"fourier must be an integer in 0..8, got {self.fourier}")
+        if not 0 <= self.fourier <= MAX_FOURIER:
+            raise ValueError(f"fourier must be an integer in 0..{MAX_FOURIER}, got {self.fourier}")
         if self.path_width not in (1, 2) or self.path_width * self.D > 512:
             raise ValueError(f"path_width must be 1 or 2 (2 only for D <= 256), got {self.path_width} with D={self.D}")
         if self.path_window and not self.path_residual:
             raise ValueError("path_window scales the path offsets: it needs path_residual=True")
 
-    def build(self):
+    def build(self) -> NeuroGFNet:
         """A freshly initialized ``NeuroGFNet`` of this shape (draws from torch's global RNG)."""
-        from ..network import NeuroGFNet
-
         return NeuroGFNet(self.D, self.fourier, self.euclid, self.path_residual, self.path_width, self.path_window)
 
 
