@@ -15,14 +15,18 @@ TARGETS = {"bunny": 0.0040, "fandisk": 0.0027, "chamfer_l1": 1.25e-2}
 
 
 def parse_data_options(items) -> dict:
-    """--data KEY=VALUE items -> build_dataset keyword arguments; unknown keys are an error."""
-    import inspect
+    """--data KEY=VALUE items -> {name: text} of dataset settings (DatasetSettings); other names are an error."""
+    import dataclasses
 
-    from neurogf_warp.dataset import build_dataset
-    from neurogf_warp.train import parse_overrides
+    from neurogf_warp import DatasetSettings
+    from neurogf_warp.training.config import parse_assignments
 
-    fields = set(inspect.signature(build_dataset).parameters) - {"mesh", "out_path", "device", "progress"}
-    return parse_overrides(items, fields=fields, flag="--data")
+    out = parse_assignments(items, flag="--data")
+    names = {f.name for f in dataclasses.fields(DatasetSettings)}
+    bad = [k for k in out if k.split(".")[-1] not in names]
+    if bad:
+        raise ValueError(f"--data {bad[0]}: not a dataset setting; known: {', '.join(sorted(names))}")
+    return out
 
 
 def find_shared(*parts) -> Path:

@@ -42,7 +42,7 @@ def main(argv=None):
 
     wp.config.log_level = wp.LOG_WARNING
     import neurogf_warp as ngf
-    from neurogf_warp import losses as L
+    from neurogf_warp import metrics as L
     from neurogf_warp.surface import snap_to_mesh
 
     files = {"bunny": ("stanford-bunny.obj", "bunny"), "fandisk": ("fandisk.obj", "fandisk")}

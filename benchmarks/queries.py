@@ -560,7 +560,7 @@ def run(a) -> dict:
         wp.synchronize()
         t32 = (time.perf_counter() - t) * N / k
         length = lambda x: np.linalg.norm(np.diff(x, axis=1), axis=2).sum(1)
-        from neurogf_warp.losses import chamfer_l1
+        from neurogf_warp.metrics import chamfer_l1
 
         cd = chamfer_l1(mesh.normalize(out16[:k].reshape(-1, 3)).reshape(k, m, 3),
                         mesh.normalize(out32.reshape(-1, 3)).reshape(k, m, 3))

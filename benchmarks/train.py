@@ -26,35 +26,27 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from neurogf_warp.dataset import build_dataset, load_dataset  # noqa: E402
-from neurogf_warp.evaluate import evaluate, format_table  # noqa: E402
-from neurogf_warp.mesh import load_mesh  # noqa: E402
-from neurogf_warp.model_io import load  # noqa: E402
-from neurogf_warp.train import log_path, parse_overrides, train  # noqa: E402
+sys.path.insert(0, str(ROOT))  # the checkout's package when it is not installed (the GPU machine)
+import neurogf_warp as ngf  # noqa: E402
+from neurogf_warp.evaluate import format_table  # noqa: E402
+from neurogf_warp.training import RunFiles, preset  # noqa: E402
+from neurogf_warp.training.config import parse_assignments  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import MESHES, TARGETS, find_shared, parse_data_options  # noqa: E402  (./.bench on the GPU machine)
 SHARE = {"bunny": 0.6, "fandisk": 0.4}  # bunny is larger and has the harder target
 
-# 2,048 training sources: at equal steps bunny MRE 0.638% -> 0.546% against 512 (sweep 9); paths from all of them,
-# 128 global targets each: test-path Chamfer bunny 2.20e-2 (16) -> 1.80e-2 (64, session-4 run 3) -> 1.72e-2 (128),
-# fandisk 1.26e-2 (64) -> 1.10e-2 (128), for 5-6 s more ground truth each step (session-5 run, benchmarks/RESULTS.md).
-# These are build_dataset's defaults too.
-FULL_DATA = dict(n_sources=2048, n_path_sources=2048, n_path_global=128, n_path_local=32, n_test=8)
+# The GPU recipe's dataset is build_dataset's default (DatasetSettings); the history of these counts is in
+# benchmarks/RESULTS.md. --small: tiny data and network (preset cpu_small, k=1: ~14 s of ground truth for bunny).
 SMALL_DATA = dict(n_sources=24, n_global=512, n_local1=16, n_local2=64, n_path_sources=8, n_path_global=16,
-                  n_path_local=16, n_test=2, n_surface=30000, n_spread=2000, k=1)  # k=1: ~14 s for bunny on CPU
-SMALL_TRAIN = dict(D=64, batch_sdf=2048, batch_g=4096, batch_l1=512, batch_l2=1024, batch_paths_g=128,
-                   batch_paths_l=128, batch_surf=16, batch_querier=2048, sdf_pool=20000, val_every=100,
-                   log_every=20)
+                  n_path_local=16, n_test=2, n_surface=30000, n_spread=2000, k=1)
 
 
 def _usable(path: Path, mesh) -> bool:
     if not path.exists():
         return False
     try:
-        load_dataset(path, mesh=mesh)
+        ngf.load_dataset(path, mesh=mesh)
         return True
     except Exception as e:  # stale or corrupt: rebuild
         print(f"not reusing {path}: {e}", flush=True)
@@ -122,9 +114,9 @@ def main(argv=None) -> int:
                    help="skip evaluating the released checkpoint on the same sources and pairs")
     p.add_argument("--no-amp", dest="amp", action="store_false", help="float32 path head (default: bf16 on CUDA)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="TrainConfig override, e.g. --set batch_surf=256 (repeatable)")
+                   help="training setting (TrainConfig, dataset settings included), e.g. --set batch_surf=256")
     p.add_argument("--data", action="append", default=[], metavar="KEY=VALUE",
-                   help="build_dataset override, e.g. --data target_pool=all (repeatable)")
+                   help="dataset setting (DatasetSettings), e.g. --data target_pool=all (repeatable)")
     p.add_argument("--variant", action="append", default=[], metavar="NAME:OPTIONS",
                    help="with --parallel: also run every mesh with these extra options, e.g. "
                         "'pool:--data target_pool=all' (repeatable; one GPU per mesh and variant)")
@@ -150,17 +142,18 @@ def main(argv=None) -> int:
     work.mkdir(parents=True, exist_ok=True)
     if a.small:
         torch.set_num_threads(1)  # tiny batches: threads only add sync overhead
-    data_opts = dict(SMALL_DATA if a.small else FULL_DATA)
-    if a.n_sources:
-        data_opts["n_sources"] = a.n_sources
-    data_opts.update(parse_data_options(a.data))
-    train_opts = dict(SMALL_TRAIN) if a.small else {}
+    cfg = preset("cpu_small" if a.small else "default")
+    if a.small:
+        cfg = cfg.set(**SMALL_DATA)
+    changes = parse_assignments(a.set)
     if a.D:
-        train_opts["D"] = a.D
+        changes["D"] = a.D
     if not a.amp:
-        train_opts["amp"] = False
-    train_opts.update(parse_overrides(a.set))
-
+        changes["amp"] = False
+    if a.n_sources:
+        changes["n_sources"] = a.n_sources
+    cfg = cfg.set(**changes, **parse_data_options(a.data))
+    data_opts, train_opts = cfg.to_dict()["data"], {k: v for k, v in cfg.to_dict().items() if k != "data"}
     report = {"device": a.device, "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
               "torch": torch.__version__, "python": platform.python_version(), "budget_s": budget,
               "small": a.small, "data_options": data_opts, "train_options": train_opts, "meshes": {}}
@@ -178,13 +171,13 @@ def main(argv=None) -> int:
     meshes, datasets = {}, {}
     for name in a.meshes:
         obj, _ = MESHES[name]
-        meshes[name] = load_mesh(find_shared("meshes", obj))
+        meshes[name] = ngf.load_mesh(find_shared("meshes", obj))
         tag = hashlib.sha1(json.dumps(data_opts, sort_keys=True).encode()).hexdigest()[:8]
         path = work / f"{name}-{'small' if a.small else 'full'}-{tag}.dataset.npz"
         t0 = time.perf_counter()
         reused = a.reuse_data and _usable(path, meshes[name])
         if not reused:
-            build_dataset(meshes[name], path, device=a.device, progress=True, **data_opts)
+            ngf.build_dataset(meshes[name], path, cfg.data, seed=cfg.seed, device=a.device, progress=True)
         datasets[name] = path
         report["meshes"][name] = {"dataset_s": round(time.perf_counter() - t0, 2), "dataset_reused": reused}
         print(f"[{name}] dataset {'reused' if reused else 'built'} in {report['meshes'][name]['dataset_s']:.1f}s",
@@ -198,14 +191,14 @@ def main(argv=None) -> int:
         left = budget - (time.perf_counter() - t_begin) - reserve * (len(a.meshes) - i)
         rest = sum(shares[m] for m in a.meshes[i:])
         secs = max(5.0, left * shares[name] / rest)  # train() fits set-up, compiling and saving inside it
-        model_path = work / f"{name}.ngf"  # models and checkpoints stay out of --out (small files only)
+        model_path = work / f"{name}.ngf"  # models and run folders stay out of --out (small files only)
         t0 = time.perf_counter()
-        model = train(meshes[name], model_path, dataset=datasets[name], device=a.device, budget_seconds=secs,
-                      progress=True, **train_opts)
+        model = ngf.train(meshes[name], model_path, config=cfg, dataset=datasets[name], device=a.device,
+                          budget_seconds=secs, progress=True, force=True)
         r = report["meshes"][name]
         r["train_budget_s"] = round(secs, 1)
         r["train_wall_s"] = round(time.perf_counter() - t0, 2)
-        log = json.loads(Path(log_path(model_path)).read_text())
+        log = json.loads(Path(RunFiles.for_model(model_path).log).read_text())
         r["train_s"] = log["config"]["train_seconds"]
         r["steps"] = log["config"]["steps"]
         r["history"] = log["history"]
@@ -216,15 +209,15 @@ def main(argv=None) -> int:
         kw = dict(n_path_sources=1 if a.small else 16, n_path_targets=16 if a.small else 32,
                   solver_k=1 if a.small else None, device=a.device, verbose=False,
                   path_refine=a.path_refine if a.path_refine is not None else (2 if a.small else 50))
-        ev = evaluate(model, meshes[name], ref, heat=True, **kw)
+        ev = ngf.evaluate(model, meshes[name], ref, heat=True, **kw)
         r["eval_s"] = round(time.perf_counter() - t0, 2)
         r["eval"] = ev
         r["released"] = {"missing": "not evaluated (--no-released)"}
         if a.released:  # the released checkpoint on the same sources and path pairs, for scale
             try:
-                rel = load(find_shared("checkpoints", "official", f"NeuroGF_Pretrainer__{name}_final.pth"),
+                rel = ngf.load(find_shared("checkpoints", "official", f"NeuroGF_Pretrainer__{name}_final.pth"),
                            mesh=meshes[name])
-                er = evaluate(rel, meshes[name], ref, sdf=False, **kw)
+                er = ngf.evaluate(rel, meshes[name], ref, sdf=False, **kw)
                 r["released"] = {"mre": er["neurogf"]["mre"], "max_rel": er["neurogf"]["max_rel"],
                                  **{k: v for k, v in er.items() if k.startswith("chamfer_l1")}}
             except FileNotFoundError as e:

@@ -1,43 +1,271 @@
-"""Training data for NeuroGF (layout of neurogf-reference.md §3-4), all in the normalized unit-sphere frame.
+"""Training data for a NeuroGF (layout of neurogf-reference.md §3-4), all in the normalized unit-sphere frame.
 
-One .npz (written atomically) holds the mesh, area-weighted surface points, distance rows
-[xs,ys,zs,xt,yt,zt,d] for global / local_1 / local_2 targets, resampled ground-truth paths and full distance
-fields from held-out test sources. Definitions used here (the original repo does not say how "local" was
-chosen):
+A :class:`Dataset` holds the mesh, area-weighted surface points, distance rows [xs,ys,zs,xt,yt,zt,d] for
+global / local_1 / local_2 targets, resampled ground-truth paths and full distance fields from held-out test
+sources; :func:`build_dataset` computes one with the Warp geodesic solver, ``Dataset.save`` / ``Dataset.load``
+write and read it as one ``.npz`` (written atomically). Definitions used here (the original repo does not say
+how "local" was chosen):
 - spread vertices: QSlim (fast-simplification) decimation to ~n_spread vertices, each mapped to the nearest
   mesh vertex; sources, test sources and global targets are drawn from them;
-- global targets (distances and paths): random spread vertices reachable from the source (never another
-  component), or with ``target_pool="all"`` random vertices of the whole mesh, the measure that evaluation over
-  all vertices uses (QSlim keeps detailed regions, so the spread set under-samples flat ones);
+- every target is reachable from its source (same connected component): no pair ever crosses between parts;
+  a source whose component holds no spread target draws its global targets from all its component's vertices;
+- global targets (distances and paths): random spread vertices, or with ``target_pool="all"`` random vertices
+  of the whole mesh, the measure that evaluation over all vertices uses (QSlim keeps detailed regions, so the
+  spread set under-samples flat ones);
 - local_1: the n_local1 vertices nearest to the source by geodesic distance;
 - local_2 and local path targets: random vertices among the `local_ball` (default 5% of V, at least
-  4*n_local2) nearest to the source by geodesic distance.
+  4*n_local2) nearest to the source by geodesic distance;
+- a ground-truth path with a non-finite point (the solver could not trace it) is left out and counted.
 """
 from __future__ import annotations
 
-import argparse
+import dataclasses
 import json
 import os
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
 
+from .arrays import resolve_device
 from .files import atomic_write
 from .geodesics import DEFAULT_K, PATH_DELTA, GeodesicSolver, resample_polyline
-from .arrays import resolve_device
 from .mesh import Mesh, load_mesh
 
-__all__ = ["build_dataset", "load_dataset", "sdf_truth", "sample_sdf_points", "spread_vertices", "data_main",
-           "DATASET_KEYS"]
+__all__ = ["Dataset", "DatasetSettings", "build_dataset", "load_dataset", "check_trainable", "sdf_truth",
+           "sample_sdf_points", "surface_samples", "spread_vertices", "MIN_VERTICES"]
 
-DATASET_KEYS = ("vertices", "faces", "center", "scale", "surface_points", "gd_src", "gd_global", "gd_local1",
-                "gd_local2", "path_src", "path_global", "path_local", "test_src", "test_dist", "meta")
+FORMAT_VERSION = 2  # 2: paths stored flat (K, M, 3) with their source per path; 1: (sources, targets, M, 3)
+MIN_VERTICES = 16  # below this there is nothing to hold out or sample paths from
+GLOBAL_PATH_POINTS = 128  # points per resampled ground-truth path (the official num_pp_g / num_pp_l)
+LOCAL_PATH_POINTS = 32
+# sources per solver launch on the CPU, where one launch cannot be interrupted: small enough that Ctrl-C is
+# honoured within about a second (each source is solved on its own, so results do not depend on it)
+CPU_SOLVER_BATCH = 8
+
+
+def solver_batch(batch: int | None, device) -> int | None:
+    """Sources per solver launch: ``batch`` if given, else ``CPU_SOLVER_BATCH`` on the CPU and the solver's own
+    choice (a memory budget) on a GPU."""
+    if batch is not None:
+        return batch
+    return CPU_SOLVER_BATCH if resolve_device(device).is_cpu else None
+
+
+@dataclass
+class DatasetSettings:
+    """How much ground truth :func:`build_dataset` computes (counts per source unless stated).
+
+    The defaults are the GPU recipe's (benchmarks/RESULTS.md): distances from 2,048 sources and paths from all
+    of them. ``neurogf_warp.training.presets`` sizes them to the device and the mesh.
+    """
+
+    n_sources: int = 2048          # distance sources (spread vertices)
+    n_global: int = 4096           # global distance targets per source
+    n_local1: int = 32             # nearest targets per source
+    n_local2: int = 2048           # targets per source inside the local ball
+    local_ball: float = 0.05       # local ball: this fraction of the vertices nearest to the source
+    n_path_sources: int = 2048     # path sources (the first of the distance sources)
+    n_path_global: int = 128       # global path targets per path source
+    n_path_local: int = 32         # local path targets per path source
+    n_test: int = 8                # held-out sources with full distance fields (validation)
+    n_surface: int = 100000        # area-weighted surface points (at least 30,000 are drawn)
+    n_spread: int = 20000          # spread vertices (QSlim) that sources and global targets come from
+    k: int = DEFAULT_K             # Steiner points per edge of the ground-truth solver
+    batch: int | None = None       # sources per solver launch (None: from a memory budget)
+    target_pool: str = "spread"    # "spread" or "all": where global targets come from
+
+    def validate(self) -> "DatasetSettings":
+        """Raise ValueError naming the first setting out of range; returns self."""
+        counts = {"n_sources": 1, "n_global": 1, "n_local1": 1, "n_local2": 1, "n_path_sources": 0,
+                  "n_path_global": 1, "n_path_local": 1, "n_test": 0, "n_surface": 1, "n_spread": 1, "k": 1}
+        for name, lo in counts.items():
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+                raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
+        if self.batch is not None and (isinstance(self.batch, bool) or not isinstance(self.batch, (int, np.integer))
+                                       or self.batch < 1):
+            raise ValueError(f"batch must be None or an integer >= 1, got {self.batch!r}")
+        if isinstance(self.local_ball, bool) or not isinstance(self.local_ball, (int, float)) \
+                or not 0 < self.local_ball <= 1:
+            raise ValueError(f"local_ball must be a fraction in (0, 1], got {self.local_ball!r}")
+        if self.target_pool not in ("spread", "all"):
+            raise ValueError(f"target_pool must be 'spread' or 'all', got {self.target_pool!r}")
+        return self
+
+
+@dataclass(eq=False)
+class Dataset:
+    """NeuroGF training data for one mesh, normalized frame (unit sphere); ``meta`` says how it was made.
+
+    Attributes
+    ----------
+    vertices : (V, 3) float32, the mesh's internal vertices, normalized
+    faces : (F, 3) int32
+    center : (3,) float64, scale : float -- normalized = (x - center) * scale
+    surface_points : (n, 3) float32, uniform by area on the surface
+    gd_src : (S,) int64 -- the distance sources (internal vertex ids)
+    gd_global, gd_local1, gd_local2 : (S, n, 7) float32 rows [xs, ys, zs, xt, yt, zt, d], d normalized
+    path_global : (Kg, 128, 3) float32, path_global_src : (Kg,) int64 -- paths from their source, arc-length
+        resampled; path_local : (Kl, 32, 3), path_local_src : (Kl,)
+    test_src : (T,) int64, test_dist : (T, V) float32 -- held-out sources and their distances (inf: unreachable)
+    meta : dict -- fingerprint of the mesh, settings, seed, counts of dropped paths, timings, versions
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    center: np.ndarray
+    scale: float
+    surface_points: np.ndarray
+    gd_src: np.ndarray
+    gd_global: np.ndarray
+    gd_local1: np.ndarray
+    gd_local2: np.ndarray
+    path_global: np.ndarray
+    path_global_src: np.ndarray
+    path_local: np.ndarray
+    path_local_src: np.ndarray
+    test_src: np.ndarray
+    test_dist: np.ndarray
+    meta: dict = field(default_factory=dict)
+
+    @classmethod
+    def array_names(cls) -> tuple:
+        """The names of the arrays, as stored in the file (besides ``meta``)."""
+        return tuple(f.name for f in dataclasses.fields(cls) if f.name != "meta")
+
+    @property
+    def fingerprint(self) -> str | None:
+        """The mesh fingerprint it was built for (``Mesh.fingerprint``)."""
+        return self.meta.get("fingerprint")
+
+    @property
+    def nbytes(self) -> int:
+        return int(sum(np.asarray(getattr(self, k)).nbytes for k in self.array_names()))
+
+    def arrays(self) -> dict:
+        """{name: array} of every stored array (``meta`` excluded)."""
+        return {k: getattr(self, k) for k in self.array_names()}
+
+    def __repr__(self):
+        return (f"Dataset({len(self.vertices)} vertices, {len(self.gd_src)} sources, {len(self.path_global)} + "
+                f"{len(self.path_local)} paths, {len(self.test_src)} test sources, {self.nbytes / 1e6:.1f} MB)")
+
+    def save(self, path) -> str:
+        """Write one ``.npz`` atomically (the previous file survives a failed save); returns the path."""
+        path = os.fspath(path)
+        if not path.endswith(".npz"):
+            path += ".npz"
+        meta = dict(self.meta, format_version=FORMAT_VERSION)
+        arrays = {k: np.asarray(v) for k, v in self.arrays().items()}
+        atomic_write(path, lambda f: np.savez(f, **arrays, meta=np.asarray(json.dumps(meta))))
+        return path
+
+    @classmethod
+    def load(cls, path, mesh=None) -> "Dataset":
+        """Read and check a dataset file; with ``mesh`` (anything ``load_mesh`` takes), also check that the
+        dataset was built for that mesh (fingerprint). Raises ValueError naming what is wrong."""
+        path = os.fspath(path)
+        raw = read_npz(path, "dataset")
+        if "meta" not in raw:
+            raise ValueError(f"{path} is not a NeuroGF dataset: no 'meta' entry")
+        try:
+            meta = json.loads(str(raw.pop("meta")))
+            assert isinstance(meta, dict)
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(f"{path}: unreadable meta JSON ({e})") from e
+        if meta.get("format_version", 1) == 1 and "path_src" in raw:
+            raw = _from_format_1(raw)
+        if meta.get("format_version", 1) > FORMAT_VERSION:
+            raise ValueError(f"{path} was written by a newer neurogf-warp (dataset format {meta['format_version']})")
+        missing = [k for k in cls.array_names() if k not in raw]
+        if missing:
+            raise ValueError(f"{path} is not a NeuroGF dataset: missing keys {missing}")
+        ds = cls(**{k: raw[k] for k in cls.array_names()}, meta=meta)
+        ds.scale = float(ds.scale)
+        ds.check(path)
+        if mesh is not None:
+            fp = load_mesh(mesh).fingerprint
+            if ds.fingerprint != fp:
+                raise ValueError(f"{path} was built for a different mesh (fingerprint {ds.fingerprint!r}, "
+                                 f"this mesh {fp!r})")
+        return ds
+
+    def check(self, name: str = "dataset") -> "Dataset":
+        """Raise ValueError if the arrays' shapes do not fit together; returns self."""
+        V = len(self.vertices)
+        S = len(self.gd_src)
+        expect = {"vertices": (V, 3), "faces": (None, 3), "center": (3,), "surface_points": (None, 3),
+                  "gd_global": (S, None, 7), "gd_local1": (S, None, 7), "gd_local2": (S, None, 7),
+                  "path_global": (len(self.path_global_src), None, 3),
+                  "path_local": (len(self.path_local_src), None, 3), "test_dist": (len(self.test_src), V)}
+        for k, shape in expect.items():
+            a = np.asarray(getattr(self, k))
+            if a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape)):
+                want = "(" + ", ".join("n" if s is None else str(s) for s in shape) + ")"
+                raise ValueError(f"{name}: {k} has shape {a.shape}, expected {want}")
+        for k in ("gd_src", "path_global_src", "path_local_src", "test_src"):
+            a = np.asarray(getattr(self, k))
+            if a.ndim != 1 or (a.size and (a.min() < 0 or a.max() >= V)):
+                raise ValueError(f"{name}: {k} must be a list of vertex ids in [0, {V})")
+        if not (np.isfinite(self.scale) and self.scale > 0):
+            raise ValueError(f"{name}: scale must be a positive number, got {self.scale}")
+        return self
+
+
+def _from_format_1(raw: dict) -> dict:
+    """Arrays of a format-1 file ((sources, targets, M, 3) paths and one path_src list) in today's layout."""
+    out = dict(raw)
+    for kind in ("global", "local"):
+        p = raw[f"path_{kind}"]
+        out[f"path_{kind}"] = p.reshape(-1, p.shape[-2], 3)
+        out[f"path_{kind}_src"] = np.repeat(raw["path_src"].astype(np.int64), p.shape[1])
+    del out["path_src"]
+    return out
+
+
+def read_npz(path, what: str) -> dict:
+    """All arrays of an ``.npz`` (no pickles); FileNotFoundError / ValueError naming ``what`` it should be."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{what} file not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except Exception as e:  # noqa: BLE001 - zip/npy errors of a truncated or foreign file
+        raise ValueError(f"{path} is not a readable {what} .npz (corrupt or truncated?): {e}") from e
+
+
+def load_dataset(path, mesh=None) -> Dataset:
+    """``Dataset.load(path, mesh)``: read and check a dataset file."""
+    return Dataset.load(path, mesh)
+
+
+def check_trainable(mesh: Mesh) -> None:
+    """Raise ValueError unless ``mesh`` has a connected part large enough to sample training data from."""
+    V = len(mesh.vertices)
+    if len(mesh.faces) == 0:
+        raise ValueError("the mesh has no faces: NeuroGF needs a triangle surface")
+    if V < MIN_VERTICES:
+        raise ValueError(f"the mesh has only {V} vertices; training needs at least {MIN_VERTICES} "
+                         "to sample sources, targets and held-out test sources")
+    v = mesh.normalized_vertices[mesh.faces]
+    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1).sum()
+    if not area > 1e-8:
+        raise ValueError("the mesh has zero surface area (all faces degenerate); nothing to sample from")
+    largest = int(np.bincount(mesh.components).max())
+    if largest < MIN_VERTICES:
+        raise ValueError(f"the mesh falls apart into {mesh.n_components} separate pieces of at most {largest} "
+                         f"vertices each (a triangle soup?): geodesics cannot leave a piece, so there is nothing to "
+                         f"learn. Weld coincident vertices first (e.g. trimesh's merge_vertices()); a piece needs "
+                         f"at least {MIN_VERTICES} vertices")
 
 
 # ---- sampling helpers ------------------------------------------------------------------------------
 def spread_vertices(mesh: Mesh, n: int) -> np.ndarray:
-    """About n well-spread internal vertex ids: QSlim-decimated vertices snapped to the nearest mesh vertex."""
+    """About ``n`` well-spread internal vertex ids, sorted: QSlim-decimated vertices snapped to the nearest
+    mesh vertex (random vertices where QSlim refuses the mesh)."""
     from scipy.spatial import cKDTree
 
     V = len(mesh.vertices)
@@ -55,7 +283,7 @@ def spread_vertices(mesh: Mesh, n: int) -> np.ndarray:
 
 
 def surface_samples(mesh: Mesh, n: int, rng: np.random.Generator) -> np.ndarray:
-    """n points uniformly by area on the normalized surface."""
+    """(n, 3) float32 points uniformly by area on the normalized surface."""
     p = mesh.normalized_vertices[mesh.faces]
     area = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
     f = rng.choice(len(p), n, p=area / area.sum())
@@ -66,7 +294,8 @@ def surface_samples(mesh: Mesh, n: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def sample_sdf_points(rng: np.random.Generator, surface_points: np.ndarray, n: int) -> np.ndarray:
-    """§3 SDF queries: thirds of uniform in [-1.01,1.01]^3, surface points, surface + N(0,0.03) clipped to ±0.03."""
+    """(n, 3) float32 SDF queries (§3): thirds of uniform in [-1.01, 1.01]^3, surface points, and surface points
+    + N(0, 0.03) clipped to +-0.03; normalized frame."""
     n1 = n // 3
     n2 = n // 3
     n3 = n - n1 - n2
@@ -101,9 +330,18 @@ def _is_watertight(faces: np.ndarray) -> bool:
 def sdf_truth(mesh_or_wp_mesh, points, device=None, watertight: bool | None = None) -> np.ndarray:
     """Signed distance (negative inside) of normalized-frame points to the mesh surface.
 
-    Accepts anything load_mesh takes (then the normalized mesh is used) or a wp.Mesh (points in its frame;
-    pass watertight=False for a wp.Mesh built with support_winding_number=True to use the winding number).
-    Watertight meshes use the pseudo-normal sign; meshes with holes the generalized winding number.
+    Parameters
+    ----------
+    mesh_or_wp_mesh : anything ``load_mesh`` takes (its normalized copy is used), or a ``wp.Mesh`` (points in its
+        frame; pass ``watertight=False`` for one built with ``support_winding_number=True``)
+    points : (N, 3) float, normalized frame
+    device : Warp device (default: Warp's preferred one)
+    watertight : sign from pseudo-normals (True) or the generalized winding number (False, for meshes with
+        holes); None: decided from the mesh
+
+    Returns
+    -------
+    (N,) float32 signed distances, normalized units.
     """
     device = resolve_device(device)
     if isinstance(mesh_or_wp_mesh, wp.Mesh):
@@ -138,193 +376,158 @@ def _rows(xyz: np.ndarray, s: int, t: np.ndarray, d: np.ndarray) -> np.ndarray:
     return out
 
 
-def build_dataset(mesh, out_path=None, n_sources: int = 2048, seed: int = 0, device=None, progress: bool = True,
-                  n_global: int = 4096, n_local1: int = 32, n_local2: int = 2048, local_ball: float = 0.05,
-                  n_path_sources: int = 2048, n_path_global: int = 128, n_path_local: int = 32,
-                  n_test: int = 8, n_surface: int = 100000, n_spread: int = 20000, k: int = DEFAULT_K,
-                  batch: int | None = None, target_pool: str = "spread") -> dict:
-    """Build the NeuroGF training data for one mesh; returns the dict of arrays (and saves it if out_path).
+class _Targets:
+    """Target pools of one source's distance row ``d`` (internal ids; inf = another component)."""
 
-    The defaults are the GPU benchmark's (benchmarks/RESULTS.md): distances from 2,048 sources, paths from all
-    of them (128 global + 32 local targets each: test-path Chamfer 13% lower on fandisk and 3% on bunny than
-    with 64, 20% lower on bunny than with 16).
+    def __init__(self, d: np.ndarray, s: int, target_set: np.ndarray, nball: int):
+        self.d, self.s = d, s
+        reach = target_set[np.isfinite(d[target_set]) & (target_set != s)]
+        if len(reach) == 0:  # no spread target in this source's component: all of its vertices
+            everything = np.arange(len(d))
+            reach = everything[np.isfinite(d) & (everything != s)]
+        self.reach = reach
+        order = np.argsort(d, kind="stable")
+        self.local = order[np.isfinite(d[order]) & (order != s)][:nball]
+
+
+def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, *, seed: int = 0, device=None,
+                  progress: bool = True, **overrides) -> Dataset:
+    """Compute the NeuroGF training data for one mesh with the Warp geodesic solver.
+
+    Parameters
+    ----------
+    mesh : path, trimesh.Trimesh, (vertices, faces) or Mesh
+    out_path : also save it there (``.npz``, atomic write); None keeps it in memory only
+    settings : DatasetSettings (default: the GPU recipe's); ``**overrides`` replace single fields of it,
+        e.g. ``n_sources=256``
+    seed : random seed of every draw (sources, targets, surface points)
+    device : Warp device of the solver
+    progress : a progress bar on stderr
+
+    Returns
+    -------
+    Dataset
     """
-    if target_pool not in ("spread", "all"):
-        raise ValueError(f"target_pool must be 'spread' or 'all', got {target_pool!r}")
+    settings = dataclasses.replace(settings or DatasetSettings(), **overrides).validate()
     from tqdm.auto import tqdm
 
     t_start = time.perf_counter()
     m = load_mesh(mesh)
+    check_trainable(m)
+    st = settings
     rng = np.random.default_rng(seed)
     V = len(m.vertices)
     xyz = m.normalized_vertices.astype(np.float32)
     timings = {}
 
     t0 = time.perf_counter()
-    spread = spread_vertices(m, min(n_spread, max(V // 2, 1)))
-    n_sources = min(n_sources, max(len(spread) - n_test, 1))
+    spread = spread_vertices(m, min(st.n_spread, max(V // 2, 1)))
+    n_sources = min(st.n_sources, max(len(spread) - st.n_test, 1))
     perm = rng.permutation(spread)
-    test_src = np.sort(perm[:n_test]) if len(perm) > n_sources else perm[:0]
+    test_src = np.sort(perm[:st.n_test]) if len(perm) > n_sources else perm[:0]
     gd_src = perm[len(test_src): len(test_src) + n_sources]
-    n_path_sources = min(n_path_sources, len(gd_src))
+    n_path_sources = min(st.n_path_sources, len(gd_src))
     path_src = gd_src[:n_path_sources]
-    surface = surface_samples(m, max(n_surface, 30000), rng)
+    surface = surface_samples(m, max(st.n_surface, 30000), rng)
     timings["sampling_s"] = time.perf_counter() - t0
 
-    nball = int(min(V - 1, max(local_ball * V, 4 * n_local2, n_local1)))
-    S = len(gd_src)
-    gd_global = np.zeros((S, n_global, 7), np.float32)
-    gd_local1 = np.zeros((S, n_local1, 7), np.float32)
-    gd_local2 = np.zeros((S, n_local2, 7), np.float32)
-    spread_set = np.asarray(spread)
-    target_set = spread_set if target_pool == "spread" else np.arange(V)
+    nball = int(min(V - 1, max(st.local_ball * V, 4 * st.n_local2, st.n_local1)))
+    target_set = np.asarray(spread) if st.target_pool == "spread" else np.arange(V)
+    kept, rows = [], {"global": [], "local1": [], "local2": []}
 
-    def local_pool(d, s):
-        order = np.argsort(d, kind="stable")
-        order = order[np.isfinite(d[order]) & (order != s)]
-        return order[:nball]
-
-    solver = GeodesicSolver(m, k=k, device=device, batch=batch, max_rows=max(S, len(test_src), 1))
-    bar = tqdm(total=S + len(test_src) + n_path_sources, desc="geodesics", disable=not progress, unit="src")
+    batch = solver_batch(st.batch, device)
+    solver = GeodesicSolver(m, k=st.k, device=device, batch=batch, max_rows=max(len(gd_src), len(test_src), 1))
+    bar = tqdm(total=len(gd_src) + len(test_src) + n_path_sources, desc="ground truth", disable=not progress,
+               unit="source", dynamic_ncols=True)
     t0 = time.perf_counter()
-    for i in range(0, S, solver.batch):
+    for i in range(0, len(gd_src), solver.batch):
         src = gd_src[i: i + solver.batch]
         solver.run(src)
         D = solver.vertex_distances()
         for j, s in enumerate(src):
-            d = D[j]
-            reach = target_set[np.isfinite(d[target_set]) & (target_set != s)]
-            pool = local_pool(d, s)
-            gd_global[i + j] = _rows(xyz, s, _pick(rng, reach, n_global), d)
-            gd_local1[i + j] = _rows(xyz, s, _pick(rng, pool[:n_local1], n_local1) if len(pool) >= n_local1
-                                     else _pick(rng, pool, n_local1), d)
-            gd_local2[i + j] = _rows(xyz, s, _pick(rng, pool, n_local2), d)
+            tg = _Targets(D[j], s, target_set, nball)
+            if len(tg.reach) == 0:  # nothing reachable (a vertex of degenerate faces only)
+                continue
+            kept.append(s)
+            pool = tg.local
+            rows["global"].append(_rows(xyz, s, _pick(rng, tg.reach, st.n_global), tg.d))
+            near = _pick(rng, pool[:st.n_local1], st.n_local1) if len(pool) >= st.n_local1 \
+                else _pick(rng, pool, st.n_local1)
+            rows["local1"].append(_rows(xyz, s, near, tg.d))
+            rows["local2"].append(_rows(xyz, s, _pick(rng, pool, st.n_local2), tg.d))
         bar.update(len(src))
+    if not kept:
+        raise ValueError("no training source reaches any other vertex: the mesh has no usable connected part")
     test_dist = np.zeros((len(test_src), V), np.float32)
-    if len(test_src):
-        test_dist[:] = solver.solve(test_src)
-        bar.update(len(test_src))
+    for i in range(0, len(test_src), solver.batch):
+        test_dist[i: i + solver.batch] = solver.solve(test_src[i: i + solver.batch])
+        bar.update(len(test_src[i: i + solver.batch]))
     timings["distances_s"] = time.perf_counter() - t0
     timings["distance_iterations"] = solver.timings["iterations"]
     del solver
 
     # paths: near-Dijkstra order so every traced polyline is as long as its distance
     t0 = time.perf_counter()
-    path_global = np.zeros((n_path_sources, n_path_global, 128, 3), np.float32)
-    path_local = np.zeros((n_path_sources, n_path_local, 32, 3), np.float32)
+    paths = {"global": [], "local": []}
+    path_of = {"global": [], "local": []}
     stale = 0
     if n_path_sources:
-        ps = GeodesicSolver(m, k=k, device=device, batch=batch, delta=PATH_DELTA, max_rows=n_path_sources)
+        ps = GeodesicSolver(m, k=st.k, device=device, batch=batch, delta=PATH_DELTA, max_rows=n_path_sources)
         for i in range(0, n_path_sources, ps.batch):
             src = path_src[i: i + ps.batch]
             ps.run(src)
             D = ps.vertex_distances()
-            rows, tg, kinds = [], [], []
+            row_of, targets, count = [], [], []
             for j, s in enumerate(src):
-                d = D[j]
-                reach = target_set[np.isfinite(d[target_set]) & (target_set != s)]
-                tg.append(_pick(rng, reach, n_path_global))
-                tg.append(_pick(rng, local_pool(d, s), n_path_local))
-                rows += [np.full(len(tg[-2]), j), np.full(len(tg[-1]), j)]
-            pts, offs, st = ps.trace(np.concatenate(rows), np.concatenate(tg))
-            stale += int(np.sum(st != 0))
+                tg = _Targets(D[j], s, target_set, nball)
+                for kind, pool, n in (("global", tg.reach, st.n_path_global), ("local", tg.local, st.n_path_local)):
+                    t = _pick(rng, pool, n)
+                    targets.append(t)
+                    row_of.append(np.full(len(t), j))
+                    count.append((kind, s, len(t)))
+            pts, offs, st_flags = ps.trace(np.concatenate(row_of), np.concatenate(targets))
+            stale += int(np.sum(st_flags != 0))
             c = 0
-            for j in range(len(src)):
-                ng, nl = len(tg[2 * j]), len(tg[2 * j + 1])
-                if ng:
-                    path_global[i + j] = resample_polyline(pts, offs[c: c + ng + 1], 128)
-                c += ng
-                if nl:
-                    path_local[i + j] = resample_polyline(pts, offs[c: c + nl + 1], 32)
-                c += nl
+            for kind, s, n in count:
+                if n:
+                    m_pts = GLOBAL_PATH_POINTS if kind == "global" else LOCAL_PATH_POINTS
+                    paths[kind].append(resample_polyline(pts, offs[c: c + n + 1], m_pts))
+                    path_of[kind].append(np.full(n, s, dtype=np.int64))
+                c += n
             bar.update(len(src))
         timings["path_iterations"] = ps.timings["iterations"]
     bar.close()
+    dropped, out_paths = 0, {}
+    for kind, m_pts in (("global", GLOBAL_PATH_POINTS), ("local", LOCAL_PATH_POINTS)):
+        p = np.concatenate(paths[kind]) if paths[kind] else np.zeros((0, m_pts, 3), np.float32)
+        src_of = np.concatenate(path_of[kind]) if path_of[kind] else np.zeros(0, np.int64)
+        ok = np.isfinite(p).all(axis=(1, 2))
+        dropped += int(np.sum(~ok))
+        out_paths[kind] = (p[ok].astype(np.float32), src_of[ok])
     timings["paths_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
 
     meta = {
-        "fingerprint": m.fingerprint, "n_input_vertices": m.n_input, "seed": seed,
-        "settings": {"k": k, "n_sources": int(S), "n_global": n_global, "n_local1": n_local1, "n_local2": n_local2,
-                     "local_ball_vertices": nball, "n_path_sources": int(n_path_sources),
-                     "n_path_global": n_path_global, "n_path_local": n_path_local, "n_test": int(len(test_src)),
-                     "n_spread": int(len(spread)), "target_pool": target_pool, "path_delta": PATH_DELTA},
+        "format_version": FORMAT_VERSION, "fingerprint": m.fingerprint, "n_input_vertices": m.n_input, "seed": seed,
+        # what was asked for (before capping to the mesh): a cached dataset is reused only for the same request
+        "requested": {"seed": int(seed), **{k: v for k, v in dataclasses.asdict(st).items() if k != "batch"}},
+        "settings": dict(dataclasses.asdict(st), n_sources=len(gd_src), n_path_sources=int(n_path_sources),
+                         n_test=int(len(test_src)), n_spread=int(len(spread)), local_ball_vertices=nball,
+                         path_delta=PATH_DELTA),
         "definitions": __doc__.split("Definitions used here", 1)[-1].strip(),
-        "stale_paths": stale, "units": "normalized (unit sphere)",
+        "sources_without_targets": int(len(gd_src) - len(kept)), "stale_paths": stale, "dropped_paths": dropped,
+        "components": int(m.n_components), "units": "normalized (unit sphere)",
         "versions": {"warp": wp.config.version, "numpy": np.__version__},
         "timings": timings,
     }
-    data = {
-        "vertices": xyz, "faces": m.faces.astype(np.int32), "center": np.asarray(m.center, np.float64),
-        "scale": np.float64(m.scale), "surface_points": surface, "gd_src": gd_src.astype(np.int64),
-        "gd_global": gd_global, "gd_local1": gd_local1, "gd_local2": gd_local2,
-        "path_src": path_src.astype(np.int64), "path_global": path_global, "path_local": path_local,
-        "test_src": test_src.astype(np.int64), "test_dist": test_dist, "meta": np.asarray(json.dumps(meta)),
-    }
+    ds = Dataset(
+        vertices=xyz, faces=m.faces.astype(np.int32), center=np.asarray(m.center, np.float64), scale=float(m.scale),
+        surface_points=surface, gd_src=np.asarray(kept, dtype=np.int64),
+        gd_global=np.stack(rows["global"]), gd_local1=np.stack(rows["local1"]), gd_local2=np.stack(rows["local2"]),
+        path_global=out_paths["global"][0], path_global_src=out_paths["global"][1],
+        path_local=out_paths["local"][0], path_local_src=out_paths["local"][1],
+        test_src=test_src.astype(np.int64), test_dist=test_dist, meta=meta,
+    ).check()
     if out_path is not None:
-        save_dataset(out_path, data)
-    return data
-
-
-def save_dataset(path, data: dict) -> None:
-    """Write atomically: a temporary file in the same directory, then os.replace."""
-    path = os.fspath(path)
-    if not path.endswith(".npz"):
-        path += ".npz"
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    atomic_write(path, lambda f: np.savez(f, **data))
-
-
-def load_dataset(path, mesh=None) -> dict:
-    """Load and check a dataset file; with `mesh`, also check it was built from that mesh (fingerprint)."""
-    path = os.fspath(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except FileNotFoundError:
-        raise
-    except Exception as e:  # noqa: BLE001 - zip/npy errors of a truncated or foreign file
-        raise ValueError(f"{path} is not a readable dataset .npz (corrupt or truncated?): {e}") from e
-    missing = [k for k in DATASET_KEYS if k not in data]
-    if missing:
-        raise ValueError(f"{path} is not a NeuroGF dataset: missing keys {missing}")
-    try:
-        meta = json.loads(str(data["meta"]))
-    except Exception as e:  # noqa: BLE001
-        raise ValueError(f"{path}: unreadable meta JSON: {e}") from e
-    data["meta"] = meta
-    S = len(data["gd_src"])
-    for k_, w in (("gd_global", 7), ("gd_local1", 7), ("gd_local2", 7)):
-        a = data[k_]
-        if a.ndim != 3 or a.shape[0] != S or a.shape[2] != w:
-            raise ValueError(f"{path}: {k_} has shape {a.shape}, expected ({S}, n, {w})")
-    if data["test_dist"].shape != (len(data["test_src"]), len(data["vertices"])):
-        raise ValueError(f"{path}: test_dist shape {data['test_dist'].shape} does not match test_src/vertices")
-    if mesh is not None:
-        fp = load_mesh(mesh).fingerprint
-        if meta.get("fingerprint") != fp:
-            raise ValueError(f"{path} was built for a different mesh (fingerprint {meta.get('fingerprint')!r}, "
-                             f"this mesh {fp!r})")
-    return data
-
-
-def data_main(argv=None) -> int:
-    """`neurogf-warp data mesh.obj -o data.npz [--sources N] [--device D]`."""
-    ap = argparse.ArgumentParser(prog="neurogf-warp data", description="Build NeuroGF training data for a mesh.")
-    ap.add_argument("mesh")
-    ap.add_argument("-o", "--output", required=True)
-    ap.add_argument("--sources", type=int, default=2048)
-    ap.add_argument("--device", default=None)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--k", type=int, default=DEFAULT_K, help="Steiner points per edge")
-    ap.add_argument("--path-sources", type=int, default=128)
-    ap.add_argument("--test-sources", type=int, default=8)
-    ap.add_argument("--quiet", action="store_true")
-    a = ap.parse_args(argv)
-    data = build_dataset(a.mesh, a.output, n_sources=a.sources, seed=a.seed, device=a.device,
-                         progress=not a.quiet, k=a.k, n_path_sources=a.path_sources, n_test=a.test_sources)
-    if not a.quiet:
-        t = json.loads(str(data["meta"]))["timings"]
-        print(f"wrote {a.output}: {len(data['gd_src'])} sources, {len(data['path_src'])} path sources, "
-              f"{len(data['test_src'])} test sources in {t['total_s']:.1f} s")
-    return 0
+        ds.save(out_path)
+    return ds

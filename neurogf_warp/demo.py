@@ -1,65 +1,87 @@
-"""The main job: train a NeuroGF on the bundled default mesh (or yours), report its accuracy, answer SSAD."""
+"""The main job: train a NeuroGF on the bundled default mesh (or yours), measure it, answer an SSAD query.
+
+Everything goes to one output folder (the model, its run folder, ``evaluation.json``, ``ssad_vertex0.npy``).
+Run again on the same folder, it finds the finished model and answers from it (``force`` trains again); an
+interrupted run continues where it stopped.
+"""
 from __future__ import annotations
 
-import argparse
 import importlib.util
+import json
+import os
+import sys
 import time
 
-import numpy as np
+__all__ = ["run_demo"]
+
+CPU_BUDGET_S = 180.0
+GPU_BUDGET_S = 300.0
 
 
-def demo_main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="neurogf-warp demo", description=__doc__)
-    ap.add_argument("--mesh", default=None, help="a mesh file (default: the bundled generated blob)")
-    ap.add_argument("-o", "--output", default="neurogf-demo.ngf", help="model file to write")
-    ap.add_argument("--device", default=None, help="cpu or cuda:N (default: the GPU if there is one)")
-    ap.add_argument("--budget-seconds", type=float, default=None,
-                    help="training time (default 200 on CPU, 300 on a GPU)")
-    ap.add_argument("--D", type=int, default=None, choices=(64, 128, 256, 512),
-                    help="network width (default 256 on a GPU, 64 on CPU)")
-    ap.add_argument("--sources", type=int, default=None, help="training sources (default 64 on CPU, 1024 on GPU)")
-    a = ap.parse_args(argv)
+def _say(on: bool, msg: str):
+    if on:
+        print(msg, flush=True)
 
-    import torch
-    import warp as wp
 
-    import neurogf_warp as ngf
-    from neurogf_warp.default_mesh import default_mesh
-    from neurogf_warp.files import atomic_write
+def run_demo(out_dir="neurogf-demo", *, mesh=None, device=None, budget_seconds: float | None = None,
+             force: bool = False, progress: bool = True) -> dict:
+    """Train (or reuse), evaluate and query a model in ``out_dir``; returns the evaluation results.
 
-    gpu = (a.device or ("cuda:0" if torch.cuda.is_available() else "cpu")).startswith("cuda")
-    device = a.device or ("cuda:0" if gpu else "cpu")
-    mesh = ngf.load_mesh(a.mesh if a.mesh else default_mesh())
-    name = a.mesh or "bundled blob (generated)"
-    print(f"mesh: {name}, {mesh.n_input} vertices, {len(mesh.faces)} faces; device {device}")
-    budget = a.budget_seconds or (300.0 if gpu else 200.0)
-    n_src = a.sources or (1024 if gpu else 64)
-    data = dict(n_sources=n_src, n_path_sources=min(128, n_src // 4), n_path_global=64, n_path_local=32,
-                n_global=min(4096, mesh.n_input), n_local2=512, n_surface=30000)
-    # The paper's batches (65K pairs, 8K paths per step) suit a GPU; a CPU gets small ones so that a
-    # couple of minutes buy thousands of steps rather than a few dozen.
-    opts = {} if gpu else dict(batch_sdf=2048, batch_g=4096, batch_l1=512, batch_l2=1024, batch_paths_g=128,
-                                batch_paths_l=128, batch_surf=32, batch_querier=4096, sdf_pool=100000, val_every=500)
-    if not gpu:
-        torch.set_num_threads(1)  # tiny batches: threads only add synchronization
-    opts["D"] = a.D or (256 if gpu else 64)
+    Parameters
+    ----------
+    out_dir : output folder (created if missing)
+    mesh : a mesh (path, trimesh, (V, F) or Mesh); default: the bundled generated blob (2,562 vertices)
+    device : "cpu" or "cuda:N" (default: the GPU if there is one)
+    budget_seconds : seconds for the training call, dataset included (default 180 on a CPU, 300 on a GPU)
+    force : train again even when ``out_dir`` holds a finished run
+    progress : progress bars and messages
+    """
+    import numpy as np
+
+    from .default_mesh import default_mesh
+    from .evaluate import evaluate
+    from .files import atomic_write
+    from .inference import ssad
+    from .mesh import load_mesh
+    from .training import train
+    from .training.api import torch_device
+    from .training.checkpoint import RunFiles
+
+    folder = os.path.abspath(os.fspath(out_dir))
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise FileExistsError(f"output folder {folder} exists and is not a folder")
+    os.makedirs(folder, exist_ok=True)
+    files = RunFiles.for_model(os.path.join(folder, "model.ngf"))
+    files.check_writable()
+    dev = torch_device(device)
+    m = load_mesh(mesh if mesh is not None else default_mesh())
+    name = mesh if isinstance(mesh, (str, os.PathLike)) else "bundled blob (generated)" if mesh is None else "given mesh"
+    budget = budget_seconds or (GPU_BUDGET_S if dev.type == "cuda" else CPU_BUDGET_S)
+    _say(progress, f"mesh: {name}, {m.n_input} vertices, {len(m.faces)} faces; device {dev}; output folder {folder}")
+
+    reuse = not force and os.path.exists(files.model) and os.path.exists(files.checkpoint)
     t0 = time.perf_counter()
-    model = ngf.train(mesh, a.output, device=device, budget_seconds=budget, dataset_options=data, resume=True,
-                      **opts)
-    print(f"trained in {time.perf_counter() - t0:.0f} s (dataset, querier, joint training, refinement): {a.output}")
+    model = train(m, files.model, device=dev, budget_seconds=budget, force=force, progress=progress)
+    took = time.perf_counter() - t0
+    _say(progress, f"model: {files.model} " + ("(the finished run's; --force trains again)" if reuse and took < 30 else
+                                               f"({took:.0f} s: dataset, querier, joint training, refinement)"))
 
-    print("\naccuracy on held-out sources (ground truth: our geodesic solver):")
     heat = importlib.util.find_spec("potpourri3d") is not None  # the heat method beside it, when installed
-    ngf.evaluate(model, heat=heat, n_sources=4, n_path_sources=4, n_path_targets=8, n_sdf=20000, device=device,
-                 seed=123)
+    _say(progress, "\naccuracy on random vertices (ground truth: the Warp geodesic solver"
+                   + (", beside the heat method):" if heat else "):"))
+    res = evaluate(model, heat=heat, n_sources=4, n_path_sources=4, n_path_targets=8, n_sdf=20000, device=str(dev),
+                   seed=123, progress=progress, verbose=progress)
+    text = json.dumps(res, indent=1).encode()
+    atomic_write(os.path.join(folder, "evaluation.json"), lambda f: f.write(text))
 
-    wdev = device if wp.get_cuda_device_count() else "cpu"
-    d = ngf.ssad(model, 0, device=wdev)
+    d = ssad(model, 0, device=str(dev))
     t = time.perf_counter()
-    d = ngf.ssad(model, 0, device=wdev)
+    d = ssad(model, 0, device=str(dev))
     ms = (time.perf_counter() - t) * 1e3
-    atomic_write("ssad_vertex0.npy", lambda f: np.save(f, d))
-    far = int(np.nanargmax(d))
-    print(f"\nSSAD from vertex 0 ({wdev}): {ms:.1f} ms for {mesh.n_input} vertices; farthest vertex {far} at "
-          f"{d[far]:.4f} (mesh units); written to ssad_vertex0.npy")
-    return 0
+    out = os.path.join(folder, "ssad_vertex0.npy")
+    atomic_write(out, lambda f: np.save(f, d))
+    far = int(np.nanargmax(np.where(np.isfinite(d), d, np.nan)))
+    _say(progress, f"\nSSAD from vertex 0 ({dev}): {ms:.1f} ms for {m.n_input} vertices; farthest vertex {far} at "
+                   f"{d[far]:.4f} (mesh units); written to {out}")
+    sys.stdout.flush()
+    return res

@@ -36,7 +36,8 @@ class FC(nn.Module):
         self.bn = nn.BatchNorm1d(oc) if bn else None
         self.act = nn.ReLU(inplace=True) if relu else None
 
-    def forward(self, x):
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, ic) -> (B, oc)."""
         x = self.linear(x)
         if self.bn is not None:
             x = self.bn(x)
@@ -55,7 +56,8 @@ class PointMLP(nn.Module):
         self.bn = nn.BatchNorm2d(oc) if bn else None
         self.act = nn.ReLU(inplace=True) if relu else None
 
-    def forward(self, x):
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, N, ic) -> (B, N, oc)."""
         b, n, c = x.shape
         y = self.conv(x.permute(0, 2, 1).unsqueeze(-1))
         if self.bn is not None:
@@ -66,6 +68,7 @@ class PointMLP(nn.Module):
 
 
 def widths(D: int, path_width: int = 1) -> dict:
+    """Layer widths of each part for embedding width ``D``: {"lifting", "head", "guidance", "path"} -> lists."""
     if D not in SUPPORTED_D:
         raise ValueError(f"D must be one of {SUPPORTED_D}, got {D}")
     if path_width not in (1, 2) or path_width * D > 512:
@@ -84,7 +87,7 @@ def _head(ws):
     return nn.Sequential(*layers, FC(ws[-2], ws[-1], bn=False, relu=False))
 
 
-def fourier_features(x, L: int):
+def fourier_features(x: torch.Tensor, L: int) -> torch.Tensor:
     """[x, sin(2^k pi x), cos(2^k pi x) for k < L]: (..., 3) -> (..., 3 + 6L); L = 0 returns x."""
     if L == 0:
         return x
@@ -121,7 +124,7 @@ class NeuroGFNet(nn.Module):
         return {"fourier": self.fourier, "euclid": self.euclid, "path_residual": self.path_residual,
                 "path_width": self.path_width, "path_window": self.path_window}
 
-    def path_output(self, out, lines):
+    def path_output(self, out: torch.Tensor, lines: torch.Tensor) -> torch.Tensor:
         """Path points from the head's output: absolute (paper), or offsets from the lines (optionally windowed)."""
         if not self.path_residual:
             return out
@@ -131,11 +134,15 @@ class NeuroGFNet(nn.Module):
         return lines + out
 
     # Each query kind on its own; training may instead lift all points in one call (shared BN statistics).
-    def embed(self, x):
+    def embed(self, x: torch.Tensor) -> torch.Tensor:
+        """Point embeddings: (N, 3) normalized-frame points -> (N, D)."""
         return self.lifting(fourier_features(x, self.fourier))
 
-    def distance_from_embeddings(self, es, et, p=None, q=None):
-        """gdf_head(|e_p - e_q|) (+ |p - q| with ``euclid``, which then needs the points p, q)."""
+    def distance_from_embeddings(self, es: torch.Tensor, et: torch.Tensor, p: torch.Tensor | None = None,
+                                 q: torch.Tensor | None = None) -> torch.Tensor:
+        """gdf_head(|e_p - e_q|) (+ |p - q| with ``euclid``, which then needs the points p, q).
+
+        es, et : (N, D) embeddings; p, q : (N, 3) points -> (N,) distances, normalized units."""
         d = self.gdf_head((es - et).abs()).squeeze(-1)
         if self.euclid:
             if p is None or q is None:
@@ -143,28 +150,32 @@ class NeuroGFNet(nn.Module):
             d = d + torch.linalg.vector_norm(p - q, dim=-1)
         return d
 
-    def sdf_from_embeddings(self, e):
+    def sdf_from_embeddings(self, e: torch.Tensor) -> torch.Tensor:
+        """(N, D) embeddings -> (N,) signed distances, normalized units (negative inside)."""
         return self.sdf_head(e).squeeze(-1)
 
-    def path_from_embeddings(self, es, et, lines):
-        """lines: (N, M, 3) straight-line samples; returns (N, M, 3) absolute path points."""
+    def path_from_embeddings(self, es: torch.Tensor, et: torch.Tensor, lines: torch.Tensor) -> torch.Tensor:
+        """es, et : (N, D) end embeddings; lines : (N, M, 3) straight-line samples -> (N, M, 3) path points."""
         g = self.cdw_fc(torch.cat([es, et], dim=-1))
         g = g.unsqueeze(1).expand(-1, lines.shape[1], -1)
         return self.path_output(self.spf_head(torch.cat([lines, g], dim=-1)), lines)
 
-    def distance(self, p, q):
+    def distance(self, p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+        """(N, 3), (N, 3) normalized points -> (N,) geodesic distances, normalized units."""
         e = self.embed(torch.cat([p, q], 0))
         return self.distance_from_embeddings(e[: len(p)], e[len(p):], p, q)
 
-    def sdf(self, x):
+    def sdf(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, 3) normalized points -> (N,) signed distances (negative inside)."""
         return self.sdf_from_embeddings(self.embed(x))
 
-    def path(self, p, q, m: int = 128):
+    def path(self, p: torch.Tensor, q: torch.Tensor, m: int = 128) -> torch.Tensor:
+        """(N, 3), (N, 3) normalized points -> (N, m, 3) path points from p to q."""
         e = self.embed(torch.cat([p, q], 0))
         return self.path_from_embeddings(e[: len(p)], e[len(p):], straight_lines(p, q, m))
 
 
-def straight_lines(p, q, m: int):
+def straight_lines(p: torch.Tensor, q: torch.Tensor, m: int) -> torch.Tensor:
     """m equally spaced points from p to q, both ends included: (N, 3), (N, 3) -> (N, m, 3)."""
     t = torch.linspace(0.0, 1.0, m, dtype=p.dtype, device=p.device).view(1, m, 1)
     return p.unsqueeze(1) + t * (q - p).unsqueeze(1)
@@ -180,5 +191,6 @@ class SdfQuerier(nn.Module):
         w = self.WIDTHS
         self.fc = nn.Sequential(*[FC(a, b) for a, b in zip(w[:-2], w[1:-1])], FC(w[-2], w[-1], bn=False, relu=False))
 
-    def forward(self, x):
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, 3) normalized points -> (N,) signed distances."""
         return self.fc(x).squeeze(-1)

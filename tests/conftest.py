@@ -26,3 +26,54 @@ def shared_path(*parts) -> Path:
             pytest.fail(msg)
         pytest.skip(msg)
     return p
+
+
+@pytest.fixture(scope="session")
+def ellipsoid():
+    """A 642-vertex ellipsoid (icosphere(3) scaled 1 x 0.8 x 0.6): the training tests' mesh."""
+    import numpy as np
+    import trimesh
+
+    from neurogf_warp.mesh import load_mesh
+
+    tm = trimesh.creation.icosphere(subdivisions=3)
+    tm.vertices *= np.array([1.0, 0.8, 0.6])
+    return load_mesh(tm)
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(ellipsoid):
+    """The ``cpu_small`` preset's dataset of the ellipsoid (a few seconds on 2 cores)."""
+    from neurogf_warp.dataset import build_dataset
+    from neurogf_warp.training import preset
+
+    return build_dataset(ellipsoid, None, preset("cpu_small").data, device="cpu", progress=False)
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """Tiny batches: one torch thread avoids OpenMP spin-waits, several times faster on a busy 2-core box."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="session")
+def trained(tmp_path_factory, ellipsoid, tiny_dataset):
+    """(Model, model path): the ellipsoid trained for 300 joint steps with the ``cpu_small`` preset (one thread)."""
+    import torch
+
+    from neurogf_warp.training import preset, train
+
+    out = tmp_path_factory.mktemp("trained") / "m.ngf"
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        cfg = preset("cpu_small", querier_steps=30, epochs=3, iters_per_epoch=100)
+        model = train(ellipsoid, out, config=cfg, dataset=tiny_dataset, device="cpu", progress=False)
+    finally:
+        torch.set_num_threads(n)
+    return model, out

@@ -1,15 +1,14 @@
-"""Dataset builder: layout contract, component handling, atomic save/load checks, SDF truth."""
+"""Dataset builder: layout contract, pairs within components, NaN paths left out, unusable meshes refused,
+atomic save/load checks, the older file format, SDF truth."""
 import json
 import os
-import sys
 
 import numpy as np
 import pytest
 import trimesh
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from neurogf_warp import dataset as D  # noqa: E402
-from neurogf_warp.mesh import load_mesh  # noqa: E402
+from neurogf_warp import dataset as D
+from neurogf_warp.mesh import load_mesh
 
 SMALL = dict(n_sources=6, n_global=32, n_local1=8, n_local2=16, n_path_sources=2, n_path_global=4,
              n_path_local=3, n_test=2, n_surface=30000, n_spread=200, progress=False, device="cpu")
@@ -35,53 +34,123 @@ def built(two_blobs, tmp_path_factory):
 
 def test_layout(built, two_blobs):
     path, _ = built
-    d = D.load_dataset(path, two_blobs)
-    assert set(D.DATASET_KEYS) <= set(d)
-    S = len(d["gd_src"])
-    assert d["vertices"].dtype == np.float32 and d["faces"].dtype == np.int32
-    assert d["gd_global"].shape == (S, 32, 7) and d["gd_local1"].shape == (S, 8, 7)
-    assert d["gd_local2"].shape == (S, 16, 7)
-    assert d["path_global"].shape == (2, 4, 128, 3) and d["path_local"].shape == (2, 3, 32, 3)
-    assert d["surface_points"].shape[0] >= 30000
-    assert d["test_dist"].shape == (2, len(d["vertices"]))
-    assert not set(d["test_src"]) & set(d["gd_src"])
-    assert np.abs(np.linalg.norm(d["vertices"], axis=1).max() - 1) < 1e-6  # normalized frame
+    d = D.Dataset.load(path, two_blobs)
+    assert set(D.Dataset.array_names()) == set(np.load(path).files) - {"meta"}  # the keys, defined once
+    S = len(d.gd_src)
+    assert d.vertices.dtype == np.float32 and d.faces.dtype == np.int32
+    assert d.gd_global.shape == (S, 32, 7) and d.gd_local1.shape == (S, 8, 7) and d.gd_local2.shape == (S, 16, 7)
+    assert d.path_global.shape == (2 * 4, 128, 3) and d.path_local.shape == (2 * 3, 32, 3)
+    assert d.path_global_src.shape == (8,) and set(d.path_global_src) == set(d.gd_src[:2])
+    assert d.surface_points.shape[0] >= 30000
+    assert d.test_dist.shape == (2, len(d.vertices))
+    assert not set(d.test_src) & set(d.gd_src)
+    assert np.abs(np.linalg.norm(d.vertices, axis=1).max() - 1) < 1e-6  # normalized frame
     m = load_mesh(two_blobs)
-    np.testing.assert_allclose(d["center"], m.center) and np.testing.assert_allclose(d["scale"], m.scale)
-    assert json.dumps(d["meta"])  # JSON round trip
+    np.testing.assert_allclose(d.center, m.center) and np.testing.assert_allclose(d.scale, m.scale)
+    assert json.dumps(d.meta) and d.meta["dropped_paths"] == 0 and d.meta["components"] == 2
+    assert d.fingerprint == m.fingerprint and "Dataset(" in repr(d)
 
 
-def test_rows_consistent_and_same_component(built):
+def test_rows_and_paths_stay_in_their_component(built):
     _, d = built
-    V = d["vertices"]
-    na = 642  # icosphere(2) vertex count: the first blob
-    for s, rows in zip(d["gd_src"], d["gd_global"]):
+    V = d.vertices
+    na = 162  # icosphere(2) vertex count: the first blob
+    nearest = lambda x: np.argmin(np.linalg.norm(V[None] - x.reshape(-1, 1, 3), axis=2), axis=1)  # noqa: E731
+    for s, rows in zip(d.gd_src, d.gd_global):
         np.testing.assert_allclose(rows[:, :3], np.repeat(V[[s]], len(rows), 0))
         assert np.all(np.isfinite(rows[:, 6]))
-        tgt = np.argmin(np.linalg.norm(V[None] - rows[:, None, 3:6], axis=2), axis=1)
-        assert np.all((tgt < na) == (s < na))  # never paired across components
+        assert np.all((nearest(rows[:, 3:6]) < na) == (s < na))  # never paired across components
         eu = np.linalg.norm(rows[:, 3:6] - rows[:, :3], axis=1)
         assert np.all(rows[:, 6] >= eu * (1 - 1e-5))  # geodesic >= Euclidean
     # local_1 = the nearest targets: no further than any global target
-    assert np.all(d["gd_local1"][:, :, 6].max(1) <= d["gd_global"][:, :, 6].max(1) + 1e-6)
-    for s, P in zip(d["path_src"], d["path_global"]):
-        np.testing.assert_allclose(P[:, 0], np.repeat(V[[s]], len(P), 0), atol=1e-5)
+    assert np.all(d.gd_local1[:, :, 6].max(1) <= d.gd_global[:, :, 6].max(1) + 1e-6)
+    for paths, src in ((d.path_global, d.path_global_src), (d.path_local, d.path_local_src)):
+        np.testing.assert_allclose(paths[:, 0], V[src], atol=1e-5)
+        assert np.all((nearest(paths[:, -1]) < na) == (src < na))
 
 
-def test_bad_files(built, tmp_path):
+def test_untraceable_paths_are_left_out_and_counted(two_blobs, monkeypatch):
+    """A path the solver reports as NaN rows (untraceable or stale) never reaches the training data."""
+    real = D.resample_polyline
+
+    def some_nan(points, offsets, m):
+        out = real(points, offsets, m)
+        out[::2] = np.nan  # every other path of each batch
+        return out
+
+    monkeypatch.setattr(D, "resample_polyline", some_nan)
+    d = D.build_dataset(two_blobs, None, **dict(SMALL, n_sources=4, n_test=0))
+    assert d.meta["dropped_paths"] == 2 * (2 + 2)  # paths 0 and 2 of 4 global and of 3 local, 2 sources
+    assert len(d.path_global) == 2 * 2 and len(d.path_local) == 2 * 1
+    assert np.isfinite(d.path_global).all() and np.isfinite(d.path_local).all()
+
+
+def test_source_in_a_component_without_spread_targets(two_blobs, monkeypatch):
+    """A source whose component has no other spread vertex takes its global targets from that component."""
+    v, f = two_blobs
+    tet = np.array([[0, 0, 5.0], [0.3, 0, 5], [0, 0.3, 5], [0, 0, 5.3]])
+    mesh = load_mesh((np.concatenate([v, tet]), np.concatenate([f, len(v) + np.array([[0, 1, 2], [0, 1, 3],
+                                                                                     [0, 2, 3], [1, 2, 3]])])))
+    lone = len(mesh.vertices) - 4  # the tetrahedron's first internal vertex: the only spread vertex there
+    monkeypatch.setattr(D, "spread_vertices", lambda m, n: np.r_[np.arange(0, 324, 20), lone])
+    d = D.build_dataset(mesh, None, **dict(SMALL, n_sources=18, n_test=0, n_path_sources=2, n_spread=18))
+    assert lone in d.gd_src
+    rows = d.gd_global[list(d.gd_src).index(lone)]
+    tet_ids = np.arange(lone, lone + 4)
+    V = d.vertices
+    hit = np.argmin(np.linalg.norm(V[None] - rows[:, None, 3:6], axis=2), axis=1)
+    assert set(hit) <= set(tet_ids[1:]) and np.all(np.isfinite(rows[:, 6]))
+
+
+@pytest.mark.parametrize("what,match", [("single triangle", "only 3 vertices"), ("soup", "separate pieces")])
+def test_meshes_without_a_usable_part_are_refused(what, match):
+    if what == "single triangle":
+        mesh = (np.eye(3), np.array([[0, 1, 2]]))
+    else:  # 20 triangles apart from each other: 20 pieces of 3 vertices (no welding can join them)
+        tri = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+        mesh = (np.concatenate([tri + [2.0 * i, 0, 0] for i in range(20)]), np.arange(60).reshape(-1, 3))
+    with pytest.raises(ValueError, match=match):
+        D.build_dataset(mesh, None, **SMALL)
+
+
+def test_bad_files_and_settings(built, tmp_path):
     path, data = built
     bad = tmp_path / "trunc.npz"
     bad.write_bytes(path.read_bytes()[:1000])
-    with pytest.raises(ValueError):
-        D.load_dataset(bad)
+    with pytest.raises(ValueError, match="not a readable dataset"):
+        D.Dataset.load(bad)
+    with pytest.raises(FileNotFoundError):
+        D.Dataset.load(tmp_path / "none.npz")
     other = trimesh.creation.icosphere(subdivisions=1)
     with pytest.raises(ValueError, match="different mesh"):
         D.load_dataset(path, (other.vertices, other.faces))
     part = tmp_path / "part.npz"
-    np.savez(part, vertices=data["vertices"])
+    np.savez(part, vertices=data.vertices, meta=np.asarray("{}"))
     with pytest.raises(ValueError, match="missing keys"):
-        D.load_dataset(part)
-    assert not [f for f in os.listdir(path.parent) if f.endswith(".tmp")]
+        D.Dataset.load(part)
+    wrong = tmp_path / "wrong.npz"
+    arrays = dict(data.arrays(), gd_local1=data.gd_local1[:1])
+    np.savez(wrong, **arrays, meta=np.asarray(json.dumps(data.meta)))
+    with pytest.raises(ValueError, match="gd_local1 has shape"):
+        D.Dataset.load(wrong)
+    assert not [f for f in os.listdir(path.parent) if f.startswith(".tmp")]
+    with pytest.raises(ValueError, match="n_sources must be an integer >= 1"):
+        D.build_dataset(np.eye(3), None, n_sources=0)
+    with pytest.raises(ValueError, match="target_pool"):
+        D.build_dataset(np.eye(3), None, target_pool="everything")
+
+
+def test_format_1_files_still_load(built, tmp_path):
+    """Format 1 stored paths as (sources, targets, M, 3) with one path_src list."""
+    _, d = built
+    old = {k: v for k, v in d.arrays().items() if not k.endswith("_src") or k in ("gd_src", "test_src")}
+    old["path_src"] = d.gd_src[:2]
+    old["path_global"] = d.path_global.reshape(2, 4, 128, 3)
+    old["path_local"] = d.path_local.reshape(2, 3, 32, 3)
+    meta = {k: v for k, v in d.meta.items() if k != "format_version"}
+    np.savez(tmp_path / "v1.npz", **old, meta=np.asarray(json.dumps(meta)))
+    back = D.Dataset.load(tmp_path / "v1.npz")
+    assert np.array_equal(back.path_global, d.path_global) and np.array_equal(back.path_local_src, d.path_local_src)
 
 
 def test_sdf_truth_and_sampling():
@@ -90,7 +159,8 @@ def test_sdf_truth_and_sampling():
     surf = D.surface_samples(load_mesh((s.vertices, s.faces)), 3000, rng)
     q = D.sample_sdf_points(rng, surf, 900)
     assert q.shape == (900, 3) and np.abs(q[:300]).max() <= 1.01
-    assert np.abs(np.linalg.norm(q[600:] - q[600:], axis=1)).max() == 0
+    r_surf = np.linalg.norm(q[300:600], axis=1)
+    assert np.all(np.abs(r_surf - 1) < 0.01)  # the middle third lies on the surface
     sdf = D.sdf_truth((s.vertices, s.faces), q, device="cpu")
     r = np.linalg.norm(q, axis=1)
     np.testing.assert_allclose(sdf, r - 1, atol=0.01)  # unit sphere up to chord error
@@ -110,10 +180,8 @@ def test_target_pool_all_reaches_vertices_outside_the_spread_set(two_blobs):
     V = m.normalized_vertices.astype(np.float32)
     for pool, want_outside in (("spread", False), ("all", True)):
         d = D.build_dataset(two_blobs, None, target_pool=pool, **opts)
-        tgt = np.argmin(np.linalg.norm(V[None] - d["gd_global"][:, :, 3:6].reshape(-1, 1, 3), axis=2), axis=1)
-        ends = np.argmin(np.linalg.norm(V[None] - d["path_global"][:, :, -1].reshape(-1, 1, 3), axis=2), axis=1)
+        tgt = np.argmin(np.linalg.norm(V[None] - d.gd_global[:, :, 3:6].reshape(-1, 1, 3), axis=2), axis=1)
+        ends = np.argmin(np.linalg.norm(V[None] - d.path_global[:, -1].reshape(-1, 1, 3), axis=2), axis=1)
         outside = [t for t in np.concatenate([tgt, ends]) if t not in spread]
         assert bool(outside) == want_outside, pool
-        assert np.all(np.isfinite(d["gd_global"][:, :, 6]))
-    with pytest.raises(ValueError, match="target_pool"):
-        D.build_dataset(two_blobs, None, target_pool="everything", **opts)
+        assert np.all(np.isfinite(d.gd_global[:, :, 6]))

@@ -5,7 +5,7 @@ import torch
 import warp as wp
 
 import neurogf_warp as ngf
-from neurogf_warp import losses as L
+from neurogf_warp import metrics as L
 from neurogf_warp.kernels import mlp
 from neurogf_warp.network import NeuroGFNet
 from tests.conftest import shared_path

@@ -1,9 +1,8 @@
-"""Losses and metrics on hand-made inputs; expected values worked out by hand in the comments."""
-import numpy as np
+"""Training losses on hand-made inputs; expected values worked out by hand in the comments."""
 import pytest
 import torch
 
-from neurogf_warp import losses as L
+from neurogf_warp.training import losses as L
 
 
 def test_l1_is_mean_absolute_error():
@@ -47,22 +46,3 @@ def test_weighted_sum_uses_paper_weights():
     t = {"sdf": torch.tensor(1.0), "dist_g": torch.tensor(2.0), "surf": torch.tensor(3.0)}
     assert L.weighted_sum(t).item() == pytest.approx(0.1 * 1 + 1.0 * 2 + 0.1 * 3)
     assert L.weighted_sum(t, {"sdf": 2.0}).item() == pytest.approx(2 + 2 + 3)
-
-
-def test_mre_skips_zero_and_nonfinite_targets():
-    # rel errors 0.1 and 0.2; the gt=0 (source) and gt=inf (unreachable) pairs are dropped
-    pred = np.array([1.1, 2.0, 0.5, 3.0])
-    gt = np.array([1.0, 2.5, 0.0, np.inf])
-    assert L.relative_errors(pred, gt) == pytest.approx([0.1, 0.2])
-    assert L.mre(pred, gt) == pytest.approx(0.15)
-    assert L.mre(torch.tensor(pred), torch.tensor(gt)) == pytest.approx(0.15)
-
-
-def test_chamfer_l1_by_hand():
-    pred = np.array([[[0.0, 0, 0], [1, 0, 0]]])
-    gt = np.array([[[0.0, 0, 0], [0, 1, 0], [0, 2, 0]]])
-    # pred->gt nearest: 0 and 1 -> 0.5; gt->pred nearest: 0, 1, 2 -> 1.0; half the sum = 0.75
-    assert L.chamfer_l1(pred, gt) == pytest.approx([0.75])
-    # identical paths -> 0, and chunking gives the same numbers
-    many = np.random.default_rng(0).random((5, 7, 3))
-    assert L.chamfer_l1(many, many, chunk=2) == pytest.approx(np.zeros(5))

@@ -138,7 +138,7 @@ def test_cli_writes_ssad(tmp_path):
     d = np.load(out)
     model = ngf.load(ck, mesh=mesh)
     np.testing.assert_array_equal(d, ngf.ssad(model, 3, device=DEV))
-    assert main(["ssad", str(ck), "--mesh", str(mesh), "--source", "999999", "-o", str(out)]) == 1
+    assert main(["ssad", str(ck), "--mesh", str(mesh), "--source", "999999", "-o", str(out)]) == 2
 
 
 # --- model files checked on load ---------------------------------------------------------------------------

@@ -1,6 +1,6 @@
 """Path-head output forms compared on fixed lifting features (CPU, fandisk).
 
-    python benchmarks/path_head_cpu.py STEPS BATCH MODE [MODE ...]     # MODE: absolute | residual | window
+    python benchmarks/experiments/path_head_cpu.py STEPS BATCH MODE [MODE ...]     # MODE: absolute | residual | window
     NGF_MODEL=path/to/fandisk.ngf (a trained fandisk model; its lifting is kept, in eval mode)
 
 Each MODE trains a freshly initialized guidance + path head for STEPS steps of BATCH paths (+ their reversed
@@ -15,15 +15,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 import neurogf_warp as ngf  # noqa: E402
 from common import find_shared  # noqa: E402
-from neurogf_warp import losses as L  # noqa: E402
+from neurogf_warp import metrics  # noqa: E402
+from neurogf_warp.training import losses as L  # noqa: E402
 from neurogf_warp.dataset import build_dataset  # noqa: E402
 from neurogf_warp.geodesics import geodesic_paths  # noqa: E402
 from neurogf_warp.network import NeuroGFNet, straight_lines  # noqa: E402
-from neurogf_warp.train import _cosine, fast_path  # noqa: E402
+from neurogf_warp.training.trainer import cosine_lr, fast_path  # noqa: E402
 
 
 def test_pairs(mesh):
@@ -55,7 +56,7 @@ def run(base, mode, pg, gt_test, steps, batch):
     t0 = time.time()
     for i in range(steps):
         for g in opt.param_groups:
-            g["lr"] = _cosine(i, steps, 3e-3, 1e-4)
+            g["lr"] = cosine_lr(i, steps, 3e-3, 1e-4)
         b = pg[torch.randint(0, len(pg), (batch,), generator=gen)]
         loss = L.l1(predict(torch.cat([b[:, 0], b[:, -1]]), torch.cat([b[:, -1], b[:, 0]])), torch.cat([b, b.flip(1)]))
         opt.zero_grad()
@@ -66,8 +67,8 @@ def run(base, mode, pg, gt_test, steps, batch):
         P, Q = (torch.as_tensor(gt_test[:, i], dtype=torch.float32) for i in (0, -1))
         pred = predict(P, Q).double().numpy()
         tr = pg[:512]
-        cdt = L.chamfer_l1(predict(tr[:, 0], tr[:, -1]).double().numpy(), tr.double().numpy())
-    cd = L.chamfer_l1(pred, gt_test)
+        cdt = metrics.chamfer_l1(predict(tr[:, 0], tr[:, -1]).double().numpy(), tr.double().numpy())
+    cd = metrics.chamfer_l1(pred, gt_test)
     ends = 0.5 * (np.linalg.norm(pred[:, 0] - gt_test[:, 0], axis=1) + np.linalg.norm(pred[:, -1] - gt_test[:, -1], axis=1))
     print(f"{mode:9s} training L1 {float(loss.detach()):.3e}  test Chamfer {cd.mean():.3e} (median {np.median(cd):.3e}, "
           f"end points {ends.mean():.2e})  training-path Chamfer {cdt.mean():.3e}  {time.time() - t0:.0f}s", flush=True)
@@ -82,7 +83,7 @@ def main(argv):
     ds = build_dataset(mesh, None, n_sources=256, n_global=64, n_local1=8, n_local2=64, n_path_sources=256,
                        n_path_global=64, n_path_local=4, n_test=0, device="cpu", progress=False)
     print(f"dataset {time.time() - t0:.1f} s", flush=True)
-    pg = torch.as_tensor(ds["path_global"].reshape(-1, 128, 3))
+    pg = torch.as_tensor(ds.path_global)
     gt_test = test_pairs(mesh)
     for mode in modes:
         run(base, mode, pg, gt_test, steps, batch)

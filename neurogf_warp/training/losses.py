@@ -1,17 +1,12 @@
-"""NeuroGF training losses and evaluation metrics.
+"""NeuroGF training losses: torch tensors in, scalar tensors out (they run inside the training graph).
 
-Losses take torch tensors (they run inside the training graph); metrics take numpy or torch arrays and
-return plain floats / numpy arrays. Everything is in the normalized unit-sphere frame.
+Everything is in the normalized unit-sphere frame. Accuracy metrics for evaluation are in ``neurogf_warp.metrics``.
 """
 from __future__ import annotations
 
-import numpy as np
 import torch
 
-__all__ = [
-    "WEIGHTS", "l1", "relative_l1", "polyline_length", "length_loss", "surface_loss", "weighted_sum",
-    "relative_errors", "mre", "chamfer_l1",
-]
+__all__ = ["WEIGHTS", "l1", "relative_l1", "polyline_length", "length_loss", "surface_loss", "weighted_sum"]
 
 # Loss weights of the official joint training (reference §4).
 WEIGHTS = {
@@ -59,42 +54,3 @@ def weighted_sum(terms: dict, weights: dict | None = None) -> torch.Tensor:
         t = w.get(k, 1.0) * v
         total = t if total is None else total + t
     return total
-
-
-def _np(x) -> np.ndarray:
-    if isinstance(x, torch.Tensor):
-        return x.detach().cpu().numpy()
-    return np.asarray(x)
-
-
-def relative_errors(pred, gt) -> np.ndarray:
-    """|pred - gt| / gt over the pairs with a finite, positive gt (the source itself is dropped).
-
-    The paper's MRE has no epsilon; excluding gt == 0 is the same as excluding the source vertex.
-    """
-    p = _np(pred).astype(np.float64).ravel()
-    g = _np(gt).astype(np.float64).ravel()
-    ok = np.isfinite(g) & (g > 0)
-    return np.abs(p[ok] - g[ok]) / g[ok]
-
-
-def mre(pred, gt) -> float:
-    """Mean relative error (a fraction, not %)."""
-    r = relative_errors(pred, gt)
-    return float(r.mean()) if r.size else float("nan")
-
-
-def chamfer_l1(pred, gt, chunk: int = 256) -> np.ndarray:
-    """Per-path Chamfer-L1 (reference §6): 0.5 * (mean NN distance pred->gt + mean NN distance gt->pred).
-
-    pred (K, M, 3), gt (K, N, 3); Euclidean, not squared. Returns (K,) float64.
-    """
-    p = torch.as_tensor(_np(pred), dtype=torch.float64)
-    g = torch.as_tensor(_np(gt), dtype=torch.float64)
-    if p.ndim == 2:
-        p, g = p[None], g[None]
-    out = []
-    for i in range(0, len(p), chunk):
-        d = torch.cdist(p[i:i + chunk], g[i:i + chunk])  # (k, M, N)
-        out.append(0.5 * (d.min(2).values.mean(1) + d.min(1).values.mean(1)))
-    return torch.cat(out).numpy() if out else np.zeros(0)

@@ -1,6 +1,6 @@
 """Training variants side by side on one mesh, at the same time budget each, in one command.
 
-    python benchmarks/train_sweep.py --mesh bunny --budget-seconds 80 \\
+    python benchmarks/experiments/train_sweep.py --mesh bunny --budget-seconds 80 \\
         --variant paper: --variant rel:dist_loss=relative --variant 'big:batch_g=131072;lr=0.02'
 
 One dataset is built (its time printed) and shared by all variants; each variant trains for the same wall
@@ -22,27 +22,30 @@ from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from common import MESHES, TARGETS, find_shared, parse_data_options  # noqa: E402
 from neurogf_warp.dataset import build_dataset, load_dataset  # noqa: E402
 from neurogf_warp.evaluate import evaluate  # noqa: E402
 from neurogf_warp.mesh import load_mesh  # noqa: E402
-from neurogf_warp.train import (STAGES, Data, Trainer, TrainConfig, calibrate, log_path, make_sdf_pool,  # noqa: E402
-                                parse_overrides, train)
+from neurogf_warp.training import STAGES, RunFiles, preset, train  # noqa: E402
+from neurogf_warp.training.budget import calibrate  # noqa: E402
+from neurogf_warp.training.config import parse_assignments  # noqa: E402
+from neurogf_warp.training.data import TrainingData, make_sdf_pool  # noqa: E402
+from neurogf_warp.training.trainer import Trainer  # noqa: E402
 
 
 def check_graph(mesh, ds, device, overrides, steps=8) -> dict:
     """Same start, same draws: eager and CUDA-graph steps of every stage; max parameter difference and s/step."""
-    cfg = TrainConfig(**overrides)
-    data = Data(ds, device)
+    cfg = preset("default").set(**overrides)
+    data = TrainingData(ds, device)
     pool = make_sdf_pool(mesh, data.surface_points, 200_000, 0, device)
     out = {}
     runs = {}
     for graphs in (False, True):
-        t = Trainer(dataclasses_replace(cfg, cuda_graph=graphs), data, pool, device)
+        t = Trainer(cfg.set(cuda_graph=graphs), data, pool, device)
         terms = []
         for stage in STAGES:
             t.set_modes(stage)
@@ -54,7 +57,7 @@ def check_graph(mesh, ds, device, overrides, steps=8) -> dict:
                                 for a, b in zip(te.net.state_dict().values(), tg.net.state_dict().values()))
     out["max_loss_rel_diff"] = max(abs(x[k] - y[k]) / max(abs(x[k]), 1e-12) for x, y in zip(ae, ag) for k in x)
     for graphs in (False, True):
-        t = Trainer(dataclasses_replace(cfg, cuda_graph=graphs), data, pool, device)
+        t = Trainer(cfg.set(cuda_graph=graphs), data, pool, device)
         out["s_per_step_graph" if graphs else "s_per_step_eager"] = calibrate(t, n=20)
     return out
 
@@ -63,9 +66,9 @@ def profile(mesh, ds, device, stages=("joint", "refine_dist"), steps=5) -> str:
     """torch.profiler table of the CUDA kernels of a few eager steps per stage."""
     from torch.profiler import ProfilerActivity, profile as prof
 
-    cfg = TrainConfig(cuda_graph=False)
+    cfg = preset("default", cuda_graph=False)
     torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True  # as training runs
-    data = Data(ds, device)
+    data = TrainingData(ds, device)
     t = Trainer(cfg, data, make_sdf_pool(mesh, data.surface_points, 200_000, 0, device), device)
     text = []
     for stage in stages:
@@ -86,12 +89,6 @@ def profile(mesh, ds, device, stages=("joint", "refine_dist"), steps=5) -> str:
                 tab = None
         text.append(f"== {stage}: {steps} steps\n{tab}")
     return "\n".join(text)
-
-
-def dataclasses_replace(cfg, **kw):
-    import dataclasses
-
-    return dataclasses.replace(cfg, **kw)
 
 
 def main(argv=None) -> int:
@@ -125,11 +122,11 @@ def main(argv=None) -> int:
 
     t0 = time.perf_counter()
     ds_path = work / f"{a.mesh}.dataset.npz"
-    build_dataset(mesh, ds_path, device=a.device, progress=False, **data_opts)
+    build_dataset(mesh, ds_path, preset("default").set(**data_opts).data, device=a.device, progress=False)
     ds = load_dataset(ds_path)
     report["dataset_s"] = round(time.perf_counter() - t0, 2)
-    report["dataset_timings"] = ds["meta"]["timings"]
-    print(f"[{a.mesh}] dataset {report['dataset_s']:.1f}s {ds['meta']['timings']}", flush=True)
+    report["dataset_timings"] = ds.meta["timings"]
+    print(f"[{a.mesh}] dataset {report['dataset_s']:.1f}s {ds.meta['timings']}", flush=True)
 
     if a.check_graph:
         t0 = time.perf_counter()
@@ -141,28 +138,27 @@ def main(argv=None) -> int:
 
     for spec in a.variant or ["paper:"]:
         name, _, kv = spec.partition(":")
-        opts = parse_overrides([x for x in kv.split(";") if x])
+        opts = parse_assignments([x for x in kv.split(";") if x])
         t0 = time.perf_counter()
         model_path = work / f"{name}.ngf"
-        for stale in (model_path, Path(str(model_path) + ".ckpt")):
-            stale.unlink(missing_ok=True)
         try:
             fixed = {} if a.joint_steps is None else {"epochs": max(1, a.joint_steps // 200), "iters_per_epoch": 200}
-            model = train(mesh, model_path, dataset=ds, device=a.device, progress=False,
-                          budget_seconds=None if fixed else a.budget_seconds, **fixed, **opts)
+            model = train(mesh, model_path, config=preset("default").set(**fixed, **opts), dataset=ds,
+                          device=a.device, progress=False, budget_seconds=None if fixed else a.budget_seconds,
+                          force=True)
         except Exception as e:  # noqa: BLE001 - one failing variant must not lose the others
             print(f"[{name}] FAILED: {type(e).__name__}: {e}", flush=True)
             report["variants"][name] = {"options": opts, "error": f"{type(e).__name__}: {e}"}
             continue
         wall = time.perf_counter() - t0
-        log = json.loads(Path(log_path(model_path)).read_text())
+        log = json.loads(Path(RunFiles.for_model(model_path).log).read_text())
         ev = evaluate(model, mesh, find_shared("reference", "exact", ref), n_path_sources=16, n_path_targets=32,
                       device=a.device, verbose=False)
         with torch.no_grad():  # path fit on training paths (eval mode): the generalization gap next to the test Chamfer
             import numpy as np
-            from neurogf_warp import losses as L
+            from neurogf_warp import metrics as L
 
-            allp = np.asarray(ds["path_global"]).reshape(-1, 128, 3)
+            allp = np.asarray(ds.path_global)
             pick = np.random.default_rng(0).choice(len(allp), min(512, len(allp)), replace=False)
             gt = torch.as_tensor(allp[pick], device=a.device)
             net = model.net.to(a.device).eval()

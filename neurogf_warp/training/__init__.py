@@ -1,0 +1,15 @@
+"""Training a NeuroGF for one mesh: settings and presets, data on the device, the trainer and its stages,
+CUDA acceleration, checkpoints, the time budget, the step loop, and the one-call ``train()``.
+
+    from neurogf_warp.training import preset, train
+    model = train("spot.obj", "spot.ngf", config=preset("cpu"), budget_seconds=180)
+"""
+from .api import train
+from .checkpoint import RunFiles
+from .config import (BatchConfig, DatasetSettings, NetworkConfig, RuntimeConfig, ScheduleConfig, STAGES,
+                     TrainConfig)
+from .loop import TrainingInterrupted
+from .presets import PRESETS, choose_preset, preset
+
+__all__ = ["train", "TrainConfig", "NetworkConfig", "ScheduleConfig", "BatchConfig", "RuntimeConfig",
+           "DatasetSettings", "STAGES", "PRESETS", "preset", "choose_preset", "TrainingInterrupted", "RunFiles"]

@@ -1,0 +1,139 @@
+"""The step loop of a run: stages in order, progress bar, loss log, validation, checkpoints, clean Ctrl-C.
+
+The first Ctrl-C (SIGINT) finishes the current step, writes a checkpoint and raises ``TrainingInterrupted``;
+a second one stops at once. With a ``Budget`` the remaining step counts are re-planned every few seconds.
+"""
+from __future__ import annotations
+
+import signal
+import sys
+import time
+
+import torch
+
+from . import losses as L
+from .acceleration import set_tf32
+from .config import STAGES
+
+__all__ = ["Runner", "TrainingInterrupted"]
+
+REPLAN_EVERY_S = 2.0  # seconds between re-plans of the step counts under a budget (and at every stage start)
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """Raised after Ctrl-C once the checkpoint is written; ``.checkpoint`` says where."""
+
+    def __init__(self, message: str, checkpoint: str):
+        super().__init__(message)
+        self.checkpoint = checkpoint
+
+
+class Runner:
+    """Runs a Trainer from (stage, step) to the end of the last stage.
+
+    save(stage_i, step, history, elapsed) writes a checkpoint; callback(stage, step, terms) is called after every
+    step (raising KeyboardInterrupt there stops the run like Ctrl-C); budget: a ``budget.Budget`` or None.
+    """
+
+    def __init__(self, trainer, save, ckpt_file: str, progress: bool, callback=None, budget=None):
+        self.t, self.save, self.ckpt_file = trainer, save, ckpt_file
+        self.progress, self.callback, self.budget = progress, callback, budget
+        self.stop = False
+
+    def _on_sigint(self, signum, frame):
+        if self.stop:  # second Ctrl-C: give up at once
+            raise KeyboardInterrupt
+        self.stop = True
+
+    def __call__(self, stage_i: int, step: int, history: dict, elapsed: float):
+        t, rt = self.t, self.t.cfg.runtime
+        bar = None
+        if self.progress:
+            from tqdm.auto import tqdm
+
+            done = sum(t.steps[s] for s in STAGES[:stage_i]) + step
+            bar = tqdm(total=sum(t.steps.values()), initial=done, unit="step", dynamic_ncols=True, file=sys.stderr,
+                       desc="training")
+        old = None
+        try:
+            old = signal.signal(signal.SIGINT, self._on_sigint)
+        except ValueError:  # not the main thread: Ctrl-C arrives as KeyboardInterrupt instead
+            pass
+        tf32 = set_tf32(rt.tf32) if t.device.type == "cuda" else None
+        last_save = time.perf_counter()
+        try:
+            while stage_i < len(STAGES):
+                stage = STAGES[stage_i]
+                self._replan(stage_i, step, bar)
+                t.set_modes(stage)
+                acc, acc_n = None, 0
+                t0 = seg0 = time.perf_counter()
+                seg_steps = 0
+                while step < t.steps[stage]:
+                    n = t.steps[stage]
+                    interrupted = False
+                    try:
+                        terms = t.step(stage, step)
+                        step += 1
+                        seg_steps += 1
+                        vals = torch.stack([v.detach().float() for v in terms.values()])
+                        acc = vals if acc is None else acc + vals
+                        acc_n += 1
+                        if self.callback is not None:
+                            self.callback(stage, step, terms)
+                    except KeyboardInterrupt:
+                        interrupted = True
+                    if bar is not None:
+                        bar.update(1)
+                    if acc_n and (step % rt.log_every == 0 or step == n):
+                        row = dict(zip(terms, (acc / acc_n).tolist()))
+                        total_loss = float(L.weighted_sum({k: torch.tensor(v) for k, v in row.items()})) \
+                            if stage in ("joint", "refine_dist") else sum(row.values())
+                        history["loss"].append({"stage": stage, "step": step, "lr": t.lr_at(stage, step - 1),
+                                                "loss": total_loss, **row})
+                        acc, acc_n = None, 0
+                        if bar is not None:
+                            bar.set_postfix_str(f"{stage} loss {total_loss:.4g} lr {t.lr_at(stage, step - 1):.2e}"
+                                                + (f" valMRE {history['val'][-1]['mre']:.3%}" if history["val"] else ""))
+                    if stage in ("joint", "refine_dist") and ((rt.val_every and step % rt.val_every == 0) or step == n):
+                        history["val"].append({"stage": stage, "step": step, "mre": t.validate()})
+                    if interrupted or self.stop:
+                        elapsed += time.perf_counter() - t0
+                        t0 = time.perf_counter()
+                        self.save(stage_i, step, history, elapsed)
+                        raise TrainingInterrupted(
+                            f"interrupted at {stage} step {step}/{n}; checkpoint saved to {self.ckpt_file}. "
+                            "Run again with --resume to continue.", self.ckpt_file)
+                    now = time.perf_counter()
+                    if now - last_save > rt.ckpt_every_s:
+                        elapsed += now - t0
+                        t0 = now
+                        self.save(stage_i, step, history, elapsed)
+                        last_save = time.perf_counter()
+                    if self.budget is not None and now - seg0 > REPLAN_EVERY_S and step < t.steps[stage]:
+                        self.budget.record(stage, now - seg0, seg_steps)
+                        seg0, seg_steps = now, 0
+                        self._replan(stage_i, step, bar)
+                if self.budget is not None:
+                    self.budget.record(stage, time.perf_counter() - seg0, seg_steps)
+                elapsed += time.perf_counter() - t0
+                stage_i, step = stage_i + 1, 0
+                self.save(stage_i, step, history, elapsed)
+                last_save = time.perf_counter()
+        finally:
+            if tf32 is not None:
+                set_tf32(tf32)
+            if old is not None:
+                signal.signal(signal.SIGINT, old)
+            if bar is not None:
+                bar.close()
+        return stage_i, step, history, elapsed
+
+    def _replan(self, stage_i: int, step: int, bar):
+        if self.budget is None:
+            return
+        t = self.t
+        t.steps = self.budget.replan(t.steps, stage_i, step)
+        if bar is not None:
+            bar.total = sum(t.steps.values())
+            bar.refresh()

@@ -1,0 +1,58 @@
+"""Named training presets, and the choice of one by device and mesh size.
+
+``default`` is the GPU recipe measured on bunny and fandisk (D=256, 65K distance pairs and 4K paths per step,
+2,048 sources; benchmarks/RESULTS.md); ``paper`` is the published network and recipe (no Fourier inputs,
+Euclidean term or residual paths; L1 losses); ``cpu`` fits a CPU run of a few minutes (D=128, small batches,
+256 sources) and ``cpu_large`` the same for meshes above ``LARGE_MESH`` vertices; ``cpu_small`` is a
+seconds-long smoke run for tests (its models are not meant to be accurate). Each preset is a set of changes to the
+``TrainConfig`` defaults (= ``default``). The CPU presets train with one torch thread: their batches are small
+enough that synchronizing threads costs more than it saves (measured on a 2-core machine).
+"""
+from __future__ import annotations
+
+from .config import TrainConfig
+
+__all__ = ["PRESETS", "preset", "choose_preset", "LARGE_MESH"]
+
+_SMALL_BATCHES = dict(batch_sdf=2048, batch_g=4096, batch_l1=512, batch_l2=1024, batch_paths_g=128,
+                      batch_paths_l=128, batch_surf=16, batch_querier=2048, sdf_pool=20000)
+
+PRESETS = {
+    "default": {},
+    "paper": dict(fourier=0, euclid=False, path_residual=False, path_width=1, path_window=False, dist_loss="l1",
+                  refine_dist_steps=0, refine_path_lr=1e-3, ratios={"refine_path": 0.1}),
+    # CPU: a short joint stage and a long refine_dist (its steps cost a third to a fifth of a joint step); 4 x 100
+    # joint steps without a budget, a few minutes on a 2-core machine
+    "cpu": dict(_SMALL_BATCHES, D=128, batch_surf=4, batch_querier=1024, sdf_pool=100000, val_every=500, epochs=4,
+                iters_per_epoch=100, ratios={"querier": 0.15, "refine_dist": 10.0, "refine_sdf": 0.1, "refine_path": 0.3},
+                n_sources=256, n_global=2048, n_local1=32, n_local2=512, n_path_sources=32, n_path_global=64,
+                n_path_local=32, n_test=4, n_surface=30000, target_pool="all", threads=1),
+    # CPU, meshes above LARGE_MESH vertices: ground truth costs ~0.5-2 s per source there, so fewer sources and
+    # k=1 Steiner points (the solver's MRE 0.2% instead of 0.02%)
+    "cpu_large": {},  # filled in below from "cpu"
+    "cpu_small": dict(_SMALL_BATCHES, D=64, val_every=100, log_every=20, threads=1, n_sources=64, n_global=256,
+                      n_local1=8, n_local2=32, n_path_sources=16, n_path_global=16, n_path_local=16, n_test=2,
+                      n_surface=30000, n_spread=2000),
+}
+
+PRESETS["cpu_large"] = dict(PRESETS["cpu"], n_sources=96, n_path_sources=16, k=1)
+LARGE_MESH = 15000  # vertices
+
+def preset(name: str = "default", **changes) -> TrainConfig:
+    """The ``TrainConfig`` of preset ``name``, with ``changes`` (flat or dotted setting names) applied.
+
+    Raises ValueError for an unknown preset, naming the known ones.
+    """
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; known: {', '.join(PRESETS)}")
+    cfg = TrainConfig().set(**PRESETS[name])
+    cfg.preset = name
+    return cfg.set(**changes) if changes else cfg
+
+
+def choose_preset(device: str, n_vertices: int) -> str:
+    """The preset for a device ("cpu", "cuda", "cuda:1", ...) and a mesh of ``n_vertices``: the GPU recipe on a
+    GPU; on the CPU ``cpu``, or ``cpu_large`` above ``LARGE_MESH`` vertices."""
+    if not str(device).startswith("cpu"):
+        return "default"
+    return "cpu_large" if n_vertices > LARGE_MESH else "cpu"
