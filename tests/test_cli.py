@@ -10,7 +10,6 @@ import pytest
 
 from neurogf_warp import cli
 
-HAS_RENDER = importlib.util.find_spec("neurogf_warp.rendering") is not None
 
 
 def run(argv, capsys):
@@ -120,15 +119,6 @@ def test_eval_heat_without_potpourri3d_names_the_extra(trained, monkeypatch, cap
     assert code == 2 and 'pip install "neurogf-warp[heat]"' in err and "Traceback" not in err
 
 
-@pytest.mark.skipif(HAS_RENDER, reason="neurogf_warp.rendering is installed: the test below runs instead")
-def test_ply_and_render_without_the_rendering_module_are_refused(trained, tmp_path, capsys):
-    code, _, err = run(["ssad", trained[1], "-o", tmp_path / "d.ply"], capsys)
-    assert code == 2 and "neurogf_warp.rendering" in err
-    code, _, err = run(["render", trained[1], "-o", tmp_path / "p.png"], capsys)
-    assert code == 2 and "neurogf_warp.rendering" in err
-
-
-@pytest.mark.skipif(not HAS_RENDER, reason="needs neurogf_warp.rendering (render, write_ply)")
 def test_ply_and_render(trained, tmp_path, capsys):
     """A coloured .ply with one vertex per mesh vertex, and a picture with two paths."""
     import trimesh
