@@ -237,12 +237,6 @@ def _check_output(path: str, formats: tuple, what: str = "output") -> str:
     ext = os.path.splitext(path)[1].lower()
     if ext not in formats:
         raise BadInput(f"{what} {path!r}: the file extension chooses the format; use one of {', '.join(formats)}")
-    if ext == ".ply":
-        import importlib.util
-
-        if importlib.util.find_spec("neurogf_warp.rendering") is None:
-            raise BadInput("writing .ply needs neurogf_warp.rendering, which this installation lacks; use .npy or "
-                           ".csv")
     full = os.path.abspath(path)
     if os.path.isdir(full):
         raise BadInput(f"{what} {path!r} is a folder; give a file name")
@@ -581,8 +575,6 @@ def _cmd_render(args) -> int:
         raise BadInput("--isolines must be >= 0 and --size at least 16 x 16 pixels")
     import importlib.util
 
-    if importlib.util.find_spec("neurogf_warp.rendering") is None:
-        raise BadInput("rendering needs neurogf_warp.rendering, which this installation lacks")
     import numpy as np
 
     import neurogf_warp as ngf
