@@ -422,6 +422,19 @@ NGF_FN void head_tail(const Head& W, float (&c0)[MT][NTH][4], float (&y)[MT][2])
 // segments, segment t = {pair(16(2b)+2t), pair(16(2b)+8+2t), pair(16(2b+1)+2t), pair(16(2b+1)+8+2t)}, where
 // pair(c) is channels c, c+1. Lane t of a row group then loads its A-fragment halves of two k-steps in one load.
 
+// A fragments of k-steps 2b and 2b+1 from block b's segments of rows g (seg0) and g + 8 (seg1).
+NGF_FN void segments_to_a(const u32x4& seg0, const u32x4& seg1, u32 (&a)[2][4])
+{
+    a[0][0] = seg0.x;
+    a[0][1] = seg1.x;
+    a[0][2] = seg0.y;
+    a[0][3] = seg1.y;
+    a[1][0] = seg0.z;
+    a[1][1] = seg1.z;
+    a[1][2] = seg0.w;
+    a[1][3] = seg1.w;
+}
+
 template <int D>
 NGF_FN void load_embeddings(const u32x4* rows, int r0, int r1, u32 (&e)[1][D / 16][4])
 {
@@ -438,14 +451,14 @@ NGF_FN void load_embeddings(const u32x4* rows, int r0, int r1, u32 (&e)[1][D / 1
 #pragma unroll
     for (int b = 0; b < D / 32; ++b)
     {
-        e[0][2 * b][0] = s0[b].x;
-        e[0][2 * b][1] = s1[b].x;
-        e[0][2 * b][2] = s0[b].y;
-        e[0][2 * b][3] = s1[b].y;
-        e[0][2 * b + 1][0] = s0[b].z;
-        e[0][2 * b + 1][1] = s1[b].z;
-        e[0][2 * b + 1][2] = s0[b].w;
-        e[0][2 * b + 1][3] = s1[b].w;
+        u32 a[2][4];
+        segments_to_a(s0[b], s1[b], a);
+#pragma unroll
+        for (int i = 0; i < 4; ++i)
+        {
+            e[0][2 * b][i] = a[0][i];
+            e[0][2 * b + 1][i] = a[1][i];
+        }
     }
 }
 
@@ -466,6 +479,32 @@ NGF_FN void store_embeddings(const u32 (&e)[1][KS][4], int b0, u32x4* rows, int 
     }
 }
 
+// |a - s| in place for k-steps [k0, k0 + KS) of A fragments (k0 and KS even), s a source's packed embedding row:
+// lane t reads its segment of each block once, pairs x, y for the even k-step and z, w for the odd one.
+template <int MT, int KS>
+NGF_FN void subtract_source(u32 (&a)[MT][KS][4], const u32x4* s_row, int k0)
+{
+    static_assert(KS % 2 == 0, "k-steps come in blocks of two");
+    const int t = lane_id() & 3;
+#pragma unroll
+    for (int j = 0; j < KS / 2; ++j)
+    {
+        const u32x4 s = ld_table4(s_row + 4 * (k0 / 2 + j) + t);
+#pragma unroll
+        for (int m = 0; m < MT; ++m)
+        {
+            a[m][2 * j][0] = habs_diff2(a[m][2 * j][0], s.x);
+            a[m][2 * j][1] = habs_diff2(a[m][2 * j][1], s.x);
+            a[m][2 * j][2] = habs_diff2(a[m][2 * j][2], s.y);
+            a[m][2 * j][3] = habs_diff2(a[m][2 * j][3], s.y);
+            a[m][2 * j + 1][0] = habs_diff2(a[m][2 * j + 1][0], s.z);
+            a[m][2 * j + 1][1] = habs_diff2(a[m][2 * j + 1][1], s.z);
+            a[m][2 * j + 1][2] = habs_diff2(a[m][2 * j + 1][2], s.w);
+            a[m][2 * j + 1][3] = habs_diff2(a[m][2 * j + 1][3], s.w);
+        }
+    }
+}
+
 // ---- heads ------------------------------------------------------------------------------------------------------
 
 // Distance heads of SP sources on one m-tile: e in A fragments (fp16), each source a packed embedding row;
@@ -475,7 +514,6 @@ template <int D, int SP>
 NGF_FN void distance_heads(const Head& W, const u32 (&e)[1][D / 16][4], const u32x4* const (&s_rows)[SP],
                            float (&y)[SP][2])
 {
-    const int t = lane_id() & 3;
     float c0[SP][D / 32][4];
     zero<SP, D / 32>(c0);
 #pragma unroll
@@ -485,15 +523,20 @@ NGF_FN void distance_heads(const Head& W, const u32 (&e)[1][D / 16][4], const u3
 #pragma unroll
         for (int j = 0; j < SP; ++j)
         {
-            const u32x4 s = ld_table4(s_rows[j] + 4 * b + t);
-            d[j][0][0] = habs_diff2(e[0][2 * b][0], s.x);
-            d[j][0][1] = habs_diff2(e[0][2 * b][1], s.x);
-            d[j][0][2] = habs_diff2(e[0][2 * b][2], s.y);
-            d[j][0][3] = habs_diff2(e[0][2 * b][3], s.y);
-            d[j][1][0] = habs_diff2(e[0][2 * b + 1][0], s.z);
-            d[j][1][1] = habs_diff2(e[0][2 * b + 1][1], s.z);
-            d[j][1][2] = habs_diff2(e[0][2 * b + 1][2], s.w);
-            d[j][1][3] = habs_diff2(e[0][2 * b + 1][3], s.w);
+            u32 dj[1][2][4];
+#pragma unroll
+            for (int i = 0; i < 4; ++i)
+            {
+                dj[0][0][i] = e[0][2 * b][i];
+                dj[0][1][i] = e[0][2 * b + 1][i];
+            }
+            subtract_source<1, 2>(dj, s_rows[j], 2 * b);
+#pragma unroll
+            for (int i = 0; i < 4; ++i)
+            {
+                d[j][0][i] = dj[0][0][i];
+                d[j][1][i] = dj[0][1][i];
+            }
         }
         dense<SP, 2, D / 32>(d, W.w0, D / 32, 2 * b, 0, c0);
     }
@@ -527,6 +570,39 @@ NGF_FN void to_net(const Frame& f, const float* p, float (&x)[3])
     x[0] = (p[0] - f.cx) * f.xscale;
     x[1] = (p[1] - f.cy) * f.xscale;
     x[2] = (p[2] - f.cz) * f.xscale;
+}
+
+// The rows of m-tiles (tile, 0 .. MT-1) this lane reads, and their points in the network frame.
+template <int MT>
+NGF_FN void tile_points(const Frame& f, const float* pts, int tile, int n, int (&r)[MT][2], bool (&ok)[MT][2],
+                        float (&x)[MT][2][3])
+{
+#pragma unroll
+    for (int m = 0; m < MT; ++m)
+    {
+        tile_rows(tile, MT, m, n, r[m][0], r[m][1], ok[m][0], ok[m][1]);
+        to_net(f, pts + 3 * r[m][0], x[m][0]);
+        to_net(f, pts + 3 * r[m][1], x[m][1]);
+    }
+}
+
+// The lifting of MT m-tiles with its last layer produced NC n-tiles at a time: use(q, a) receives chunk q
+// (embedding channels 8 NC q ..) as A fragments (fp16), to feed a head or to store, so the whole embedding is
+// never held at once.
+template <int MT, int D, int KS0, int NC, class Use>
+NGF_FN void lift_chunks(const Lifting& L, const float (&x)[MT][2][3], Use&& use)
+{
+    u32 h1[MT][D / 32][4];
+    lift_hidden<MT, D, KS0>(L, x, h1);
+#pragma unroll
+    for (int q = 0; q < D / 8 / NC; ++q)
+    {
+        float c[MT][NC][4];
+        lift_chunk<MT, D, NC>(L, h1, q, c);
+        u32 a[MT][NC / 2][4];
+        to_a<MT, NC>(c, a);
+        use(q, a);
+    }
 }
 
 // Where distance results go and how they are finished.
@@ -570,25 +646,25 @@ NGF_FN float finish_distance(float y, const Frame& f, const float* p, const floa
     return raw ? d : relu(d);
 }
 
-// ---- kernels (one call per warp; the warp loops over its tiles) ---------------------------------------------------
-
-// Writes the distances of source s (rows g and g+8) or folds them into the running minimum.
-NGF_FN void emit_distance(const DistanceOut& o, int s, float d0, float d1, int r0, int r1, bool ok0, bool ok1,
-                          float& best0, float& best1)
+// Finishes and writes one source's distances to the rows of MT m-tiles (lane t = 0 writes row g, t = 1 row g + 8).
+template <int MT>
+NGF_FN void store_distances(const DistanceOut& o, const Frame& f, const float* pts, const float (&y)[MT][2],
+                            const int (&r)[MT][2], const bool (&ok)[MT][2], const float* sp, int sc)
 {
     const int t = lane_id() & 3;
-    if (o.reduce_min)
-    {
-        best0 = min2(best0, d0);
-        best1 = min2(best1, d1);
-        return;
-    }
-    float* row = o.out + (size_t)s * o.ld;
-    if (t == 0 && ok0)
-        row[r0] = d0;
-    if (t == 1 && ok1)
-        row[r1] = d1;
+#pragma unroll
+    for (int m = 0; m < MT; ++m)
+#pragma unroll
+        for (int i = 0; i < 2; ++i)
+        {
+            const int rc = o.row_comp ? o.row_comp[r[m][i]] : 0;
+            const float d = finish_distance(y[m][i], f, pts + 3 * r[m][i], sp, o.euclid, o.row_comp && sc != rc, o.raw);
+            if (t == i && ok[m][i])
+                o.out[r[m][i]] = d;
+        }
 }
+
+// ---- kernels (one call per warp; the warp loops over its tiles) ---------------------------------------------------
 
 // Distances from S sources to N rows (points, or vertices with cached embeddings): the persistent loop of the
 // SSAD / MSAD / distance-matrix kernels. LIFT: embed the rows here (points); else read packed embeddings `cached`.
@@ -601,33 +677,26 @@ NGF_FN void distance_rows(const Lifting& L, const Head& H, const Frame& f, const
     const int n_tiles = (n + 15) / 16;
     for (int tile = warp; tile < n_tiles; tile += n_warps)
     {
-        int r0, r1;
-        bool ok0, ok1;
-        tile_rows(tile, 1, 0, n, r0, r1, ok0, ok1);
+        int r[1][2];
+        bool ok[1][2];
         u32 e[1][D / 16][4];
         if (LIFT)
         {
             float x[1][2][3];
-            to_net(f, pts + 3 * r0, x[0][0]);
-            to_net(f, pts + 3 * r1, x[0][1]);
-            u32 h1[1][D / 32][4];
-            lift_hidden<1, D, KS0>(L, x, h1);
-#pragma unroll
-            for (int q = 0; q < D / 64; ++q)
-            {
-                float c[1][8][4];
-                lift_chunk<1, D, 8>(L, h1, q, c);
-                u32 part[1][4][4];
-                to_a<1, 8>(c, part);
+            tile_points<1>(f, pts, tile, n, r, ok, x);
+            lift_chunks<1, D, KS0, 8>(L, x, [&](int q, const u32 (&a)[1][4][4]) {
 #pragma unroll
                 for (int k = 0; k < 4; ++k)
 #pragma unroll
-                    for (int i = 0; i < 4; ++i) e[0][4 * q + k][i] = part[0][k][i];
-            }
+                    for (int i = 0; i < 4; ++i) e[0][4 * q + k][i] = a[0][k][i];
+            });
         }
         else
-            load_embeddings<D>(cached, r0, r1, e);
-
+        {
+            tile_rows(tile, 1, 0, n, r[0][0], r[0][1], ok[0][0], ok[0][1]);
+            load_embeddings<D>(cached, r[0][0], r[0][1], e);
+        }
+        const int r0 = r[0][0], r1 = r[0][1];
         const float* p0 = pts + 3 * r0;
         const float* p1 = pts + 3 * r1;
         const int comp0 = o.row_comp ? o.row_comp[r0] : 0;
@@ -654,14 +723,24 @@ NGF_FN void distance_rows(const Lifting& L, const Head& H, const Frame& f, const
                 const int sc = S.comp ? S.comp[src[j]] : 0;
                 const float d0 = finish_distance(y[j][0], f, p0, sp, o.euclid, o.row_comp && sc != comp0, o.raw);
                 const float d1 = finish_distance(y[j][1], f, p1, sp, o.euclid, o.row_comp && sc != comp1, o.raw);
-                emit_distance(o, s + j, d0, d1, r0, r1, ok0, ok1, best0, best1);
+                if (o.reduce_min)
+                {
+                    best0 = min2(best0, d0);
+                    best1 = min2(best1, d1);
+                    continue;
+                }
+                float* row = o.out + (size_t)(s + j) * o.ld;
+                if (t == 0 && ok[0][0])
+                    row[r0] = d0;
+                if (t == 1 && ok[0][1])
+                    row[r1] = d1;
             }
         }
         if (o.reduce_min)
         {
-            if (t == 0 && ok0)
+            if (t == 0 && ok[0][0])
                 o.out[r0] = best0;
-            if (t == 1 && ok1)
+            if (t == 1 && ok[0][1])
                 o.out[r1] = best1;
         }
     }
@@ -694,43 +773,21 @@ struct SsadTile
     NGF_FN void finish(const Head& H, const Frame& f, const float* pts, const u32x4* s_row, const float* sp, int sc,
                        const DistanceOut& o) const
     {
-        const int t = lane_id() & 3;
         float c0[MT][D / 32][4];
         zero<MT, D / 32>(c0);
 #pragma unroll
         for (int b = 0; b < D / 32; ++b)
         {
-            const u32x4 s = ld_table4(s_row + 4 * b + t);
             u32 d[MT][2][4];
 #pragma unroll
             for (int m = 0; m < MT; ++m)
-            {
-                const u32x4 g = seg[m][0][b], h = seg[m][1][b];
-                d[m][0][0] = habs_diff2(g.x, s.x);
-                d[m][0][1] = habs_diff2(h.x, s.x);
-                d[m][0][2] = habs_diff2(g.y, s.y);
-                d[m][0][3] = habs_diff2(h.y, s.y);
-                d[m][1][0] = habs_diff2(g.z, s.z);
-                d[m][1][1] = habs_diff2(h.z, s.z);
-                d[m][1][2] = habs_diff2(g.w, s.w);
-                d[m][1][3] = habs_diff2(h.w, s.w);
-            }
+                segments_to_a(seg[m][0][b], seg[m][1][b], d[m]);
+            subtract_source<MT, 2>(d, s_row, 2 * b);
             dense<MT, 2, D / 32>(d, H.w0, D / 32, 2 * b, 0, c0);
         }
         float y[MT][2];
         head_tail<MT, D / 32>(H, c0, y);
-#pragma unroll
-        for (int m = 0; m < MT; ++m)
-        {
-            const int c0r = o.row_comp ? o.row_comp[r[m][0]] : 0;
-            const int c1r = o.row_comp ? o.row_comp[r[m][1]] : 0;
-            const float d0 = finish_distance(y[m][0], f, pts + 3 * r[m][0], sp, o.euclid, o.row_comp && sc != c0r, o.raw);
-            const float d1 = finish_distance(y[m][1], f, pts + 3 * r[m][1], sp, o.euclid, o.row_comp && sc != c1r, o.raw);
-            if (t == 0 && ok[m][0])
-                o.out[r[m][0]] = d0;
-            if (t == 1 && ok[m][1])
-                o.out[r[m][1]] = d1;
-        }
+        store_distances<MT>(o, f, pts, y, r, ok, sp, sc);
     }
 };
 
@@ -770,14 +827,13 @@ NGF_FN void ssad_rows(const Head& H, const Frame& f, const float* pts, const u32
     }
 }
 
-// One source to N points embedded here (SSAD without kept embeddings): the last lifting layer is produced NC
-// n-tiles at a time and each chunk's |e - s| goes straight into the head's first layer, so the embedding is never
-// held whole. MT m-tiles per warp share each weight load.
+// One source to N points embedded here (SSAD without kept embeddings): each chunk of the last lifting layer goes
+// straight into the head's first layer as |e - s|, so the embedding is never held whole. MT m-tiles per warp
+// share each weight load.
 template <int D, int KS0, int MT, int NC>
 NGF_FN void lift_ssad_rows(const Lifting& L, const Head& H, const Frame& f, const float* pts, int n, const Sources& S,
                            const DistanceOut& o, int warp, int n_warps)
 {
-    const int t = lane_id() & 3;
     const int n_tiles = (n + 16 * MT - 1) / (16 * MT);
     const int srow = S.row(0);
     const u32x4* s_row = S.emb + (size_t)srow * (D / 8);
@@ -788,56 +844,16 @@ NGF_FN void lift_ssad_rows(const Lifting& L, const Head& H, const Frame& f, cons
         int r[MT][2];
         bool ok[MT][2];
         float x[MT][2][3];
-#pragma unroll
-        for (int m = 0; m < MT; ++m)
-        {
-            tile_rows(tile, MT, m, n, r[m][0], r[m][1], ok[m][0], ok[m][1]);
-            to_net(f, pts + 3 * r[m][0], x[m][0]);
-            to_net(f, pts + 3 * r[m][1], x[m][1]);
-        }
-        u32 h1[MT][D / 32][4];
-        lift_hidden<MT, D, KS0>(L, x, h1);
+        tile_points<MT>(f, pts, tile, n, r, ok, x);
         float c0[MT][D / 32][4];
         zero<MT, D / 32>(c0);
-#pragma unroll
-        for (int q = 0; q < D / 8 / NC; ++q)
-        {
-            float c[MT][NC][4];
-            lift_chunk<MT, D, NC>(L, h1, q, c);
-            u32 a[MT][NC / 2][4];
-            to_a<MT, NC>(c, a);
-            // k-steps NC/2 q .. of the embedding; source pairs of k-step k: block k/2, x/y (even k) or z/w (odd k)
-#pragma unroll
-            for (int k = 0; k < NC / 2; ++k)
-            {
-                const int ks = NC / 2 * q + k;
-                const u32x4 s = ld_table4(s_row + 4 * (ks / 2) + t);
-                const u32 lo = (ks & 1) ? s.z : s.x, hi = (ks & 1) ? s.w : s.y;
-#pragma unroll
-                for (int m = 0; m < MT; ++m)
-                {
-                    a[m][k][0] = habs_diff2(a[m][k][0], lo);
-                    a[m][k][1] = habs_diff2(a[m][k][1], lo);
-                    a[m][k][2] = habs_diff2(a[m][k][2], hi);
-                    a[m][k][3] = habs_diff2(a[m][k][3], hi);
-                }
-            }
+        lift_chunks<MT, D, KS0, NC>(L, x, [&](int q, u32 (&a)[MT][NC / 2][4]) {
+            subtract_source<MT, NC / 2>(a, s_row, NC / 2 * q);
             dense<MT, NC / 2, D / 32>(a, H.w0, D / 32, NC / 2 * q, 0, c0);
-        }
+        });
         float y[MT][2];
         head_tail<MT, D / 32>(H, c0, y);
-#pragma unroll
-        for (int m = 0; m < MT; ++m)
-        {
-            const int c0r = o.row_comp ? o.row_comp[r[m][0]] : 0;
-            const int c1r = o.row_comp ? o.row_comp[r[m][1]] : 0;
-            const float d0 = finish_distance(y[m][0], f, pts + 3 * r[m][0], sp, o.euclid, o.row_comp && sc != c0r, o.raw);
-            const float d1 = finish_distance(y[m][1], f, pts + 3 * r[m][1], sp, o.euclid, o.row_comp && sc != c1r, o.raw);
-            if (t == 0 && ok[m][0])
-                o.out[r[m][0]] = d0;
-            if (t == 1 && ok[m][1])
-                o.out[r[m][1]] = d1;
-        }
+        store_distances<MT>(o, f, pts, y, r, ok, sp, sc);
     }
 }
 
@@ -848,23 +864,13 @@ NGF_FN void embed_rows(const Lifting& L, const Frame& f, const float* pts, int n
     const int n_tiles = (n + 15) / 16;
     for (int tile = warp; tile < n_tiles; tile += n_warps)
     {
-        int r0, r1;
-        bool ok0, ok1;
-        tile_rows(tile, 1, 0, n, r0, r1, ok0, ok1);
+        int r[1][2];
+        bool ok[1][2];
         float x[1][2][3];
-        to_net(f, pts + 3 * r0, x[0][0]);
-        to_net(f, pts + 3 * r1, x[0][1]);
-        u32 h1[1][D / 32][4];
-        lift_hidden<1, D, KS0>(L, x, h1);
-#pragma unroll
-        for (int q = 0; q < D / 64; ++q)
-        {
-            float c[1][8][4];
-            lift_chunk<1, D, 8>(L, h1, q, c);
-            u32 part[1][4][4];
-            to_a<1, 8>(c, part);
-            store_embeddings<4>(part, 2 * q, out, D / 8, r0, r1, ok0, ok1);
-        }
+        tile_points<1>(f, pts, tile, n, r, ok, x);
+        lift_chunks<1, D, KS0, 8>(L, x, [&](int q, const u32 (&a)[1][4][4]) {
+            store_embeddings<4>(a, 2 * q, out, D / 8, r[0][0], r[0][1], ok[0][0], ok[0][1]);
+        });
     }
 }
 
@@ -886,24 +892,16 @@ NGF_FN void pair_rows(const Lifting& L, const Head& H, const Frame& f, const flo
         to_net(f, ps + 3 * r1, x[0][1]);
         to_net(f, qs + 3 * r0, x[1][0]);
         to_net(f, qs + 3 * r1, x[1][1]);
-        u32 h1[2][D / 32][4];
-        lift_hidden<2, D, KS0>(L, x, h1);
         float c0[1][D / 32][4];
         zero<1, D / 32>(c0);
-#pragma unroll
-        for (int q = 0; q < D / 8 / NC; ++q)
-        {
-            float c[2][NC][4];
-            lift_chunk<2, D, NC>(L, h1, q, c);
-            u32 a[2][NC / 2][4];
-            to_a<2, NC>(c, a);
+        lift_chunks<2, D, KS0, NC>(L, x, [&](int q, const u32 (&a)[2][NC / 2][4]) {
             u32 d[1][NC / 2][4];
 #pragma unroll
             for (int k = 0; k < NC / 2; ++k)
 #pragma unroll
                 for (int i = 0; i < 4; ++i) d[0][k][i] = habs_diff2(a[0][k][i], a[1][k][i]);
             dense<1, NC / 2, D / 32>(d, H.w0, D / 32, NC / 2 * q, 0, c0);
-        }
+        });
         float y[1][2];
         head_tail<1, D / 32>(H, c0, y);
         const float d0 = finish_distance(y[0][0], f, ps + 3 * r0, qs + 3 * r0, euclid, false, raw);
@@ -927,36 +925,20 @@ NGF_FN void sdf_rows(const Lifting& L, const Head& H, const Frame& f, const floa
         int r[MT][2];
         bool ok[MT][2];
         float x[MT][2][3];
-#pragma unroll
-        for (int m = 0; m < MT; ++m)
-        {
-            tile_rows(tile, MT, m, n, r[m][0], r[m][1], ok[m][0], ok[m][1]);
-            to_net(f, pts + 3 * r[m][0], x[m][0]);
-            to_net(f, pts + 3 * r[m][1], x[m][1]);
-        }
-        u32 h1[MT][D / 32][4];
-        lift_hidden<MT, D, KS0>(L, x, h1);
+        tile_points<MT>(f, pts, tile, n, r, ok, x);
         float c0[MT][D / 32][4];
         zero<MT, D / 32>(c0);
-#pragma unroll
-        for (int q = 0; q < D / 8 / NC; ++q)
-        {
-            float c[MT][NC][4];
-            lift_chunk<MT, D, NC>(L, h1, q, c);
-            u32 a[MT][NC / 2][4];
-            to_a<MT, NC>(c, a);
+        lift_chunks<MT, D, KS0, NC>(L, x, [&](int q, const u32 (&a)[MT][NC / 2][4]) {
             dense<MT, NC / 2, D / 32>(a, H.w0, D / 32, NC / 2 * q, 0, c0);
-        }
+        });
         float y[MT][2];
         head_tail<MT, D / 32>(H, c0, y);
 #pragma unroll
         for (int m = 0; m < MT; ++m)
-        {
-            if (t == 0 && ok[m][0])
-                out[r[m][0]] = y[m][0] * f.dscale;
-            if (t == 1 && ok[m][1])
-                out[r[m][1]] = y[m][1] * f.dscale;
-        }
+#pragma unroll
+            for (int i = 0; i < 2; ++i)
+                if (t == i && ok[m][i])
+                    out[r[m][i]] = y[m][i] * f.dscale;
     }
 }
 
