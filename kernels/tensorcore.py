@@ -16,7 +16,6 @@ repeated queries are fp16 (the same rounding as in the fused kernels, so both gi
 The same kernels run on Warp's CPU device, each warp as 32 cooperative fibers with the warp-wide operations
 emulated; that form is slow and exists so the tests can check the GPU code's data movement against float64.
 """
-from __future__ import annotations
 
 import contextlib
 import functools
@@ -315,24 +314,29 @@ def lift_ssad_kernel(D: int, ks0: int, mt: int = 1, nc: int = 8):
     return _distance_kernel(call, f"ngf_lift_ssad_rows_{D}_{ks0}_{mt}_{nc}")
 
 
+def _points_kernel(call: str, name: str, out_dtype):
+    """A kernel (lift, head, frame, pts, n, out, n_warps) around the native call ``call`` over N points."""
+    snippet = _STRUCTS_CPP + _frame_cpp("frame") + call
+
+    def body(lift: Lifting, head: Head, frame: mlp.Frame, pts: wp.array(dtype=wp.vec3), n: int,
+             out: wp.array(dtype=out_dtype), tid: int, n_warps: int): ...
+
+    native = wp.func_native(snippet)(_unique(body, name))
+
+    @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
+    def point_rows(lift: Lifting, head: Head, frame: mlp.Frame, pts: wp.array(dtype=wp.vec3), n: int,
+                   out: wp.array(dtype=out_dtype), n_warps: int):
+        native(lift, head, frame, pts, n, out, wp.tid(), n_warps)
+
+    return point_rows
+
+
 @functools.lru_cache(maxsize=None)
 def embed_kernel(D: int, ks0: int):
     """Packed fp16 embeddings (N, D/2 uint32) of N points."""
-    snippet = _STRUCTS_CPP + _frame_cpp("frame") + f"""
+    return _points_kernel(f"""
     ngf::embed_rows<{D}, {ks0}>(L, F, (const float*)pts.data, n, (ngf::u32x4*)out.data, tid >> 5, n_warps);
-"""
-
-    def body(lift: Lifting, head: Head, frame: mlp.Frame, pts: wp.array(dtype=wp.vec3), n: int,
-             out: wp.array(dtype=wp.uint32), tid: int, n_warps: int): ...
-
-    native = wp.func_native(snippet)(_unique(body, f"ngf_embed_rows_{D}_{ks0}"))
-
-    @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
-    def embed_rows(lift: Lifting, head: Head, frame: mlp.Frame, pts: wp.array(dtype=wp.vec3), n: int,
-                   out: wp.array(dtype=wp.uint32), n_warps: int):
-        native(lift, head, frame, pts, n, out, wp.tid(), n_warps)
-
-    return embed_rows
+""", f"ngf_embed_rows_{D}_{ks0}", wp.uint32)
 
 
 @functools.lru_cache(maxsize=None)
@@ -360,21 +364,9 @@ def pair_kernel(D: int, ks0: int, nc: int = 4):
 @functools.lru_cache(maxsize=None)
 def sdf_kernel(D: int, ks0: int, mt: int = 1, nc: int = 8):
     """Signed distances of N points from the SDF head."""
-    snippet = _STRUCTS_CPP + _frame_cpp("frame") + f"""
+    return _points_kernel(f"""
     ngf::sdf_rows<{D}, {ks0}, {mt}, {nc}>(L, H, F, (const float*)pts.data, n, (float*)out.data, tid >> 5, n_warps);
-"""
-
-    def body(lift: Lifting, head: Head, frame: mlp.Frame, pts: wp.array(dtype=wp.vec3), n: int,
-             out: wp.array(dtype=wp.float32), tid: int, n_warps: int): ...
-
-    native = wp.func_native(snippet)(_unique(body, f"ngf_sdf_rows_{D}_{ks0}_{mt}_{nc}"))
-
-    @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
-    def sdf_rows(lift: Lifting, head: Head, frame: mlp.Frame, pts: wp.array(dtype=wp.vec3), n: int,
-                 out: wp.array(dtype=wp.float32), n_warps: int):
-        native(lift, head, frame, pts, n, out, wp.tid(), n_warps)
-
-    return sdf_rows
+""", f"ngf_sdf_rows_{D}_{ks0}_{mt}_{nc}", wp.float32)
 
 
 _PATH_CPP = """

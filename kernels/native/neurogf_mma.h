@@ -38,17 +38,11 @@ NGF_FN void mma(float (&c)[4], const u32 (&a)[4], const u32x2 b)
 
 NGF_FN float shfl_xor(float v, int mask) { return __shfl_xor_sync(0xffffffffu, v, mask); }
 
-// weights and small tables: read-only path, kept in L1
+// weights and small tables (source embeddings, biases): read-only path, kept in L1
 NGF_FN u32x2 ld_weights(const u32x2* p)
 {
     u32x2 r;
     asm("ld.global.nc.v2.u32 {%0,%1}, [%2];" : "=r"(r.x), "=r"(r.y) : "l"(p));
-    return r;
-}
-NGF_FN u32x4 ld_weights4(const u32x4* p)
-{
-    u32x4 r;
-    asm("ld.global.nc.v4.u32 {%0,%1,%2,%3}, [%4];" : "=r"(r.x), "=r"(r.y), "=r"(r.z), "=r"(r.w) : "l"(p));
     return r;
 }
 NGF_FN f32x2 ld_table(const f32x2* p)
@@ -159,7 +153,6 @@ inline float shfl_xor(float v, int mask)
 }
 
 inline u32x2 ld_weights(const u32x2* p) { return *p; }
-inline u32x4 ld_weights4(const u32x4* p) { return *p; }
 inline f32x2 ld_table(const f32x2* p) { return *p; }
 inline u32x4 ld_table4(const u32x4* p) { return *p; }
 inline u32x4 ld_stream(const u32x4* p) { return *p; }
@@ -214,7 +207,7 @@ NGF_FN void dense(const u32 (&a)[MT][KS][4], const u32x2* w, int ntw, int ks0, i
 #pragma unroll
         for (int n = 0; n + 1 < NT; n += 2)
         {
-            const u32x4 b = ld_weights4((const u32x4*)row + ((nt0 + n) / 2) * 32 + lane);
+            const u32x4 b = ld_table4((const u32x4*)row + ((nt0 + n) / 2) * 32 + lane);
 #pragma unroll
             for (int m = 0; m < MT; ++m)
             {
@@ -263,6 +256,17 @@ NGF_FN void to_a(const float (&c)[MT][NT][4], u32 (&a)[MT][NT / 2][4])
             a[m][n / 2][(n & 1) * 2 + 0] = pack_half2(c[m][n][0], c[m][n][1]);
             a[m][n / 2][(n & 1) * 2 + 1] = pack_half2(c[m][n][2], c[m][n][3]);
         }
+}
+
+// A whole hidden layer on A fragments: relu(a W + b) as the A fragments of the next layer (NT output n-tiles).
+template <int MT, int KS, int NT>
+NGF_FN void hidden_layer(const u32 (&a)[MT][KS][4], const u32x2* w, const f32x2* bias, u32 (&out)[MT][NT / 2][4])
+{
+    float c[MT][NT][4];
+    zero<MT, NT>(c);
+    dense<MT, KS, NT>(a, w, NT, 0, 0, c);
+    bias_relu<MT, NT>(c, bias, 0);
+    to_a<MT, NT>(c, out);
 }
 
 // Sum over the 4 lanes of a row group: afterwards every lane of group g holds the full sums of rows g and g+8.
@@ -368,12 +372,8 @@ NGF_FN void lift_hidden(const Lifting& L, const float (&x)[MT][2][3], u32 (&h1)[
 {
     u32 a0[MT][KS0][4];
     input_fragments<MT, KS0>(x, L.octaves, a0);
-    float c0[MT][D / 32][4];  // D/4 outputs = D/32 n-tiles
-    zero<MT, D / 32>(c0);
-    dense<MT, KS0, D / 32>(a0, L.w0, D / 32, 0, 0, c0);
-    bias_relu<MT, D / 32>(c0, L.b0, 0);
-    u32 a1[MT][D / 64][4];
-    to_a<MT, D / 32>(c0, a1);
+    u32 a1[MT][D / 64][4];  // D/4 outputs = D/32 n-tiles
+    hidden_layer<MT, KS0, D / 32>(a0, L.w0, L.b0, a1);
     // D/2 outputs = D/16 n-tiles, computed at most 8 at a time so that few accumulators are live
     constexpr int NC = D / 16 < 8 ? D / 16 : 8;
 #pragma unroll
@@ -507,40 +507,42 @@ NGF_FN void subtract_source(u32 (&a)[MT][KS][4], const u32x4* s_row, int k0)
 
 // ---- heads ------------------------------------------------------------------------------------------------------
 
+// A distance head fed two k-steps at a time: blocks(b, d) fills d with the A fragments of |e - s| for k-steps 2b and
+// 2b + 1 of MT m-tiles (or of MT sources for one m-tile), which share every weight fragment load.
+template <int D, int MT, class Blocks>
+NGF_FN void head_on_blocks(const Head& W, Blocks&& blocks, float (&y)[MT][2])
+{
+    float c0[MT][D / 32][4];
+    zero<MT, D / 32>(c0);
+#pragma unroll
+    for (int b = 0; b < D / 32; ++b)
+    {
+        u32 d[MT][2][4];
+        blocks(b, d);
+        dense<MT, 2, D / 32>(d, W.w0, D / 32, 2 * b, 0, c0);
+    }
+    head_tail<MT, D / 32>(W, c0, y);
+}
+
 // Distance heads of SP sources on one m-tile: e in A fragments (fp16), each source a packed embedding row;
-// y[j] = head(|e - s_j|) for rows g and g+8 (the |x - s| term of euclid networks is added by the caller). The
-// SP sources share every weight fragment load.
+// y[j] = head(|e - s_j|) for rows g and g+8 (the |x - s| term of euclid networks is added by the caller).
 template <int D, int SP>
 NGF_FN void distance_heads(const Head& W, const u32 (&e)[1][D / 16][4], const u32x4* const (&s_rows)[SP],
                            float (&y)[SP][2])
 {
-    float c0[SP][D / 32][4];
-    zero<SP, D / 32>(c0);
-#pragma unroll
-    for (int b = 0; b < D / 32; ++b)
-    {
-        u32 d[SP][2][4];
+    head_on_blocks<D, SP>(W, [&](int b, u32 (&d)[SP][2][4]) {
 #pragma unroll
         for (int j = 0; j < SP; ++j)
         {
-            u32 dj[1][2][4];
 #pragma unroll
             for (int i = 0; i < 4; ++i)
             {
-                dj[0][0][i] = e[0][2 * b][i];
-                dj[0][1][i] = e[0][2 * b + 1][i];
+                d[j][0][i] = e[0][2 * b][i];
+                d[j][1][i] = e[0][2 * b + 1][i];
             }
-            subtract_source<1, 2>(dj, s_rows[j], 2 * b);
-#pragma unroll
-            for (int i = 0; i < 4; ++i)
-            {
-                d[j][0][i] = dj[0][0][i];
-                d[j][1][i] = dj[0][1][i];
-            }
+            subtract_source<1, 2>(reinterpret_cast<u32(&)[1][2][4]>(d[j]), s_rows[j], 2 * b);
         }
-        dense<SP, 2, D / 32>(d, W.w0, D / 32, 2 * b, 0, c0);
-    }
-    head_tail<SP, D / 32>(W, c0, y);
+    }, y);
 }
 
 // ---- per-row inputs and outputs -----------------------------------------------------------------------------------
@@ -603,6 +605,21 @@ NGF_FN void lift_chunks(const Lifting& L, const float (&x)[MT][2][3], Use&& use)
         to_a<MT, NC>(c, a);
         use(q, a);
     }
+}
+
+// The lifting of MT m-tiles fed chunk by chunk into a head's first layer, then the rest of the head;
+// prepare(q, a) may change a chunk before it enters (|e - s| for a distance head).
+template <int MT, int D, int KS0, int NC, class Prepare>
+NGF_FN void lifted_head(const Lifting& L, const Head& H, const float (&x)[MT][2][3], Prepare&& prepare,
+                        float (&y)[MT][2])
+{
+    float c0[MT][D / 32][4];
+    zero<MT, D / 32>(c0);
+    lift_chunks<MT, D, KS0, NC>(L, x, [&](int q, u32 (&a)[MT][NC / 2][4]) {
+        prepare(q, a);
+        dense<MT, NC / 2, D / 32>(a, H.w0, D / 32, NC / 2 * q, 0, c0);
+    });
+    head_tail<MT, D / 32>(H, c0, y);
 }
 
 // Where distance results go and how they are finished.
@@ -773,20 +790,13 @@ struct SsadTile
     NGF_FN void finish(const Head& H, const Frame& f, const float* pts, const u32x4* s_row, const float* sp, int sc,
                        const DistanceOut& o) const
     {
-        float c0[MT][D / 32][4];
-        zero<MT, D / 32>(c0);
-#pragma unroll
-        for (int b = 0; b < D / 32; ++b)
-        {
-            u32 d[MT][2][4];
+        float y[MT][2];
+        head_on_blocks<D, MT>(H, [&](int b, u32 (&d)[MT][2][4]) {
 #pragma unroll
             for (int m = 0; m < MT; ++m)
                 segments_to_a(seg[m][0][b], seg[m][1][b], d[m]);
             subtract_source<MT, 2>(d, s_row, 2 * b);
-            dense<MT, 2, D / 32>(d, H.w0, D / 32, 2 * b, 0, c0);
-        }
-        float y[MT][2];
-        head_tail<MT, D / 32>(H, c0, y);
+        }, y);
         store_distances<MT>(o, f, pts, y, r, ok, sp, sc);
     }
 };
@@ -845,14 +855,10 @@ NGF_FN void lift_ssad_rows(const Lifting& L, const Head& H, const Frame& f, cons
         bool ok[MT][2];
         float x[MT][2][3];
         tile_points<MT>(f, pts, tile, n, r, ok, x);
-        float c0[MT][D / 32][4];
-        zero<MT, D / 32>(c0);
-        lift_chunks<MT, D, KS0, NC>(L, x, [&](int q, u32 (&a)[MT][NC / 2][4]) {
-            subtract_source<MT, NC / 2>(a, s_row, NC / 2 * q);
-            dense<MT, NC / 2, D / 32>(a, H.w0, D / 32, NC / 2 * q, 0, c0);
-        });
         float y[MT][2];
-        head_tail<MT, D / 32>(H, c0, y);
+        lifted_head<MT, D, KS0, NC>(L, H, x, [&](int q, u32 (&a)[MT][NC / 2][4]) {
+            subtract_source<MT, NC / 2>(a, s_row, NC / 2 * q);
+        }, y);
         store_distances<MT>(o, f, pts, y, r, ok, sp, sc);
     }
 }
@@ -926,13 +932,8 @@ NGF_FN void sdf_rows(const Lifting& L, const Head& H, const Frame& f, const floa
         bool ok[MT][2];
         float x[MT][2][3];
         tile_points<MT>(f, pts, tile, n, r, ok, x);
-        float c0[MT][D / 32][4];
-        zero<MT, D / 32>(c0);
-        lift_chunks<MT, D, KS0, NC>(L, x, [&](int q, const u32 (&a)[MT][NC / 2][4]) {
-            dense<MT, NC / 2, D / 32>(a, H.w0, D / 32, NC / 2 * q, 0, c0);
-        });
         float y[MT][2];
-        head_tail<MT, D / 32>(H, c0, y);
+        lifted_head<MT, D, KS0, NC>(L, H, x, [](int, u32 (&)[MT][NC / 2][4]) {}, y);
 #pragma unroll
         for (int m = 0; m < MT; ++m)
 #pragma unroll
@@ -1055,18 +1056,10 @@ NGF_FN void path_point_rows(const PathWeights& W, const Frame& f, const float* p
         }
         u32 a1[1][P1 / 16][4];
         to_a<1, P1 / 8>(h, a1);
-        float c1[1][P2 / 8][4];
-        zero<1, P2 / 8>(c1);
-        dense<1, P1 / 16, P2 / 8>(a1, W.w1, P2 / 8, 0, 0, c1);
-        bias_relu<1, P2 / 8>(c1, W.b1, 0);
         u32 a2[1][P2 / 16][4];
-        to_a<1, P2 / 8>(c1, a2);
-        float c2[1][P3 / 8][4];
-        zero<1, P3 / 8>(c2);
-        dense<1, P2 / 16, P3 / 8>(a2, W.w2, P3 / 8, 0, 0, c2);
-        bias_relu<1, P3 / 8>(c2, W.b2, 0);
+        hidden_layer<1, P1 / 16, P2 / 8>(a1, W.w1, W.b1, a2);
         u32 a3[1][P3 / 16][4];
-        to_a<1, P3 / 8>(c2, a3);
+        hidden_layer<1, P2 / 16, P3 / 8>(a2, W.w2, W.b2, a3);
         float y[1][1][4];
         zero<1, 1>(y);
         dense<1, P3 / 16, 1>(a3, W.w3, 2, 0, 0, y);
