@@ -1,5 +1,5 @@
 """The README's pictures: the released bunny NeuroGF's SSAD, MSAD (5 sources) and paths next to the exact
-field and the heat method's, each made by one ``examples/render_field.py`` command (printed as it runs).
+field and the heat method's, each made by one ``neurogf-warp render`` command (printed as it runs).
 
     python examples/readme_pictures.py [--shared ../shared] [--out docs/pictures] [--size 512]
 
@@ -23,7 +23,7 @@ def main(argv=None) -> int:
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--device", default=None)
     a = ap.parse_args(argv)
-    import render_field  # noqa: E402  (beside this file)
+    from neurogf_warp.cli import main as cli
 
     sh = Path(a.shared)
     model = sh / "checkpoints" / "official" / "NeuroGF_Pretrainer__bunny_final.pth"
@@ -31,21 +31,23 @@ def main(argv=None) -> int:
     ref = sh / "reference" / "exact" / "stanford-bunny.npz"
     import neurogf_warp as ngf
 
+    from neurogf_warp.evaluate import load_reference
+
     z = np.load(ref)
     m = ngf.load_mesh(mesh)
-    idx = render_field.reference_index(z, m)
-    src = [int(s) for s in idx[z["sources"]]]  # the reference's 8 sources, mesh numbering
+    _, sids, _ = load_reference(ref, m)
+    src = [int(s) for s in m.index[sids]]  # the reference's 8 sources, the mesh file's numbering
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     ssad, msad = [src[1]], [src[0], src[1], src[2], src[3], src[7]]
-    targets = ["--targets", *map(str, [src[2], src[3], src[0], m.index[1000], m.index[20000]])]
+    targets = ["--paths", *map(str, [src[2], src[3], src[0], m.index[1000], m.index[20000]])]
 
     def hi(sources):
         rows = [z["dist"][src.index(s)] for s in sources]
         return f"{float(np.min(rows, axis=0).max()):.6g}"
 
     jobs = []
-    for name, sources, extra in (("ssad", ssad, []), ("msad", msad, []), ("paths", ssad, ["--paths", "5", *targets])):
+    for name, sources, extra in (("ssad", ssad, []), ("msad", msad, []), ("paths", ssad, targets)):
         common = [str(model), "--mesh", str(mesh), "--source", *map(str, sources), "--size", str(a.size), str(a.size),
                   "--vrange", "0", hi(sources), *extra, *(["--device", a.device] if a.device else [])]
         jobs.append(common + ["-o", str(out / f"bunny_{name}_neurogf.png")])
@@ -55,8 +57,9 @@ def main(argv=None) -> int:
         if name != "paths":
             jobs.append(common + ["--heat", "-o", str(out / f"bunny_{name}_heat.png")])
     for args in jobs:
-        print("python examples/render_field.py " + " ".join(shlex.quote(x) for x in args))
-        render_field.main(args)
+        print("neurogf-warp render " + " ".join(shlex.quote(x) for x in args), flush=True)
+        if cli(["render", *args, "-q"]):
+            return 1
     return 0
 
 

@@ -189,7 +189,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="source vertex indices (default 0); several: distance to the nearest")
     s.add_argument("--paths", type=int, nargs="+", default=None, metavar="V",
                    help="also draw the shortest paths from the first source to these vertices")
+    s.add_argument("--refine", type=int, default=0, metavar="N",
+                   help="shortening sweeps for the model's paths (path(refine=N); default 0: the path head's)")
+    field = s.add_mutually_exclusive_group()
+    field.add_argument("--exact", metavar="REF.npz", help="draw the exact field of this reference file (positions, "
+                       "file_index or orig_index, sources, dist) instead of the model's; paths from the geodesic solver")
+    field.add_argument("--heat", action="store_true", help="draw the heat method's field (potpourri3d) instead of the "
+                       "model's; paths from potpourri3d's edge-flip solver")
     s.add_argument("--isolines", type=int, default=20, help="number of isolines (default 20; 0: none)")
+    s.add_argument("--vrange", type=float, nargs=2, default=None, metavar=("LOW", "HIGH"),
+                   help="the colour scale's range in mesh units (default: the field's), to compare pictures")
+    s.add_argument("--view", type=float, nargs=2, default=None, metavar=("AZIMUTH", "ELEVATION"),
+                   help="camera direction in degrees (default 30 20)")
     s.add_argument("--size", type=int, nargs=2, default=(1024, 1024), metavar=("W", "H"), help="picture size in pixels")
     s.add_argument("-o", "--output", default="picture.png", help="picture file (.png)")
     return p
@@ -571,27 +582,69 @@ def _cmd_info(args) -> int:
 
 def _cmd_render(args) -> int:
     _check_output(args.output, (".png",), "picture")
-    if args.isolines < 0 or min(args.size) < 16:
-        raise BadInput("--isolines must be >= 0 and --size at least 16 x 16 pixels")
-    import importlib.util
+    if args.isolines < 0 or min(args.size) < 16 or args.refine < 0:
+        raise BadInput("--isolines and --refine must be >= 0 and --size at least 16 x 16 pixels")
+    if args.heat:
+        from .evaluate import require_heat
 
+        require_heat()
     import numpy as np
 
     import neurogf_warp as ngf
     from .rendering import render
 
     model = _load_model(args, needs_mesh=True)
+    mesh = model.mesh
     src = _vertex_indices(model, args.source, "--source")
-    values = ngf.ssad(model, src[0], device=args.device) if len(src) == 1 else ngf.msad(model, src, device=args.device)
+    if args.exact:
+        values, what = _exact_field(args.exact, mesh, src), "exact"
+    elif args.heat:
+        import potpourri3d as pp3d
+
+        solver = pp3d.MeshHeatMethodDistanceSolver(mesh.vertices, mesh.faces.astype(np.int64))
+        values = mesh.to_input(solver.compute_distance_multisource([int(i) for i in mesh.vertex(np.asarray(src))]))
+        what = "heat method"
+    else:
+        values = ngf.ssad(model, src[0], device=args.device) if len(src) == 1 else ngf.msad(model, src, device=args.device)
+        what = "NeuroGF"
     paths = None
     if args.paths:
         tg = _vertex_indices(model, args.paths, "--paths")
-        v = model.mesh.vertices[model.mesh.vertex(np.asarray(tg))]
-        s = np.repeat(model.mesh.vertices[model.mesh.vertex(np.asarray(src[:1]))], len(tg), axis=0)
-        paths = np.asarray(ngf.path(model, s, v, m=128, device=args.device))
-    render(model, values, sources=src, paths=paths, isolines=args.isolines, out=args.output, size=tuple(args.size))
-    _say(args, f"render: wrote {args.output}")
+        if args.exact:
+            paths = ngf.geodesic_paths(mesh, src[0], tg, m=128, device=args.device)
+        elif args.heat:
+            import potpourri3d as pp3d
+
+            flip = pp3d.EdgeFlipGeodesicSolver(mesh.vertices, mesh.faces.astype(np.int64))
+            s0 = int(mesh.vertex(np.asarray(src[:1]))[0])
+            paths = [flip.find_geodesic_path(s0, int(t)) for t in mesh.vertex(np.asarray(tg))]
+        else:
+            v = mesh.vertices[mesh.vertex(np.asarray(tg))]
+            s = np.repeat(mesh.vertices[mesh.vertex(np.asarray(src[:1]))], len(tg), axis=0)
+            paths = np.asarray(ngf.path(model, s, v, m=128, refine=args.refine, device=args.device))
+    render(model, values, sources=src, paths=paths, isolines=args.isolines, out=args.output, size=tuple(args.size),
+           view=None if args.view is None else tuple(args.view), vrange=args.vrange, device=args.device)
+    _say(args, f"render: {what} field from {len(src)} source(s), {len(args.paths or [])} path(s): {args.output}")
     return 0
+
+
+def _exact_field(ref, mesh, sources):
+    """Exact distance to the nearest of ``sources`` (file numbering) per vertex, from a reference file."""
+    import numpy as np
+
+    from .evaluate import load_reference
+
+    vids, sids, dist = load_reference(ref, mesh)
+    want = mesh.vertex(np.asarray(sources))
+    rows = []
+    for s, w in zip(sources, want):
+        hit = np.flatnonzero(sids == w)
+        if not len(hit):
+            raise BadInput(f"--source {s} is not one of {ref}'s sources ({', '.join(map(str, mesh.index[sids]))})")
+        rows.append(dist[hit[0]])
+    out = np.full(len(mesh.vertices), np.nan)
+    out[vids] = np.min(rows, axis=0)
+    return mesh.to_input(out)
 
 
 COMMANDS = {"demo": _cmd_demo, "data": _cmd_data, "train": _cmd_train, "eval": _cmd_eval, "ssad": _cmd_ssad,

@@ -131,6 +131,29 @@ def test_ply_and_render(trained, tmp_path, capsys):
     assert (tmp_path / "p.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_render_exact_and_heat_fields(trained, tmp_path, capsys):
+    """The pictures of the README: the exact field of a reference file and the heat method's, on a fixed colour
+    scale and view; a source the reference does not have is bad input."""
+    import neurogf_warp as ngf
+
+    model = ngf.load(trained[1])
+    m = model.mesh
+    src = [3, 40]
+    dist = ngf.geodesic_distances(m, src, device="cpu")
+    ref = tmp_path / "ref.npz"
+    np.savez(ref, positions=m.vertices.astype(np.float32), file_index=m.index.astype(np.int32),
+             sources=m.vertex(np.array(src)).astype(np.int32), dist=dist[:, m.index])
+    base = ["render", trained[1], "--size", 48, 48, "--vrange", 0, 1, "--view", 10, 40, "-q"]
+    for extra in (["--source", 3, "--exact", ref, "--paths", 7, 9], ["--source", 3, 40, "--exact", ref],
+                  ["--source", 3, 40, "--heat", "--paths", 7]):
+        out = tmp_path / "p.png"
+        code, _, err = run(base + extra + ["-o", out], capsys)
+        assert code == 0, err
+        assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    code, _, err = run(base + ["--source", 5, "--exact", ref, "-o", tmp_path / "x.png"], capsys)
+    assert code == 2 and "not one of" in err
+
+
 def test_warp_stays_quiet_unless_verbose(trained):
     env = dict(os.environ, NEUROGF_DEBUG="")
     cmd = [sys.executable, "-m", "neurogf_warp.cli", "info", str(trained[1])]
