@@ -111,8 +111,9 @@ def geodesic_paths(mesh, source, targets, m: int | None = None, device=None, k: 
 
     Returns
     -------
-    A list of T (n_i, 3) float64 polylines in mesh units, ordered from the source, or with m a (T, m, 3)
-    float64 array. A target no surface path reaches gives an empty (0, 3) polyline (NaN row with m); a path the
+    A list of T (n_i, 3) float32 polylines in mesh units, ordered from the source, or with m a (T, m, 3)
+    float32 array (float32 like every result of the library). A target no surface path reaches gives an empty
+    (0, 3) polyline (NaN row with m); a path the
     solver could not trace to within PATH_TOLERANCE of its distance gives a polyline of NaN (NaN row with m)
     and is counted in the warning it raises. An empty `targets` gives [] (a (0, m, 3) array with m).
     """
@@ -124,7 +125,7 @@ def geodesic_paths(mesh, source, targets, m: int | None = None, device=None, k: 
         raise ValueError(f"geodesic_paths takes one source vertex, got {len(s)}")
     tg = _vertices(msh, targets, "targets")
     if len(tg) == 0:
-        return [] if m is None else np.zeros((0, m, 3), dtype=np.float64)
+        return [] if m is None else np.zeros((0, m, 3), dtype=np.float32)
     solver = GeodesicSolver(msh, k=k, windows=windows, device=device, batch=1, delta=delta)
     solver.run(s)
     pts, offs, flags = solver.trace(np.zeros(len(tg), np.int32), tg)
@@ -136,5 +137,5 @@ def geodesic_paths(mesh, source, targets, m: int | None = None, device=None, k: 
                       stacklevel=2)
     pts = msh.denormalize(pts)
     if m is not None:
-        return resample_polyline(pts, offs, m).astype(np.float64)
-    return [pts[offs[i]: offs[i + 1]] for i in range(len(tg))]
+        return resample_polyline(pts, offs, m).astype(np.float32)
+    return [pts[offs[i]: offs[i + 1]].astype(np.float32) for i in range(len(tg))]
