@@ -264,9 +264,9 @@ def run(a) -> dict:
     res = {"benchmark": "queries", "date": datetime.date.today().isoformat(), "device": device,
            "device_name": torch.cuda.get_device_name(tdev) if cuda else platform.processor() or platform.machine(),
            "warp": wp.config.version, "torch": torch.__version__, "sizes": sizes, "rows": [], "compile_s": {}}
-    try:
-        res["commit"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                                       text=True).stdout.strip()
+    try:  # NEUROGF_COMMIT: the commit of a copied tree (the GPU machine gets the files, not the history)
+        res["commit"] = os.environ.get("NEUROGF_COMMIT") or subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     except OSError:
         res["commit"] = "unknown"
     res["ceilings"] = ceil = ceilings(device)
