@@ -505,6 +505,29 @@ NGF_FN void subtract_source(u32 (&a)[MT][KS][4], const u32x4* s_row, int k0)
     }
 }
 
+// subtract_source one k-step at a time (half of each segment load used): fewer registers live across a chunk,
+// which the lifted single-source kernel needs.
+template <int MT, int KS>
+NGF_FN void subtract_source_ksteps(u32 (&a)[MT][KS][4], const u32x4* s_row, int k0)
+{
+    const int t = lane_id() & 3;
+#pragma unroll
+    for (int k = 0; k < KS; ++k)
+    {
+        const int ks = k0 + k;
+        const u32x4 s = ld_table4(s_row + 4 * (ks / 2) + t);
+        const u32 lo = (ks & 1) ? s.z : s.x, hi = (ks & 1) ? s.w : s.y;
+#pragma unroll
+        for (int m = 0; m < MT; ++m)
+        {
+            a[m][k][0] = habs_diff2(a[m][k][0], lo);
+            a[m][k][1] = habs_diff2(a[m][k][1], lo);
+            a[m][k][2] = habs_diff2(a[m][k][2], hi);
+            a[m][k][3] = habs_diff2(a[m][k][3], hi);
+        }
+    }
+}
+
 // ---- heads ------------------------------------------------------------------------------------------------------
 
 // A distance head fed two k-steps at a time: blocks(b, d) fills d with the A fragments of |e - s| for k-steps 2b and
@@ -857,7 +880,7 @@ NGF_FN void lift_ssad_rows(const Lifting& L, const Head& H, const Frame& f, cons
         tile_points<MT>(f, pts, tile, n, r, ok, x);
         float y[MT][2];
         lifted_head<MT, D, KS0, NC>(L, H, x, [&](int q, u32 (&a)[MT][NC / 2][4]) {
-            subtract_source<MT, NC / 2>(a, s_row, NC / 2 * q);
+            subtract_source_ksteps<MT, NC / 2>(a, s_row, NC / 2 * q);
         }, y);
         store_distances<MT>(o, f, pts, y, r, ok, sp, sc);
     }
