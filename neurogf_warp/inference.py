@@ -27,6 +27,7 @@ first call (``cache=True``): fp16 packed, 2 D bytes per vertex (223 MB for 436,0
 from __future__ import annotations
 
 import time
+import warnings
 
 import numpy as np
 import torch
@@ -43,6 +44,7 @@ __all__ = ["fold_batchnorm", "warp_weights", "ssad", "msad", "distance_matrix", 
            "project", "embed", "warmup", "DOMAIN", "PRECISIONS"]
 
 DOMAIN = 1.5
+CHUNK_BYTES = 1 << 30  # device memory for one chunk of a many-source result bound for the host
 PRECISIONS = ("auto", "fp16", "fp32")
 PROJECT_STEPS = 2  # Newton steps from a point near the surface; |sdf| falls ~10x per step (a trained SDF head)
 
@@ -171,12 +173,27 @@ def bind(model: Model, device=None, precision: str = "auto") -> int:
     md = _mesh_data(model, dev, "binding")
     b = _binding(model, dev, prec)
     if b is None:
+        need = md.V * model.D * (2 if prec == "fp16" else 4)
+        _check_memory(dev, need, f"keeping the embeddings of {md.V:,} vertices ({need / 1e6:.0f} MB)",
+                      "query with cache=False (every call then embeds the vertices) or free GPU memory", 0.5)
         if prec == "fp16":
             b = _engine(model, dev).embed(md.verts)
         else:
             b = embed(model, md.verts, device=dev)
         model._warp[("bound", str(dev), prec)] = b
     return int(b.capacity)
+
+
+def _check_memory(dev, need: int, what: str, hint: str, share: float = 0.9):
+    """MemoryError, with the sizes and what to do, when ``need`` bytes exceed ``share`` of the device's free memory."""
+    if not dev.is_cuda:
+        return
+    free = getattr(dev, "free_memory", None)
+    if free and need > share * free:
+        raise MemoryError(f"{what} needs {need / 1e9:.2f} GB, but {free / 1e9:.2f} GB is free on {dev}: {hint}")
+
+
+_warned_unbound = set()
 
 
 def unbind(model: Model, device=None) -> None:
@@ -306,10 +323,23 @@ def _vertex_distances(model: Model, src, name: str, device, output: str, precisi
     md = _mesh_data(model, dev, name)
     pts, ids, comp = _sources(model, src, name, dev, one=one)
     S, V = len(pts), md.V
-    if cache:
-        bind(model, dev, prec)
-    bound = _binding(model, dev, prec)
     rows_out = 1 if reduce_min else S
+    need = 4 * rows_out * (V + (0 if md.identity else md.n_input))
+    if output == "numpy" and rows_out > 1 and need > CHUNK_BYTES:
+        # a large matrix for the host: sources in chunks that fit, each copied out before the next
+        step = max(1, int(CHUNK_BYTES // (need // rows_out)))
+        return np.concatenate([_vertex_distances(model, src_chunk, name, dev, output, precision, cache, False,
+                                                 raw=raw) for src_chunk in _source_chunks(src, pts, ids, step)])
+    _check_memory(dev, need, f"a ({rows_out}, {md.n_input}) result", "use output='numpy' (computed in chunks of "
+                  "sources) or fewer sources per call")
+    if cache:
+        try:
+            bind(model, dev, prec)
+        except MemoryError as e:  # the query still runs, embedding the vertices as it goes
+            if (id(model), str(dev)) not in _warned_unbound:
+                _warned_unbound.add((id(model), str(dev)))
+                warnings.warn(f"{e}; answering without kept embeddings", RuntimeWarning, stacklevel=3)
+    bound = _binding(model, dev, prec)
     internal = wp.empty(rows_out * V, dtype=wp.float32, device=dev)
     if prec == "fp16":
         eng = _engine(model, dev)
@@ -348,6 +378,15 @@ def _vertex_distances(model: Model, src, name: str, device, output: str, precisi
         if flat:
             res = res.reshape(-1)
     return Output(output, dev).result(res)
+
+
+def _source_chunks(src, pts, ids, step: int):
+    """The sources of a query in chunks of ``step``, in the form they came in (vertex indices or points)."""
+    flat = np.asarray(ids if ids is not None else pts)
+    given = np.asarray(src.numpy() if isinstance(src, wp.array) else src.detach().cpu().numpy()
+                       if isinstance(src, torch.Tensor) else src)
+    given = given.reshape(-1) if ids is not None else given.reshape(-1, 3)
+    return [given[i:i + step] for i in range(0, len(flat), step)]
 
 
 def _bound_tables(model: Model, dev, md, bound):

@@ -251,3 +251,26 @@ def test_tile_variants_agree(setting):
             setattr(tc, k, v)
     for a, b in zip(base, other):
         np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+
+
+def test_large_requests_are_chunked_or_refused(monkeypatch):
+    """A many-source result for the host is computed in chunks of sources (same numbers); a binding that does not
+    fit in memory leaves the query to run unbound, with a warning."""
+    from neurogf_warp import inference
+
+    rng = np.random.default_rng(5)
+    mesh = icosphere_mesh(rng, 0.0)
+    model = ngf.Model(net=random_net(64, 5, fourier=2, euclid=True), mesh=mesh, center=mesh.center, scale=mesh.scale)
+    srcs = [1, 7, 20, 33, 41]
+    whole = ngf.distance_matrix(model, srcs, device="cpu", precision="fp32")
+    monkeypatch.setattr(inference, "CHUNK_BYTES", 4 * len(mesh.vertices) * 2)  # two sources per chunk
+    np.testing.assert_array_equal(ngf.distance_matrix(model, srcs, device="cpu", precision="fp32"), whole)
+
+    def no_room(*args, **kwargs):
+        raise MemoryError("keeping the embeddings needs more than is free: query with cache=False")
+
+    model.unbind()
+    monkeypatch.setattr(inference, "bind", no_room)
+    with pytest.warns(RuntimeWarning, match="without kept embeddings"):
+        d = ngf.ssad(model, 7, device="cpu", precision="fp32")
+    np.testing.assert_allclose(d, whole[1], rtol=1e-6, atol=1e-7)
