@@ -377,8 +377,8 @@ def run(a) -> dict:
             print(f"  {query}: {name}: " + (f"{rows[-1]['ms']:.4f} ms (device {rows[-1].get('device_ms', float('nan')):.4f}), "
                                             f"err {rows[-1]['rel_err']:.1e}" if "ms" in rows[-1] else rows[-1]["error"]),
                   flush=True)
-        torch_best = min((r["ms"] for r in rows if "ms" in r and r["variant"].startswith("torch")
-                          and r["rel_err"] < 1e-2), default=float("nan"))
+        # the fastest PyTorch variant whatever its error (fp16 forms can be far less accurate; see rel_err)
+        torch_best = min((r["ms"] for r in rows if "ms" in r and r["variant"].startswith("torch")), default=float("nan"))
         floor = max(flops / ceil["fp16_flops"], bytes_ / ceil["bandwidth"]) * 1e3
         for r in rows:
             if "ms" in r:
