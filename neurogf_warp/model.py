@@ -61,7 +61,7 @@ class Model:
     def warp_struct(self, device=None):
         """The folded weights as a ``neurogf_warp.kernels.mlp.NeuroGFWeights`` struct on ``device``, for the
         ``@wp.func``s that users call inside their own kernels (cached; see ``invalidate``)."""
-        from .inference import warp_weights
+        from .device_state import warp_weights
 
         return warp_weights(self, device)
 
@@ -70,13 +70,13 @@ class Model:
         msad, distance_matrix) run only the distance head. Returns the bytes kept: 2 D per vertex in fp16
         (precision "fp16", the default on CUDA), 4 D in fp32. Vertex queries do this on their first call
         unless given ``cache=False``."""
-        from .inference import bind
+        from .device_state import bind
 
         return bind(self, device, precision)
 
     def unbind(self, device=None) -> None:
         """Free the vertex embeddings kept on ``device`` (every device when None)."""
-        from .inference import unbind
+        from .device_state import unbind
 
         unbind(self, device)
 

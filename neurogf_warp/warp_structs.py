@@ -16,7 +16,8 @@ import numpy as np
 import warp as wp
 
 from .arrays import resolve_device
-from .inference import _frame, embed, warp_weights
+from .device_state import frame_of, warp_weights
+from .inference import embed
 from .kernels import field, mlp
 from .surface import points_of
 
@@ -31,7 +32,7 @@ def weights(model, device=None) -> mlp.NeuroGFWeights:
 def frame(model) -> mlp.Frame:
     """Mesh coordinates -> network frame: ``mlp.to_net(f, x)``; network distances times ``f.dscale`` are in mesh
     units; ``mlp.from_net(f, y)`` maps network points back. The identity for a model without a mesh."""
-    return _frame(model)
+    return frame_of(model)
 
 
 def source_set(model, sources, device=None) -> field.SourceSet:
@@ -51,7 +52,7 @@ def source_set(model, sources, device=None) -> field.SourceSet:
         raise ValueError("sources is empty: give at least one vertex index or point")
     s = field.SourceSet()
     s.emb = embed(model, pts, dev)
-    f = _frame(model)
+    f = frame_of(model)
     net_pts = (pts - np.asarray(f.center, dtype=np.float64)) * float(f.xscale)
     s.points = wp.array(net_pts.astype(np.float32), dtype=wp.vec3, device=dev)
     return s
