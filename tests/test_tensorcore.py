@@ -258,13 +258,14 @@ def test_large_requests_are_chunked_or_refused(monkeypatch):
     fit in memory leaves the query to run unbound, with a warning."""
     from neurogf_warp import inference
 
+    device = "cpu" if wp.is_cpu_available() else "cuda:0"
     rng = np.random.default_rng(5)
     mesh = icosphere_mesh(rng, 0.0)
     model = ngf.Model(net=random_net(64, 5, fourier=2, euclid=True), mesh=mesh, center=mesh.center, scale=mesh.scale)
     srcs = [1, 7, 20, 33, 41]
-    whole = ngf.distance_matrix(model, srcs, device="cpu", precision="fp32")
+    whole = ngf.distance_matrix(model, srcs, device=device, precision="fp32")
     monkeypatch.setattr(inference, "CHUNK_BYTES", 4 * len(mesh.vertices) * 2)  # two sources per chunk
-    np.testing.assert_array_equal(ngf.distance_matrix(model, srcs, device="cpu", precision="fp32"), whole)
+    np.testing.assert_array_equal(ngf.distance_matrix(model, srcs, device=device, precision="fp32"), whole)
 
     def no_room(*args, **kwargs):
         raise MemoryError("keeping the embeddings needs more than is free: query with cache=False")
@@ -272,5 +273,5 @@ def test_large_requests_are_chunked_or_refused(monkeypatch):
     model.unbind()
     monkeypatch.setattr(inference, "bind", no_room)
     with pytest.warns(RuntimeWarning, match="without kept embeddings"):
-        d = ngf.ssad(model, 7, device="cpu", precision="fp32")
+        d = ngf.ssad(model, 7, device=device, precision="fp32")
     np.testing.assert_allclose(d, whole[1], rtol=1e-6, atol=1e-7)
