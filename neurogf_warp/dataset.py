@@ -391,7 +391,7 @@ class _Targets:
 
 
 def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, *, seed: int = 0, device=None,
-                  progress: bool = True, **overrides) -> Dataset:
+                  progress: bool = True, time_limit_s: float | None = None, **overrides) -> Dataset:
     """Compute the NeuroGF training data for one mesh with the Warp geodesic solver.
 
     Parameters
@@ -403,12 +403,17 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     seed : random seed of every draw (sources, targets, surface points)
     device : Warp device of the solver
     progress : a progress bar on stderr
+    time_limit_s : seconds (from the start of the call) after which no further batch of distance sources is
+        solved: the dataset then has fewer than ``n_sources`` sources (at least one solver batch) and its meta says
+        ``"complete": False``. None (default) solves them all. The test and path sources come after it.
 
     Returns
     -------
     Dataset
     """
     settings = dataclasses.replace(settings or DatasetSettings(), **overrides).validate()
+    if time_limit_s is not None and not (isinstance(time_limit_s, (int, float)) and time_limit_s >= 0):
+        raise ValueError(f"time_limit_s must be a number >= 0 or None, got {time_limit_s!r}")
     from tqdm.auto import tqdm
 
     t_start = time.perf_counter()
@@ -440,7 +445,13 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     bar = tqdm(total=len(gd_src) + len(test_src) + n_path_sources, desc="ground truth", disable=not progress,
                unit="source", dynamic_ncols=True)
     t0 = time.perf_counter()
+    solved = len(gd_src)
     for i in range(0, len(gd_src), solver.batch):
+        if i and time_limit_s is not None and time.perf_counter() - t_start > time_limit_s:
+            solved = i
+            bar.total = i + len(test_src) + min(n_path_sources, i)
+            bar.refresh()
+            break
         src = gd_src[i: i + solver.batch]
         solver.run(src)
         D = solver.vertex_distances()
@@ -458,6 +469,9 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
         bar.update(len(src))
     if not kept:
         raise ValueError("no training source reaches any other vertex: the mesh has no usable connected part")
+    gd_src = gd_src[:solved]
+    n_path_sources = min(n_path_sources, len(gd_src))
+    path_src = gd_src[:n_path_sources]
     test_dist = np.zeros((len(test_src), V), np.float32)
     for i in range(0, len(test_src), solver.batch):
         test_dist[i: i + solver.batch] = solver.solve(test_src[i: i + solver.batch])
@@ -515,6 +529,7 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
                          n_test=int(len(test_src)), n_spread=int(len(spread)), local_ball_vertices=nball,
                          path_delta=PATH_DELTA),
         "definitions": __doc__.split("Definitions used here", 1)[-1].strip(),
+        "complete": solved == n_sources, "time_limit_s": time_limit_s,
         "sources_without_targets": int(len(gd_src) - len(kept)), "stale_paths": stale, "dropped_paths": dropped,
         "components": int(m.n_components), "units": "normalized (unit sphere)",
         "versions": {"warp": wp.config.version, "numpy": np.__version__},

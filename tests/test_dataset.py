@@ -185,3 +185,21 @@ def test_target_pool_all_reaches_vertices_outside_the_spread_set(two_blobs):
         outside = [t for t in np.concatenate([tgt, ends]) if t not in spread]
         assert bool(outside) == want_outside, pool
         assert np.all(np.isfinite(d.gd_global[:, :, 6]))
+
+
+def test_time_limit_keeps_whole_solver_batches_in_order(two_blobs):
+    """A time limit stops adding distance sources between solver batches (at least one batch), keeps the sources
+    and rows an unlimited build draws first, and says so in the meta; a bad limit is refused."""
+    opts = dict(SMALL, n_sources=12, batch=4, n_path_sources=6)
+    full = D.build_dataset(two_blobs, None, time_limit_s=1e6, **opts)
+    cut = D.build_dataset(two_blobs, None, time_limit_s=0, **opts)
+    assert full.meta["complete"] and len(full.gd_src) == 12
+    assert not cut.meta["complete"] and cut.meta["time_limit_s"] == 0
+    assert len(cut.gd_src) == 4 == cut.meta["settings"]["n_sources"]
+    assert np.array_equal(cut.gd_src, full.gd_src[:4])
+    assert np.array_equal(cut.gd_global, full.gd_global[:4]) and np.array_equal(cut.gd_local2, full.gd_local2[:4])
+    assert set(cut.path_global_src) <= set(cut.gd_src.tolist())  # path sources come from the solved ones
+    assert cut.meta["settings"]["n_path_sources"] == 4 and len(cut.test_src) == len(full.test_src)
+    for bad in (-1, "10"):
+        with pytest.raises(ValueError, match="time_limit_s"):
+            D.build_dataset(two_blobs, None, time_limit_s=bad, **opts)

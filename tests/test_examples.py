@@ -45,16 +45,18 @@ def test_agents_reach_the_target_along_geodesics():
     assert np.all(ds[-1] <= 0.5 * speed), msg
     tv = mesh.vertices[mesh.vertex([target])][0]
     assert np.linalg.norm(xs[-1] - tv, axis=1).max() <= speed, msg
-    # the predicted distance falls monotonically, up to a quarter step: where the geodesic runs along one of the
-    # fandisk's sharp creases an agent can zigzag across it
-    assert np.diff(ds, axis=0).max() <= 0.25 * speed, msg
+    # the predicted distance falls monotonically, up to 3/4 of a step: where the geodesic runs along one of the
+    # fandisk's sharp creases an agent zigzags across it (the tails of both bounds over 300 random draws are in
+    # benchmarks/RESULTS.md, issue 14 section)
+    assert np.diff(ds, axis=0).max() <= 0.75 * speed, msg
     # the agents stay on the surface (Newton steps on the network's SDF; 1% of the radius)
     p, _, _ = snap_to_mesh(mesh, xs.reshape(-1, 3), device=DEV)
     assert np.linalg.norm(p - xs.reshape(-1, 3), axis=1).max() <= 0.01 * radius, msg
     # they walk (nearly) geodesics: the walked length (plus the last gap) matches the exact geodesic distance
-    # from the start within 3% and one step (chords across creases are shorter than the surface, zigzags longer)
+    # from the start within 10% and one step (chords across creases are shorter than the surface, zigzags along
+    # them longer)
     walked = np.linalg.norm(np.diff(xs, axis=0), axis=2).sum(0) + np.linalg.norm(xs[-1] - tv, axis=1)
-    assert np.all(np.abs(walked - exact) <= 0.03 * exact + speed), f"{msg}: {walked / exact}"
+    assert np.all(np.abs(walked - exact) <= 0.10 * exact + speed), f"{msg}: {walked / exact}"
 
 
 def test_example_command_writes_frames_and_gif(tmp_path):

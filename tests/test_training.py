@@ -238,6 +238,18 @@ def test_corrupt_or_foreign_dataset_cache_is_rebuilt(tmp_path, ellipsoid, capsys
     assert "rebuilding" in capsys.readouterr().err
 
 
+def test_a_cache_cut_short_by_time_is_reused_only_to_continue_a_run(tmp_path, ellipsoid, capsys):
+    cache = str(tmp_path / "dataset.npz")
+    settings = preset("cpu_small").data
+    cut = obtain_dataset(ellipsoid, None, cache, settings, 0, "cpu", False, time_limit_s=0)
+    assert not cut.meta["complete"] and len(cut.gd_src) < settings.n_sources
+    again = obtain_dataset(ellipsoid, None, cache, settings, 0, "cpu", True, partial_ok=True)  # a resumed run
+    assert "reusing" in capsys.readouterr().err and np.array_equal(again.gd_src, cut.gd_src)
+    fresh = obtain_dataset(ellipsoid, None, cache, settings, 0, "cpu", True)  # a new run: all its sources
+    assert "rebuilding" in capsys.readouterr().err
+    assert fresh.meta["complete"] and len(fresh.gd_src) == settings.n_sources
+
+
 def test_sigint_saves_checkpoint_and_stops(tmp_path, ellipsoid, tiny_dataset):
     out = tmp_path / "m.ngf"
 

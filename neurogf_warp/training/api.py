@@ -30,6 +30,9 @@ if TYPE_CHECKING:
 __all__ = ["train", "resolve_config", "torch_device"]
 
 SAVE_RESERVE_S = 1.0  # seconds of a budget kept for writing the model and the log
+# Most of a budgeted call's ground truth may take: where sources are slow (large meshes on a CPU) more sources buy
+# accuracy only while the steps left can still fit them, and past about a third of the call they cannot
+DATA_SHARE = 1 / 3
 
 
 def _say(on: bool, msg: str):
@@ -126,7 +129,9 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
          callback, t_call: float):
     """Dataset, set-up, budget, the stages and the model file of a run (new, or continued from ``ck``)."""
     t_data = time.perf_counter()
-    ds = obtain_dataset(mesh, dataset, files.dataset if dataset is None else None, cfg.data, cfg.seed, dev, progress)
+    limit = None if budget_seconds is None or ck is not None else DATA_SHARE * budget_seconds
+    ds = obtain_dataset(mesh, dataset, files.dataset if dataset is None else None, cfg.data, cfg.seed, dev, progress,
+                        time_limit_s=limit, partial_ok=ck is not None)
     dataset_s = time.perf_counter() - t_data
     data = TrainingData(ds, dev)
     pool = make_sdf_pool(mesh, data.surface_points, cfg.batches.sdf_pool, cfg.seed, dev)

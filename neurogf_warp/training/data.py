@@ -60,11 +60,15 @@ def _say(on: bool, msg: str):
         print(msg, file=sys.stderr, flush=True)
 
 
-def obtain_dataset(mesh: Mesh, dataset, cache: str | None, settings, seed: int, device, progress: bool) -> Dataset:
+def obtain_dataset(mesh: Mesh, dataset, cache: str | None, settings, seed: int, device, progress: bool,
+                   time_limit_s: float | None = None, partial_ok: bool = False) -> Dataset:
     """The dataset to train on.
 
     dataset : a Dataset, a dataset file, or None: the ``cache`` file when it was built for this mesh with these
         ``settings`` and ``seed``, else a fresh build with them (written to ``cache``).
+    time_limit_s : a fresh build stops adding distance sources after this many seconds (``build_dataset``)
+    partial_ok : reuse a cached dataset that a time limit cut short (a run being continued trains on the data it
+        started with); otherwise such a cache is rebuilt, since this call may have more time for it
     """
     if isinstance(dataset, Dataset):
         return _checked(dataset, mesh, "the given dataset")
@@ -74,14 +78,17 @@ def obtain_dataset(mesh: Mesh, dataset, cache: str | None, settings, seed: int, 
     if cache is not None and os.path.exists(cache):
         try:
             ds = Dataset.load(cache)
-            if ds.fingerprint == mesh.fingerprint and _recipe_of(ds) == want:
+            if ds.fingerprint == mesh.fingerprint and _recipe_of(ds) == want and \
+                    (partial_ok or ds.meta.get("complete", True)):
                 _say(progress, f"reusing dataset {cache}")
                 return ds
-            _say(progress, f"dataset cache {cache} was built for another mesh or other settings; rebuilding it")
+            _say(progress, f"dataset cache {cache} was built for another mesh, other settings or less time; "
+                           "rebuilding it")
         except (ValueError, OSError) as e:  # an unreadable cache is rebuilt, never trusted
             _say(True, f"dataset cache {cache} is unreadable ({e}); rebuilding it")
     _say(progress, "building the training dataset" + (f" -> {cache}" if cache else ""))
-    return build_dataset(mesh, cache, settings, seed=seed, device=warp_device(device), progress=progress)
+    return build_dataset(mesh, cache, settings, seed=seed, device=warp_device(device), progress=progress,
+                         time_limit_s=time_limit_s)
 
 
 def _checked(ds: Dataset, mesh: Mesh, what: str) -> Dataset:

@@ -3,7 +3,7 @@
 ``default`` is the GPU recipe measured on bunny and fandisk (D=256, 65K distance pairs and 4K paths per step,
 2,048 sources; benchmarks/RESULTS.md); ``paper`` is the published network and recipe (no Fourier inputs,
 Euclidean term or residual paths; L1 losses); ``cpu`` fits a CPU run of a few minutes (D=128, small batches,
-256 sources) and ``cpu_large`` the same for meshes above ``LARGE_MESH`` vertices; ``cpu_small`` is a
+256 sources) and ``cpu_large`` the same for meshes above ``LARGE_MESH`` vertices (more sources, a coarser solver); ``cpu_small`` is a
 seconds-long smoke run for tests (its models are not meant to be accurate). Each preset is a set of changes to the
 ``TrainConfig`` defaults (= ``default``). The CPU presets train with one torch thread: their batches are small
 enough that synchronizing threads costs more than it saves (measured on a 2-core machine).
@@ -27,15 +27,16 @@ PRESETS = {
                 iters_per_epoch=100, ratios={"querier": 0.15, "refine_dist": 10.0, "refine_sdf": 0.1, "refine_path": 0.3},
                 n_sources=256, n_global=2048, n_local1=32, n_local2=512, n_path_sources=32, n_path_global=64,
                 n_path_local=32, n_test=4, n_surface=30000, target_pool="all", threads=1),
-    # CPU, meshes above LARGE_MESH vertices: ground truth costs ~0.5-2 s per source there, so fewer sources and
-    # k=1 Steiner points (the solver's MRE 0.2% instead of 0.02%)
+    # CPU, meshes above LARGE_MESH vertices: a source's ground truth costs ~0.25 s or more there, so k=1 Steiner
+    # points (the solver's MRE 0.2% instead of 0.02%) and as many sources as a third of the budget solves (the
+    # training call's time limit on the dataset), up to 768; without a budget all 768 (minutes)
     "cpu_large": {},  # filled in below from "cpu"
     "cpu_small": dict(_SMALL_BATCHES, D=64, val_every=100, log_every=20, threads=1, n_sources=64, n_global=256,
                       n_local1=8, n_local2=32, n_path_sources=16, n_path_global=16, n_path_local=16, n_test=2,
                       n_surface=30000, n_spread=2000),
 }
 
-PRESETS["cpu_large"] = dict(PRESETS["cpu"], n_sources=96, n_path_sources=16, k=1)
+PRESETS["cpu_large"] = dict(PRESETS["cpu"], n_sources=768, n_path_sources=16, k=1)
 LARGE_MESH = 15000  # vertices
 
 def preset(name: str = "default", **changes) -> TrainConfig:
