@@ -152,7 +152,9 @@ def test_network_options_match_torch_float64(options, tmp_path):
         path_ref = net.path(to_net(p[:8]), to_net(q[:8]), 16).numpy() / mesh.scale + mesh.center
         srcs = [3, 40]
         all_ref = np.stack([net.distance(to_net(V[[s]]).expand(len(V), 3), to_net(V)).numpy() for s in srcs]) / mesh.scale
-    tol = lambda ref: 1e-5 * np.abs(ref).max()
+    # float32 coordinates are off by ~6e-8 of their size, and a Fourier feature of frequency 2^(L-1) pi multiplies
+    # that: the attainable accuracy falls with the top frequency (fourier=8: 16x the bound of fourier <= 4)
+    tol = lambda ref: 1e-5 * 2 ** max(0, options.get("fourier", 0) - 4) * np.abs(ref).max()
     msg = f"seed {seed}, {options}"
     assert np.abs(ngf.distance(model, p, q, device=DEV, raw=True) - d_ref).max() <= tol(d_ref), msg
     assert np.abs(ngf.sdf(model, p, device=DEV) - s_ref).max() <= tol(s_ref), msg
