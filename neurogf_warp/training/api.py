@@ -30,8 +30,8 @@ if TYPE_CHECKING:
 __all__ = ["train", "resolve_config", "torch_device"]
 
 SAVE_RESERVE_S = 1.0  # seconds of a budget kept for writing the model and the log
-# Most of a budgeted call's ground truth may take: where sources are slow (large meshes on a CPU) more sources buy
-# accuracy only while the steps left can still fit them, and past about a third of the call they cannot
+# The largest share of a budgeted call that ground truth may take: where sources are slow (large meshes on a CPU),
+# more sources buy accuracy only while the steps left can still fit them, and past about a third they cannot
 DATA_SHARE = 1 / 3
 
 
