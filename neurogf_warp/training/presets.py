@@ -4,9 +4,10 @@
 2,048 sources; benchmarks/RESULTS.md); ``paper`` is the published network and recipe (no Fourier inputs,
 Euclidean term or residual paths; L1 losses); ``cpu`` fits a CPU run of a few minutes (D=128, small batches,
 256 sources) and ``cpu_large`` the same for meshes above ``LARGE_MESH`` vertices (more sources, a coarser
-solver); ``cpu_small`` is a seconds-long smoke run for tests (its models are not meant to be accurate). Each preset is a set of changes to the
-``TrainConfig`` defaults (= ``default``). The CPU presets train with one torch thread: their batches are small
-enough that synchronizing threads costs more than it saves (measured on a 2-core machine).
+solver); ``cpu_small`` is a seconds-long smoke run for tests (its models are not meant to be accurate). Each
+preset is a set of changes to the ``TrainConfig`` defaults (= ``default``). The CPU presets train with one torch
+thread: their batches are small enough that synchronizing threads costs more than it saves (measured on a 2-core
+machine).
 """
 from __future__ import annotations
 
