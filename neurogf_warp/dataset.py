@@ -76,6 +76,11 @@ class DatasetSettings:
     batch: int | None = None       # sources per solver launch (None: from a memory budget)
     target_pool: str = "spread"    # "spread" or "all": where global targets come from
 
+    def recipe(self, seed: int) -> dict:
+        """What a dataset built with these settings and ``seed`` holds (every setting but the solver's batch, which
+        changes only speed): recorded in its meta as ``requested``, compared before a cached dataset is reused."""
+        return {"seed": int(seed), **{k: v for k, v in dataclasses.asdict(self).items() if k != "batch"}}
+
     def validate(self) -> "DatasetSettings":
         """Raise ValueError naming the first setting out of range; returns self."""
         counts = {"n_sources": 1, "n_global": 1, "n_local1": 1, "n_local2": 1, "n_path_sources": 0,
@@ -524,7 +529,7 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     meta = {
         "format_version": FORMAT_VERSION, "fingerprint": m.fingerprint, "n_input_vertices": m.n_input, "seed": seed,
         # what was asked for (before capping to the mesh): a cached dataset is reused only for the same request
-        "requested": {"seed": int(seed), **{k: v for k, v in dataclasses.asdict(st).items() if k != "batch"}},
+        "requested": st.recipe(seed),
         "settings": dict(dataclasses.asdict(st), n_sources=len(gd_src), n_path_sources=int(n_path_sources),
                          n_test=int(len(test_src)), n_spread=int(len(spread)), local_ball_vertices=nball,
                          path_delta=PATH_DELTA),

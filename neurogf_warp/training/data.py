@@ -5,7 +5,6 @@ copy when it was built for the same mesh and settings, else a fresh build (then 
 """
 from __future__ import annotations
 
-import dataclasses
 import os
 import sys
 
@@ -74,7 +73,7 @@ def obtain_dataset(mesh: Mesh, dataset, cache: str | None, settings, seed: int, 
         return _checked(dataset, mesh, "the given dataset")
     if dataset is not None:
         return _checked(Dataset.load(dataset), mesh, f"dataset {dataset}")
-    want = _recipe(settings, seed)
+    want = settings.recipe(seed)
     if cache is not None and os.path.exists(cache):
         try:
             ds = Dataset.load(cache)
@@ -95,10 +94,6 @@ def _checked(ds: Dataset, mesh: Mesh, what: str) -> Dataset:
     if ds.fingerprint is not None and ds.fingerprint != mesh.fingerprint:
         raise ValueError(f"{what} was built for a different mesh (fingerprint {ds.fingerprint[:12]}...)")
     return ds
-
-
-def _recipe(settings, seed: int) -> dict:
-    return {"seed": int(seed), **{k: v for k, v in dataclasses.asdict(settings).items() if k != "batch"}}
 
 
 def _recipe_of(ds: Dataset) -> dict:
