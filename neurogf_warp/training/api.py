@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 import time
 from typing import TYPE_CHECKING
 
@@ -18,7 +17,7 @@ from ..mesh import load_mesh
 from .budget import Budget, calibrate, fit_budget
 from .checkpoint import CKPT_VERSION, RunFiles, finished, load_checkpoint, save_checkpoint, save_model
 from .config import STAGES, TrainConfig
-from .data import TrainingData, make_sdf_pool, obtain_dataset
+from .data import TrainingData, _say, make_sdf_pool, obtain_dataset
 from .loop import Runner
 from .presets import choose_preset, preset
 
@@ -33,11 +32,6 @@ SAVE_RESERVE_S = 1.0  # seconds of a budget kept for writing the model and the l
 # The largest share of a budgeted call that ground truth may take: where sources are slow (large meshes on a CPU),
 # more sources buy accuracy only while the steps left can still fit them, and past about a third they cannot
 DATA_SHARE = 1 / 3
-
-
-def _say(on: bool, msg: str):
-    if on:
-        print(msg, file=sys.stderr, flush=True)
 
 
 def torch_device(device=None) -> "torch.device":

@@ -55,6 +55,7 @@ def warp_device(device) -> str:
 
 
 def _say(on: bool, msg: str):
+    """A status line on stderr (the training modules' one channel besides the progress bars), when ``on``."""
     if on:
         print(msg, file=sys.stderr, flush=True)
 
