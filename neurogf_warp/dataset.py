@@ -32,6 +32,7 @@ from .arrays import resolve_device
 from .files import atomic_write
 from .geodesics import DEFAULT_K, PATH_DELTA, GeodesicSolver, resample_polyline
 from .mesh import Mesh, load_mesh
+from .solver_workers import DistanceRows
 
 __all__ = ["Dataset", "DatasetSettings", "build_dataset", "load_dataset", "check_trainable", "sdf_truth",
            "sample_sdf_points", "surface_samples", "spread_vertices", "MIN_VERTICES"]
@@ -74,12 +75,14 @@ class DatasetSettings:
     n_spread: int = 20000          # spread vertices (QSlim) that sources and global targets come from
     k: int = DEFAULT_K             # Steiner points per edge of the ground-truth solver
     batch: int | None = None       # sources per solver launch (None: from a memory budget)
+    workers: int | None = None     # CPU solver processes, this one included (None: one per core; GPU: 1)
     target_pool: str = "spread"    # "spread" or "all": where global targets come from
 
     def recipe(self, seed: int) -> dict:
-        """What a dataset built with these settings and ``seed`` holds (every setting but the solver's batch, which
-        changes only speed): recorded in its meta as ``requested``, compared before a cached dataset is reused."""
-        return {"seed": int(seed), **{k: v for k, v in dataclasses.asdict(self).items() if k != "batch"}}
+        """What a dataset built with these settings and ``seed`` holds (every setting but the solver's batch and
+        workers, which change only speed): recorded in its meta as ``requested``, compared before a cached dataset is reused."""
+        return {"seed": int(seed), **{k: v for k, v in dataclasses.asdict(self).items()
+                                      if k not in ("batch", "workers")}}
 
     def validate(self) -> "DatasetSettings":
         """Raise ValueError naming the first setting out of range; returns self."""
@@ -89,9 +92,10 @@ class DatasetSettings:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
                 raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
-        if self.batch is not None and (isinstance(self.batch, bool) or not isinstance(self.batch, (int, np.integer))
-                                       or self.batch < 1):
-            raise ValueError(f"batch must be None or an integer >= 1, got {self.batch!r}")
+        for name in ("batch", "workers"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1):
+                raise ValueError(f"{name} must be None or an integer >= 1, got {v!r}")
         if isinstance(self.local_ball, bool) or not isinstance(self.local_ball, (int, float)) \
                 or not 0 < self.local_ball <= 1:
             raise ValueError(f"local_ball must be a fraction in (0, 1], got {self.local_ball!r}")
@@ -450,37 +454,42 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     bar = tqdm(total=len(gd_src) + len(test_src) + n_path_sources, desc="ground truth", disable=not progress,
                unit="source", dynamic_ncols=True)
     t0 = time.perf_counter()
-    solved = len(gd_src)
-    for i in range(0, len(gd_src), solver.batch):
-        if i and time_limit_s is not None and time.perf_counter() - t_start > time_limit_s:
-            solved = i
-            bar.total = i + len(test_src) + min(n_path_sources, i)
+    solved = 0
+
+    def more(_):  # asked before each batch of distance sources after the first
+        return time_limit_s is None or time.perf_counter() - t_start <= time_limit_s
+
+    with DistanceRows(solver, st.workers) as rows_of:
+        batches = [gd_src[i: i + solver.batch] for i in range(0, len(gd_src), solver.batch)]
+        for b, D in rows_of.rows(batches, more):
+            src = batches[b]
+            solved += len(src)
+            for j, s in enumerate(src):
+                tg = _Targets(D[j], s, target_set, nball)
+                if len(tg.reach) == 0:  # nothing reachable (a vertex of degenerate faces only)
+                    continue
+                kept.append(s)
+                pool = tg.local
+                rows["global"].append(_rows(xyz, s, _pick(rng, tg.reach, st.n_global), tg.d))
+                near = _pick(rng, pool[:st.n_local1], st.n_local1) if len(pool) >= st.n_local1 \
+                    else _pick(rng, pool, st.n_local1)
+                rows["local1"].append(_rows(xyz, s, near, tg.d))
+                rows["local2"].append(_rows(xyz, s, _pick(rng, pool, st.n_local2), tg.d))
+            bar.update(len(src))
+        if not kept:
+            raise ValueError("no training source reaches any other vertex: the mesh has no usable connected part")
+        if solved < len(gd_src):  # the time limit cut the sources short
+            bar.total = solved + len(test_src) + min(n_path_sources, solved)
             bar.refresh()
-            break
-        src = gd_src[i: i + solver.batch]
-        solver.run(src)
-        D = solver.vertex_distances()
-        for j, s in enumerate(src):
-            tg = _Targets(D[j], s, target_set, nball)
-            if len(tg.reach) == 0:  # nothing reachable (a vertex of degenerate faces only)
-                continue
-            kept.append(s)
-            pool = tg.local
-            rows["global"].append(_rows(xyz, s, _pick(rng, tg.reach, st.n_global), tg.d))
-            near = _pick(rng, pool[:st.n_local1], st.n_local1) if len(pool) >= st.n_local1 \
-                else _pick(rng, pool, st.n_local1)
-            rows["local1"].append(_rows(xyz, s, near, tg.d))
-            rows["local2"].append(_rows(xyz, s, _pick(rng, pool, st.n_local2), tg.d))
-        bar.update(len(src))
-    if not kept:
-        raise ValueError("no training source reaches any other vertex: the mesh has no usable connected part")
-    gd_src = gd_src[:solved]
-    n_path_sources = min(n_path_sources, len(gd_src))
-    path_src = gd_src[:n_path_sources]
-    test_dist = np.zeros((len(test_src), V), np.float32)
-    for i in range(0, len(test_src), solver.batch):
-        test_dist[i: i + solver.batch] = solver.solve(test_src[i: i + solver.batch])
-        bar.update(len(test_src[i: i + solver.batch]))
+        gd_src = gd_src[:solved]
+        n_path_sources = min(n_path_sources, len(gd_src))
+        path_src = gd_src[:n_path_sources]
+        test_dist = np.zeros((len(test_src), V), np.float32)
+        tests = [test_src[i: i + solver.batch] for i in range(0, len(test_src), solver.batch)]
+        for b, D in rows_of.rows(tests):
+            test_dist[b * solver.batch: b * solver.batch + len(D)] = D
+            bar.update(len(D))
+        timings["worker_batches"] = rows_of.worker_batches
     timings["distances_s"] = time.perf_counter() - t0
     timings["distance_iterations"] = solver.timings["iterations"]
     del solver

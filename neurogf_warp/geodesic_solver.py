@@ -116,6 +116,9 @@ class GeodesicSolver:
             raise MemoryError(f"could not allocate the solver state on {self.device}: {need / 1e9:.2f} GB for "
                               f"{self.batch} source rows ({self.bytes_per_row / 1e9:.3f} GB per row at k={self.k}); "
                               f"lower batch or k ({e})") from e
+        # what a second solver on the same mesh needs to give the same rows (solver_workers.py)
+        self.settings = {"k": self.k, "windows": self.windows, "delta": float(delta), "max_iter": self.max_iter,
+                         "batch": self.batch}
         self._graphs = {}
         self._chunk = 16  # loop iterations per CPU launch, adapted to CPU_CHUNK_SECONDS
         self.rows = None

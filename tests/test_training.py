@@ -273,3 +273,27 @@ def test_bad_network_options_are_rejected(bad, match):
         NeuroGFNet(64, **bad)
     with pytest.raises(ValueError, match="path_width must be"):
         NeuroGFNet(512, path_width=2)
+
+
+@pytest.mark.parametrize("fast", [1, 2])
+def test_threads_0_trains_with_the_count_timed_fastest(tmp_path, ellipsoid, tiny_dataset, monkeypatch, fast):
+    """threads=0: each candidate count is timed on the run's own steps and the fastest kept for the run (here the
+    timing is staged so that either count can win; torch's own count is restored after the call)."""
+    from neurogf_warp.training import budget
+
+    monkeypatch.setattr(torch, "get_num_threads", lambda n=[2]: n[0])  # a 2-core machine, whatever this one is
+    counts = []
+    monkeypatch.setattr(torch, "set_num_threads", lambda n: counts.append(n))
+
+    def staged(trainer, n=6):
+        c = counts[-1]
+        return {s: (1e-3 if c == fast else 3e-3) for s in STAGES}
+
+    monkeypatch.setattr(budget, "calibrate", staged)
+    train(ellipsoid, tmp_path / "m.ngf", config=small(epochs=1, iters_per_epoch=10, threads=0, val_every=0),
+          dataset=tiny_dataset, device="cpu", progress=False)
+    assert sorted(set(counts[:2])) == [1, 2]  # both timed
+    assert counts[2] == fast  # the fastest kept for the run ...
+    assert counts[-1] == 2  # ... and the caller's count restored
+    with pytest.raises(ValueError, match="threads must be None, 0"):
+        small(threads=-1)

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 from ..dataset import check_trainable
 from ..mesh import load_mesh
-from .budget import Budget, calibrate, fit_budget
+from .budget import Budget, calibrate, fastest_threads, fit_budget
 from .checkpoint import CKPT_VERSION, RunFiles, finished, load_checkpoint, save_checkpoint, save_model
 from .config import STAGES, TrainConfig
 from .data import TrainingData, _say, make_sdf_pool, obtain_dataset
@@ -56,6 +56,13 @@ def resolve_config(config=None, device=None, n_vertices: int = 0, **settings) ->
     else:
         raise TypeError(f"config must be a TrainConfig or a preset name, got {type(config).__name__}")
     return cfg.set(**settings) if settings else cfg.validate()
+
+
+def torch_threads() -> int:
+    """torch's CPU thread count now."""
+    import torch
+
+    return torch.get_num_threads()
 
 
 def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = None, device=None, dataset=None,
@@ -133,6 +140,10 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
 
     trainer = Trainer(cfg, data, pool, dev)
     budget, per = None, None
+    if dev.type == "cpu" and cfg.runtime.threads == 0:
+        cores = torch_threads()
+        threads, per = fastest_threads(trainer, {1, min(4, cores), cores})
+        _say(progress, f"training with {threads} of {cores} torch thread{'s' if cores > 1 else ''} (timed fastest)")
     if ck is not None:
         trainer.load_state(ck)
         stage_i, step, history, elapsed = ck["stage"], ck["step"], ck["history"], ck["elapsed"]
@@ -143,7 +154,7 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
 
             tf32 = set_tf32(cfg.runtime.tf32) if dev.type == "cuda" else None  # time what the run will do
             try:
-                per = calibrate(trainer, n=20 if trainer.graphs else 6)
+                per = per or calibrate(trainer, n=20 if trainer.graphs else 6)
             finally:
                 if tf32 is not None:
                     set_tf32(tf32)
@@ -160,6 +171,7 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
         stage_i, step, elapsed = 0, 0, 0.0
         history = {"loss": [], "val": []}
     history["dataset_s"] = dataset_s
+    history["threads"] = torch_threads() if dev.type == "cpu" else None
     history["prep_s"] = time.perf_counter() - t_data
 
     def save(stage_i, step, history, elapsed):

@@ -14,7 +14,7 @@ import time
 from .acceleration import GRAPH_WARMUP, sync
 from .config import STAGES, TrainConfig
 
-__all__ = ["calibrate", "fit_budget", "Budget"]
+__all__ = ["calibrate", "fastest_threads", "fit_budget", "Budget"]
 
 SLACK = 0.95  # share of the time left that the initial plan fills (the loop itself: logging, validation)
 
@@ -45,6 +45,22 @@ def calibrate(trainer, n: int = 6) -> dict:
         trainer._gen_at_batch = saved[3]
         trainer.reset_stage()
     return out
+
+
+def fastest_threads(trainer, counts) -> tuple:
+    """(count, seconds per step of each stage): the torch thread count among ``counts`` with which this run's
+    planned steps (``trainer.steps``, timed by ``calibrate``) take least time; torch is left at that count."""
+    import torch
+
+    best = None
+    for c in sorted(set(counts)):
+        torch.set_num_threads(c)
+        per = calibrate(trainer, n=4)
+        cost = sum(per[s] * max(trainer.steps[s], 1) for s in STAGES)
+        if best is None or cost < best[0]:
+            best = (cost, c, per)
+    torch.set_num_threads(best[1])
+    return best[1], best[2]
 
 
 def fit_budget(cfg: TrainConfig, per_step: dict, seconds: float) -> TrainConfig:

@@ -140,11 +140,13 @@ class RuntimeConfig:
     val_every: int = 500       # joint / refine_dist steps between validation MREs (0: at stage ends only)
     log_every: int = 50        # steps between logged loss rows
     ckpt_every_s: float = 120.0  # seconds between checkpoints (also written at stage ends and on Ctrl-C)
-    threads: int | None = None  # torch CPU threads during the run (None: torch's own choice)
+    # torch CPU threads during the run (None: torch's own choice; 0: whichever of 1, 4 and torch's own count
+    # runs this run's steps fastest, timed at its start: on a busy machine one thread can beat several)
+    threads: int | None = None
 
     def validate(self):
-        if self.threads is not None and self.threads < 1:
-            raise ValueError(f"threads must be None or >= 1, got {self.threads}")
+        if self.threads is not None and (isinstance(self.threads, bool) or self.threads < 0):
+            raise ValueError(f"threads must be None, 0 (timed at the start) or >= 1, got {self.threads}")
         if self.val_every < 0 or self.log_every < 1:
             raise ValueError(f"val_every must be >= 0 and log_every >= 1, got {self.val_every}, {self.log_every}")
         if not self.ckpt_every_s > 0:

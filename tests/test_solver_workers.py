@@ -1,0 +1,133 @@
+"""Ground truth on several CPU cores (solver_workers.py): the same rows and datasets as one process, in order,
+with failing workers, time limits, early exits and Ctrl-C handled and no process left behind."""
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from neurogf_warp import solver_workers
+from neurogf_warp.dataset import DatasetSettings, build_dataset
+from neurogf_warp.geodesics import GeodesicSolver
+from neurogf_warp.solver_workers import DistanceRows
+
+
+@pytest.fixture
+def eager(monkeypatch):
+    """Workers start even for small jobs (normally only when the work left outweighs their start-up), and this
+    process solves slowly (0.3 s per batch), so that the workers, once up, do take part on this small mesh."""
+    monkeypatch.setattr(solver_workers, "START_COST_S", 0.0)
+    run = GeodesicSolver.run
+
+    def slow(self, sources):
+        time.sleep(0.3)
+        return run(self, sources)
+
+    monkeypatch.setattr(GeodesicSolver, "run", slow)  # this process only: the workers import their own
+
+
+@pytest.fixture(scope="module")
+def solver(ellipsoid):
+    return GeodesicSolver(ellipsoid, k=2, device="cpu", batch=4)
+
+
+def _batches(n_vertices, n, seed):
+    src = np.random.default_rng(seed).choice(n_vertices, n, replace=False)
+    return [src[i: i + 4] for i in range(0, n, 4)]
+
+
+def _alive(pool: DistanceRows) -> list:
+    return [w for w in pool._pool if w.proc.poll() is None]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_rows_match_one_process_in_order(solver, seed, request):
+    batches = _batches(solver.nv, 40 + 3 * seed, seed)  # a short last batch for seed 1
+    expect = [solver.solve(b) for b in batches]
+    request.getfixturevalue("eager")
+    with DistanceRows(solver, workers=3) as pool:
+        got = list(pool.rows(batches))
+        assert pool.worker_batches > 0  # the workers did take part
+        procs = list(pool._pool)
+    assert [i for i, _ in got] == list(range(len(batches)))
+    for (i, d), e in zip(got, expect):
+        np.testing.assert_array_equal(d, e)
+    assert all(w.proc.poll() is not None for w in procs)  # every worker has exited
+
+
+def test_dataset_is_the_same_with_workers(ellipsoid, request):
+    settings = DatasetSettings(n_sources=40, n_global=64, n_local1=8, n_local2=16, n_path_sources=4, n_test=3,
+                               n_surface=1000, n_spread=400, k=2, batch=4)
+    one = build_dataset(ellipsoid, None, settings, seed=5, device="cpu", progress=False, workers=1)
+    request.getfixturevalue("eager")
+    two = build_dataset(ellipsoid, None, settings, seed=5, device="cpu", progress=False, workers=2)
+    assert two.meta["timings"]["worker_batches"] > 0
+    assert one.meta["timings"]["worker_batches"] == 0
+    for k in one.array_names():
+        np.testing.assert_array_equal(getattr(one, k), getattr(two, k), err_msg=k)
+    assert one.meta["requested"] == two.meta["requested"]  # workers change speed only: same cache key
+
+
+def test_a_stop_keeps_a_prefix_of_batches(solver, eager):
+    batches = _batches(solver.nv, 60, 2)
+    with DistanceRows(solver, workers=2) as pool:
+        got = [i for i, _ in pool.rows(batches, more=lambda i: i < 6)]
+    assert got == list(range(len(got))) and 6 <= len(got) < len(batches)  # those started finish, in order
+
+
+def test_a_failing_worker_is_reported_and_its_work_done_here(solver, monkeypatch, request):
+    batches = _batches(solver.nv, 24, 3)
+    expect = [solver.solve(b) for b in batches]
+    request.getfixturevalue("eager")
+    real = solver_workers._Worker.__init__
+
+    def broken(self, mesh, settings):
+        real(self, mesh, dict(settings, batch=1))  # the worker's solver refuses the batches of 4 it is sent
+
+    monkeypatch.setattr(solver_workers._Worker, "__init__", broken)
+    with pytest.warns(RuntimeWarning, match=r"worker process failed.*run\(\) takes 1..1 sources"):
+        with DistanceRows(solver, workers=2) as pool:
+            got = list(pool.rows(batches))
+    assert pool.worker_batches == 0 and [i for i, _ in got] == list(range(len(batches)))
+    for (_, d), e in zip(got, expect):
+        np.testing.assert_array_equal(d, e)
+
+
+def test_leaving_early_stops_the_workers(solver, eager):
+    batches = _batches(solver.nv, 80, 4)
+    with DistanceRows(solver, workers=2) as pool:
+        for i, _ in pool.rows(batches):
+            if i == 2:
+                procs = list(pool._pool)
+                break
+        assert procs and not _alive(pool)
+    assert all(w.proc.poll() is not None for w in procs)
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGINT"), reason="no SIGINT on this OS")
+def test_ctrl_c_stops_the_workers(solver, eager):
+    batches = _batches(solver.nv, 80, 5)
+    seen = {}
+
+    def more(i):
+        if i == 8:
+            os.kill(os.getpid(), signal.SIGINT)  # as a terminal sends it
+        return True
+
+    pool = DistanceRows(solver, workers=2)
+    with pytest.raises(KeyboardInterrupt):
+        with pool:
+            for i, _ in pool.rows(batches, more):
+                seen[i] = True
+                seen["procs"] = list(pool._pool)
+    assert seen["procs"] and all(w.proc.poll() is not None for w in seen["procs"])
+
+
+def test_bad_worker_counts_are_refused(solver):
+    for bad in (0, -1, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="workers must be"):
+            DistanceRows(solver, workers=bad)
+    with pytest.raises(ValueError, match="workers must be"):
+        DatasetSettings(workers=0).validate()
+    assert DistanceRows(solver, workers=64).workers == solver_workers.MAX_WORKERS
