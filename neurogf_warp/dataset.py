@@ -410,7 +410,8 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     settings : DatasetSettings (default: the GPU recipe's); ``**overrides`` replace single fields of it,
         e.g. ``n_sources=256``
     seed : random seed of every draw (sources, targets, surface points)
-    device : Warp device of the solver
+    device : Warp device of the solver (on the CPU, the distance sources are solved by ``settings.workers``
+        processes, one per core by default; the result does not depend on how many: ``solver_workers.py``)
     progress : a progress bar on stderr
     time_limit_s : seconds (from the start of the call) after which no further batch of distance sources is
         solved: the dataset then has fewer than ``n_sources`` sources (at least one solver batch) and its meta says

@@ -204,8 +204,15 @@ class DistanceRows:
     def _start(self, batches, claim, done) -> list:
         """Start the workers (once per DistanceRows) and a feeding thread for each; returns the threads."""
         if not self._pool:
-            mesh = self.solver.mesh
-            self._pool = [_Worker(mesh, self.solver.settings) for _ in range(self.workers - 1)]
+            try:
+                for _ in range(self.workers - 1):
+                    self._pool.append(_Worker(self.solver.mesh, self.solver.settings))
+            except (OSError, ValueError, pickle.PicklingError) as e:  # e.g. no Python executable to start
+                warnings.warn(f"could not start ground-truth worker processes ({e}); solving in this process only",
+                              RuntimeWarning, stacklevel=2)
+                self.close()
+                self.workers = 1
+                return []
         threads = [threading.Thread(target=self._feed, args=(w, batches, claim, done), daemon=True)
                    for w in self._pool]
         for t in threads:

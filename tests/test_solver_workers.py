@@ -131,3 +131,16 @@ def test_bad_worker_counts_are_refused(solver):
     with pytest.raises(ValueError, match="workers must be"):
         DatasetSettings(workers=0).validate()
     assert DistanceRows(solver, workers=64).workers == solver_workers.MAX_WORKERS
+
+
+def test_workers_that_cannot_start_leave_the_work_here(solver, monkeypatch, request):
+    batches = _batches(solver.nv, 24, 6)
+    expect = [solver.solve(b) for b in batches]
+    request.getfixturevalue("eager")
+    monkeypatch.setattr(solver_workers.sys, "executable", "/nonexistent/python")
+    with pytest.warns(RuntimeWarning, match="could not start ground-truth worker processes"):
+        with DistanceRows(solver, workers=2) as pool:
+            got = list(pool.rows(batches))
+    assert pool.workers == 1 and pool.worker_batches == 0
+    for (_, d), e in zip(got, expect):
+        np.testing.assert_array_equal(d, e)
