@@ -105,7 +105,6 @@ def test_leaving_early_stops_the_workers(solver, eager):
     assert all(w.proc.poll() is not None for w in procs)
 
 
-@pytest.mark.skipif(not hasattr(signal, "SIGINT"), reason="no SIGINT on this OS")
 def test_ctrl_c_stops_the_workers(solver, eager):
     batches = _batches(solver.nv, 80, 5)
     seen = {}
