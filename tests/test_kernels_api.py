@@ -198,10 +198,12 @@ def _check_gradients(model, p, q, msg):
     assert np.abs(s - rs).max() <= 1e-5 * np.abs(rs).max() + 1e-7, msg
     # against float64 autograd and float64 finite differences: float32 weights and activations give ~1e-6; a
     # point whose float32 pre-activation falls on the other side of a ReLU kink than in float64 may differ more,
-    # so allow 1% of such points
+    # so allow 1% of such points, and at least one (random nets, 96 points: one such point in 7 of 451 draws at
+    # D = 128 and 512, never two)
     for r, what in ((_rel(gp, rgp), "d/dp"), (_rel(gq, rgq), "d/dq"), (_rel(gs, rgs), "d sdf/dx"),
                     (_fd_error(gp, fd), "d/dp vs FD"), (_fd_error(gs, fds), "d sdf/dx vs FD")):
-        assert np.median(r) <= 1e-5 and np.mean(r > 1e-4) <= 0.01, f"{msg}, {what}: {np.quantile(r, [0.5, 0.99, 1])}"
+        assert np.median(r) <= 1e-5 and np.sum(r > 1e-4) <= max(1, 0.01 * len(r)), \
+            f"{msg}, {what}: {np.quantile(r, [0.5, 0.99, 1])}"
     return _rel(gp, rgp), _fd_error(gp, fd)
 
 
