@@ -16,7 +16,7 @@ from neurogf_warp.solver_workers import DistanceRows
 @pytest.fixture
 def eager(monkeypatch):
     """Workers start even for small jobs (normally only when the work left outweighs their start-up), and this
-    process solves slowly (0.3 s per batch), so that the workers, once up, do take part on this small mesh."""
+    process solves slowly (0.3 s per batch), so that the workers, once up, have work left on this small mesh."""
     monkeypatch.setattr(solver_workers, "START_COST_S", 0.0)
     run = GeodesicSolver.run
 
@@ -25,6 +25,28 @@ def eager(monkeypatch):
         return run(self, sources)
 
     monkeypatch.setattr(GeodesicSolver, "run", slow)  # this process only: the workers import their own
+
+
+@pytest.fixture
+def patient(eager, monkeypatch):
+    """``eager``, and after its first batch this process waits (up to 60 s) until a worker has solved one, so that
+    the workers take part however slowly they start on a loaded machine."""
+    pools, calls = [], []
+    init, run = DistanceRows.__init__, GeodesicSolver.run
+
+    def recorded(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        pools.append(self)
+
+    def waiting(self, sources):
+        calls.append(1)
+        end = time.monotonic() + 60
+        while len(calls) > 1 and pools and not pools[-1].worker_batches and time.monotonic() < end:
+            time.sleep(0.05)
+        return run(self, sources)
+
+    monkeypatch.setattr(DistanceRows, "__init__", recorded)
+    monkeypatch.setattr(GeodesicSolver, "run", waiting)
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +67,7 @@ def _alive(pool: DistanceRows) -> list:
 def test_rows_match_one_process_in_order(solver, seed, request):
     batches = _batches(solver.nv, 40 + 3 * seed, seed)  # a short last batch for seed 1
     expect = [solver.solve(b) for b in batches]
-    request.getfixturevalue("eager")
+    request.getfixturevalue("patient")
     with DistanceRows(solver, workers=3) as pool:
         got = list(pool.rows(batches))
         assert pool.worker_batches > 0  # the workers did take part
@@ -60,7 +82,7 @@ def test_dataset_is_the_same_with_workers(ellipsoid, request):
     settings = DatasetSettings(n_sources=40, n_global=64, n_local1=8, n_local2=16, n_path_sources=4, n_test=3,
                                n_surface=1000, n_spread=400, k=2, batch=4)
     one = build_dataset(ellipsoid, None, settings, seed=5, device="cpu", progress=False, workers=1)
-    request.getfixturevalue("eager")
+    request.getfixturevalue("patient")
     two = build_dataset(ellipsoid, None, settings, seed=5, device="cpu", progress=False, workers=2)
     assert two.meta["timings"]["worker_batches"] > 0
     assert one.meta["timings"]["worker_batches"] == 0
