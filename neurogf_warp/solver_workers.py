@@ -50,6 +50,7 @@ class _Worker:
         self.proc = subprocess.Popen([sys.executable, "-m", "neurogf_warp.solver_workers"], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, stderr=self.log, env=env)
         self.closing = False
+        self.failed = False  # it stopped answering: no more batches for it
         self._ready = False
         self._send(("mesh", mesh, settings))
 
@@ -214,7 +215,7 @@ class DistanceRows:
                 self.workers = 1
                 return []
         threads = [threading.Thread(target=self._feed, args=(w, batches, claim, done), daemon=True)
-                   for w in self._pool]
+                   for w in self._pool if not w.failed]
         for t in threads:
             t.start()
         return threads
@@ -232,6 +233,7 @@ class DistanceRows:
                 self.worker_batches += 1
                 i = None
         except (OSError, EOFError, RuntimeError, pickle.UnpicklingError, ValueError) as e:
+            w.failed = True
             if i is not None:
                 done.put((i, None))
             if not w.closing:
