@@ -77,3 +77,14 @@ def trained(tmp_path_factory, ellipsoid, tiny_dataset):
     finally:
         torch.set_num_threads(n)
     return model, out
+
+
+@pytest.fixture
+def ctrl_c_raises():
+    """SIGINT raises KeyboardInterrupt during the test, as in a terminal, even where the test runner was started
+    with SIGINT ignored (a background job of a non-interactive shell inherits SIG_IGN); restored afterwards."""
+    import signal
+
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)

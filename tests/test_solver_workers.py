@@ -127,7 +127,7 @@ def test_leaving_early_stops_the_workers(solver, eager):
     assert all(w.proc.poll() is not None for w in procs)
 
 
-def test_ctrl_c_stops_the_workers(solver, eager):
+def test_ctrl_c_stops_the_workers(solver, eager, ctrl_c_raises):
     batches = _batches(solver.nv, 80, 5)
     seen = {}
 

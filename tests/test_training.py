@@ -250,7 +250,7 @@ def test_a_cache_cut_short_by_time_is_reused_only_to_continue_a_run(tmp_path, el
     assert fresh.meta["complete"] and len(fresh.gd_src) == settings.n_sources
 
 
-def test_sigint_saves_checkpoint_and_stops(tmp_path, ellipsoid, tiny_dataset):
+def test_sigint_saves_checkpoint_and_stops(tmp_path, ellipsoid, tiny_dataset, ctrl_c_raises):
     out = tmp_path / "m.ngf"
 
     def ctrl_c(stage, step, terms):  # a real SIGINT, as a terminal would send
