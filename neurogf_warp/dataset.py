@@ -80,7 +80,8 @@ class DatasetSettings:
 
     def recipe(self, seed: int) -> dict:
         """What a dataset built with these settings and ``seed`` holds (every setting but the solver's batch and
-        workers, which change only speed): recorded in its meta as ``requested``, compared before a cached dataset is reused."""
+        workers, which change only speed): recorded in its meta as ``requested``, compared before a cached dataset
+        is reused."""
         return {"seed": int(seed), **{k: v for k, v in dataclasses.asdict(self).items()
                                       if k not in ("batch", "workers")}}
 
@@ -460,8 +461,11 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     def more(_):  # asked before each batch of distance sources after the first
         return time_limit_s is None or time.perf_counter() - t_start <= time_limit_s
 
+    def split(ids):
+        return [ids[i: i + solver.batch] for i in range(0, len(ids), solver.batch)]
+
     with DistanceRows(solver, st.workers) as rows_of:
-        batches = [gd_src[i: i + solver.batch] for i in range(0, len(gd_src), solver.batch)]
+        batches = split(gd_src)
         for b, D in rows_of.rows(batches, more):
             src = batches[b]
             solved += len(src)
@@ -486,8 +490,7 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
         n_path_sources = min(n_path_sources, len(gd_src))
         path_src = gd_src[:n_path_sources]
         test_dist = np.zeros((len(test_src), V), np.float32)
-        tests = [test_src[i: i + solver.batch] for i in range(0, len(test_src), solver.batch)]
-        for b, D in rows_of.rows(tests):
+        for b, D in rows_of.rows(split(test_src)):
             test_dist[b * solver.batch: b * solver.batch + len(D)] = D
             bar.update(len(D))
         timings["worker_batches"] = rows_of.worker_batches

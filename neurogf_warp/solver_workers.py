@@ -45,7 +45,7 @@ class _Worker:
         import neurogf_warp
 
         root = os.path.dirname(os.path.dirname(os.path.abspath(neurogf_warp.__file__)))
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join([root] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")])))
         self.log = tempfile.TemporaryFile()  # its stderr, shown only if it fails
         self.proc = subprocess.Popen([sys.executable, "-m", "neurogf_warp.solver_workers"], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, stderr=self.log, env=env)
@@ -194,12 +194,13 @@ class DistanceRows:
         finally:
             with lock:
                 state["stop"] = True
-            if want < state["next"]:  # left early (an error, Ctrl-C, the caller stopped): stop the workers
+            early = want < state["next"]  # left early (an error, Ctrl-C, the caller stopped): stop the workers
+            if early:
                 for w in self._pool:
                     w.kill()
             for t in feeders:
                 t.join()
-            if want < state["next"]:
+            if early:
                 self.close()
 
     def _start(self, batches, claim, done) -> list:

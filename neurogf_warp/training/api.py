@@ -58,13 +58,6 @@ def resolve_config(config=None, device=None, n_vertices: int = 0, **settings) ->
     return cfg.set(**settings) if settings else cfg.validate()
 
 
-def torch_threads() -> int:
-    """torch's CPU thread count now."""
-    import torch
-
-    return torch.get_num_threads()
-
-
 def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = None, device=None, dataset=None,
           resume: bool = False, force: bool = False, budget_seconds: float | None = None, progress: bool = True,
           callback=None, **settings) -> "Model":
@@ -129,6 +122,8 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
 def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, dev, budget_seconds, progress,
          callback, t_call: float):
     """Dataset, set-up, budget, the stages and the model file of a run (new, or continued from ``ck``)."""
+    import torch
+
     t_data = time.perf_counter()
     limit = None if budget_seconds is None or ck is not None else DATA_SHARE * budget_seconds
     ds = obtain_dataset(mesh, dataset, files.dataset if dataset is None else None, cfg.data, cfg.seed, dev, progress,
@@ -141,8 +136,8 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     trainer = Trainer(cfg, data, pool, dev)
     budget, per = None, None
     if dev.type == "cpu" and cfg.runtime.threads == 0:
-        cores = torch_threads()
-        threads, per = fastest_threads(trainer, {1, min(4, cores), cores})
+        cores = torch.get_num_threads()
+        threads, per = fastest_threads(trainer)
         _say(progress, f"training with {threads} of {cores} torch thread{'s' if cores > 1 else ''} (timed fastest)")
     if ck is not None:
         trainer.load_state(ck)
@@ -171,7 +166,7 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
         stage_i, step, elapsed = 0, 0, 0.0
         history = {"loss": [], "val": []}
     history["dataset_s"] = dataset_s
-    history["threads"] = torch_threads() if dev.type == "cpu" else None
+    history["threads"] = torch.get_num_threads() if dev.type == "cpu" else None
     history["prep_s"] = time.perf_counter() - t_data
 
     def save(stage_i, step, history, elapsed):

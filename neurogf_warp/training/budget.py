@@ -47,13 +47,15 @@ def calibrate(trainer, n: int = 6) -> dict:
     return out
 
 
-def fastest_threads(trainer, counts) -> tuple:
-    """(count, seconds per step of each stage): the torch thread count among ``counts`` with which this run's
-    planned steps (``trainer.steps``, timed by ``calibrate``) take least time; torch is left at that count."""
+def fastest_threads(trainer) -> tuple:
+    """(count, seconds per step of each stage): the torch thread count among 1, min(4, n) and torch's own count n
+    with which this run's planned steps (``trainer.steps``, timed by ``calibrate``) take least time; torch is left
+    at that count."""
     import torch
 
+    n = torch.get_num_threads()
     best = None
-    for c in sorted(set(counts)):
+    for c in sorted({1, min(4, n), n}):
         torch.set_num_threads(c)
         per = calibrate(trainer, n=4)
         cost = sum(per[s] * max(trainer.steps[s], 1) for s in STAGES)
