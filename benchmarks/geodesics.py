@@ -67,8 +67,8 @@ def main(argv=None) -> int:
 
     wp.config.log_level = wp.LOG_WARNING
     wp.init()
-    from neurogf_warp import geodesics as G
-    from neurogf_warp.mesh import load_mesh
+    from neurogf_warp.ground_truth import geodesics as G
+    from neurogf_warp.mesh.mesh import load_mesh
 
     k = a.k or G.DEFAULT_K
     n_src = a.sources or (8 if a.small else 1024)

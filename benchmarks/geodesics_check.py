@@ -29,8 +29,8 @@ def main(argv=None):
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING
-    from neurogf_warp import geodesics as G
-    from neurogf_warp.mesh import load_mesh
+    from neurogf_warp.ground_truth import geodesics as G
+    from neurogf_warp.mesh.mesh import load_mesh
 
     out = []
     for name in a.meshes.split(","):

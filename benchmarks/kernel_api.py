@@ -24,9 +24,8 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import find_shared  # noqa: E402
-
 import warp as wp  # noqa: E402
+from common import find_shared  # noqa: E402
 
 from neurogf_warp.kernels import field  # noqa: E402
 
@@ -156,7 +155,7 @@ def main(argv=None):
     wp.config.log_level = wp.LOG_WARNING
     wp.init()
     import neurogf_warp as ngf
-    from neurogf_warp.warp_structs import source_set
+    from neurogf_warp.inference.warp_structs import source_set
 
     ck = lambda n: find_shared("checkpoints", "official", f"NeuroGF_Pretrainer__{n}_final.pth")
     model = ngf.load(ck("bunny"), mesh=find_shared("meshes", "stanford-bunny.obj"))

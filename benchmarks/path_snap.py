@@ -42,8 +42,8 @@ def main(argv=None):
 
     wp.config.log_level = wp.LOG_WARNING
     import neurogf_warp as ngf
-    from neurogf_warp import metrics as L
-    from neurogf_warp.surface import snap_to_mesh
+    from neurogf_warp.evaluation import metrics as L
+    from neurogf_warp.mesh.surface import snap_to_mesh
 
     files = {"bunny": ("stanford-bunny.obj", "bunny"), "fandisk": ("fandisk.obj", "fandisk")}
     res = {"date": datetime.date.today().isoformat(), "device": a.device, "meshes": {}}

@@ -280,7 +280,7 @@ def run(a) -> dict:
     # the released network has no Fourier inputs or |p - q| term; the default trained network has both:
     # time the default layout with the released weights' scale by a random network of the same shape
     if a.network == "default":
-        from neurogf_warp.network import NeuroGFNet
+        from neurogf_warp.model.network import NeuroGFNet
 
         torch.manual_seed(0)
         net = NeuroGFNet(256, fourier=2, euclid=True, path_residual=True, path_window=True)
@@ -330,7 +330,7 @@ def run(a) -> dict:
             return net.distance_from_embeddings(es.expand(len(xv), -1), ev_c, xs.expand(len(xv), 3), xv) / scale
         return fn
 
-    from neurogf_warp.kernels import tensorcore as tc
+    from neurogf_warp.kernels.inference import tensorcore as tc
 
     W = dict(tc.WARPS)
 
@@ -401,7 +401,7 @@ def run(a) -> dict:
     want = set(a.queries.split(","))
     lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
     # SSAD, model bound to its mesh
-    bytes_kept = model.bind(device)
+    bytes_kept = ngf.bind(model, device)
     res["memory"] = {"bound vertex embeddings (bytes)": bytes_kept}
     n = len(mesh.vertices)
     v1 = tuned("warp ssad, bound (fp16 tensor cores)" if cuda else "warp ssad, bound",
@@ -427,7 +427,7 @@ def run(a) -> dict:
         add("ssad cold (point source)", v2, ref_pt, 2 * (M["lift"] + M["head"]) * n, n * 16)
 
     # MSAD with 8 sources (bound)
-    model.bind(device)
+    ngf.bind(model, device)
     srcs = mesh.index[rng.choice(n, sizes["S_msad"], replace=False)]
     xss = torch.from_numpy(mesh.normalize(mesh.vertices[mesh.vertex(srcs)])).to(tdev)
 
@@ -560,7 +560,7 @@ def run(a) -> dict:
         wp.synchronize()
         t32 = (time.perf_counter() - t) * N / k
         length = lambda x: np.linalg.norm(np.diff(x, axis=1), axis=2).sum(1)
-        from neurogf_warp.metrics import chamfer_l1
+        from neurogf_warp.evaluation.metrics import chamfer_l1
 
         cd = chamfer_l1(mesh.normalize(out16[:k].reshape(-1, 3)).reshape(k, m, 3),
                         mesh.normalize(out32.reshape(-1, 3)).reshape(k, m, 3))
@@ -602,7 +602,7 @@ def run(a) -> dict:
 def released_mre(device: str, cuda: bool) -> dict:
     """MRE of the released checkpoints against the exact references, per precision (fp16 on CUDA only)."""
     import neurogf_warp as ngf
-    from neurogf_warp.evaluate import load_reference
+    from neurogf_warp.evaluation.evaluate import load_reference
 
     out = {}
     for name, ck, mesh_file, ref_file in (("bunny", "bunny", "stanford-bunny.obj", "stanford-bunny.npz"),

@@ -28,12 +28,13 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # the checkout's package when it is not installed (the GPU machine)
 import neurogf_warp as ngf  # noqa: E402
-from neurogf_warp.evaluate import format_table  # noqa: E402
+from neurogf_warp.evaluation.evaluate import format_table  # noqa: E402
 from neurogf_warp.training import RunFiles, preset  # noqa: E402
 from neurogf_warp.training.config import parse_assignments  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import MESHES, TARGETS, find_shared, parse_data_options  # noqa: E402  (./.bench on the GPU machine)
+
 SHARE = {"bunny": 0.6, "fandisk": 0.4}  # bunny is larger and has the harder target
 
 # The GPU recipe's dataset is build_dataset's default (DatasetSettings); the history of these counts is in
@@ -161,7 +162,7 @@ def main(argv=None) -> int:
     # 0. the Warp inference kernels (evaluation, refined paths), compiled once and timed on their own
     import warp as wp
 
-    from neurogf_warp.kernels import mlp
+    from neurogf_warp.kernels.inference import mlp
 
     t0 = time.perf_counter()
     wp.load_module(mlp, device="cpu" if a.device == "cpu" else f"cuda:{torch.device(a.device).index or 0}")

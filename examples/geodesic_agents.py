@@ -22,9 +22,9 @@ import numpy as np
 import warp as wp
 
 import neurogf_warp as ngf
+from neurogf_warp.inference.warp_structs import frame, source_set, weights
 from neurogf_warp.kernels import field
-from neurogf_warp.rendering import View
-from neurogf_warp.warp_structs import frame, source_set
+from neurogf_warp.pictures.render import View
 
 PROJECT_STEPS = 2  # Newton steps back onto the surface after each move; |sdf| falls ~10x per step
 MAX_HALVINGS = 4  # a step whose projection lands farther than 1.25 steps away is retried at half the length
@@ -64,7 +64,7 @@ def simulate(model, target: int, starts: np.ndarray, steps: int, speed: float, d
     An agent stops once its predicted distance is below speed / 2.
     """
     dev = wp.get_device(device)
-    net, fr, tgt = model.warp_struct(dev), frame(model), source_set(model, [target], dev)
+    net, fr, tgt = weights(model, dev), frame(model), source_set(model, [target], dev)
     x = wp.array(np.asarray(starts, dtype=np.float32), dtype=wp.vec3, device=dev)
     d = wp.empty(len(starts), dtype=float, device=dev)
     xs, ds = [x.numpy().copy()], []  # copies: on the CPU, numpy() is a view of the array's memory
@@ -133,7 +133,7 @@ def main(argv=None) -> int:
         frames.append(img)
     from PIL import Image
 
-    from neurogf_warp.files import atomic_write
+    from neurogf_warp.common.files import atomic_write
 
     ims = [Image.fromarray(f).quantize(colors=128, dither=Image.Dither.NONE) for f in frames]
     gif = os.path.join(a.out, "agents.gif")

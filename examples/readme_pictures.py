@@ -23,15 +23,14 @@ def main(argv=None) -> int:
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--device", default=None)
     a = ap.parse_args(argv)
-    from neurogf_warp.cli import main as cli
+    from neurogf_warp.cli.main import main as cli
 
     sh = Path(a.shared)
     model = sh / "checkpoints" / "official" / "NeuroGF_Pretrainer__bunny_final.pth"
     mesh = sh / "meshes" / "stanford-bunny.obj"
     ref = sh / "reference" / "exact" / "stanford-bunny.npz"
     import neurogf_warp as ngf
-
-    from neurogf_warp.evaluate import load_reference
+    from neurogf_warp.evaluation.evaluate import load_reference
 
     z = np.load(ref)
     m = ngf.load_mesh(mesh)

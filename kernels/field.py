@@ -1,7 +1,7 @@
 """Per-thread NeuroGF queries for users' own Warp kernels: distances, their gradients, the SDF, projection.
 
-Every function takes the model's folded weights, ``mlp.NeuroGFWeights`` (``model.warp_struct(device)``), and
-points in the network's normalized frame (``mlp.to_net(frame, x)`` with ``neurogf_warp.warp_structs.frame``;
+Every function takes the model's folded weights, ``mlp.NeuroGFWeights`` (``warp_structs.weights(model, device)``), and
+points in the network's normalized frame (``mlp.to_net(frame, x)`` with ``neurogf_warp.inference.warp_structs.frame``;
 multiply distances by ``frame.dscale`` for mesh units). One thread, one query; no tiles, no shared memory.
 
     geodesic_distance(net, p, q) -> float                    predicted geodesic distance
@@ -21,10 +21,27 @@ kink the unit counts as off (see ``kernels/mlp.py``).
 """
 import warp as wp
 
-from .mlp import (MAX_D, Frame, NeuroGFWeights, _distance_and_gradient_to, _embed_from_hidden, _head_and_gradient,
-                  _lift_backward, _lift_first, _dense_relu, distance_and_gradient, distance_from_embeddings, embed,
-                  from_net, geodesic_distance, project_to_surface, signed_distance, signed_distance_and_gradient,
-                  to_net, vec_d)
+from .inference.mlp import (
+    MAX_D,
+    Frame,
+    NeuroGFWeights,
+    _dense_relu,
+    _distance_and_gradient_to,
+    _embed_from_hidden,
+    _head_and_gradient,
+    _lift_backward,
+    _lift_first,
+    distance_and_gradient,
+    distance_from_embeddings,
+    embed,
+    from_net,
+    geodesic_distance,
+    project_to_surface,
+    signed_distance,
+    signed_distance_and_gradient,
+    to_net,
+    vec_d,
+)
 
 __all__ = ["NeuroGFWeights", "Frame", "SourceSet", "to_net", "from_net", "embed", "geodesic_distance",
            "distance_and_gradient", "distance_to_sources", "distance_to_sources_and_gradient", "geodesic_direction",
@@ -34,7 +51,7 @@ __all__ = ["NeuroGFWeights", "Frame", "SourceSet", "to_net", "from_net", "embed"
 @wp.struct
 class SourceSet:
     """A bound set of sources for MSAD queries: their embeddings (S, D) and points (S,), normalized frame.
-    Build one with ``neurogf_warp.warp_structs.source_set(model, sources, device)``."""
+    Build one with ``neurogf_warp.inference.warp_structs.source_set(model, sources, device)``."""
 
     emb: wp.array2d(dtype=wp.float32)
     points: wp.array(dtype=wp.vec3)

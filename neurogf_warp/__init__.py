@@ -1,6 +1,7 @@
 """neurogf_warp: neural geodesic fields (NeuroGF) with NVIDIA Warp.
 
-The pipeline, one module each: mesh -> geodesics (ground truth) -> dataset -> training -> inference.
+The pipeline, one subpackage a stage: mesh -> ground_truth -> dataset -> (model) -> training -> inference,
+then evaluation, pictures and the command line (cli).
 
     import neurogf_warp as ngf
     model = ngf.load("bunny.ngf")          # or a released *_final.pth with mesh=...
@@ -18,19 +19,17 @@ __version__ = "0.1.0"
 
 # public name -> module that defines it
 _EXPORTS = {
-    "Mesh": "mesh", "load_mesh": "mesh",
-    "Model": "model",
-    "load": "model_io", "load_querier": "model_io", "save": "model_io",
-    "MeshMismatchWarning": "checkpoint_match",
-    "ssad": "inference", "msad": "inference", "distance_matrix": "inference", "distance": "inference",
-    "sdf": "inference", "path": "inference", "project": "inference", "embed": "inference", "warmup": "inference",
-    "warp_weights": "inference",
-    "geodesic_distances": "geodesics", "geodesic_paths": "geodesics",
-    "Dataset": "dataset", "DatasetSettings": "dataset", "build_dataset": "dataset", "load_dataset": "dataset",
-    "sdf_truth": "dataset",
+    "Mesh": "mesh.mesh", "load_mesh": "mesh.mesh",
+    "Model": "model.model",
+    "load": "model.files", "load_querier": "model.files", "save": "model.files",
+    "MeshMismatchWarning": "model.checkpoint_match",
+    **{name: "inference.queries" for name in ("ssad", "msad", "distance_matrix", "distance", "sdf", "path", "project",
+                                              "embed", "warmup", "warp_weights", "bind", "unbind")},
+    "geodesic_distances": "ground_truth.geodesics", "geodesic_paths": "ground_truth.geodesics",
+    **{name: "dataset.build" for name in ("Dataset", "DatasetSettings", "build_dataset", "load_dataset", "sdf_truth")},
     "train": "training", "TrainConfig": "training", "preset": "training", "TrainingInterrupted": "training",
-    "evaluate": "evaluate",
-    "render": "rendering", "write_ply": "rendering",
+    "evaluate": "evaluation.evaluate",
+    "render": "pictures.render", "write_ply": "pictures.render",
 }
 
 __all__ = list(_EXPORTS) + ["__version__"]
@@ -50,14 +49,26 @@ def __dir__():
 
 
 if TYPE_CHECKING:  # for type checkers and IDEs; at run time the names load lazily above
-    from .checkpoint_match import MeshMismatchWarning
-    from .dataset import Dataset, DatasetSettings, build_dataset, load_dataset, sdf_truth
-    from .evaluate import evaluate
-    from .geodesics import geodesic_distances, geodesic_paths
-    from .inference import (distance, distance_matrix, embed, msad, path, project, sdf, ssad, warmup,
-                            warp_weights)
-    from .mesh import Mesh, load_mesh
-    from .model import Model
-    from .model_io import load, load_querier, save
-    from .rendering import render, write_ply
-    from .training import TrainConfig, TrainingInterrupted, preset, train
+    from neurogf_warp.dataset.build import Dataset, DatasetSettings, build_dataset, load_dataset, sdf_truth
+    from neurogf_warp.evaluation.evaluate import evaluate
+    from neurogf_warp.ground_truth.geodesics import geodesic_distances, geodesic_paths
+    from neurogf_warp.inference.queries import (
+        bind,
+        distance,
+        distance_matrix,
+        embed,
+        msad,
+        path,
+        project,
+        sdf,
+        ssad,
+        unbind,
+        warmup,
+        warp_weights,
+    )
+    from neurogf_warp.mesh.mesh import Mesh, load_mesh
+    from neurogf_warp.model.checkpoint_match import MeshMismatchWarning
+    from neurogf_warp.model.files import load, load_querier, save
+    from neurogf_warp.model.model import Model
+    from neurogf_warp.pictures.render import render, write_ply
+    from neurogf_warp.training import TrainConfig, TrainingInterrupted, preset, train

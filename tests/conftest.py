@@ -34,7 +34,7 @@ def ellipsoid():
     import numpy as np
     import trimesh
 
-    from neurogf_warp.mesh import load_mesh
+    from neurogf_warp.mesh.mesh import load_mesh
 
     tm = trimesh.creation.icosphere(subdivisions=3)
     tm.vertices *= np.array([1.0, 0.8, 0.6])
@@ -44,7 +44,7 @@ def ellipsoid():
 @pytest.fixture(scope="session")
 def tiny_dataset(ellipsoid):
     """The ``cpu_small`` preset's dataset of the ellipsoid (a few seconds on 2 cores)."""
-    from neurogf_warp.dataset import build_dataset
+    from neurogf_warp.dataset.build import build_dataset
     from neurogf_warp.training import preset
 
     return build_dataset(ellipsoid, None, preset("cpu_small").data, device="cpu", progress=False)

@@ -18,15 +18,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from neurogf_warp.geodesics import DEFAULT_K
-from neurogf_warp.mesh import load_mesh
+from neurogf_warp.ground_truth.geodesics import DEFAULT_K
+from neurogf_warp.mesh.mesh import load_mesh
 
 
 def steiner_graph(mesh, k: int):
     """The explicit Steiner graph (scipy CSR, float64 weights in normalized units) that the solver relaxes."""
     import scipy.sparse as sp
 
-    from neurogf_warp.steiner_graph import Topology
+    from neurogf_warp.ground_truth.steiner_graph import Topology
 
     m = load_mesh(mesh)
     topo = Topology(m.vertices, m.faces)

@@ -8,8 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from neurogf_warp import cli
-
+from neurogf_warp.cli import main as cli
 
 
 def run(argv, capsys):
@@ -33,7 +32,7 @@ def test_every_option_has_help_and_version(capsys):
 
 
 def test_help_imports_neither_torch_nor_warp():
-    code = ("import sys; from neurogf_warp import cli; p = cli.build_parser(); "
+    code = ("import sys; from neurogf_warp.cli import main as cli; p = cli.build_parser(); "
             "print('torch' in sys.modules, 'warp' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == ["False", "False"]
@@ -156,7 +155,7 @@ def test_render_exact_and_heat_fields(trained, tmp_path, capsys):
 
 def test_warp_stays_quiet_unless_verbose(trained):
     env = dict(os.environ, NEUROGF_DEBUG="")
-    cmd = [sys.executable, "-m", "neurogf_warp.cli", "info", str(trained[1])]
+    cmd = [sys.executable, "-m", "neurogf_warp.cli.main", "info", str(trained[1])]
     quiet = subprocess.run(cmd, capture_output=True, text=True, env=env)
     assert quiet.returncode == 0 and quiet.stderr == "", quiet.stderr
     loud = subprocess.run(cmd + ["--verbose"], capture_output=True, text=True, env=env)

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from neurogf_warp import dataset as D
-from neurogf_warp.mesh import load_mesh
+from neurogf_warp.dataset import build as D
+from neurogf_warp.mesh.mesh import load_mesh
 
 SMALL = dict(n_sources=6, n_global=32, n_local1=8, n_local2=16, n_path_sources=2, n_path_global=4,
              n_path_local=3, n_test=2, n_surface=30000, n_spread=200, progress=False, device="cpu")
@@ -24,7 +24,7 @@ def two_blobs():
 
 @pytest.fixture(scope="module")
 def built(two_blobs, tmp_path_factory):
-    from neurogf_warp.geodesics import load_kernels
+    from neurogf_warp.ground_truth.geodesics import load_kernels
 
     load_kernels("cpu")
     path = tmp_path_factory.mktemp("ds") / "blobs.npz"

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from neurogf_warp import metrics
-from neurogf_warp.evaluate import evaluate, format_table, load_reference
-from neurogf_warp.mesh import load_mesh
+from neurogf_warp.evaluation import metrics
+from neurogf_warp.evaluation.evaluate import evaluate, format_table, load_reference
+from neurogf_warp.mesh.mesh import load_mesh
 from tests.conftest import shared_path
 
 
@@ -40,7 +40,7 @@ def _exact_reference(mesh, sources, path, numbering="orig_index"):
 
 
 def test_evaluate_against_exact_reference_and_solver(trained, ellipsoid, tmp_path):
-    from neurogf_warp.model_io import load
+    from neurogf_warp.model.files import load
 
     m = ellipsoid
     ref = _exact_reference(m, [3, 100, 400], tmp_path / "ref.npz")
@@ -62,7 +62,7 @@ def test_evaluate_against_exact_reference_and_solver(trained, ellipsoid, tmp_pat
 def test_cross_component_pairs_are_reported_apart(trained, ellipsoid, tmp_path):
     """Two copies of the ellipsoid side by side: pairs across them have exact distance inf and are counted
     with the model's finite answers there, not mixed into the MRE."""
-    from neurogf_warp.model import Model
+    from neurogf_warp.model.model import Model
 
     v, f = ellipsoid.vertices, ellipsoid.faces
     two = load_mesh((np.concatenate([v, v + [3.0, 0, 0]]), np.concatenate([f, f + len(v)])))
@@ -100,7 +100,7 @@ def test_evaluate_bad_options(trained, monkeypatch):
 
 def test_evaluate_reproduces_released_checkpoint_numbers():
     """The released fandisk checkpoint against the exact reference: 0.274% MRE and heat 1.04% (reference/README)."""
-    from neurogf_warp.model_io import load
+    from neurogf_warp.model.files import load
 
     ck = shared_path("checkpoints", "official", "NeuroGF_Pretrainer__fandisk_final.pth")
     model = load(ck, mesh=shared_path("meshes", "fandisk.obj"))

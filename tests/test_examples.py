@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 
 import neurogf_warp as ngf
-from neurogf_warp.surface import snap_to_mesh
+from neurogf_warp.mesh.surface import snap_to_mesh
 from tests.conftest import shared_path
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "geodesic_agents.py"

@@ -7,11 +7,11 @@ import time
 
 import pytest
 
-from neurogf_warp import files
+from neurogf_warp.common import files
 
 WRITER = """
 import sys, time
-from neurogf_warp.files import atomic_write
+from neurogf_warp.common.files import atomic_write
 
 def write(f):
     f.write(b"half of the new content")

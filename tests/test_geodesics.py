@@ -4,8 +4,8 @@ import pytest
 import trimesh
 import warp as wp
 
-from neurogf_warp import geodesics as G
-from neurogf_warp.mesh import load_mesh
+from neurogf_warp.ground_truth import geodesics as G
+from neurogf_warp.mesh.mesh import load_mesh
 from tests.conftest import shared_path
 from tests.geodesic_meshes import cylinder, grid_square, squashed_square
 from tests.reference_geodesics import steiner_dijkstra
@@ -102,7 +102,7 @@ def test_paths_length_and_on_surface():
     paths = G.geodesic_paths(msh, 3, tg, device="cpu")
     tmesh = wp.Mesh(wp.array(s.vertices.astype(np.float32), dtype=wp.vec3, device="cpu"),
                     wp.array(s.faces.reshape(-1).astype(np.int32), dtype=wp.int32, device="cpu"))
-    from neurogf_warp.dataset import sdf_truth
+    from neurogf_warp.dataset.build import sdf_truth
 
     size = np.linalg.norm(s.vertices, axis=1).max()
     for t, p in zip(tg, paths):
@@ -196,7 +196,7 @@ def _check_paths(solver, msh, rows, tg, tol_len=1e-5, flat=False):
         q = msh.denormalize(pts)
         assert np.abs(q[:, 2]).max() < 1e-6 and q[:, :2].min() > -1e-6 and q[:, :2].max() < 1 + 1e-6
         return d
-    from neurogf_warp.dataset import sdf_truth
+    from neurogf_warp.dataset.build import sdf_truth
 
     wm = wp.Mesh(wp.array(msh.normalized_vertices.astype(np.float32), dtype=wp.vec3, device="cpu"),
                  wp.array(msh.faces.reshape(-1).astype(np.int32), dtype=wp.int32, device="cpu"))
@@ -264,7 +264,7 @@ def test_degenerate_coincident_nonmanifold_components():
 # ---- long CPU work in chunks, clear messages ---------------------------------------------------------------------
 def test_cpu_loop_in_chunks_gives_the_same_result(monkeypatch):
     # Ctrl-C is seen between loop launches: force the smallest chunks and compare with the adaptive ones
-    from neurogf_warp import geodesic_solver
+    from neurogf_warp.ground_truth import solver as geodesic_solver
 
     s = trimesh.creation.icosphere(subdivisions=3)
     msh = load_mesh((s.vertices * np.array([1.0, 0.7, 0.5]), s.faces))

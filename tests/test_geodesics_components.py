@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from neurogf_warp import geodesics as G
-from neurogf_warp.mesh import load_mesh
+from neurogf_warp.ground_truth import geodesics as G
+from neurogf_warp.mesh.mesh import load_mesh
 from tests import geodesic_meshes as M
 
 

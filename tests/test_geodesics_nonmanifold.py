@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from neurogf_warp import geodesics as G
-from neurogf_warp.mesh import load_mesh
+from neurogf_warp.ground_truth import geodesics as G
+from neurogf_warp.mesh.mesh import load_mesh
 from tests import geodesic_meshes as M
 from tests.conftest import shared_path
 from tests.reference_geodesics import exact_distances

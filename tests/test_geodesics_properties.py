@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from neurogf_warp import geodesics as G
-from neurogf_warp.mesh import load_mesh
+from neurogf_warp.ground_truth import geodesics as G
+from neurogf_warp.mesh.mesh import load_mesh
 from tests import geodesic_meshes as M
 
 ERROR = 0.01  # relative: the solver's values are at most this far above exact (0.69% the most measured)

@@ -5,9 +5,9 @@ import torch
 import warp as wp
 
 import neurogf_warp as ngf
-from neurogf_warp import metrics as L
-from neurogf_warp.kernels import mlp
-from neurogf_warp.network import NeuroGFNet
+from neurogf_warp.evaluation import metrics as L
+from neurogf_warp.kernels.inference import mlp
+from neurogf_warp.model.network import NeuroGFNet
 from tests.conftest import shared_path
 
 DEV = "cpu"
@@ -202,7 +202,7 @@ def _refine_ref(net, p, q, m, sweeps):
     """float64 reference of path(..., refine=sweeps): three starts at m/4 points; at m/4, m/2 and m points the
     ends pinned, the inner points projected (2 steps) and shortened (sweeps); a 4-step projection; the shortest
     start without a jump (a segment > 3x the mean) kept."""
-    from neurogf_warp.network import straight_lines
+    from neurogf_warp.model.network import straight_lines
 
     k = m // 4
     out = []
@@ -347,7 +347,7 @@ def test_torch_and_warp_arrays_in_and_out():
     pt = ngf.path(model, torch.from_numpy(p), torch.from_numpy(q), m=8)
     assert isinstance(pt, torch.Tensor) and pt.shape == (10, 8, 3)
     # float32 torch input on the device is used in place (zero-copy)
-    from neurogf_warp.arrays import as_points
+    from neurogf_warp.common.arrays import as_points
 
     t = torch.from_numpy(p)
     arr, kind = as_points(t, "p", wp.get_device(DEV))

@@ -5,7 +5,7 @@ import torch
 import warp as wp
 
 import neurogf_warp as ngf
-from neurogf_warp.surface import snap_to_mesh
+from neurogf_warp.mesh.surface import snap_to_mesh
 
 DEV = "cpu"
 
@@ -106,13 +106,13 @@ def test_snap_to_mesh_shapes_kinds_and_errors():
     with pytest.raises(ValueError, match="non-finite"):
         snap_to_mesh(tm, np.full((2, 3), np.nan), device=DEV)
     with pytest.raises(ValueError, match="has no mesh"):
-        snap_to_mesh(ngf.Model(net=ngf.network.NeuroGFNet(64)), paths, device=DEV)
+        snap_to_mesh(ngf.Model(net=ngf.model.network.NeuroGFNet(64)), paths, device=DEV)
 
 
 # ---- gradients inside user kernels ------------------------------------------------------------------
 
+from neurogf_warp.inference.warp_structs import frame, source_set, weights  # noqa: E402
 from neurogf_warp.kernels import field  # noqa: E402
-from neurogf_warp.warp_structs import frame, source_set  # noqa: E402
 from tests.test_inference import random_net, released  # noqa: E402
 
 FD_STEP = 1e-6  # finite differences of the float64 torch forward pass, normalized frame
@@ -164,7 +164,7 @@ def _run_pairs(model, p, q):
     outs = [wp.zeros(n, dtype=float, device=DEV), wp.zeros(n, dtype=wp.vec3, device=DEV),
             wp.zeros(n, dtype=wp.vec3, device=DEV), wp.zeros(n, dtype=float, device=DEV),
             wp.zeros(n, dtype=wp.vec3, device=DEV)]
-    wp.launch(_pair_queries, n, inputs=[model.warp_struct(DEV), P, Q], outputs=outs, device=DEV)
+    wp.launch(_pair_queries, n, inputs=[weights(model, DEV), P, Q], outputs=outs, device=DEV)
     return [o.numpy() for o in outs]
 
 
@@ -248,7 +248,7 @@ def test_source_set_in_mesh_frame():
     outs = [wp.zeros(n, dtype=float, device=DEV), wp.zeros(n, dtype=float, device=DEV),
             wp.zeros(n, dtype=wp.vec3, device=DEV), wp.zeros(n, dtype=int, device=DEV),
             wp.zeros(n, dtype=float, device=DEV), wp.zeros(n, dtype=wp.vec3, device=DEV)]
-    wp.launch(_source_queries, n, inputs=[model.warp_struct(DEV), source_set(model, srcs, DEV), frame(model),
+    wp.launch(_source_queries, n, inputs=[weights(model, DEV), source_set(model, srcs, DEV), frame(model),
                                           wp.array(x.astype(np.float32), dtype=wp.vec3, device=DEV)],
               outputs=outs, device=DEV)
     d, d2, g, arg, d3, t = (o.numpy() for o in outs)

@@ -7,8 +7,8 @@ import pytest
 import trimesh
 
 import neurogf_warp as ngf
-from neurogf_warp.mesh import mesh_fingerprint
-from neurogf_warp.mesh_files import read_mesh_file
+from neurogf_warp.mesh.files import read_mesh_file
+from neurogf_warp.mesh.mesh import mesh_fingerprint
 from tests.conftest import shared_path
 
 TET_OBJ = "v 5 5 5\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 2 3 4\nf 2 3 5\nf 2 4 5\nf 3 4 5\n"

@@ -9,7 +9,7 @@ import torch
 import trimesh
 
 import neurogf_warp as ngf
-from neurogf_warp import files
+from neurogf_warp.common import files
 from tests.conftest import shared_path
 
 DEV = "cpu"
@@ -130,7 +130,7 @@ def test_bad_model_files(tmp_path):
 
 
 def test_cli_writes_ssad(tmp_path):
-    from neurogf_warp.cli import main
+    from neurogf_warp.cli.main import main
 
     ck, mesh = fandisk()
     out = tmp_path / "d.npy"
@@ -145,8 +145,8 @@ def test_cli_writes_ssad(tmp_path):
 
 def small_model(weld_soup=False, euclid=True):
     """A D=64 model on two tetrahedra (two components) with an unused vertex first; optionally a welded soup."""
-    from neurogf_warp.model import Model
-    from neurogf_warp.network import NeuroGFNet
+    from neurogf_warp.model.model import Model
+    from neurogf_warp.model.network import NeuroGFNet
 
     tet = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
     tf = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
@@ -177,7 +177,7 @@ def write_raw(path, meta, tensors, fix_checksums=False):
     """Write a model file from parts; ``fix_checksums`` recomputes them, so later checks are reached."""
     from safetensors.torch import save_file
 
-    from neurogf_warp import model_io
+    from neurogf_warp.model import files as model_io
 
     if fix_checksums and "checksums" in meta:
         body = {k: v for k, v in meta.items() if k != "checksums"}
@@ -225,7 +225,7 @@ def test_format_1_files_still_load(tmp_path):
     # format 1 stored the fingerprint of the arrays as given, unused vertex included
     v = np.vstack([[[9, 9, 9]], model.mesh.vertices])
     f = model.mesh.faces.astype(np.int64) + 1
-    meta["mesh_fingerprint"] = ngf.mesh.mesh_fingerprint(v, f)
+    meta["mesh_fingerprint"] = ngf.mesh.mesh.mesh_fingerprint(v, f)
     write_raw(out, meta, tensors)
     back = ngf.load(out)
     assert back.mesh.n_input == 9 and back.mesh.n_components == 2
@@ -357,7 +357,7 @@ def test_pickled_code_in_a_checkpoint_is_not_run(tmp_path):
 
 
 def test_released_checkpoint_with_another_mesh_warns():
-    from neurogf_warp.checkpoint_match import MAX_MEAN_ABS_SDF, MeshMismatchWarning, mesh_sdf_residual
+    from neurogf_warp.model.checkpoint_match import MAX_MEAN_ABS_SDF, MeshMismatchWarning, mesh_sdf_residual
 
     ck, mesh = fandisk()
     with warnings.catch_warnings():
@@ -393,7 +393,7 @@ json_scalars = st.one_of(st.none(), st.booleans(), st.integers(-10 ** 6, 10 ** 6
        config=st.dictionaries(st.text(max_size=6), json_scalars, max_size=4),
        frame=st.tuples(st.floats(-1e3, 1e3), st.floats(-1e3, 1e3), st.floats(-1e3, 1e3), st.floats(1e-3, 1e3)))
 def test_property_model_file_round_trip(tmp_path, options, window, soup, include_mesh, config, frame):
-    from neurogf_warp.network import NeuroGFNet
+    from neurogf_warp.model.network import NeuroGFNet
 
     model = small_model(weld_soup=soup)
     options["path_window"] = window and options["path_residual"]

@@ -7,7 +7,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import neurogf_warp as ngf
-from neurogf_warp.network import NeuroGFNet
+from neurogf_warp.model.network import NeuroGFNet
 
 DEV = "cpu"
 

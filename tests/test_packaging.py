@@ -2,6 +2,7 @@
 pyproject.toml lists)."""
 import fnmatch
 import pathlib
+
 import tomllib
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]

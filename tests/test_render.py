@@ -4,7 +4,7 @@ import pytest
 import torch
 
 import neurogf_warp as ngf
-from neurogf_warp.rendering import COLOR_STOPS, View, _camera, colorize
+from neurogf_warp.pictures.render import COLOR_STOPS, View, _camera, colorize
 from tests.test_inference import random_net
 
 DEV = "cpu"

@@ -7,10 +7,10 @@ import time
 import numpy as np
 import pytest
 
-from neurogf_warp import solver_workers
-from neurogf_warp.dataset import DatasetSettings, build_dataset
-from neurogf_warp.geodesics import GeodesicSolver
-from neurogf_warp.solver_workers import DistanceRows
+from neurogf_warp.dataset.build import DatasetSettings, build_dataset
+from neurogf_warp.ground_truth import workers as solver_workers
+from neurogf_warp.ground_truth.geodesics import GeodesicSolver
+from neurogf_warp.ground_truth.workers import DistanceRows
 
 
 @pytest.fixture

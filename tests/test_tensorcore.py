@@ -11,7 +11,7 @@ import torch
 import warp as wp
 
 import neurogf_warp as ngf
-from neurogf_warp.network import NeuroGFNet
+from neurogf_warp.model.network import NeuroGFNet
 
 # the CPU emulation wherever Warp has its CPU backend (the GPU machines' installs may not), every width on a GPU
 DEVICES = ([("cpu", 64)] if wp.is_cpu_available() else []) + \
@@ -50,7 +50,7 @@ def h(x):
 
 
 def emu_layers(net):
-    from neurogf_warp.folded import folded_layers
+    from neurogf_warp.model.folded import folded_layers
 
     return folded_layers(net)
 
@@ -198,7 +198,7 @@ def test_components_and_numbering(device, D):
 
 def test_packing_layout():
     """The B-fragment packing against the mma.m16n8k16 layout, element by element (odd n-tile count padded)."""
-    from neurogf_warp.kernels import tensorcore as tc
+    from neurogf_warp.kernels.inference import tensorcore as tc
 
     rng = np.random.default_rng()
     W = rng.normal(size=(24, 40))  # 3 n-tiles (padded to 4), 3 k-steps
@@ -217,7 +217,7 @@ def test_packing_layout():
 
 
 def test_fp16_range_is_checked():
-    from neurogf_warp.kernels import tensorcore as tc
+    from neurogf_warp.kernels.inference import tensorcore as tc
 
     with pytest.raises(ValueError, match="fp16 range"):
         tc.pack_weights(np.full((8, 16), 1e6))
@@ -227,7 +227,7 @@ def test_fp16_range_is_checked():
                                      {"LIFT_SSAD": (1, 4)}, {"SDF_TILE": (1, 8)}, {"PAIR_NC": 4}], ids=str)
 def test_tile_variants_agree(setting):
     """Every tile layout the benchmarks tune computes the same numbers (same roundings, same sums per row)."""
-    from neurogf_warp.kernels import tensorcore as tc
+    from neurogf_warp.kernels.inference import tensorcore as tc
 
     device = "cpu" if wp.is_cpu_available() else "cuda:0"
     rng = np.random.default_rng(3)
@@ -256,7 +256,7 @@ def test_tile_variants_agree(setting):
 def test_large_requests_are_chunked_or_refused(monkeypatch):
     """A many-source result for the host is computed in chunks of sources (same numbers); a binding that does not
     fit in memory leaves the query to run unbound, with a warning."""
-    from neurogf_warp import inference
+    from neurogf_warp.inference import queries as inference
 
     device = "cpu" if wp.is_cpu_available() else "cuda:0"
     rng = np.random.default_rng(5)

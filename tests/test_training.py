@@ -10,8 +10,8 @@ import pytest
 import torch
 import trimesh
 
-from neurogf_warp import metrics
-from neurogf_warp.network import NeuroGFNet, straight_lines
+from neurogf_warp.evaluation import metrics
+from neurogf_warp.model.network import NeuroGFNet, straight_lines
 from neurogf_warp.training import STAGES, TrainingInterrupted, preset, train
 from neurogf_warp.training.budget import Budget, fit_budget
 from neurogf_warp.training.checkpoint import CKPT_VERSION, RunFiles, load_checkpoint, save_checkpoint

@@ -3,7 +3,7 @@ import json
 
 import pytest
 
-from neurogf_warp.network import NeuroGFNet
+from neurogf_warp.model.network import NeuroGFNet
 from neurogf_warp.training import PRESETS, TrainConfig, choose_preset, preset
 from neurogf_warp.training.config import LEAVES, parse_assignments
 

@@ -23,6 +23,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from common import find_shared  # noqa: E402
+
 from tests import geodesic_meshes as M  # noqa: E402
 from tests.reference_geodesics import exact_distances  # noqa: E402
 
@@ -65,8 +66,8 @@ def cases():
 
 
 def measure(name, V, F, src, ex, device="cpu", **kw):
-    from neurogf_warp.geodesics import GeodesicSolver
-    from neurogf_warp.mesh import load_mesh
+    from neurogf_warp.ground_truth.geodesics import GeodesicSolver
+    from neurogf_warp.mesh.mesh import load_mesh
 
     m = load_mesh((V, F))
     t = time.perf_counter()

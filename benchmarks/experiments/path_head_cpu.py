@@ -17,13 +17,14 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import neurogf_warp as ngf  # noqa: E402
 from common import find_shared  # noqa: E402
-from neurogf_warp import metrics  # noqa: E402
+
+import neurogf_warp as ngf  # noqa: E402
+from neurogf_warp.evaluation import metrics  # noqa: E402
+from neurogf_warp.dataset.build import build_dataset  # noqa: E402
+from neurogf_warp.ground_truth.geodesics import geodesic_paths  # noqa: E402
+from neurogf_warp.model.network import NeuroGFNet, straight_lines  # noqa: E402
 from neurogf_warp.training import losses as L  # noqa: E402
-from neurogf_warp.dataset import build_dataset  # noqa: E402
-from neurogf_warp.geodesics import geodesic_paths  # noqa: E402
-from neurogf_warp.network import NeuroGFNet, straight_lines  # noqa: E402
 from neurogf_warp.training.trainer import cosine_lr, fast_path  # noqa: E402
 
 

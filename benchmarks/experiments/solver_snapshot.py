@@ -18,6 +18,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from common import find_shared  # noqa: E402
+
 from tests.geodesic_meshes import squashed_square  # noqa: E402
 
 
@@ -34,7 +35,7 @@ def finned_sphere():
 def cases():
     import trimesh
 
-    from neurogf_warp.mesh import load_mesh
+    from neurogf_warp.mesh.mesh import load_mesh
 
     for name, nsrc in (("fandisk", 8), ("spot", 8), ("cow", 8), ("stanford-bunny", 3)):
         ref = np.load(find_shared("reference", "exact", f"{name}.npz"))
@@ -51,7 +52,7 @@ def save(out: Path):
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING
-    from neurogf_warp.geodesics import GeodesicSolver
+    from neurogf_warp.ground_truth.geodesics import GeodesicSolver
 
     out.mkdir(parents=True, exist_ok=True)
     for name, m, src, kw in cases():

@@ -27,9 +27,10 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from common import MESHES, TARGETS, find_shared, parse_data_options  # noqa: E402
-from neurogf_warp.dataset import build_dataset, load_dataset  # noqa: E402
-from neurogf_warp.evaluate import evaluate  # noqa: E402
-from neurogf_warp.mesh import load_mesh  # noqa: E402
+
+from neurogf_warp.dataset.build import build_dataset, load_dataset  # noqa: E402
+from neurogf_warp.evaluation.evaluate import evaluate  # noqa: E402
+from neurogf_warp.mesh.mesh import load_mesh  # noqa: E402
 from neurogf_warp.training import STAGES, RunFiles, preset, train  # noqa: E402
 from neurogf_warp.training.budget import calibrate  # noqa: E402
 from neurogf_warp.training.config import parse_assignments  # noqa: E402
@@ -64,7 +65,8 @@ def check_graph(mesh, ds, device, overrides, steps=8) -> dict:
 
 def profile(mesh, ds, device, stages=("joint", "refine_dist"), steps=5) -> str:
     """torch.profiler table of the CUDA kernels of a few eager steps per stage."""
-    from torch.profiler import ProfilerActivity, profile as prof
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as prof
 
     cfg = preset("default", cuda_graph=False)
     torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True  # as training runs
@@ -156,7 +158,8 @@ def main(argv=None) -> int:
                       device=a.device, verbose=False)
         with torch.no_grad():  # path fit on training paths (eval mode): the generalization gap next to the test Chamfer
             import numpy as np
-            from neurogf_warp import metrics as L
+
+            from neurogf_warp.evaluation import metrics as L
 
             allp = np.asarray(ds.path_global)
             pick = np.random.default_rng(0).choice(len(allp), min(512, len(allp)), replace=False)

@@ -4,12 +4,19 @@ CUDA acceleration, checkpoints, the time budget, the step loop, and the one-call
     from neurogf_warp.training import preset, train
     model = train("spot.obj", "spot.ngf", config=preset("cpu"), budget_seconds=180)
 """
-from .api import train
-from .checkpoint import RunFiles
-from .config import (BatchConfig, DatasetSettings, NetworkConfig, RuntimeConfig, ScheduleConfig, STAGES,
-                     TrainConfig)
-from .loop import TrainingInterrupted
-from .presets import PRESETS, choose_preset, preset
+from neurogf_warp.training.api import train
+from neurogf_warp.training.checkpoint import RunFiles
+from neurogf_warp.training.config import (
+                     STAGES,
+                     BatchConfig,
+                     DatasetSettings,
+                     NetworkConfig,
+                     RuntimeConfig,
+                     ScheduleConfig,
+                     TrainConfig,
+)
+from neurogf_warp.training.loop import TrainingInterrupted
+from neurogf_warp.training.presets import PRESETS, choose_preset, preset
 
 __all__ = ["train", "TrainConfig", "NetworkConfig", "ScheduleConfig", "BatchConfig", "RuntimeConfig",
            "DatasetSettings", "STAGES", "PRESETS", "preset", "choose_preset", "TrainingInterrupted", "RunFiles"]

@@ -12,19 +12,26 @@ import os
 import time
 from typing import TYPE_CHECKING
 
-from ..dataset import check_trainable
-from ..mesh import load_mesh
-from .budget import Budget, calibrate, fastest_threads, fit_budget
-from .checkpoint import CKPT_VERSION, RunFiles, finished, load_checkpoint, save_checkpoint, save_model
-from .config import STAGES, TrainConfig
-from .data import TrainingData, _say, make_sdf_pool, obtain_dataset
-from .loop import Runner
-from .presets import choose_preset, preset
+from neurogf_warp.dataset.build import check_trainable
+from neurogf_warp.mesh.mesh import load_mesh
+from neurogf_warp.training.budget import Budget, calibrate, fastest_threads, fit_budget
+from neurogf_warp.training.checkpoint import (
+    CKPT_VERSION,
+    RunFiles,
+    finished,
+    load_checkpoint,
+    save_checkpoint,
+    save_model,
+)
+from neurogf_warp.training.config import STAGES, TrainConfig
+from neurogf_warp.training.data import TrainingData, _say, make_sdf_pool, obtain_dataset
+from neurogf_warp.training.loop import Runner
+from neurogf_warp.training.presets import choose_preset, preset
 
 if TYPE_CHECKING:
     import torch
 
-    from ..model import Model
+    from neurogf_warp.model.model import Model
 
 __all__ = ["train", "resolve_config", "torch_device"]
 
@@ -39,7 +46,7 @@ def torch_device(device=None) -> "torch.device":
     import torch
     import warp as wp
 
-    from ..arrays import resolve_device
+    from neurogf_warp.common.arrays import resolve_device
 
     return torch.device(wp.device_to_torch(resolve_device(device)))
 
@@ -131,7 +138,7 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     dataset_s = time.perf_counter() - t_data
     data = TrainingData(ds, dev)
     pool = make_sdf_pool(mesh, data.surface_points, cfg.batches.sdf_pool, cfg.seed, dev)
-    from .trainer import Trainer
+    from neurogf_warp.training.trainer import Trainer
 
     trainer = Trainer(cfg, data, pool, dev)
     budget, per = None, None
@@ -145,7 +152,7 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
         _say(progress, f"continuing the run in {files.folder}: stage {STAGES[stage_i]}, step {step}")
     else:
         if budget_seconds is not None:
-            from .acceleration import set_tf32
+            from neurogf_warp.training.acceleration import set_tf32
 
             tf32 = set_tf32(cfg.runtime.tf32) if dev.type == "cuda" else None  # time what the run will do
             try:
@@ -229,8 +236,8 @@ def _differences(old, new) -> str:
 def _finished_model(ck: dict, files: RunFiles, mesh, progress: bool):
     """The model of a finished run: the model file when it is there and readable, else written from the
     checkpoint (a run killed between its last checkpoint and the model file)."""
-    from ..model_io import load
-    from ..network import SdfQuerier
+    from neurogf_warp.model.files import load
+    from neurogf_warp.model.network import SdfQuerier
 
     if os.path.exists(files.model):
         try:
@@ -254,7 +261,7 @@ def _finished_model(ck: dict, files: RunFiles, mesh, progress: bool):
 
 
 def _write_log(files: RunFiles, info: dict, history: dict, timings: dict):
-    from ..files import atomic_write
+    from neurogf_warp.common.files import atomic_write
 
     text = json.dumps({"config": info, "history": history, "timings": timings}).encode()
     atomic_write(files.log, lambda f: f.write(text))

@@ -11,8 +11,8 @@ import copy
 import dataclasses
 import time
 
-from .acceleration import GRAPH_WARMUP, sync
-from .config import STAGES, TrainConfig
+from neurogf_warp.training.acceleration import GRAPH_WARMUP, sync
+from neurogf_warp.training.config import STAGES, TrainConfig
 
 __all__ = ["calibrate", "fastest_threads", "fit_budget", "Budget"]
 
@@ -74,7 +74,7 @@ def fit_budget(cfg: TrainConfig, per_step: dict, seconds: float) -> TrainConfig:
     avail = SLACK * seconds - fixed
     joint = avail / per_joint
     if cfg.schedule.querier_steps is None:  # ratio x joint querier steps, capped
-        from .config import QUERIER_MAX
+        from neurogf_warp.training.config import QUERIER_MAX
 
         joint = avail / (per_joint + cfg.ratio("querier") * per_step["querier"])
         if cfg.ratio("querier") * joint > QUERIER_MAX:

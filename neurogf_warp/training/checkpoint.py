@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ..mesh import Mesh
-from .config import STAGES, TrainConfig
+from neurogf_warp.mesh.mesh import Mesh
+from neurogf_warp.training.config import STAGES, TrainConfig
 
 __all__ = ["RunFiles", "save_checkpoint", "load_checkpoint", "save_model", "CKPT_VERSION", "finished"]
 
@@ -99,7 +99,7 @@ def _probe(folder: str) -> None:
 def save_checkpoint(state: dict, path: str) -> bool:
     """Atomic write (tmp + os.replace); on failure the previous checkpoint stays, a warning is printed and
     False returned (training goes on)."""
-    from ..files import atomic_write
+    from neurogf_warp.common.files import atomic_write
 
     try:
         atomic_write(path, lambda f: torch.save(state, f))
@@ -133,8 +133,8 @@ def finished(ck: dict) -> bool:
 
 def save_model(net, querier, mesh: Mesh, path: str, info: dict):
     """Write the final model file (``neurogf_warp.save``) from copies of the networks; returns the Model."""
-    from ..model import Model
-    from ..model_io import save
+    from neurogf_warp.model.files import save
+    from neurogf_warp.model.model import Model
 
     model = Model(net=copy.deepcopy(net).cpu().eval(), querier=copy.deepcopy(querier).cpu().eval(), mesh=mesh,
                   center=mesh.center, scale=mesh.scale, config=info)

@@ -13,8 +13,8 @@ import json
 import math
 from dataclasses import dataclass, field
 
-from ..dataset import DatasetSettings
-from ..network import MAX_FOURIER, SUPPORTED_D, NeuroGFNet
+from neurogf_warp.dataset.build import DatasetSettings
+from neurogf_warp.model.network import MAX_FOURIER, SUPPORTED_D, NeuroGFNet
 
 __all__ = ["TrainConfig", "NetworkConfig", "ScheduleConfig", "BatchConfig", "RuntimeConfig", "DatasetSettings",
            "STAGES", "RATIOS", "QUERIER_MAX", "DIST_LOSSES", "parse_assignments"]
@@ -79,7 +79,7 @@ class ScheduleConfig:
     resample_every: int = 1                # steps between fresh batches
 
     def validate(self):
-        from .losses import WEIGHTS
+        from neurogf_warp.training.losses import WEIGHTS
 
         for name in ("epochs", "iters_per_epoch", "resample_every"):
             if getattr(self, name) < 1:

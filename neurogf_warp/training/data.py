@@ -11,8 +11,8 @@ import sys
 import numpy as np
 import torch
 
-from ..dataset import Dataset, build_dataset, sample_sdf_points, sdf_truth
-from ..mesh import Mesh
+from neurogf_warp.dataset.build import Dataset, build_dataset, sample_sdf_points, sdf_truth
+from neurogf_warp.mesh.mesh import Mesh
 
 __all__ = ["TrainingData", "make_sdf_pool", "obtain_dataset", "warp_device"]
 

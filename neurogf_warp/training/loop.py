@@ -11,9 +11,9 @@ import time
 
 import torch
 
-from . import losses as L
-from .acceleration import set_tf32
-from .config import STAGES
+from neurogf_warp.training import losses as L
+from neurogf_warp.training.acceleration import set_tf32
+from neurogf_warp.training.config import STAGES
 
 __all__ = ["Runner", "TrainingInterrupted"]
 

@@ -1,6 +1,6 @@
 """NeuroGF training losses: torch tensors in, scalar tensors out (they run inside the training graph).
 
-Everything is in the normalized unit-sphere frame. Accuracy metrics for evaluation are in ``neurogf_warp.metrics``.
+Everything is in the normalized unit-sphere frame. Accuracy metrics for evaluation are in ``neurogf_warp.evaluation.metrics``.
 """
 from __future__ import annotations
 

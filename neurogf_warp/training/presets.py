@@ -11,7 +11,7 @@ their first steps show to be fastest (``threads=0``); ``cpu_small`` trains with 
 """
 from __future__ import annotations
 
-from .config import TrainConfig
+from neurogf_warp.training.config import TrainConfig
 
 __all__ = ["PRESETS", "preset", "choose_preset", "LARGE_MESH"]
 

@@ -26,11 +26,11 @@ import math
 import torch
 import torch.nn.functional as F
 
-from ..network import NeuroGFNet, SdfQuerier, straight_lines
-from . import losses as L
-from .acceleration import CompiledLosses, GraphedStep, set_tf32
-from .config import STAGES, TrainConfig
-from .data import TrainingData
+from neurogf_warp.model.network import NeuroGFNet, SdfQuerier, straight_lines
+from neurogf_warp.training import losses as L
+from neurogf_warp.training.acceleration import CompiledLosses, GraphedStep, set_tf32
+from neurogf_warp.training.config import STAGES, TrainConfig
+from neurogf_warp.training.data import TrainingData
 
 __all__ = ["Trainer", "fast_path", "cosine_lr"]
 

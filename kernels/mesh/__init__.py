@@ -1,0 +1,1 @@
+"""Warp kernels on meshes: closest points."""

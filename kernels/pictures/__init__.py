@@ -1,0 +1,1 @@
+"""Warp kernels for pictures: ray casting."""

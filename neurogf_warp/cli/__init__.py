@@ -1,0 +1,1 @@
+"""The command line (neurogf-warp) and the demo it runs."""

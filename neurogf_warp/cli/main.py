@@ -1,0 +1,686 @@
+"""The ``neurogf-warp`` command line: one argparse program; every subcommand's parser is here.
+
+Each subcommand checks its options and output file first, then calls the public API (torch and Warp are
+imported only then, so ``--help`` is fast). Exit codes: 0 success, 1 failure, 2 bad input, 130 interrupted;
+errors are one line on stderr (a traceback only with ``--verbose`` or NEUROGF_DEBUG=1). Warp's banner,
+module-compile lines and the CUDA-driver warning of a GPU-less machine are shown only with ``--verbose``.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import sys
+import tempfile
+import time
+
+from neurogf_warp import __version__
+
+__all__ = ["main", "build_parser", "BadInput"]
+
+PROG = "neurogf-warp"
+PRESET_HELP = ("training preset: default (the GPU recipe), paper (the published network and recipe), cpu (a few "
+               "minutes on a CPU), cpu_large (cpu for meshes above 15,000 vertices), cpu_small (a seconds-long smoke "
+               "run); default: chosen by the device and the mesh size")
+VALUE_FORMATS = (".npy", ".csv", ".ply")
+CUDA_WARNING = "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver. GPU execution will not be available."
+
+
+class BadInput(ValueError):
+    """A problem with what the user asked for (exit code 2)."""
+
+
+# ------------------------------------------------------------------------------------------ parser
+
+def _common() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--device", default=None, help="cpu or cuda:N (default: the GPU if there is one, else cpu)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("-q", "--quiet", action="store_true", help="no progress bars or messages, only results and errors")
+    g.add_argument("-v", "--verbose", action="store_true",
+                   help="also Warp's own log (banner, kernel compilation) and a traceback on errors")
+    return p
+
+
+def _model_args(p: argparse.ArgumentParser):
+    p.add_argument("model", help="model file: an .ngf written by train, or a released NeuroGF *_final.pth")
+    p.add_argument("--mesh", default=None,
+                   help="the model's mesh file; required for a released .pth (an .ngf carries its own)")
+
+
+def _pair_args(p: argparse.ArgumentParser):
+    _model_args(p)
+    for flag, name in (("--p", "start points p"), ("--q", "end points q (as many as p)")):
+        p.add_argument(flag, nargs="+", metavar=("X Y Z | FILE", ""), required=True,
+                       help=f"{name}: one point as three numbers (mesh coordinates), or a .npy / .csv file of (N, 3) "
+                            "points")
+
+
+def _values_output(p: argparse.ArgumentParser):
+    p.add_argument("-o", "--output", default="distances.npy",
+                   help="output file: .npy, .csv (vertex,distance) or .ply (the mesh coloured by distance)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The whole command line (``neurogf-warp COMMAND ...``)."""
+    common = _common()
+    p = argparse.ArgumentParser(
+        prog=PROG, description="Neural geodesic fields (NeuroGF) with NVIDIA Warp: ground truth, training and "
+        "fast geodesic queries on triangle meshes.",
+        epilog="run 'neurogf-warp COMMAND -h' for a command's options; exit codes: 0 success, 1 failure, 2 bad "
+               "input, 130 interrupted")
+    p.add_argument("--version", action="version", version=f"{PROG} {__version__}")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+
+    d = sub.add_parser("demo", parents=[common], help="train on the bundled mesh (or yours), report accuracy, answer SSAD",
+                       description="The main job: train a NeuroGF on the bundled default mesh (or --mesh), measure its "
+                       "accuracy against the solver (and the heat method when potpourri3d is installed), and answer "
+                       "an SSAD query. Safe to repeat: a finished run is reused (--force trains again).")
+    d.add_argument("-o", "--output", default="neurogf-demo",
+                   help="output folder for the model, its run files and the results (default: ./neurogf-demo)")
+    d.add_argument("--mesh", default=None, help="a mesh file (default: the bundled generated blob, 2,562 vertices)")
+    d.add_argument("--budget-seconds", type=float, default=None,
+                   help="seconds for the whole training call, dataset included (default 180 on a CPU, 300 on a GPU)")
+    d.add_argument("--force", action="store_true", help="train again even if the folder holds a finished run")
+
+    t = sub.add_parser("data", parents=[common], help="build a training dataset (ground-truth geodesics and paths)",
+                       description="Compute NeuroGF training data for a mesh with the Warp geodesic solver: distance "
+                       "rows from sources to targets, shortest paths, surface points and held-out test fields.")
+    t.add_argument("mesh", help="triangle mesh file (.obj, .ply, .stl, ...)")
+    t.add_argument("-o", "--output", required=True, help="dataset file to write (.npz)")
+    t.add_argument("--preset", default=None, help=PRESET_HELP + " (its dataset settings are used)")
+    t.add_argument("--sources", type=int, default=None, help="distance sources (default: the preset's)")
+    t.add_argument("--path-sources", type=int, default=None, help="path sources (default: the preset's)")
+    t.add_argument("--test-sources", type=int, default=None, help="held-out test sources (default: the preset's)")
+    t.add_argument("--k", type=int, default=None, help="Steiner points per edge of the solver (default 3)")
+    t.add_argument("--seed", type=int, default=0, help="random seed of every draw (default 0)")
+    t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="any other dataset setting, e.g. --set n_global=2048 (repeatable)")
+
+    t = sub.add_parser("train", parents=[common], help="train a NeuroGF model for a mesh",
+                       description="Train a NeuroGF for one mesh and write the model file. The run's checkpoint, "
+                       "cached dataset and log go to the folder <model>.train beside it. Running the same command "
+                       "again continues an interrupted run or reports a finished one.")
+    t.add_argument("mesh", help="triangle mesh file (.obj, .ply, .stl, ...)")
+    t.add_argument("-o", "--output", required=True, help="model file to write (e.g. model.ngf)")
+    t.add_argument("--preset", default=None, help=PRESET_HELP)
+    t.add_argument("--paper", action="store_true", help="the same as --preset paper")
+    t.add_argument("--budget-seconds", type=float, default=None,
+                   help="fit the step counts so that the whole call, dataset included, takes about this long")
+    g = t.add_mutually_exclusive_group()
+    g.add_argument("--resume", action="store_true",
+                   help="continue the run in <model>.train with its own settings (also a finished one)")
+    g.add_argument("--force", action="store_true", help="start over, replacing an existing run and model file")
+    t.add_argument("--dataset", default=None, help="train on this dataset .npz instead of building one")
+    t.add_argument("--D", type=int, default=None, help="embedding width: 64, 128, 256 or 512 (default: the preset's)")
+    t.add_argument("--epochs", type=int, default=None, help="joint-training epochs (default: the preset's)")
+    t.add_argument("--iters-per-epoch", type=int, default=None, help="steps per epoch (default: the preset's)")
+    t.add_argument("--lr", type=float, default=None, help="learning rate of the querier and joint stages")
+    t.add_argument("--n-sources", type=int, default=None, help="distance sources of the dataset")
+    t.add_argument("--seed", type=int, default=None, help="random seed (dataset, initialization, batches)")
+    t.add_argument("--no-amp", action="store_true", help="float32 path head (default: bf16 on CUDA)")
+    t.add_argument("--no-compile", action="store_true",
+                   help="skip torch.compile (default on CUDA: faster steps after ~25 s of compiling)")
+    t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="any training setting, e.g. --set batch_g=131072 --set schedule.lr=3e-3 (repeatable; "
+                        "names as in neurogf_warp.training.TrainConfig)")
+
+    e = sub.add_parser("eval", parents=[common], help="measure a model's accuracy",
+                       description="Distance MRE against an exact reference (or the solver), path Chamfer-L1 against "
+                       "solver paths, SDF L1; optionally the heat method on the same sources.")
+    _model_args(e)
+    e.add_argument("--reference", default=None,
+                   help="exact-distance .npz (positions, orig_index or file_index, sources, dist)")
+    e.add_argument("--heat", action="store_true", help='also run the heat method (needs pip install "neurogf-warp[heat]")')
+    e.add_argument("--sources", type=int, default=8, help="solver sources when no reference is given (default 8)")
+    e.add_argument("--path-sources", type=int, default=8, help="sources of the random path pairs (default 8)")
+    e.add_argument("--path-targets", type=int, default=8, help="targets per path source (default 8)")
+    e.add_argument("--no-paths", action="store_true", help="skip the path comparison")
+    e.add_argument("--no-sdf", action="store_true", help="skip the SDF comparison")
+    e.add_argument("--path-refine", type=int, default=0, metavar="N",
+                   help="also score the paths after N shortening sweeps per level (e.g. 50; slow on a CPU)")
+    e.add_argument("--seed", type=int, default=0, help="random seed of the solver sources and path pairs")
+    e.add_argument("--json", default=None, help="also write the results to this .json file")
+
+    s = sub.add_parser("ssad", parents=[common], help="distances from one source to every mesh vertex",
+                       description="Single source, all destinations: the model's geodesic distance from one vertex "
+                       "or point to every vertex of the mesh, in mesh units and the mesh file's vertex numbering.")
+    _model_args(s)
+    g = s.add_mutually_exclusive_group()
+    g.add_argument("--source", type=int, default=None, help="source vertex index, 0-based, the mesh's own numbering "
+                   "(default 0)")
+    g.add_argument("--point", type=float, nargs=3, metavar=("X", "Y", "Z"), help="source point in mesh coordinates")
+    _values_output(s)
+
+    s = sub.add_parser("msad", parents=[common], help="distance from every vertex to the nearest of several sources",
+                       description="Multiple sources, all destinations: each vertex's geodesic distance to its "
+                       "nearest source vertex.")
+    _model_args(s)
+    s.add_argument("--sources", type=int, nargs="+", required=True, metavar="V",
+                   help="source vertex indices, 0-based, the mesh's own numbering")
+    _values_output(s)
+
+    s = sub.add_parser("distance", parents=[common], help="geodesic distances between point pairs",
+                       description="Geodesic distance between points p and q (mesh coordinates and units), pair by "
+                       "pair; points should lie on or near the surface.")
+    _pair_args(s)
+    s.add_argument("-o", "--output", default=None, help="output .npy or .csv (default: print the distances)")
+
+    s = sub.add_parser("path", parents=[common], help="shortest paths between point pairs",
+                       description="Shortest surface paths from p to q as m points each (mesh coordinates).")
+    _pair_args(s)
+    s.add_argument("--m", type=int, default=128, help="points per path, ends included (default 128)")
+    s.add_argument("--refine", type=int, default=0, metavar="N",
+                   help="N shortening sweeps per level on the SDF surface (e.g. 50; default 0: the network's path)")
+    s.add_argument("-o", "--output", default="paths.npy",
+                   help="output .npy of shape (N, m, 3), or .csv with rows path,point,x,y,z")
+
+    s = sub.add_parser("info", parents=[common], help="what a model file holds",
+                       description="Print what a model file holds: network width and options, normalization, mesh "
+                       "size, fingerprint and components, training settings and steps.")
+    _model_args(s)
+    s.add_argument("--json", action="store_true", help="print it as JSON")
+
+    s = sub.add_parser("render", parents=[common], help="a picture of the distance field (and paths)",
+                       description="Render the mesh coloured by the geodesic distance from the sources, with isolines "
+                       "and optionally shortest paths to some vertices.")
+    _model_args(s)
+    s.add_argument("--source", type=int, nargs="+", default=[0], metavar="V",
+                   help="source vertex indices (default 0); several: distance to the nearest")
+    s.add_argument("--paths", type=int, nargs="+", default=None, metavar="V",
+                   help="also draw the shortest paths from the first source to these vertices")
+    s.add_argument("--refine", type=int, default=0, metavar="N",
+                   help="shortening sweeps for the model's paths (path(refine=N); default 0: the path head's)")
+    field = s.add_mutually_exclusive_group()
+    field.add_argument("--exact", metavar="REF.npz", help="draw the exact field of this reference file (positions, "
+                       "file_index or orig_index, sources, dist) instead of the model's; paths from the geodesic solver")
+    field.add_argument("--heat", action="store_true", help="draw the heat method's field (potpourri3d) instead of the "
+                       "model's; paths from potpourri3d's edge-flip solver")
+    s.add_argument("--isolines", type=int, default=20, help="number of isolines (default 20; 0: none)")
+    s.add_argument("--vrange", type=float, nargs=2, default=None, metavar=("LOW", "HIGH"),
+                   help="the colour scale's range in mesh units (default: the field's), to compare pictures")
+    s.add_argument("--view", type=float, nargs=2, default=None, metavar=("AZIMUTH", "ELEVATION"),
+                   help="camera direction in degrees (default 30 20)")
+    s.add_argument("--size", type=int, nargs=2, default=(1024, 1024), metavar=("W", "H"), help="picture size in pixels")
+    s.add_argument("-o", "--output", default="picture.png", help="picture file (.png)")
+    return p
+
+
+# ------------------------------------------------------------------------------------------ helpers
+
+@contextlib.contextmanager
+def _filtered_stderr():
+    """Send file descriptor 2 to a temporary file while the block runs, then pass on all but the CUDA-driver
+    warning (written by Warp's native library, which Python's sys.stderr does not see)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            rest = tmp.read().decode(errors="replace").replace(CUDA_WARNING, "")
+            if rest.strip():
+                sys.stderr.write(rest if rest.endswith("\n") else rest + "\n")
+
+
+def start_warp(verbose: bool):
+    """Import and initialize Warp: quiet (log level WARNING, no driver warning) unless ``verbose``."""
+    with contextlib.nullcontext() if verbose else _filtered_stderr():
+        import warp as wp
+
+        wp.config.log_level = wp.LOG_INFO if verbose else wp.LOG_WARNING
+        wp.init()
+    return wp
+
+
+def _say(args, msg: str):
+    if not args.quiet:
+        print(msg, file=sys.stderr, flush=True)
+
+
+def _check_output(path: str, formats: tuple, what: str = "output") -> str:
+    """Refuse an unknown extension or a folder that cannot be written, before any work."""
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in formats:
+        raise BadInput(f"{what} {path!r}: the file extension chooses the format; use one of {', '.join(formats)}")
+    full = os.path.abspath(path)
+    if os.path.isdir(full):
+        raise BadInput(f"{what} {path!r} is a folder; give a file name")
+    folder = os.path.dirname(full)
+    if not os.path.isdir(folder):
+        raise BadInput(f"cannot write {path}: folder {folder} does not exist")
+    if not os.access(folder, os.W_OK) or (os.path.exists(full) and not os.access(full, os.W_OK)):
+        raise BadInput(f"cannot write {path}: permission denied")
+    return ext
+
+
+def _write_values(path: str, values, mesh):
+    """Per-vertex values (file numbering) to .npy, .csv (vertex,value) or .ply (coloured mesh)."""
+    import numpy as np
+
+    from neurogf_warp.common.files import atomic_write
+
+    ext = os.path.splitext(path)[1].lower()
+    values = np.asarray(values)
+    if ext == ".npy":
+        atomic_write(path, lambda f: np.save(f, values))
+    elif ext == ".csv":
+        rows = np.column_stack([np.arange(len(values)), values])
+        atomic_write(path, lambda f: np.savetxt(f, rows, fmt=["%d", "%.9g"], delimiter=",", header="vertex,distance",
+                                                comments=""))
+    else:
+        from neurogf_warp.pictures.render import write_ply
+
+        write_ply(path, mesh, values)
+
+
+def _write_array(path: str, a, header: str, fmt):
+    import numpy as np
+
+    from neurogf_warp.common.files import atomic_write
+
+    if path.lower().endswith(".npy"):
+        atomic_write(path, lambda f: np.save(f, a))
+    else:
+        atomic_write(path, lambda f: np.savetxt(f, a, fmt=fmt, delimiter=",", header=header, comments=""))
+
+
+def _load_model(args, needs_mesh: bool):
+    import neurogf_warp as ngf
+
+    model = ngf.load(args.model, mesh=args.mesh)
+    if needs_mesh and model.mesh is None:
+        raise BadInput(f"{args.model} carries no mesh: pass the mesh it was trained on with --mesh MESHFILE")
+    return model
+
+
+def _vertex_indices(model, indices, flag: str):
+    n = model.mesh.n_input
+    for i in indices:
+        if i < 0 or i >= n:
+            raise BadInput(f"{flag} {i} is out of range: the mesh has {n} vertices, numbered 0 to {n - 1}")
+    return list(indices)
+
+
+def _points(values, flag: str):
+    """--p / --q: three numbers, or one .npy / .csv file of (N, 3) points -> (N, 3) float64."""
+    import numpy as np
+
+    if len(values) == 3:
+        try:
+            return np.array([[float(v) for v in values]])
+        except ValueError:
+            pass
+    if len(values) == 1:
+        path = values[0]
+        if not os.path.isfile(path):
+            raise BadInput(f"{flag} {path}: no such file (give X Y Z, or a .npy / .csv file of (N, 3) points)")
+        ext = os.path.splitext(path)[1].lower()
+        try:
+            a = np.load(path, allow_pickle=False) if ext == ".npy" else \
+                np.loadtxt(path, delimiter=",", ndmin=2) if ext == ".csv" else None
+        except Exception as e:  # noqa: BLE001 - any unreadable file is bad input
+            raise BadInput(f"{flag} {path}: unreadable ({e})") from e
+        if a is None:
+            raise BadInput(f"{flag} {path}: use a .npy or .csv file")
+        a = np.asarray(a, dtype=np.float64)
+        if a.ndim != 2 or a.shape[1] != 3:
+            raise BadInput(f"{flag} {path}: expected (N, 3) points, got shape {a.shape}")
+        return a
+    raise BadInput(f"{flag} takes three numbers X Y Z or one file, got {' '.join(values)}")
+
+
+def _pairs(args):
+    p, q = _points(args.p, "--p"), _points(args.q, "--q")
+    if len(p) != len(q):
+        raise BadInput(f"--p has {len(p)} points and --q {len(q)}; give as many of each")
+    return p, q
+
+
+# ------------------------------------------------------------------------------------------ commands
+
+def _cmd_demo(args) -> int:
+    from neurogf_warp.cli.demo import run_demo
+
+    run_demo(args.output, mesh=args.mesh, device=args.device, budget_seconds=args.budget_seconds, force=args.force,
+             progress=not args.quiet)
+    return 0
+
+
+def _cmd_data(args) -> int:
+    from neurogf_warp.training.config import parse_assignments
+
+    _check_output(args.output, (".npz",), "dataset file")
+    changes = parse_assignments(args.set)
+    for flag, name in (("sources", "n_sources"), ("path_sources", "n_path_sources"), ("test_sources", "n_test"),
+                       ("k", "k")):
+        if getattr(args, flag) is not None:
+            changes[name] = getattr(args, flag)
+    import neurogf_warp as ngf
+    from neurogf_warp.training import choose_preset, preset
+    from neurogf_warp.training.api import torch_device
+
+    dev = torch_device(args.device)
+    mesh = ngf.load_mesh(args.mesh)
+    cfg = preset(args.preset or choose_preset(dev.type, len(mesh.vertices)))
+    bad = [k for k in changes if k.split(".")[-1] not in {f for f in cfg.data.__dataclass_fields__}]
+    if bad:
+        raise BadInput(f"--set {bad[0]}: not a dataset setting (see neurogf_warp.DatasetSettings)")
+    settings = cfg.set(**changes).data
+    t0 = time.perf_counter()
+    ds = ngf.build_dataset(mesh, args.output, settings, seed=args.seed, device=str(dev), progress=not args.quiet)
+    m = ds.meta
+    _say(args, f"wrote {args.output}: {len(ds.gd_src)} sources, {len(ds.path_global) + len(ds.path_local)} paths "
+               f"({m['dropped_paths']} untraceable left out), {len(ds.test_src)} test sources, "
+               f"{os.path.getsize(args.output) / 1e6:.1f} MB in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _cmd_train(args) -> int:
+    from neurogf_warp.training.config import parse_assignments
+
+    if os.path.splitext(args.output)[1].lower() != ".ngf":
+        raise BadInput(f"model file {args.output!r}: use the .ngf extension")
+    if args.preset and args.paper:
+        raise BadInput("--paper is --preset paper: give one of them")
+    changes = parse_assignments(args.set)
+    for flag, name in (("D", "D"), ("epochs", "epochs"), ("iters_per_epoch", "iters_per_epoch"), ("lr", "lr"),
+                       ("n_sources", "n_sources"), ("seed", "seed")):
+        if getattr(args, flag) is not None:
+            changes[name] = getattr(args, flag)
+    if args.no_amp:
+        changes["amp"] = False
+    if args.no_compile:
+        changes["compile"] = False
+    if args.budget_seconds is not None and not args.budget_seconds > 0:
+        raise BadInput(f"--budget-seconds must be > 0, got {args.budget_seconds}")
+    if args.dataset is not None and not os.path.isfile(args.dataset):
+        raise BadInput(f"--dataset {args.dataset}: no such file")
+    import neurogf_warp as ngf
+
+    ngf.train(args.mesh, args.output, config="paper" if args.paper else args.preset, device=args.device,
+              dataset=args.dataset, resume=args.resume, force=args.force, budget_seconds=args.budget_seconds,
+              progress=not args.quiet, **changes)
+    return 0
+
+
+def _cmd_eval(args) -> int:
+    for flag in ("sources", "path_sources", "path_targets", "path_refine"):
+        if getattr(args, flag) < 0:
+            raise BadInput(f"--{flag.replace('_', '-')} must be >= 0, got {getattr(args, flag)}")
+    if args.json:
+        _check_output(args.json, (".json",), "--json")
+    if args.heat:
+        from neurogf_warp.evaluation.evaluate import require_heat
+
+        try:
+            require_heat()
+        except ImportError as e:
+            raise BadInput(str(e)) from None
+    if args.reference is not None and not os.path.isfile(args.reference):
+        raise BadInput(f"--reference {args.reference}: no such file")
+    import json
+
+    from neurogf_warp.common.files import atomic_write
+    from neurogf_warp.evaluation.evaluate import evaluate
+
+    model = _load_model(args, needs_mesh=True)
+    res = evaluate(model, reference=args.reference, heat=args.heat, n_sources=args.sources,
+                   n_path_sources=args.path_sources, n_path_targets=args.path_targets, paths=not args.no_paths,
+                   sdf=not args.no_sdf, path_refine=args.path_refine, device=args.device, seed=args.seed,
+                   progress=not args.quiet, verbose=True)
+    if args.json:
+        text = json.dumps(res, indent=1).encode()
+        atomic_write(args.json, lambda f: f.write(text))
+    return 0
+
+
+def _timed_twice(fn):
+    """(result, first call s, second call s, whether Warp compiled kernels during the first call)."""
+    import warp as wp
+
+    cache = wp.config.kernel_cache_dir
+    before = set(os.listdir(cache)) if cache and os.path.isdir(cache) else set()
+    t = time.perf_counter()
+    fn()
+    first = time.perf_counter() - t
+    compiled = bool(set(os.listdir(cache)) - before) if cache and os.path.isdir(cache) else False
+    t = time.perf_counter()
+    out = fn()
+    return out, first, time.perf_counter() - t, compiled
+
+
+def _report_values(args, model, d, first, again, compiled, what):
+    import numpy as np
+
+    ok = np.isfinite(d)
+    note = "includes kernel compilation" if compiled else "kernels from the cache"
+    _say(args, f"{what}: {int(ok.sum())} of {len(d)} distances written to {args.output} (min {np.nanmin(d):.6g}, "
+               f"max {np.nanmax(d[ok]) if ok.any() else float('nan'):.6g}, mesh units); first call {first:.2f} s "
+               f"({note}), second {again * 1e3:.1f} ms")
+
+
+def _cmd_ssad(args) -> int:
+    _check_output(args.output, VALUE_FORMATS)
+    if args.source is not None and args.source < 0:
+        raise BadInput(f"--source must be a vertex index >= 0, got {args.source}")
+    import numpy as np
+
+    import neurogf_warp as ngf
+
+    model = _load_model(args, needs_mesh=True)
+    if args.point is not None:
+        src = np.array(args.point, dtype=np.float64)
+    else:
+        src = _vertex_indices(model, [0 if args.source is None else args.source], "--source")[0]
+    d, first, again, compiled = _timed_twice(lambda: ngf.ssad(model, src, device=args.device))
+    _write_values(args.output, d, model.mesh)
+    _report_values(args, model, d, first, again, compiled, "ssad")
+    return 0
+
+
+def _cmd_msad(args) -> int:
+    _check_output(args.output, VALUE_FORMATS)
+    import neurogf_warp as ngf
+
+    model = _load_model(args, needs_mesh=True)
+    src = _vertex_indices(model, args.sources, "--sources")
+    d, first, again, compiled = _timed_twice(lambda: ngf.msad(model, src, device=args.device))
+    _write_values(args.output, d, model.mesh)
+    _report_values(args, model, d, first, again, compiled, "msad")
+    return 0
+
+
+def _cmd_distance(args) -> int:
+    if args.output is not None:
+        _check_output(args.output, (".npy", ".csv"))
+    p, q = _pairs(args)
+    import numpy as np
+
+    import neurogf_warp as ngf
+
+    model = _load_model(args, needs_mesh=False)
+    d = np.asarray(ngf.distance(model, p, q, device=args.device))
+    if args.output is None:
+        print("\n".join(f"{x:.9g}" for x in d))
+    else:
+        _write_array(args.output, d, "distance", "%.9g")
+        _say(args, f"distance: {len(d)} values written to {args.output}")
+    return 0
+
+
+def _cmd_path(args) -> int:
+    _check_output(args.output, (".npy", ".csv"))
+    if args.m < 2:
+        raise BadInput(f"--m (points per path) must be >= 2, got {args.m}")
+    if args.refine < 0:
+        raise BadInput(f"--refine must be >= 0, got {args.refine}")
+    p, q = _pairs(args)
+    import numpy as np
+
+    import neurogf_warp as ngf
+
+    model = _load_model(args, needs_mesh=False)
+    paths = np.asarray(ngf.path(model, p, q, m=args.m, refine=args.refine, device=args.device))
+    if args.output.lower().endswith(".npy"):
+        _write_array(args.output, paths, "", None)
+    else:
+        n, m = paths.shape[:2]
+        rows = np.column_stack([np.repeat(np.arange(n), m), np.tile(np.arange(m), n), paths.reshape(-1, 3)])
+        _write_array(args.output, rows, "path,point,x,y,z", ["%d", "%d", "%.9g", "%.9g", "%.9g"])
+    _say(args, f"path: {len(paths)} paths of {args.m} points written to {args.output}")
+    return 0
+
+
+def model_summary(model) -> dict:
+    """What a model holds, as a JSON-ready dict (the ``info`` command)."""
+    import numpy as np
+
+    out = {"D": model.D, "network_options": model.net.options, "querier": model.querier is not None,
+           "normalization": {"center": np.asarray(model.center).tolist(), "scale": model.scale,
+                             "frame": "mesh coordinates" if model.in_mesh_frame else "normalized unit sphere"}}
+    m = model.mesh
+    if m is not None:
+        out["mesh"] = {"vertices_as_given": int(m.n_input), "vertices_used": int(len(m.vertices)),
+                       "faces": int(len(m.faces)), "components": int(m.n_components), "fingerprint": m.fingerprint}
+    cfg = dict(model.config or {})
+    if cfg:
+        out["training"] = cfg
+    return out
+
+
+def _cmd_info(args) -> int:
+    import json
+
+    model = _load_model(args, needs_mesh=False)
+    info = model_summary(model)
+    if args.json:
+        print(json.dumps(info, indent=1))
+        return 0
+    print(f"{args.model}: NeuroGF, D={info['D']}, options {info['network_options']}, "
+          f"SDF querier {'included' if info['querier'] else 'not included'}")
+    n = info["normalization"]
+    print(f"  frame: {n['frame']}; normalized = (x - {[round(c, 6) for c in n['center']]}) * {n['scale']:.6g}")
+    if "mesh" in info:
+        m = info["mesh"]
+        print(f"  mesh: {m['vertices_as_given']} vertices as given ({m['vertices_used']} used by faces), {m['faces']} "
+              f"faces, {m['components']} connected component(s), fingerprint {m['fingerprint'][:16]}...")
+    else:
+        print("  mesh: none stored (pass --mesh to query by vertex)")
+    t = info.get("training")
+    if t:
+        steps = t.get("steps")
+        print(f"  training: preset {t.get('preset', '?')}, steps {steps}, {t.get('train_seconds', '?')} s of steps"
+              if steps else f"  from: {t.get('source', t)}")
+    return 0
+
+
+def _cmd_render(args) -> int:
+    _check_output(args.output, (".png",), "picture")
+    if args.isolines < 0 or min(args.size) < 16 or args.refine < 0:
+        raise BadInput("--isolines and --refine must be >= 0 and --size at least 16 x 16 pixels")
+    if args.heat:
+        from neurogf_warp.evaluation.evaluate import require_heat
+
+        require_heat()
+    import numpy as np
+
+    import neurogf_warp as ngf
+    from neurogf_warp.pictures.render import render
+
+    model = _load_model(args, needs_mesh=True)
+    mesh = model.mesh
+    src = _vertex_indices(model, args.source, "--source")
+    if args.exact:
+        values, what = _exact_field(args.exact, mesh, src), "exact"
+    elif args.heat:
+        import potpourri3d as pp3d
+
+        solver = pp3d.MeshHeatMethodDistanceSolver(mesh.vertices, mesh.faces.astype(np.int64))
+        values = mesh.to_input(solver.compute_distance_multisource([int(i) for i in mesh.vertex(np.asarray(src))]))
+        what = "heat method"
+    else:
+        values = ngf.ssad(model, src[0], device=args.device) if len(src) == 1 else ngf.msad(model, src, device=args.device)
+        what = "NeuroGF"
+    paths = None
+    if args.paths:
+        tg = _vertex_indices(model, args.paths, "--paths")
+        if args.exact:
+            paths = ngf.geodesic_paths(mesh, src[0], tg, m=128, device=args.device)
+        elif args.heat:
+            import potpourri3d as pp3d
+
+            flip = pp3d.EdgeFlipGeodesicSolver(mesh.vertices, mesh.faces.astype(np.int64))
+            s0 = int(mesh.vertex(np.asarray(src[:1]))[0])
+            paths = [flip.find_geodesic_path(s0, int(t)) for t in mesh.vertex(np.asarray(tg))]
+        else:
+            v = mesh.vertices[mesh.vertex(np.asarray(tg))]
+            s = np.repeat(mesh.vertices[mesh.vertex(np.asarray(src[:1]))], len(tg), axis=0)
+            paths = np.asarray(ngf.path(model, s, v, m=128, refine=args.refine, device=args.device))
+    render(model, values, sources=src, paths=paths, isolines=args.isolines, out=args.output, size=tuple(args.size),
+           view=None if args.view is None else tuple(args.view), vrange=args.vrange, device=args.device)
+    _say(args, f"render: {what} field from {len(src)} source(s), {len(args.paths or [])} path(s): {args.output}")
+    return 0
+
+
+def _exact_field(ref, mesh, sources):
+    """Exact distance to the nearest of ``sources`` (file numbering) per vertex, from a reference file."""
+    import numpy as np
+
+    from neurogf_warp.evaluation.evaluate import load_reference
+
+    vids, sids, dist = load_reference(ref, mesh)
+    want = mesh.vertex(np.asarray(sources))
+    rows = []
+    for s, w in zip(sources, want):
+        hit = np.flatnonzero(sids == w)
+        if not len(hit):
+            raise BadInput(f"--source {s} is not one of {ref}'s sources ({', '.join(map(str, mesh.index[sids]))})")
+        rows.append(dist[hit[0]])
+    out = np.full(len(mesh.vertices), np.nan)
+    out[vids] = np.min(rows, axis=0)
+    return mesh.to_input(out)
+
+
+COMMANDS = {"demo": _cmd_demo, "data": _cmd_data, "train": _cmd_train, "eval": _cmd_eval, "ssad": _cmd_ssad,
+            "msad": _cmd_msad, "distance": _cmd_distance, "path": _cmd_path, "info": _cmd_info, "render": _cmd_render}
+
+# errors that mean "what was asked for is wrong" (exit 2); anything else is a failure (exit 1)
+BAD_INPUT = (BadInput, ValueError, TypeError, IndexError, FileNotFoundError, IsADirectoryError, NotADirectoryError,
+             FileExistsError, PermissionError)
+
+
+def main(argv=None) -> int:
+    """Run ``neurogf-warp`` with ``argv`` (default: sys.argv[1:]); returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help(sys.stderr)
+        return 2
+    debug = args.verbose or os.environ.get("NEUROGF_DEBUG", "") not in ("", "0")
+    try:
+        start_warp(args.verbose)
+        return COMMANDS[args.command](args)
+    except KeyboardInterrupt as e:  # TrainingInterrupted says where its checkpoint is
+        msg = str(e) or "interrupted"
+        print(f"{PROG} {args.command}: {msg}", file=sys.stderr)
+        return 130
+    except BAD_INPUT as e:
+        if debug:
+            raise
+        print(f"{PROG} {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except Exception as e:  # noqa: BLE001 - the one place that turns failures into an exit code
+        if debug:
+            raise
+        print(f"{PROG} {args.command}: failed: {type(e).__name__}: {e}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,148 @@
+"""Ground-truth geodesic distances and shortest paths on triangle meshes (Warp): the public front.
+
+`geodesic_distances` and `geodesic_paths` are the one-call functions; `GeodesicSolver` (geodesic_solver.py) is the
+reusable solver behind them. Every distance is the length of a real surface path (an upper bound of the exact
+geodesic distance, within 0.02% of it on average at the defaults; benchmarks/geodesics_notes.md).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from neurogf_warp.ground_truth.solver import (
+    DEFAULT_DELTA,
+    DEFAULT_K,
+    PATH_DELTA,
+    PATH_TOLERANCE,
+    GeodesicSolver,
+    load_kernels,
+)
+from neurogf_warp.mesh.mesh import Mesh, load_mesh
+
+__all__ = ["geodesic_distances", "geodesic_paths", "GeodesicSolver", "resample_polyline", "load_kernels",
+           "DEFAULT_K", "DEFAULT_DELTA", "PATH_DELTA", "PATH_TOLERANCE"]
+
+
+def _vertices(mesh: Mesh, indices, name: str) -> np.ndarray:
+    """Internal ids of user vertex indices (an int or a 1-D sequence); an empty sequence gives an empty array."""
+    s = np.asarray(indices)
+    if s.ndim > 1:
+        raise ValueError(f"{name} must be an int or a 1-D sequence of vertex indices, got shape {s.shape}")
+    if s.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.atleast_1d(mesh.vertex(s)).astype(np.int64)
+
+
+def geodesic_distances(mesh, sources, device=None, k: int = DEFAULT_K, windows: bool = True,
+                       batch: int | None = None, delta: float = DEFAULT_DELTA) -> np.ndarray:
+    """Geodesic distances from mesh vertices to every vertex.
+
+    Parameters
+    ----------
+    mesh : path, (V, F) pair, trimesh.Trimesh or Mesh
+    sources : int or (S,) int, vertex indices in the mesh's own numbering
+    device : str or warp.Device, optional
+    k : int, Steiner points per edge (accuracy)
+    windows : bool, exact unfolding windows (on: default accuracy)
+    batch : int, optional, source rows solved together (default: from free memory)
+    delta : float, delta-stepping bucket in mean edge lengths (speed only; 0 = plain Bellman-Ford)
+
+    Returns
+    -------
+    (S, V_input) float32, mesh units: inf between parts no surface path joins, NaN at vertices no face uses.
+    Every value is the length of a real surface path (an upper bound of the exact distance). An empty
+    `sources` gives a (0, V_input) array.
+    """
+    m = load_mesh(mesh)
+    src = _vertices(m, sources, "sources")
+    if len(src) == 0:
+        return np.zeros((0, m.n_input), dtype=np.float32)
+    solver = GeodesicSolver(m, k=k, windows=windows, device=device, batch=batch, max_rows=len(src),
+                            delta=delta)
+    d = solver.solve(src) / np.float32(m.scale)
+    return m.to_input(d.astype(np.float32))
+
+
+def resample_polyline(points: np.ndarray, offsets: np.ndarray, m: int) -> np.ndarray:
+    """Resample polylines to m points each, equally spaced by arc length.
+
+    Parameters
+    ----------
+    points : (P, 3) float, the polylines one after the other
+    offsets : (T + 1,) int, polyline i is points[offsets[i]:offsets[i+1]]
+    m : int >= 2, points per resampled polyline
+
+    Returns
+    -------
+    (T, m, 3) float32: a polyline of one point is repeated; an empty one (or one with NaN points) gives NaN.
+    """
+    m = _points_per_path(m)
+    T = len(offsets) - 1
+    out = np.empty((T, m, 3), dtype=np.float32)
+    u = np.linspace(0.0, 1.0, m)
+    for i in range(T):
+        p = points[offsets[i]: offsets[i + 1]].astype(np.float64)
+        if len(p) == 0:
+            out[i] = np.nan
+            continue
+        if len(p) == 1:
+            out[i] = p[0]
+            continue
+        s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))]
+        tq = u * s[-1]
+        j = np.clip(np.searchsorted(s, tq, side="right") - 1, 0, len(p) - 2)
+        seg = s[j + 1] - s[j]
+        w = np.where(seg > 0, (tq - s[j]) / np.where(seg > 0, seg, 1.0), 0.0)
+        out[i] = p[j] + w[:, None] * (p[j + 1] - p[j])
+    return out
+
+
+def _points_per_path(m) -> int:
+    if isinstance(m, bool) or not isinstance(m, (int, np.integer)):
+        raise TypeError(f"m (points per resampled path) must be an integer, got {m!r}")
+    if m < 2:
+        raise ValueError(f"m (points per resampled path) must be >= 2 (both ends), got {m}")
+    return int(m)
+
+
+def geodesic_paths(mesh, source, targets, m: int | None = None, device=None, k: int = DEFAULT_K,
+                   windows: bool = True, delta: float = PATH_DELTA):
+    """Shortest surface paths from one vertex to others.
+
+    Parameters
+    ----------
+    mesh : path, (V, F) pair, trimesh.Trimesh or Mesh
+    source : int, vertex index in the mesh's own numbering
+    targets : int or (T,) int, vertex indices
+    m : int >= 2, optional: resample every path to m points equally spaced by arc length
+    device, k, windows, delta : as in `geodesic_distances`
+
+    Returns
+    -------
+    A list of T (n_i, 3) float32 polylines in mesh units, ordered from the source, or with m a (T, m, 3)
+    float32 array (float32 like every result of the library). A target no surface path reaches gives an empty
+    (0, 3) polyline (NaN row with m); a path the
+    solver could not trace to within PATH_TOLERANCE of its distance gives a polyline of NaN (NaN row with m)
+    and is counted in the warning it raises. An empty `targets` gives [] (a (0, m, 3) array with m).
+    """
+    if m is not None:
+        m = _points_per_path(m)
+    msh = load_mesh(mesh)
+    s = _vertices(msh, source, "source")
+    if len(s) != 1:
+        raise ValueError(f"geodesic_paths takes one source vertex, got {len(s)}")
+    tg = _vertices(msh, targets, "targets")
+    if len(tg) == 0:
+        return [] if m is None else np.zeros((0, m, 3), dtype=np.float32)
+    solver = GeodesicSolver(msh, k=k, windows=windows, device=device, batch=1, delta=delta)
+    solver.run(s)
+    pts, offs, flags = solver.trace(np.zeros(len(tg), np.int32), tg)
+    if np.any(flags != 0):
+        import warnings
+
+        warnings.warn(f"{int(np.sum(flags != 0))} of {len(tg)} paths could not be traced to within "
+                      f"{PATH_TOLERANCE:.1%} of their distance; they are returned as NaN", RuntimeWarning,
+                      stacklevel=2)
+    pts = msh.denormalize(pts)
+    if m is not None:
+        return resample_polyline(pts, offs, m).astype(np.float32)
+    return [pts[offs[i]: offs[i + 1]].astype(np.float32) for i in range(len(tg))]

@@ -1,0 +1,380 @@
+"""The ground-truth geodesic solver: device state, the captured relaxation loop, distances and traced paths.
+
+Method (kernels/geodesic): a Steiner-point graph with k points per edge, relaxed by a frontier worklist in
+delta-stepping order (uint64 atomic_min on (distance, parent)), where every node also carries one unfolding
+window so rays continue straight across faces (exact triangle unfolding). Every value is the length of a real
+surface path, so distances are upper bounds of the exact geodesic distance. With ``windows=False`` it is the
+plain Steiner graph. All solving happens in the mesh's normalized frame (float32).
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import warp as wp
+
+from neurogf_warp.common.arrays import resolve_device
+from neurogf_warp.ground_truth.steiner_graph import Topology
+from neurogf_warp.mesh.mesh import load_mesh
+
+__all__ = ["GeodesicSolver", "load_kernels", "DEFAULT_K", "DEFAULT_DELTA", "PATH_DELTA", "PATH_TOLERANCE",
+           "BYTES_PER_NODE"]
+
+DEFAULT_K = 3  # Steiner points per edge at default accuracy (windows on); see benchmarks/geodesics_notes.md
+DEFAULT_DELTA = 2.0  # delta-stepping bucket (mean edge lengths): few iterations, ~2.4 improvements per node
+PATH_DELTA = DEFAULT_DELTA  # paths come from the same run as distances (every node keeps a path record)
+BYTES_PER_NODE = 109  # solver state per (source row, node): see GeodesicSolver._alloc
+PATH_TOLERANCE = 1e-3  # a traced path longer than its distance by more than this (relative) is not returned
+PATH_ABS_TOLERANCE = 1e-6  # and by more than this (normalized units: float32 rounding of short paths)
+MAX_BATCH = 512
+CPU_CHUNK_SECONDS = 0.25  # one CPU launch of the relaxation loop; Ctrl-C is seen between launches
+
+
+def _count(name: str, value) -> int:
+    """An integer setting >= 1, or a clear error naming it."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name} must be an integer, got {value!r}")
+    if value < 1:
+        raise ValueError(f"{name} must be >= 1, got {value}")
+    return int(value)
+
+
+def _kernels():
+    from neurogf_warp.kernels import ground_truth as kg  # imported lazily so `import neurogf_warp` stays light
+
+    return kg
+
+
+def load_kernels(device=None) -> None:
+    """Compile (or load from Warp's kernel cache) the solver's kernels for `device` ahead of the first solve."""
+    _kernels().load(resolve_device(device))
+
+
+class GeodesicSolver:
+    """Multi-source solver bound to one mesh and device. Reuse it for many sources.
+
+    Parameters
+    ----------
+    mesh : path, (V, F) pair, trimesh.Trimesh or Mesh
+    k : int
+        Steiner points per edge (accuracy; memory and time grow about linearly).
+    windows : bool
+        Exact unfolding windows (on: default accuracy; off: the plain Steiner graph). Upper bounds either way.
+    device : str or warp.Device, optional
+    batch : int, optional
+        Source rows solved together. Default: from a memory budget (25% of the free device memory on CUDA,
+        1 GB on CPU) at BYTES_PER_NODE per row and node, at most 512 (and at most `max_rows`).
+    max_iter : int
+        Safety cap on iterations.
+    delta : float
+        Delta-stepping bucket width in mean edge lengths (0: plain Bellman-Ford).
+    """
+
+    def __init__(self, mesh, k: int = DEFAULT_K, windows: bool = True, device=None, batch: int | None = None,
+                 max_iter: int = 100000, memory_budget: float | None = None, max_rows: int | None = None,
+                 delta: float = DEFAULT_DELTA):
+        self.mesh = load_mesh(mesh)
+        self.k = _count("k (Steiner points per edge)", k)
+        self.windows = bool(windows)
+        self.device = resolve_device(device)
+        self.max_iter = _count("max_iter", max_iter)
+        if isinstance(delta, bool) or not isinstance(delta, (int, float, np.integer, np.floating)) \
+                or not np.isfinite(delta) or delta < 0:
+            raise ValueError(f"delta must be a finite number >= 0 (0: plain Bellman-Ford), got {delta!r}")
+        t0 = time.perf_counter()
+        # window-face test on the float32 normalized positions the kernels use (see window_faces)
+        self.topo = Topology(self.mesh.normalized_vertices.astype(np.float32), self.mesh.faces)
+        self.nv = len(self.mesh.vertices)
+        # delta-stepping bucket width, in mean edge lengths (normalized frame)
+        e = self.topo.edges
+        nvx = self.mesh.normalized_vertices
+        mean_len = float(np.linalg.norm(nvx[e[:, 0]] - nvx[e[:, 1]], axis=1).mean()) if len(e) else 1.0
+        self.delta = float(delta) * mean_len if delta > 0 else float("inf")
+        self.n_nodes = self.nv + len(self.topo.edges) * self.k
+        if self.n_nodes >= 2**31 - 1:
+            raise ValueError(f"mesh too large for int32 node ids at k={self.k} ({self.n_nodes} nodes); lower k")
+        free = None
+        if memory_budget is None:
+            memory_budget = 1e9
+            if self.device.is_cuda:
+                free = getattr(self.device, "free_memory", None)
+                memory_budget = 0.25 * float(free) if free else 8e9
+        if batch is None:
+            batch = int(max(1, min(MAX_BATCH, memory_budget // self.bytes_per_row)))
+            if max_rows:
+                batch = min(batch, int(max_rows))
+        self.batch = _count("batch", batch)
+        need = self.batch * self.bytes_per_row
+        if free is not None and need > free:
+            raise MemoryError(f"one batch of {self.batch} source rows needs {need / 1e9:.2f} GB of solver state "
+                              f"({self.bytes_per_row / 1e9:.3f} GB per row at k={self.k}) but {self.device} has "
+                              f"{free / 1e9:.2f} GB free; lower batch or k, or use a smaller mesh")
+        self.timings = {"setup_s": time.perf_counter() - t0, "solve_s": 0.0, "iterations": []}
+        try:
+            self._alloc()
+        except Exception as e:  # noqa: BLE001 - allocation failures come as several types
+            raise MemoryError(f"could not allocate the solver state on {self.device}: {need / 1e9:.2f} GB for "
+                              f"{self.batch} source rows ({self.bytes_per_row / 1e9:.3f} GB per row at k={self.k}); "
+                              f"lower batch or k ({e})") from e
+        # what a second solver on the same mesh needs to give the same rows (solver_workers.py)
+        self.settings = {"k": self.k, "windows": self.windows, "delta": float(delta), "max_iter": self.max_iter,
+                         "batch": self.batch}
+        self._graphs = {}
+        self._chunk = 16  # loop iterations per CPU launch, adapted to CPU_CHUNK_SECONDS
+        self.rows = None
+
+    @property
+    def captured(self) -> bool:
+        """Whether the relaxation loop runs as a captured graph (else from a host loop)."""
+        return bool(self._graphs.get("loop"))
+
+    @property
+    def bytes_per_row(self) -> int:
+        """Device memory of one source row of solver state (bytes)."""
+        return self.n_nodes * BYTES_PER_NODE
+
+    # ---- device state -------------------------------------------------------------------------
+    def _alloc(self):
+        kg = _kernels()
+        d, b, n = self.device, self.batch, self.n_nodes
+        self.graph = self.topo.to_warp(self.mesh.normalized_vertices.astype(np.float32), self.k, self.windows, d)
+        z = lambda dt: wp.zeros((b, n), dtype=dt, device=d)  # noqa: E731
+
+        def windows():
+            w = kg.unfolding.Windows()
+            w.face, w.along, w.height, w.sigma, w.lo, w.hi = z(int), z(float), z(float), z(float), z(float), z(float)
+            return w
+
+        # per node: committed state 36 B (key, dist, window), path records 20, staging 33, worklists and stamps 20
+        rec = kg.relax.PathRecords()
+        rec.parent, rec.origin, rec.ray_face, rec.ray_along, rec.ray_height = z(int), z(int), z(int), z(float), \
+            z(float)
+        self.state = kg.relax.NodeState()
+        self.state.key, self.state.dist, self.state.win, self.state.rec = z(wp.uint64), z(float), windows(), rec
+        self.staged = kg.relax.Staging()
+        self.staged.accept, self.staged.win, self.staged.origin, self.staged.ray_face = z(wp.int8), windows(), \
+            z(int), z(int)
+        self.src_w = wp.zeros(b, dtype=int, device=d)
+        # threads per row of the list launches (a grid-stride loop covers longer lists)
+        self.row_threads = max(32, min(4096, (1 << 18) // b)) if d.is_cuda else 1
+        lists = [z(int), z(int)]
+        counts = [wp.zeros(b, dtype=int, device=d), wp.zeros(b, dtype=int, device=d)]
+        shared = dict(queued=z(int), touched=z(int), touched_count=wp.zeros(b, dtype=int, device=d),
+                      touched_stamp=z(int), threshold=wp.zeros(b, dtype=float, device=d),
+                      min_pending=wp.zeros(b, dtype=float, device=d), delta=self.delta,
+                      iteration=wp.zeros(1, dtype=int, device=d), go=wp.zeros(1, dtype=int, device=d),
+                      iteration_limit=wp.zeros(1, dtype=int, device=d), work=wp.zeros((b, 3), dtype=int, device=d),
+                      threads=self.row_threads)
+        # two iterations per loop body, ping-pong: the second swaps `active` and `next`
+        self.fronts = []
+        for c in (0, 1):
+            f = kg.relax.Frontier()
+            f.active, f.active_count, f.next, f.next_count = lists[c], counts[c], lists[1 - c], counts[1 - c]
+            for name, value in shared.items():
+                setattr(f, name, value)
+            self.fronts.append(f)
+        self._front_shared = shared
+
+    def _step(self, front):
+        """One worklist iteration: relax front.active, build front.next."""
+        kg = _kernels()
+        d, b, T = self.device, self.batch, self.row_threads
+        wp.launch(kg.relax.start_iteration, dim=b, inputs=[front], device=d)
+        wp.launch(kg.relax.relax_frontier, dim=(b, T), inputs=[self.graph, self.state, front], device=d)
+        wp.launch(kg.relax.decode_touched, dim=(b, T), inputs=[self.graph, self.state, self.staged, front], device=d)
+        wp.launch(kg.relax.commit_touched, dim=(b, T), inputs=[self.state, self.staged, front], device=d)
+
+    def _loop_body(self):
+        # two iterations per body so the ping-pong lists need no copy (the second one is empty once done)
+        self._step(self.fronts[0])
+        self._step(self.fronts[1])
+
+    def _consistent(self):
+        """Lower each distance to the exact length of the path its records describe (pointer jumping)."""
+        kg = _kernels()
+        d, dims = self.device, (self.batch, self.n_nodes)
+        # the staging arrays are free after the solve
+        ptr = [self.staged.origin, self.staged.ray_face]
+        acc = [self.staged.win.along, self.staged.win.height]
+        wp.launch(kg.paths.slack_init, dim=dims, inputs=[self.graph, self.state, ptr[0], acc[0]], device=d)
+        rounds = max(1, int(np.ceil(np.log2(max(self.n_nodes, 2)))))
+        for r in range(rounds):
+            wp.launch(kg.paths.slack_jump, dim=dims, device=d,
+                      inputs=[ptr[r % 2], acc[r % 2], ptr[(r + 1) % 2], acc[(r + 1) % 2]])
+        wp.launch(kg.paths.slack_apply, dim=dims, inputs=[acc[rounds % 2], self.state.dist], device=d)
+
+    def _start(self):
+        kg = _kernels()
+        sh = self._front_shared
+        wp.launch(kg.relax.init_rows, dim=(self.batch, self.n_nodes), inputs=[self.src_w, self.state],
+                  device=self.device)
+        sh["iteration"].zero_()
+        sh["min_pending"].zero_()  # the sources sit at distance 0
+        sh["work"].zero_()
+        sh["queued"].zero_()
+        sh["touched_stamp"].zero_()
+        wp.launch(kg.relax.init_frontier, dim=self.batch, inputs=[self.src_w, self.fronts[0]], device=self.device)
+
+    def _loop(self):
+        wp.capture_while(self._front_shared["go"], self._loop_body)
+
+    def _launch(self, name: str, program):
+        # Each program is captured once and replayed (the loop then runs on the device without host syncs);
+        # where capture is not available the same program runs from the host.
+        graph = self._graphs.get(name)
+        if graph is None:
+            try:
+                with wp.ScopedCapture(device=self.device, force_module_load=True) as cap:
+                    program()
+                graph = cap.graph
+            except Exception:  # noqa: BLE001 - any capture failure falls back to the host loop
+                graph = False
+            self._graphs[name] = graph
+        if graph:
+            wp.capture_launch(graph)
+        else:
+            program()
+
+    def _run_program(self):
+        """Initialize, relax to convergence, make distances equal to path lengths. On the CPU the relaxation runs
+        in chunks of about CPU_CHUNK_SECONDS (between chunks Python sees Ctrl-C); on CUDA in one launch."""
+        sh = self._front_shared
+        self._launch("start", self._start)
+        done = 0
+        while True:
+            step = self.max_iter if self.device.is_cuda else self._chunk
+            sh["iteration_limit"].fill_(min(done + step, self.max_iter))
+            sh["go"].fill_(1)
+            t0 = time.perf_counter()
+            self._launch("loop", self._loop)
+            self.timings["loop_launches"] = self.timings.get("loop_launches", 0) + 1
+            done = int(sh["iteration"].numpy()[0])
+            if not self.fronts[0].active_count.numpy().any():
+                break
+            if done >= self.max_iter:
+                raise RuntimeError(f"the geodesic solver did not converge in max_iter={self.max_iter} iterations; "
+                                   "raise max_iter")
+            # keep each CPU chunk near the target time
+            took = time.perf_counter() - t0
+            if took < 0.5 * CPU_CHUNK_SECONDS:
+                self._chunk = min(self._chunk * 2, 1 << 20)
+            elif took > 2.0 * CPU_CHUNK_SECONDS:
+                self._chunk = max(self._chunk // 2, 2)
+        self._launch("finish", self._consistent)
+
+    def run(self, sources: np.ndarray) -> None:
+        """Solve for up to `batch` internal source vertex ids; results stay on the device (rows 0..len-1)."""
+        src = np.asarray(sources, dtype=np.int64).reshape(-1)
+        if len(src) == 0 or len(src) > self.batch:
+            raise ValueError(f"run() takes 1..{self.batch} sources, got {len(src)}")
+        if src.min() < 0 or src.max() >= self.nv:
+            raise IndexError("internal source id out of range")
+        padded = np.full(self.batch, src[-1], dtype=np.int32)
+        padded[: len(src)] = src
+        t0 = time.perf_counter()
+        self.src_w.assign(padded)
+        self._run_program()
+        wp.synchronize_device(self.device)
+        self.timings["solve_s"] += time.perf_counter() - t0
+        self.timings["iterations"].append(int(self._front_shared["iteration"].numpy()[0]))
+        w = self._front_shared["work"].numpy()[: len(src)].sum(axis=0)
+        self.timings.setdefault("work", []).append([int(v) for v in w])
+        self.rows = src
+
+    def work_stats(self) -> dict:
+        """Work of the last run per source: iterations, relaxed nodes, node visits (list entries read + 2 x
+        decoded entries) and the node count."""
+        it = self.timings["iterations"][-1]
+        rel, read, dec = self.timings["work"][-1]
+        n = len(self.rows)
+        return {"iterations": it, "relaxed_per_source": rel / n, "visits_per_source": float((read + 2 * dec) / n),
+                "nodes": self.n_nodes}
+
+    def vertex_distances(self) -> np.ndarray:
+        """(rows, V) float32 distances of the last run, normalized units (inf = unreachable)."""
+        return self.state.dist.numpy()[: len(self.rows), : self.nv].copy()
+
+    def solve(self, sources: np.ndarray) -> np.ndarray:
+        """(S, V) normalized distances for any number of internal source ids."""
+        src = np.asarray(sources, dtype=np.int64).reshape(-1)
+        out = np.empty((len(src), self.nv), dtype=np.float32)
+        for i in range(0, len(src), self.batch):
+            self.run(src[i: i + self.batch])
+            out[i: i + self.batch] = self.vertex_distances()
+        return out
+
+    def trace(self, rows: np.ndarray, targets: np.ndarray, max_steps: int | None = None):
+        """Shortest paths of the last run: row r's source to internal vertex targets[i].
+
+        Parameters
+        ----------
+        rows : (T,) int, source rows of the last `run`
+        targets : (T,) int, internal vertex ids
+        max_steps : int, optional cap on the walk per path
+
+        Returns
+        -------
+        points : (P, 3) float32, normalized frame; path i is points[offsets[i]:offsets[i+1]], from the source
+        offsets : (T + 1,) int64
+        flags : (T,) int32, 0 for a path returned; 1 for a path that could not be traced or came out longer
+            than its distance by more than PATH_TOLERANCE, -1 for one truncated at max_steps: the points of a
+            flagged path are NaN. Unreachable targets have no points (flag 0).
+
+        Paths follow each node's path record (a graph edge, or a straight unfolded ray walked face by face to its
+        origin node), so a path's length equals the node's distance up to float rounding. Flagged paths are
+        counted in ``timings["paths_flagged"]``.
+        """
+        kg = _kernels()
+        rows = np.asarray(rows, dtype=np.int32).reshape(-1)
+        targets = np.asarray(targets, dtype=np.int32).reshape(-1)
+        T = len(targets)
+        if T == 0:
+            return np.zeros((0, 3), np.float32), np.zeros(1, np.int64), np.zeros(0, np.int32)
+        if max_steps is None:
+            max_steps = 4 * (max(self.timings["iterations"][-1], 1) + 16) * (self.k + 1)
+            max_steps = max(max_steps, int(64 * np.sqrt(len(self.topo.faces))) + 1024)
+        d = self.device
+        q = kg.paths.PathQuery()
+        q.rows = wp.array(rows, dtype=int, device=d)
+        q.targets = wp.array(targets, dtype=int, device=d)
+        q.counts = wp.zeros(T, dtype=int, device=d)
+        q.stale = wp.zeros(T, dtype=int, device=d)
+        q.offsets = wp.zeros(T, dtype=int, device=d)
+        q.points = wp.zeros(1, dtype=wp.vec3, device=d)
+        q.max_steps = int(max_steps)
+        q.write = 0
+        inputs = [self.graph, self.state.rec, self.state.dist, q]
+        wp.launch(kg.paths.walk_paths, dim=T, inputs=inputs, device=d)
+        c = q.counts.numpy().astype(np.int64)
+        offsets = np.zeros(T + 1, dtype=np.int64)
+        np.cumsum(c, out=offsets[1:])
+        if offsets[-1] >= 2**31:
+            raise MemoryError("too many path points in one trace call; trace fewer targets at a time")
+        q.offsets.assign(offsets[:-1].astype(np.int32))
+        q.points = wp.zeros(max(int(offsets[-1]), 1), dtype=wp.vec3, device=d)
+        q.write = 1
+        wp.launch(kg.paths.walk_paths, dim=T, inputs=inputs, device=d)
+        p = q.points.numpy()[: offsets[-1]]
+        # written target->source: reverse each path so it starts at the source
+        seg = np.repeat(np.arange(T), c)
+        local = np.arange(len(p)) - offsets[seg]
+        p = p[offsets[seg] + (c[seg] - 1 - local)]
+        flags = self._check_paths(p, offsets, q.stale.numpy(), self.state.dist.numpy()[rows, targets])
+        p[np.repeat(flags != 0, c)] = np.nan
+        return p, offsets, flags
+
+    def _check_paths(self, points, offsets, walk_status, dist) -> np.ndarray:
+        """Per-path flags (see trace): a truncated walk, or a path longer than its distance by more than
+        PATH_TOLERANCE (a ray walk that failed and bent at its parent, or went through the wrong faces)."""
+        length = np.zeros(len(dist))
+        if len(points) > 1:
+            step = np.linalg.norm(np.diff(points.astype(np.float64), axis=0), axis=1)
+            cum = np.r_[0.0, np.cumsum(step)]
+            n = np.diff(offsets) > 0
+            length[n] = cum[offsets[1:][n] - 1] - cum[offsets[:-1][n]]
+        d = dist.astype(np.float64)
+        too_long = np.isfinite(d) & (length > d * (1.0 + PATH_TOLERANCE) + PATH_ABS_TOLERANCE)
+        flags = np.where(walk_status < 0, -1, np.where(too_long, 1, 0)).astype(np.int32)
+        self.timings["paths_traced"] = self.timings.get("paths_traced", 0) + len(flags)
+        self.timings["paths_flagged"] = self.timings.get("paths_flagged", 0) + int(np.sum(flags != 0))
+        return flags

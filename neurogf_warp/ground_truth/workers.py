@@ -1,0 +1,286 @@
+"""Ground-truth distance rows solved on several CPU cores: the calling process's solver and worker processes.
+
+Warp runs a CPU kernel on one thread, so one ``GeodesicSolver`` keeps one core busy. ``DistanceRows`` hands
+batches of sources to the caller's solver and to worker processes (``python -m neurogf_warp.ground_truth.workers``,
+each with its own solver on the same mesh and settings) and gives the rows back in batch order: every source is
+solved on its own, so the rows, and a dataset built from them, are the same with any number of workers.
+
+Workers are plain subprocesses that talk over pipes (pickled messages), not ``multiprocessing``: a user's script
+then needs no ``if __name__ == "__main__":`` guard. They start only when the work left is worth their start-up
+(importing Warp, building the graph: about 2 s), ignore Ctrl-C (the caller stops them), and exit when the caller's
+end of the pipe closes, so none outlives it. A worker that fails is reported and its batch solved by the caller.
+"""
+from __future__ import annotations
+
+import os
+import pickle
+import queue
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import warnings
+
+import numpy as np
+
+__all__ = ["DistanceRows", "cpu_cores", "MAX_WORKERS"]
+
+MAX_WORKERS = 8  # processes in all (the caller included); each holds Warp and a solver (~0.3 GB)
+START_COST_S = 4.0  # start workers only when the batches left take longer than this on the caller alone
+
+
+def cpu_cores() -> int:
+    """CPU cores this process may run on (its affinity where the OS says, else ``os.cpu_count()``)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+class _Worker:
+    """One worker process with a solver for the caller's mesh; ``solve(sources)`` -> (rows, V) float32."""
+
+    def __init__(self, mesh, settings: dict):
+        import neurogf_warp
+
+        root = os.path.dirname(os.path.dirname(os.path.abspath(neurogf_warp.__file__)))
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")])))
+        self.log = tempfile.TemporaryFile()  # its stderr, shown only if it fails
+        self.proc = subprocess.Popen([sys.executable, "-m", "neurogf_warp.ground_truth.workers"], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, stderr=self.log, env=env)
+        self.closing = False
+        self.failed = False  # it stopped answering: no more batches for it
+        self._ready = False
+        self._send(("mesh", mesh, settings))
+
+    def _send(self, msg):
+        pickle.dump(msg, self.proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+        self.proc.stdin.flush()
+
+    def _receive(self):
+        kind, value = pickle.load(self.proc.stdout)
+        if kind == "error":
+            raise RuntimeError(value)
+        return value
+
+    def ready(self) -> None:
+        """Wait until the worker has built its solver."""
+        if not self._ready:
+            self._receive()
+            self._ready = True
+
+    def solve(self, sources: np.ndarray) -> np.ndarray:
+        self._send(("solve", np.asarray(sources, dtype=np.int64)))
+        return self._receive()
+
+    def failure(self) -> str:
+        """The worker's exit status and the end of its stderr."""
+        self.proc.poll()
+        self.log.seek(0)
+        tail = self.log.read().decode(errors="replace").strip().splitlines()[-5:]
+        return f"exit status {self.proc.returncode}: " + (" | ".join(tail) if tail else "no message")
+
+    def kill(self):
+        """Stop the worker at once (a solve in progress is abandoned)."""
+        self.closing = True
+        if self.proc.poll() is None:
+            self.proc.terminate()
+
+    def close(self):
+        """Close its input (an idle worker exits), wait for it, and free its pipes."""
+        self.closing = True
+        try:
+            self.proc.stdin.close()
+        except OSError:
+            pass
+        try:
+            self.proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self.proc.stdout.close()
+        self.log.close()
+
+
+class DistanceRows:
+    """Vertex distance rows of batches of sources, from ``solver`` (a CPU or GPU ``GeodesicSolver``) and, on the
+    CPU, up to ``workers - 1`` worker processes. Use as a context manager (the workers stop on exit).
+
+    workers : processes in all, the caller included (None: the cores this process may use, at most
+        ``MAX_WORKERS``); always 1 on a GPU, where one solver fills the device
+    """
+
+    def __init__(self, solver, workers: int | None = None):
+        if workers is not None and (isinstance(workers, bool) or not isinstance(workers, (int, np.integer))
+                                    or workers < 1):
+            raise ValueError(f"workers must be None or an integer >= 1, got {workers!r}")
+        self.solver = solver
+        if not solver.device.is_cpu:
+            workers = 1
+        self.workers = min(MAX_WORKERS, cpu_cores() if workers is None else int(workers))
+        self._pool: list[_Worker] = []
+        self.worker_batches = 0  # batches the worker processes solved
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def close(self):
+        for w in self._pool:
+            w.close()
+        self._pool = []
+
+    def rows(self, batches: list, more=None):
+        """Yield ``(i, D)`` for batch ``i`` of ``batches`` (arrays of internal source ids), in order, with ``D``
+        the (len(batches[i]), V) float32 normalized distances. ``more(i)``, if given, is asked before batch
+        ``i > 0`` is started; once it says False no further batch starts (those started are still yielded)."""
+        n = len(batches)
+        lock = threading.Lock()
+        state = {"next": 0, "stop": False}
+
+        def claim():
+            with lock:
+                i = state["next"]
+                if state["stop"] or i >= n or (i > 0 and more is not None and not more(i)):
+                    state["stop"] = True
+                    return None
+                state["next"] = i + 1
+                return i
+
+        done: queue.Queue = queue.Queue()
+        ready: dict = {}
+        want = 0
+        feeders: list[threading.Thread] = []
+
+        def solve_here(i):
+            t0 = time.perf_counter()
+            self.solver.run(batches[i])
+            ready[i] = self.solver.vertex_distances()
+            return time.perf_counter() - t0
+
+        def collect(block: bool):
+            while True:
+                try:
+                    i, d = done.get(timeout=0.2) if block else done.get_nowait()
+                except queue.Empty:
+                    return
+                if d is None:  # its worker failed: solve it here
+                    solve_here(i)
+                else:
+                    ready[i] = d
+                block = False
+
+        try:
+            while True:
+                collect(block=False)
+                while want in ready:
+                    yield want, ready.pop(want)
+                    want += 1
+                i = claim()
+                if i is None:
+                    break
+                took = solve_here(i)
+                if not feeders and self.workers > 1 and took * (n - i - 1) > START_COST_S:
+                    feeders = self._start(batches, claim, done)
+            while want < state["next"]:
+                if want in ready:
+                    yield want, ready.pop(want)
+                    want += 1
+                else:
+                    collect(block=True)
+        finally:
+            with lock:
+                state["stop"] = True
+            early = want < state["next"]  # left early (an error, Ctrl-C, the caller stopped): stop the workers
+            if early:
+                for w in self._pool:
+                    w.kill()
+            for t in feeders:
+                t.join()
+            if early:
+                self.close()
+
+    def _start(self, batches, claim, done) -> list:
+        """Start the workers (once per DistanceRows) and a feeding thread for each; returns the threads."""
+        if not self._pool:
+            try:
+                for _ in range(self.workers - 1):
+                    self._pool.append(_Worker(self.solver.mesh, self.solver.settings))
+            except (OSError, ValueError, pickle.PicklingError) as e:  # e.g. no Python executable to start
+                warnings.warn(f"could not start ground-truth worker processes ({e}); solving in this process only",
+                              RuntimeWarning, stacklevel=2)
+                self.close()
+                self.workers = 1
+                return []
+        threads = [threading.Thread(target=self._feed, args=(w, batches, claim, done), daemon=True)
+                   for w in self._pool if not w.failed]
+        for t in threads:
+            t.start()
+        return threads
+
+    def _feed(self, w: _Worker, batches, claim, done):
+        """Give worker ``w`` batches until none are left; a failure hands its batch back to the caller."""
+        i = None
+        try:
+            w.ready()
+            while True:
+                i = claim()
+                if i is None:
+                    return
+                done.put((i, w.solve(batches[i])))
+                self.worker_batches += 1
+                i = None
+        except (OSError, EOFError, RuntimeError, pickle.UnpicklingError, ValueError) as e:
+            w.failed = True
+            if i is not None:
+                done.put((i, None))
+            if not w.closing:
+                warnings.warn(f"a ground-truth worker process failed ({e}; {w.failure()}); its work is done by "
+                              "this process", RuntimeWarning, stacklevel=2)
+
+
+def _serve():
+    """Worker side: build a solver for the caller's mesh, then solve batches until the pipe closes."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole process group; the caller stops us
+    out = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)  # anything printed (Warp's messages) goes to stderr, not into the message stream
+    inp = sys.stdin.buffer
+
+    def send(kind, value):
+        pickle.dump((kind, value), out, protocol=pickle.HIGHEST_PROTOCOL)
+        out.flush()
+
+    try:
+        _, mesh, settings = pickle.load(inp)
+        import warp as wp
+
+        wp.config.log_level = wp.LOG_WARNING
+        wp.config.quiet = True
+        from neurogf_warp.ground_truth.solver import GeodesicSolver
+
+        solver = GeodesicSolver(mesh, device="cpu", **settings)
+        send("ready", None)
+        while True:
+            try:
+                _, sources = pickle.load(inp)
+            except EOFError:
+                return
+            solver.run(sources)
+            send("rows", solver.vertex_distances())
+    except (BrokenPipeError, KeyboardInterrupt):
+        return
+    except Exception as e:  # noqa: BLE001 - reported to the caller, which solves the batch itself
+        try:
+            send("error", f"{type(e).__name__}: {e}")
+        except OSError:
+            pass
+        raise
+
+
+if __name__ == "__main__":
+    _serve()

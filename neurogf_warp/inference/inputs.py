@@ -1,0 +1,153 @@
+"""Checks and conversions of query inputs: points (numpy, torch or wp.array), sources given as vertex indices or
+points, point pairs; the model's domain.
+
+A point must be finite and inside the cube ``[-DOMAIN, DOMAIN]^3`` of the network's normalized frame, i.e. within
+1.5 bounding radii of the mesh's bounding-box centre along each axis (the networks were trained on points within
+[-1.01, 1.01]^3 and extrapolate without meaning beyond it). Refusals are ValueErrors that name the offending row.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+import warp as wp
+
+from neurogf_warp.common.arrays import as_points, resolve_device
+from neurogf_warp.inference.state import frame_of, mesh_on
+from neurogf_warp.kernels.inference import finish
+from neurogf_warp.model.model import Model
+
+DOMAIN = 1.5
+
+_NO_BAD = 2**31 - 1
+
+
+def check_domain(model: Model, pts: wp.array, name: str, other: wp.array | None = None, other_name: str = ""):
+    """Refuse non-finite points and points outside the domain cube: one device pass over one or two arrays and
+    one read-back of two integers (the only synchronization a checked query makes)."""
+    n = pts.shape[0]
+    if not n:
+        return
+    dev = pts.device
+    key = ("check", str(dev))
+    if key not in model._warp:
+        model._warp[key] = (wp.empty(2, dtype=wp.int32, device=dev),
+                            wp.empty(2, dtype=wp.int32, device="cpu", pinned=dev.is_cuda))
+    bad, host = model._warp[key]
+    bad.fill_(_NO_BAD)
+    wp.launch(finish.check_points, n, inputs=[pts, other if other is not None else _empty_vec3(model, dev),
+                                              frame_of(model), DOMAIN, bad], device=dev)
+    wp.copy(host, bad)
+    if dev.is_cuda:
+        wp.synchronize_stream(dev.stream)
+    flags = host.numpy()
+    for k, (arr, label) in enumerate(((pts, name), (other, other_name))):
+        i = int(flags[k])
+        if i != _NO_BAD:
+            x = arr[i - 1: i].numpy()[0]
+            where = ("outside the model's domain (the cube of half-side 1.5 bounding radii around the mesh's "
+                     "bounding-box centre)") if np.all(np.isfinite(x)) else "non-finite (NaN or inf)"
+            raise ValueError(f"{label}[{i - 1}] = {x.tolist()} is {where}")
+
+
+def _empty_vec3(model: Model, dev) -> wp.array:
+    key = ("no_points", str(dev))
+    if key not in model._warp:
+        model._warp[key] = wp.empty(0, dtype=wp.vec3, device=dev)
+    return model._warp[key]
+
+
+def points_in(model: Model, x, name: str, dev, check: bool = True):
+    """(wp.array of vec3 on dev, kind, single) for (N, 3) or (3,) input."""
+    single = _is_single_point(x)
+    arr, kind = as_points(x, name, dev, check=False, single=True)
+    if check:
+        check_domain(model, arr, name)
+    return arr, kind, single
+
+
+def _is_single_point(x) -> bool:
+    shape = tuple(x.shape) if hasattr(x, "shape") else np.shape(x)
+    if isinstance(x, wp.array):
+        return x.ndim == 1 and x.dtype != wp.vec3 and shape == (3,)
+    return shape == (3,)
+
+
+def sources_in(model: Model, src, name: str, dev, one: bool = False):
+    """Sources as (user-frame points (S, 3) float64, internal vertex ids or None, component labels or None)."""
+    if isinstance(src, (int, np.integer)) and not isinstance(src, (bool, np.bool_)) and model.mesh is not None:
+        m = model.mesh  # the common single-vertex case without array machinery
+        i = int(src)
+        if 0 <= i < m.n_input and m.input_to_internal[i] >= 0:
+            j = int(m.input_to_internal[i])
+            return m.vertices[j:j + 1], np.array([j]), (m.components[j:j + 1] if m.n_components > 1 else None)
+    if isinstance(src, wp.array):
+        src = src.numpy()
+    elif isinstance(src, torch.Tensor):
+        src = src.detach().cpu().numpy()
+    a = np.asarray(src)
+    if a.dtype == object or a.size == 0:
+        raise ValueError(f"{name} is empty: give a vertex index, a list of indices or (S, 3) points")
+    if np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.bool_):
+        if np.issubdtype(a.dtype, np.bool_):
+            raise TypeError(f"{name} must be vertex indices (integers) or points (floats), got booleans")
+        if model.mesh is None:
+            raise ValueError(f"{name} given as vertex indices, but this model has no mesh: pass points instead")
+        if one and a.size != 1:
+            raise ValueError(f"ssad takes one source, got {a.size}; use msad or distance_matrix for several")
+        flat = a.reshape(-1)
+        if flat.min() < 0:
+            raise IndexError(f"{name}: vertex index {int(flat[flat < 0][0])} is negative; indices run from 0 to "
+                             f"{model.mesh.n_input - 1} in the mesh file's numbering")
+        ids = model.mesh.vertex(flat)
+        comp = model.mesh.components[ids] if model.mesh.n_components > 1 else None
+        return model.mesh.vertices[ids], ids, comp
+    if not np.issubdtype(a.dtype, np.floating):
+        raise TypeError(f"{name} must be vertex indices (integers) or points (floats), got dtype {a.dtype}")
+    if one and a.size != 3:
+        raise ValueError(f"ssad takes one source point of 3 coordinates, got shape {a.shape}")
+    a = a.reshape(1, 3) if a.shape == (3,) else a
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{name} must be vertex indices or points of shape (S, 3), got shape {np.shape(src)}")
+    _check_domain_host(model, a, name)
+    comp = None
+    if model.mesh is not None and model.mesh.n_components > 1:
+        pts = wp.array(a.astype(np.float32), dtype=wp.vec3, device=dev)
+        comp = mesh_on(model, dev, name).components_of(pts).numpy()
+    return a.astype(np.float64), None, comp
+
+
+def _check_domain_host(model: Model, a: np.ndarray, name: str):
+    """check_domain for a few points already on the host (no device round trip)."""
+    f = frame_of(model)
+    x = (a.astype(np.float32) - np.array(f.center, dtype=np.float32)) * np.float32(f.xscale)
+    bad = ~np.all(np.isfinite(x) & (np.abs(x) <= DOMAIN), axis=1)
+    if np.any(bad):
+        i = int(np.argmax(bad))
+        where = ("outside the model's domain (the cube of half-side 1.5 bounding radii around the mesh's "
+                 "bounding-box centre)") if np.all(np.isfinite(a[i])) else "non-finite (NaN or inf)"
+        raise ValueError(f"{name}[{i}] = {a[i].tolist()} is {where}")
+
+
+def pair_inputs(model, p, q, device, check: bool = True):
+    dev = resolve_device(device, like=p)
+    P, kind, single_p = points_in(model, p, "p", dev, False)
+    Q, _, single_q = points_in(model, q, "q", dev, False)
+    if P.shape != Q.shape:
+        raise ValueError(f"p and q must have the same shape (N, 3), got {P.shape[0]} and {Q.shape[0]} points")
+    if check:
+        check_domain(model, P, "p", Q, "q")
+    return dev, P, Q, kind, single_p and single_q
+
+
+def pair_components(model: Model, P, Q, dev):
+    if model.mesh is None or model.mesh.n_components == 1:
+        return None
+    md = mesh_on(model, dev, "distance")
+    return md.components_of(P), md.components_of(Q)
+
+
+def single_answer(res, kind: str, single: bool):
+    """A single query point gives a single answer (shape (), or (m, 3) for a path)."""
+    if not single:
+        return res
+    return res[0]

@@ -1,0 +1,325 @@
+"""Queries of a trained NeuroGF: geodesic distances (point pairs, SSAD, MSAD, distance matrices), SDF, paths.
+
+Coordinates: with a mesh attached, points are in the mesh's own coordinates and distances in its units, and
+per-vertex results follow the mesh file's vertex numbering (NaN for vertices no face uses). Without a mesh,
+everything is in the normalized unit-sphere frame the network was trained in.
+
+What the answers mean: a geodesic distance is never negative, is exactly 0 from a point to itself (and at an
+SSAD's source vertex), and is +inf between points of different connected components of the mesh (a point
+belongs to the component of the surface point closest to it). Points must lie in the model's domain: the cube
+``[-DOMAIN, DOMAIN]^3`` of the normalized frame, i.e. within 1.5 bounding radii of the mesh's bounding-box centre
+along each axis; farther points are refused with a ValueError (the networks were trained on points within
+[-1.01, 1.01]^3 and extrapolate without meaning beyond it). Distances are meaningful for points on or near the
+surface: the network was trained on surface points, and off-surface points get the value of an extrapolation.
+
+precision:
+  "fp16"  tensor-core kernels (kernels/tensorcore.py): fp16 weights and activations, fp32 sums, within about
+          1e-4 of a float64 evaluation relative to the largest distance. The fast path on CUDA devices.
+  "fp32"  per-thread kernels (kernels/mlp.py): fp32 weights, float64 sums, within ~1e-6 of float64. On the CPU
+          the fast path; on a GPU the reference. D = 512 networks always use it.
+  "auto"  (default) fp16 on CUDA devices, fp32 on the CPU (where the tensor-core kernels run only as a slow
+          emulation, used by the tests).
+
+Vertex queries (ssad, msad, distance_matrix) keep the embeddings of every mesh vertex on the device after the
+first call (``cache=True``): fp16 packed, 2 D bytes per vertex (223 MB for 436,000 vertices at D = 256), or fp32,
+4 D bytes, for precision "fp32"; later calls then run only the distance head. ``Model.unbind`` frees them.
+"""
+from __future__ import annotations
+
+import time
+import warnings
+
+import numpy as np
+import torch
+import warp as wp
+
+from neurogf_warp.common.arrays import Output, as_points, resolve_device
+from neurogf_warp.inference.inputs import DOMAIN, pair_components, pair_inputs, points_in, single_answer, sources_in
+from neurogf_warp.inference.paths import PROJECT_STEPS, path, project  # noqa: F401  (public through this module)
+from neurogf_warp.inference.state import (
+    PRECISIONS,
+    MeshOnDevice,
+    bind,
+    binding_of,
+    bound_tables,
+    check_memory,
+    embed_fp32,
+    engine_of,
+    frame_of,
+    head_only_weights,
+    mesh_on,
+    precision_of,
+    unbind,
+    warp_weights,
+)
+from neurogf_warp.kernels.inference import finish, head_fp32, mlp
+from neurogf_warp.model.folded import BN_EPS, fold_batchnorm  # noqa: F401  (fold_batchnorm: public since the first release)
+from neurogf_warp.model.model import Model
+
+__all__ = ["fold_batchnorm", "warp_weights", "ssad", "msad", "distance_matrix", "distance", "sdf", "path",
+           "project", "embed", "warmup", "bind", "unbind", "DOMAIN", "PRECISIONS"]
+
+CHUNK_BYTES = 1 << 30  # device memory for one chunk of a many-source result bound for the host
+
+_warned_unbound = set()
+
+
+# ---- vertex queries ---------------------------------------------------------------------------------------------------
+
+def _vertex_distances(model: Model, src, name: str, device, output: str, precision: str, cache: bool,
+                      reduce_min: bool, one: bool = False, raw: bool = False):
+    dev = resolve_device(device)
+    prec = precision_of(model, precision, dev)
+    md = mesh_on(model, dev, name)
+    pts, ids, comp = sources_in(model, src, name, dev, one=one)
+    S, V = len(pts), md.V
+    rows_out = 1 if reduce_min else S
+    need = 4 * rows_out * (V + (0 if md.identity else md.n_input))
+    if output == "numpy" and rows_out > 1 and need > CHUNK_BYTES:
+        # a large matrix for the host: sources in chunks that fit, each copied out before the next
+        step = max(1, int(CHUNK_BYTES // (need // rows_out)))
+        return np.concatenate([_vertex_distances(model, src_chunk, name, dev, output, precision, cache, False,
+                                                 raw=raw) for src_chunk in _source_chunks(src, pts, ids, step)])
+    check_memory(dev, need, f"a ({rows_out}, {md.n_input}) result", "use output='numpy' (computed in chunks of "
+                  "sources) or fewer sources per call")
+    if cache:
+        try:
+            bind(model, dev, prec)
+        except MemoryError as e:  # the query still runs, embedding the vertices as it goes
+            if (id(model), str(dev)) not in _warned_unbound:
+                _warned_unbound.add((id(model), str(dev)))
+                warnings.warn(f"{e}; answering without kept embeddings", RuntimeWarning, stacklevel=3)
+    bound = binding_of(model, dev, prec)
+    internal = wp.empty(rows_out * V, dtype=wp.float32, device=dev)
+    if prec == "fp16":
+        eng = engine_of(model, dev)
+        kw = dict(count=S, reduce_min=reduce_min, raw=raw)
+        if bound is not None and ids is not None:  # rows of the kept tables: nothing to embed or copy
+            rows, table = bound_tables(model, dev, md, bound)
+            if S == 1:
+                eng.distances(rows, table, internal, V, row0=int(ids[0]), **kw)
+            else:
+                eng.distances(rows, table, internal, V, ids=wp.array(ids.astype(np.int32), dtype=wp.int32,
+                                                                      device=dev), **kw)
+        else:
+            src_pos = wp.array(pts.astype(np.float32), dtype=wp.vec3, device=dev)
+            src_comp = wp.array(comp.astype(np.int32), dtype=wp.int32, device=dev) if comp is not None else None
+            rows = bound_tables(model, dev, md, bound)[0] if bound is not None else md.lifted_rows(eng)
+            eng.distances(rows, eng.sources(eng.embed(src_pos), src_pos, src_comp), internal, V, **kw)
+    else:
+        src_pos = wp.array(pts.astype(np.float32), dtype=wp.vec3, device=dev)
+        src_comp = wp.array(comp.astype(np.int32), dtype=wp.int32, device=dev) if comp is not None else None
+        head = _head_values_fp32(model, dev, md, src_pos, bound)
+        full = internal.reshape((rows_out, V)) if not reduce_min else wp.empty((S, V), dtype=wp.float32, device=dev)
+        none = wp.empty(0, dtype=wp.int32, device=dev)
+        wp.launch(finish.finish_rows, (S, V), inputs=[head, md.verts, md.comp if md.multi else none, src_pos,
+                                                      src_comp if src_comp is not None else none, frame_of(model),
+                                                      1.0 if model.net.euclid else 0.0, int(raw)], outputs=[full],
+                  device=dev)
+        if reduce_min:
+            wp.launch(finish.min_rows, V, inputs=[full], outputs=[internal], device=dev)
+    flat = rows_out == 1 and (one or reduce_min)
+    if md.identity:
+        res = internal if flat else internal.reshape((rows_out, V))
+    else:
+        res = wp.empty((rows_out, md.n_input), dtype=wp.float32, device=dev)
+        wp.launch(finish.to_input, res.shape, inputs=[internal.reshape((rows_out, V)), md.inv], outputs=[res],
+                  device=dev)
+        if flat:
+            res = res.reshape(-1)
+    return Output(output, dev).result(res)
+
+
+def _source_chunks(src, pts, ids, step: int):
+    """The sources of a query in chunks of ``step``, in the form they came in (vertex indices or points)."""
+    flat = np.asarray(ids if ids is not None else pts)
+    given = np.asarray(src.numpy() if isinstance(src, wp.array) else src.detach().cpu().numpy()
+                       if isinstance(src, torch.Tensor) else src)
+    given = given.reshape(-1) if ids is not None else given.reshape(-1, 3)
+    return [given[i:i + step] for i in range(0, len(flat), step)]
+
+
+def _head_values_fp32(model: Model, dev, md: MeshOnDevice, src_pos: wp.array, bound) -> wp.array:
+    """(S, V) distance-head values (network frame, no |x - s| term) from float32 per-thread or tile kernels."""
+    S, V = src_pos.shape[0], md.V
+    es = embed(model, src_pos, device=dev)
+    head = wp.empty((S, V), dtype=wp.float32, device=dev)
+    w = warp_weights(model, dev)
+    if bound is None or model.D > head_fp32.MAX_D:
+        wp.launch(head_fp32.head_rows, (S, V), outputs=[head], device=dev,
+                  inputs=[head_only_weights(model, dev), es, src_pos, md.verts, frame_of(model)])
+        return head
+    key = ("tile_head", str(dev))
+    if key not in model._warp:  # the tile kernel takes biases as (H, 1) columns
+        col = lambda b: wp.array(b.numpy().reshape(-1, 1), dtype=wp.float32, device=dev)
+        model._warp[key] = (w.g0_w, col(w.g0_b), w.g1_w, col(w.g1_b), w.g2_w)
+    weights = model._warp[key]
+    H, D = weights[0].shape
+    kernel = head_fp32.head_kernel(D, H, False, head_fp32.BLOCK, head_fp32.CHUNK)
+    for s in range(S):
+        wp.launch_tiled(kernel, dim=[(V + head_fp32.BLOCK - 1) // head_fp32.BLOCK],
+                        inputs=[es[s: s + 1], bound, *weights, D // head_fp32.CHUNK], outputs=[head[s: s + 1]],
+                        block_dim=head_fp32.THREADS, device=dev)
+    return head
+
+
+def ssad(model: Model, source, device=None, output: str = "numpy", precision: str = "auto", cache: bool = True,
+         raw: bool = False):
+    """Single source, all destinations: the geodesic distance from ``source`` to every mesh vertex.
+
+    Parameters
+    ----------
+    source : int or (3,) float
+        A vertex index in the mesh file's numbering, or a point in mesh coordinates.
+    device : str, optional
+        "cpu" or "cuda:N" (default: Warp's preferred device).
+    output : {"numpy", "torch", "warp"}
+        The kind of array returned; "torch" and "warp" stay on the device.
+    precision : {"auto", "fp16", "fp32"}
+        See the module docstring.
+    cache : bool
+        Keep every vertex's embedding on the device for later vertex queries (see the module docstring).
+    raw : bool
+        The network's own values: no clamping at 0 and no exact 0 at the source (for parity checks).
+
+    Returns
+    -------
+    (n_input,) float32
+        Distances in mesh units, in the file's vertex numbering: NaN for vertices no face uses, +inf for vertices
+        on another connected component, exactly 0 at the source vertex.
+    """
+    return _vertex_distances(model, source, "source", device, output, precision, cache, False, one=True, raw=raw)
+
+
+def msad(model: Model, sources, device=None, output: str = "numpy", precision: str = "auto", cache: bool = True,
+         raw: bool = False):
+    """Multiple sources, all destinations: the distance from every mesh vertex to its nearest source.
+
+    sources: vertex indices (S,) in the file's numbering, or points (S, 3) in mesh coordinates.
+    Returns (n_input,) float32, as ``ssad``.
+    """
+    return _vertex_distances(model, sources, "sources", device, output, precision, cache, True, raw=raw)
+
+
+def distance_matrix(model: Model, sources, targets=None, device=None, output: str = "numpy",
+                    precision: str = "auto", cache: bool = True, raw: bool = False):
+    """Distances from many sources at once: (S, n_input) to every mesh vertex, or (S, T) to given targets.
+
+    Parameters
+    ----------
+    sources : (S,) int or (S, 3) float
+        Vertex indices (the file's numbering) or points in mesh coordinates.
+    targets : None, (T,) int or (T, 3) float
+        None: every mesh vertex (rows in the file's numbering, NaN columns for unused vertices). Otherwise
+        vertex indices or points; each target is embedded once and shared by all sources.
+
+    The (S, V) form of S sources costs about S single-source queries of the distance head but one pass over the
+    vertex embeddings; memory is 4 S V bytes for the result.
+    """
+    if targets is None:
+        return _vertex_distances(model, sources, "sources", device, output, precision, cache, False, raw=raw)
+    dev = resolve_device(device)
+    prec = precision_of(model, precision, dev)
+    spts, _, scomp = sources_in(model, sources, "sources", dev)
+    tpts, _, tcomp = sources_in(model, targets, "targets", dev)
+    S, T = len(spts), len(tpts)
+    src_pos = wp.array(spts.astype(np.float32), dtype=wp.vec3, device=dev)
+    tgt_pos = wp.array(tpts.astype(np.float32), dtype=wp.vec3, device=dev)
+    res = wp.empty((S, T), dtype=wp.float32, device=dev)
+    multi = scomp is not None and tcomp is not None
+    tc_arr = wp.array(tcomp.astype(np.int32), dtype=wp.int32, device=dev) if multi else None
+    sc_arr = wp.array(scomp.astype(np.int32), dtype=wp.int32, device=dev) if multi else None
+    if prec == "fp16":
+        eng = engine_of(model, dev)
+        eng.distances(eng.rows(tgt_pos, eng.embed(tgt_pos), tc_arr), eng.sources(eng.embed(src_pos), src_pos, sc_arr),
+                      res.reshape(-1), T, count=S, raw=raw)
+    else:
+        es = embed(model, src_pos, device=dev)
+        head = wp.empty((S, T), dtype=wp.float32, device=dev)
+        wp.launch(head_fp32.head_rows, (S, T), outputs=[head], device=dev,
+                  inputs=[head_only_weights(model, dev), es, src_pos, tgt_pos, frame_of(model)])
+        none = wp.empty(0, dtype=wp.int32, device=dev)
+        wp.launch(finish.finish_rows, (S, T), inputs=[head, tgt_pos, tc_arr if multi else none, src_pos,
+                                                      sc_arr if multi else none, frame_of(model),
+                                                      1.0 if model.net.euclid else 0.0, int(raw)], outputs=[res],
+                  device=dev)
+    return Output(output, dev).result(res)
+
+
+# ---- point queries ----------------------------------------------------------------------------------------------------
+
+def distance(model: Model, p, q, device=None, precision: str = "auto", check: bool = True, raw: bool = False):
+    """Geodesic distances between point pairs: (N, 3), (N, 3) -> (N,) float32, mesh units; (3,), (3,) -> ().
+
+    Symmetric, never negative, 0 for a point and itself, +inf across connected components. Arrays come back in
+    the kind they came in (numpy, torch or wp.array, on the input's device). ``check``: refuse non-finite and
+    out-of-domain points (one device-side pass and a synchronization; with False such rows give NaN instead).
+    ``raw``: the network's own values (no clamping at 0, no exact 0 for identical points).
+    """
+    dev, P, Q, kind, single = pair_inputs(model, p, q, device, check)
+    prec = precision_of(model, precision, dev)
+    out = Output(kind, dev)
+    res = out.empty(P.shape[0])
+    n = P.shape[0]
+    if n:
+        if prec == "fp16":
+            engine_of(model, dev).pairs(P, Q, res, raw)
+        else:
+            wp.launch(mlp.distance_pairs, n, inputs=[warp_weights(model, dev), P, Q, frame_of(model)], outputs=[res],
+                      device=dev)
+            if not raw:
+                wp.launch(finish.clamp_pairs, n, inputs=[P, Q, res], device=dev)
+        comps = pair_components(model, P, Q, dev)
+        if comps is not None:
+            wp.launch(finish.split_pairs, n, inputs=[*comps, res], device=dev)
+    return single_answer(out.result(res), kind, single)
+
+
+def sdf(model: Model, x, device=None, precision: str = "auto", check: bool = True):
+    """Signed distance from the network's SDF head: (N, 3) -> (N,) float32 mesh units, negative inside; (3,) -> ()."""
+    dev = resolve_device(device, like=x)
+    X, kind, single = points_in(model, x, "x", dev, check)
+    prec = precision_of(model, precision, dev)
+    out = Output(kind, dev)
+    res = out.empty(X.shape[0])
+    if X.shape[0]:
+        if prec == "fp16":
+            engine_of(model, dev).sdf(X, res)
+        else:
+            wp.launch(mlp.signed_distances, X.shape[0], inputs=[warp_weights(model, dev), X, frame_of(model)],
+                      outputs=[res], device=dev)
+    return single_answer(out.result(res), kind, single)
+
+
+def embed(model: Model, x, device=None) -> wp.array:
+    """Point embeddings e(x) of the lifting network: (N, 3) -> (N, D) float32 wp.array on the device."""
+    dev = resolve_device(device, like=x)
+    pts, _ = as_points(x, "x", dev, check=False, single=True)
+    return embed_fp32(model, pts, dev)
+
+
+# ---- compilation --------------------------------------------------------------------------------------------------------
+
+def warmup(model: Model, device=None, precision: str = "auto") -> dict:
+    """Compile (or load from Warp's kernel cache) every kernel the queries use on ``device``, by answering one
+    tiny query of each kind; nothing is kept (no vertex embeddings).
+
+    Returns {"seconds": wall time}. Later calls in the process find the kernels loaded; a new process loads them
+    from Warp's kernel cache (``wp.config.kernel_cache_dir``) in milliseconds instead of compiling.
+    """
+    dev = resolve_device(device)
+    prec = precision_of(model, precision, dev)
+    t0 = time.perf_counter()
+    x = model.mesh.vertices[:2] if model.mesh is not None else np.array([[0.1, 0.2, 0.3], [-0.3, 0.1, 0.0]])
+    kw = dict(device=dev, precision=prec)
+    distance(model, x[:1], x[1:], **kw)
+    sdf(model, x, **kw)
+    path(model, x[:1], x[1:], m=16, **kw)
+    path(model, x[:1], x[1:], m=8, refine=1, project="mesh" if model.mesh is not None else "sdf", **kw)
+    if model.mesh is not None:
+        ssad(model, 0 if model.mesh.input_to_internal[0] >= 0 else int(model.mesh.index[0]), cache=False, **kw)
+        ssad(model, x[0], cache=False, **kw)
+        msad(model, x, cache=False, **kw)
+    distance_matrix(model, x, x, **kw)
+    wp.synchronize_device(dev)
+    return {"seconds": time.perf_counter() - t0}

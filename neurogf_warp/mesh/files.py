@@ -1,0 +1,338 @@
+"""Mesh files read in the file's own vertex numbering: OBJ (own reader), PLY and STL (trimesh, checked).
+
+``read_mesh_file(path)`` returns every vertex record of the file, in file order, and the faces as triangles
+indexing them. Nothing is dropped, merged or reordered here: unreferenced vertices stay (trimesh's OBJ reader
+drops them, which shifts every later index), and STL keeps its three corners per triangle (welding is
+``neurogf_warp.mesh.mesh``'s job). Every error is a ``ValueError`` naming the file and what is wrong with it.
+"""
+from __future__ import annotations
+
+import os
+import re
+
+import numpy as np
+
+__all__ = ["read_mesh_file", "MESH_SUFFIXES"]
+
+# Suffixes read here; anything else goes to trimesh's own loaders as given.
+MESH_SUFFIXES = (".obj", ".ply", ".stl")
+# Bytes looked at to tell text from binary data.
+SNIFF_BYTES = 4096
+
+
+def read_mesh_file(path) -> tuple[np.ndarray, np.ndarray, str]:
+    """Read a mesh file's vertex records and triangles in the file's own order.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        An ``.obj``, ``.ply`` or ``.stl`` file (other formats are passed to ``trimesh.load``).
+
+    Returns
+    -------
+    vertices : (n, 3) float64, file units
+        One row per vertex record of the file, in file order (for STL, three per triangle, unwelded).
+    faces : (F, 3) int64
+        Triangles indexing ``vertices``; polygons are split into triangles (quads along their first
+        diagonal, larger polygons as a fan from their first corner).
+    kind : str
+        ``"obj"``, ``"ply"``, ``"stl"`` or the suffix of another format.
+
+    Raises
+    ------
+    FileNotFoundError
+        When ``path`` is not a file.
+    ValueError
+        When the file is not a mesh of its kind (the message names the file, and the line for OBJ).
+    """
+    path = os.fspath(path)
+    if os.path.isdir(path):
+        raise ValueError(f"{path} is a folder, not a mesh file")
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"mesh file not found: {path}")
+    kind = os.path.splitext(path)[1].lower().lstrip(".")
+    with open(path, "rb") as fh:
+        data = fh.read()
+    if not data.strip():
+        raise ValueError(f"mesh file {path} is empty")
+    if kind == "obj":
+        v, f = _read_obj(data, path)
+    elif kind == "ply":
+        v, f = _read_ply(data, path)
+    elif kind == "stl":
+        v, f = _read_stl(data, path)
+    else:
+        v, f = _read_other(path, kind)
+    if len(f) == 0:
+        raise ValueError(f"mesh file {path} has no triangle faces: NeuroGF needs a triangle surface")
+    return v, f, kind
+
+
+# --- OBJ ------------------------------------------------------------------------------------------------------
+
+def _is_binary(data: bytes) -> bool:
+    head = data[:SNIFF_BYTES]
+    if b"\x00" in head:
+        return True
+    try:
+        head.decode("utf-8")
+    except UnicodeDecodeError as e:
+        # a multi-byte character cut at the sniff boundary is still text
+        return e.start < len(head) - 4
+    return False
+
+
+def _read_obj(data: bytes, path: str):
+    if _is_binary(data):
+        raise ValueError(f"{path} is not a mesh file: it holds binary data, and an OBJ file is text "
+                         "(check that the file is not truncated, compressed or of another format)")
+    text = data.decode("utf-8", errors="replace")
+    # a backslash at the end of a line continues it on the next one
+    text = re.sub(r"\\\r?\n", " ", text)
+    coords: list = []    # 3 coordinate strings per vertex record
+    v_lines: list = []
+    corners: list = []   # index strings of every face corner
+    counts: list = []    # corners per face
+    seen: list = []      # vertex records read before each face (for relative indices)
+    f_lines: list = []
+    for lineno, line in enumerate(text.splitlines(), 1):
+        if "#" in line:
+            line = line[:line.index("#")]
+        tok = line.split()
+        if not tok:
+            continue
+        key = tok[0]
+        if key == "v":
+            if len(tok) < 4:
+                raise ValueError(f"{path}, line {lineno}: a vertex record needs 3 coordinates, got {len(tok) - 1}")
+            coords += tok[1:4]
+            v_lines.append(lineno)
+        elif key == "f":
+            if len(tok) < 4:
+                raise ValueError(f"{path}, line {lineno}: a face needs at least 3 vertices, got {len(tok) - 1}")
+            corners += tok[1:]
+            counts.append(len(tok) - 1)
+            seen.append(len(v_lines))
+            f_lines.append(lineno)
+        # other records (vt, vn, g, o, s, usemtl, l, ...) carry no triangle topology
+    if not v_lines:
+        raise ValueError(f"{path} is not a mesh file: it has no vertex records ('v x y z' lines)")
+    if not f_lines:
+        raise ValueError(f"mesh file {path} has no faces ('f' lines): NeuroGF needs a triangle surface")
+    n = len(v_lines)
+    try:
+        verts = np.array(coords, dtype=np.float64).reshape(n, 3)
+    except ValueError:
+        bad = next(i for i, c in enumerate(coords) if not _parses(float, c))
+        raise ValueError(f"{path}, line {v_lines[bad // 3]}: vertex coordinate {coords[bad]!r} is not a number") from None
+    counts = np.asarray(counts, dtype=np.int64)
+    face_of = np.repeat(np.arange(len(counts)), counts)  # face of each corner
+    corners = [c.split("/", 1)[0] if "/" in c else c for c in corners]
+    try:
+        idx = np.array(corners, dtype=np.int64)
+    except (ValueError, OverflowError):
+        bad = next(i for i, c in enumerate(corners) if not _parses(int, c))
+        raise ValueError(f"{path}, line {f_lines[face_of[bad]]}: face vertex {corners[bad]!r} is not an index") from None
+    before = np.asarray(seen, dtype=np.int64)[face_of]
+    # OBJ indices are 1-based; negative ones are relative: -1 is the last vertex defined before the face
+    k = np.where(idx > 0, idx - 1, idx + before)
+    bad = (idx == 0) | (k < 0) | (k >= n)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        where = f"{path}, line {f_lines[face_of[i]]}"
+        if idx[i] == 0:
+            raise ValueError(f"{where}: vertex index 0 is not valid (OBJ indices start at 1)")
+        if idx[i] < 0:
+            raise ValueError(f"{where}: relative index {idx[i]} points before the first vertex "
+                             f"({before[i]} defined before this face)")
+        raise ValueError(f"{where}: vertex index {idx[i]} is out of range: the file has {n} vertex records")
+    return verts, _triangulate(k, counts)
+
+
+def _parses(convert, s: str) -> bool:
+    try:
+        convert(s)
+    except ValueError:
+        return False
+    return True
+
+
+def _triangulate(k: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Faces of ``counts`` corners each (flat ``k``) as triangles, in face order."""
+    if np.all(counts == 3):
+        return k.reshape(-1, 3)
+    if np.all(counts == 4):
+        q = k.reshape(-1, 4)
+        # trimesh lists all first halves of the quads before the second halves; the same order keeps the
+        # fingerprints (and so the model files) of quad meshes loaded through trimesh before this reader
+        return np.concatenate([q[:, [0, 1, 2]], q[:, [2, 3, 0]]])
+    tris = []
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    for s, c in zip(starts.tolist(), counts.tolist()):
+        p = k[s:s + c].tolist()
+        if c == 4:
+            tris += [[p[0], p[1], p[2]], [p[2], p[3], p[0]]]
+        else:  # a fan from the first corner
+            tris += [[p[0], p[i], p[i + 1]] for i in range(1, c - 1)]
+    return np.asarray(tris, dtype=np.int64).reshape(-1, 3)
+
+
+# --- PLY ------------------------------------------------------------------------------------------------------
+
+_PLY_TYPES = {"char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1", "short": "i2", "ushort": "u2",
+              "int16": "i2", "uint16": "u2", "int": "i4", "uint": "u4", "int32": "i4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+_PLY_FACE_LISTS = ("vertex_indices", "vertex_index")
+
+
+def _ply_header(data: bytes, path: str) -> tuple[str, list, int]:
+    """(encoding, elements as [name, count, [(property, type) or (property, count type, item type)]], header bytes)."""
+    if not data.startswith(b"ply"):
+        raise ValueError(f"{path} is not a mesh file: a PLY file starts with 'ply' (found {data[:12]!r})")
+    end = data.find(b"end_header")
+    if end < 0:
+        raise ValueError(f"{path} is not a valid PLY file: its header has no 'end_header' line")
+    nl = data.find(b"\n", end)
+    header_len = len(data) if nl < 0 else nl + 1
+    enc, elements = None, []
+    for line in data[:end].decode("ascii", errors="replace").splitlines():
+        tok = line.split()
+        if not tok:
+            continue
+        if tok[0] == "format" and len(tok) >= 2:
+            enc = tok[1]
+        elif tok[0] == "element" and len(tok) >= 3:
+            try:
+                count = int(tok[2])
+            except ValueError:
+                raise ValueError(f"{path}: PLY element {tok[1]!r} has a count {tok[2]!r} that is not a number") from None
+            if count < 0:
+                raise ValueError(f"{path}: PLY element {tok[1]!r} has a negative count {count}")
+            elements.append([tok[1], count, []])
+        elif tok[0] == "property" and elements:
+            types = tok[2:4] if len(tok) >= 5 and tok[1] == "list" else tok[1:2]
+            if len(types) not in (1, 2) or any(t not in _PLY_TYPES for t in types):
+                raise ValueError(f"{path}: PLY property line {line.strip()!r} has an unknown type")
+            elements[-1][2].append((tok[-1], *types))
+    if enc not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise ValueError(f"{path}: unknown PLY format {enc!r} (expected ascii or binary_little/big_endian)")
+    if not any(e[0] == "vertex" for e in elements):
+        raise ValueError(f"{path}: the PLY header declares no vertex element")
+    return enc, elements, header_len
+
+
+def _read_ply(data: bytes, path: str):
+    enc, elements, header_len = _ply_header(data, path)
+    n_vert = next(e[1] for e in elements if e[0] == "vertex")
+    body = len(data) - header_len
+    if enc == "ascii":
+        if n_vert > body:  # every ascii record takes at least a byte
+            raise ValueError(f"{path}: the PLY header declares {n_vert} vertices but the file is too short for them")
+    else:
+        need = sum(e[1] * sum(np.dtype(_PLY_TYPES[p[1]]).itemsize for p in e[2]) for e in elements
+                   if all(len(p) == 2 for p in e[2]))
+        if need > body:
+            raise ValueError(f"{path}: the PLY header declares {need} bytes of fixed-size records but only {body} "
+                             "bytes follow it: the file is truncated or corrupt")
+    try:
+        v, f = _trimesh_arrays(path, "ply")
+    except ValueError:
+        if enc == "ascii":
+            raise
+        # trimesh reads binary polygon lists of one length only; read mixed polygons record by record
+        v, f = _ply_binary(data, header_len, elements, "<" if enc == "binary_little_endian" else ">", path)
+    if len(v) != n_vert:
+        raise ValueError(f"{path}: the PLY header declares {n_vert} vertices but {len(v)} were read")
+    return v, f
+
+
+def _ply_binary(data: bytes, off: int, elements: list, endian: str, path: str):
+    """Vertices and triangulated faces of a binary PLY file, element by element."""
+    verts, counts, corners = None, [], []
+    for name, count, props in elements:
+        if all(len(p) == 2 for p in props):  # fixed-size records
+            dt = np.dtype([(p[0], endian + _PLY_TYPES[p[1]]) for p in props])
+            if off + count * dt.itemsize > len(data):
+                raise ValueError(f"{path}: PLY element {name!r} runs past the end of the file (truncated or corrupt)")
+            rec = np.frombuffer(data, dtype=dt, count=count, offset=off)
+            off += count * dt.itemsize
+            if name == "vertex":
+                if not all(c in dt.names for c in "xyz"):
+                    raise ValueError(f"{path}: the PLY vertex element has no x, y, z properties")
+                verts = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(np.float64)
+            continue
+        for _ in range(count):
+            for p in props:
+                if len(p) == 2:
+                    off += np.dtype(_PLY_TYPES[p[1]]).itemsize
+                    continue
+                cdt, idt = np.dtype(endian + _PLY_TYPES[p[1]]), np.dtype(endian + _PLY_TYPES[p[2]])
+                if off + cdt.itemsize > len(data):
+                    raise ValueError(f"{path}: PLY element {name!r} runs past the end of the file (truncated or corrupt)")
+                n = int(np.frombuffer(data, dtype=cdt, count=1, offset=off)[0])
+                off += cdt.itemsize
+                if n < 0 or off + n * idt.itemsize > len(data):
+                    raise ValueError(f"{path}: PLY element {name!r} runs past the end of the file (truncated or corrupt)")
+                if name == "face" and p[0] in _PLY_FACE_LISTS:
+                    if n < 3:
+                        raise ValueError(f"{path}: a PLY face has {n} vertices; a face needs at least 3")
+                    counts.append(n)
+                    corners.append(np.frombuffer(data, dtype=idt, count=n, offset=off))
+                off += n * idt.itemsize
+    if verts is None:
+        raise ValueError(f"{path}: could not read the PLY vertex element")
+    if not counts:
+        return verts, np.zeros((0, 3), dtype=np.int64)
+    k = np.concatenate(corners).astype(np.int64)
+    if k.min() < 0 or k.max() >= len(verts):
+        raise ValueError(f"{path}: PLY face indices must lie in [0, {len(verts)}), found {k.min()}..{k.max()}")
+    return verts, _triangulate(k, np.asarray(counts, dtype=np.int64))
+
+
+# --- STL ------------------------------------------------------------------------------------------------------
+
+def _read_stl(data: bytes, path: str):
+    if not data.lstrip()[:5].lower() == b"solid":
+        # binary STL: 80-byte header, uint32 count, 50 bytes per triangle
+        if len(data) < 84:
+            raise ValueError(f"{path} is not a mesh file: too short for a binary STL ({len(data)} bytes)")
+        count = int(np.frombuffer(data[80:84], dtype="<u4")[0])
+        if 84 + 50 * count > len(data):
+            raise ValueError(f"{path} is not a valid binary STL: it declares {count} triangles "
+                             f"({84 + 50 * count} bytes) but has {len(data)} bytes")
+    v, f = _trimesh_arrays(path, "stl")
+    if len(v) != 3 * len(f):
+        raise ValueError(f"{path}: expected three corners per STL triangle, read {len(v)} for {len(f)}")
+    return v, f
+
+
+# --- other formats --------------------------------------------------------------------------------------------
+
+def _read_other(path: str, kind: str):
+    import trimesh
+
+    if kind not in trimesh.available_formats():
+        raise ValueError(f"{path}: unsupported mesh format {('.' + kind) if kind else '(no suffix)'}; use .obj, .ply, "
+                         f".stl or another format trimesh reads ({', '.join(sorted(trimesh.available_formats()))})")
+    return _trimesh_arrays(path, kind)
+
+
+def _trimesh_arrays(path: str, kind: str):
+    """Vertices and faces as trimesh reads them with ``process=False`` (no merging, no reordering)."""
+    import trimesh
+
+    try:
+        tm = trimesh.load(path, file_type=kind or None, process=False, force="mesh")
+    except ImportError as e:
+        # trimesh reaches for an optional text-encoding detector when a file is not UTF-8: it is not text
+        raise ValueError(f"{path} is not a mesh file: it is not text that the {kind.upper()} reader understands") from None
+    except Exception as e:  # trimesh raises many types for bad or unknown files
+        raise ValueError(f"{path} is not a mesh file that the {kind.upper() or 'trimesh'} reader understands "
+                         f"({type(e).__name__}: {e})") from None
+    faces = getattr(tm, "faces", None)
+    verts = getattr(tm, "vertices", None)
+    if faces is None or verts is None or len(faces) == 0:
+        raise ValueError(f"mesh file {path} has no triangle faces: NeuroGF needs a triangle surface")
+    v = np.asarray(verts, dtype=np.float64).reshape(-1, 3)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    return v, f

@@ -1,0 +1,1 @@
+"""Pictures: ray-cast images of fields and paths, coloured PLY meshes."""

@@ -1,0 +1,403 @@
+"""Pictures of distance fields and paths on a mesh, ray cast in Warp (headless, CPU or GPU), and coloured meshes.
+
+    ngf.render(model, sources=[0], out="ssad.png")                 # NeuroGF SSAD from vertex 0, 20 isolines
+    ngf.render(model, sources=[0, 9, 40, 77, 120], out="msad.png")  # MSAD
+    ngf.render(mesh, values=d, paths=P, out="paths.png")          # any per-vertex field, polylines as tubes
+    ngf.write_ply("field.ply", mesh, d)                            # vertex colours for MeshLab / Blender
+
+The image is ray cast against one ``wp.Mesh`` holding the surface plus the overlays (path tubes, marker
+spheres), shaded by ``kernels/raycast.py``, supersampled and box-filtered down. The colour map
+(``COLOR_STOPS``: dark indigo at 0 through blue, teal, green and amber to cream at the top of the range) is
+this package's own.
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, fields
+
+import numpy as np
+import warp as wp
+
+from neurogf_warp.common.arrays import resolve_device
+from neurogf_warp.common.files import atomic_write
+from neurogf_warp.kernels.pictures import raycast
+from neurogf_warp.mesh.surface import as_mesh, as_numpy, points_of
+
+__all__ = ["render", "write_ply", "colorize", "View", "COLOR_STOPS"]
+
+# equally spaced colours from the low end (a source: distance 0) to the high end of the value range
+COLOR_STOPS = np.array([
+    [0.10, 0.09, 0.30],  # indigo
+    [0.12, 0.30, 0.60],  # blue
+    [0.12, 0.55, 0.62],  # teal
+    [0.42, 0.73, 0.43],  # green
+    [0.92, 0.78, 0.33],  # amber
+    [0.99, 0.95, 0.84],  # cream
+])
+SOURCE_COLOR = (1.00, 0.80, 0.08)  # gold spheres at the sources
+POINT_COLOR = (0.96, 0.96, 0.96)  # white spheres at other marked points
+PATH_COLORS = ((0.86, 0.08, 0.20), (0.98, 0.45, 0.05), (0.80, 0.15, 0.75))  # crimson, orange, magenta: cycled
+BACKGROUND = (1.0, 1.0, 1.0)
+
+
+@dataclass
+class View:
+    """Where the camera looks from. The default: the bounding box's centre seen from azimuth 30 degrees,
+    elevation 20 degrees, the whole bounding sphere in a 30-degree vertical field of view, +y up.
+
+    azimuth : degrees around the up axis; 0 looks from the +front axis (the axis after ``up`` in x, y, z
+        order: +z for up y, +x for up z, +y for up x), 90 from the +right axis (up x front)
+    elevation : degrees above the plane normal to ``up``
+    up : "x", "y", "z" or "-x", "-y", "-z" (mesh axes)
+    fov : vertical field of view, degrees
+    zoom : > 1 moves the camera closer
+    center : the point looked at, mesh units (default: the bounding box's centre)
+    """
+
+    azimuth: float = 30.0
+    elevation: float = 20.0
+    up: str = "y"
+    fov: float = 30.0
+    zoom: float = 1.0
+    center: tuple | None = None
+
+    @classmethod
+    def toward(cls, direction, up: str = "y", **kw) -> "View":
+        """The view from the bounding box's centre out along ``direction`` (a 3-vector, mesh axes), e.g. a
+        point's offset from the centre, to look at that side of the mesh."""
+        d = np.asarray(direction, dtype=np.float64).reshape(3)
+        if not np.linalg.norm(d) > 0:
+            raise ValueError(f"direction must be a non-zero 3-vector, got {direction!r}")
+        u, front, right = _axes(up)
+        d = d / np.linalg.norm(d)
+        az = math.degrees(math.atan2(d @ right, d @ front))
+        el = math.degrees(math.asin(np.clip(d @ u, -1.0, 1.0)))
+        return cls(azimuth=az, elevation=el, up=up, **kw)
+
+    @classmethod
+    def of(cls, view) -> "View":
+        """A View from None (the default), a View, a dict of its fields or an (azimuth, elevation) pair."""
+        if view is None:
+            return cls()
+        if isinstance(view, cls):
+            return view
+        if isinstance(view, dict):
+            known = {f.name for f in fields(cls)}
+            bad = set(view) - known
+            if bad:
+                raise ValueError(f"view: unknown keys {sorted(bad)}; known: {sorted(known)}")
+            return cls(**view)
+        if isinstance(view, (tuple, list)) and len(view) == 2:
+            return cls(azimuth=float(view[0]), elevation=float(view[1]))
+        raise TypeError(f"view must be None, a View, a dict or (azimuth, elevation) in degrees, got {view!r}")
+
+
+_AXES = {"x": 0, "y": 1, "z": 2}
+
+
+def _axes(up: str):
+    """(up, front, right) unit vectors for an up-axis name."""
+    u = str(up).strip().lower()
+    if u.lstrip("+-") not in _AXES or len(u.lstrip("+-")) != 1:
+        raise ValueError(f"view.up must be one of x, y, z, -x, -y, -z; got {up!r}")
+    i = _AXES[u.lstrip("+-")]
+    a, front = np.zeros(3), np.zeros(3)
+    a[i], front[(i + 1) % 3] = (-1.0 if u.startswith("-") else 1.0), 1.0
+    return a, front, np.cross(a, front)
+
+
+def _camera(vertices: np.ndarray, view: View, width: int, height: int) -> raycast.Camera:
+    up, front, right = _axes(view.up)
+    if not (0.0 < view.fov < 179.0) or not view.zoom > 0:
+        raise ValueError(f"view.fov must lie in (0, 179) degrees and view.zoom be > 0, got {view.fov}, {view.zoom}")
+    lo, hi = vertices.min(0), vertices.max(0)
+    center = (lo + hi) / 2 if view.center is None else np.asarray(view.center, dtype=np.float64).reshape(3)
+    radius = max(float(np.linalg.norm(vertices - center, axis=1).max()), 1e-12)
+    az, el = math.radians(view.azimuth), math.radians(view.elevation)
+    back = math.cos(el) * (math.sin(az) * right + math.cos(az) * front) + math.sin(el) * up  # center -> eye
+    half = math.tan(math.radians(view.fov) / 2)
+    dist = radius / math.sin(math.radians(view.fov) / 2) / view.zoom * (1.0 if width >= height else height / width)
+    fwd = -back
+    r = np.cross(fwd, up)
+    if np.linalg.norm(r) < 1e-9:  # looking straight along the up axis: the limit of a slightly lower elevation
+        r = np.cross(up, math.sin(az) * right + math.cos(az) * front)
+    r /= np.linalg.norm(r)
+    v = np.cross(r, fwd)
+    light = back * 0.8 + 0.45 * v - 0.35 * r  # from above and left of the camera
+    cam = raycast.Camera()
+    cam.eye = wp.vec3(*(center + dist * back))
+    cam.forward = wp.vec3(*fwd)
+    cam.right = wp.vec3(*(r * half * width / height))
+    cam.up = wp.vec3(*(v * half))
+    cam.light = wp.vec3(*(light / np.linalg.norm(light)))
+    cam.width, cam.height = int(width), int(height)
+    return cam
+
+
+def _vertex_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])  # area-weighted
+    n = np.zeros_like(V)
+    for k in range(3):
+        np.add.at(n, F[:, k], fn)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+
+
+def _tube(P: np.ndarray, radius: float, sides: int = 8):
+    """A closed-ring tube (vertices, normals, faces) around polyline P (m, 3), rotation-minimizing frames."""
+    P = P[np.isfinite(P).all(1)]
+    if len(P) > 1:
+        keep = np.concatenate([[True], np.linalg.norm(np.diff(P, axis=0), axis=1) > 1e-12 * radius])
+        P = P[keep]
+    if len(P) < 2:
+        return None
+    T = np.gradient(P, axis=0)
+    T /= np.maximum(np.linalg.norm(T, axis=1, keepdims=True), 1e-30)
+    a = np.eye(3)[np.argmin(np.abs(T[0]))]
+    N = np.empty_like(P)
+    N[0] = np.cross(T[0], a)
+    N[0] /= np.linalg.norm(N[0])
+    for i in range(1, len(P)):  # parallel transport: drop the new tangent's component
+        n = N[i - 1] - (N[i - 1] @ T[i]) * T[i]
+        ln = np.linalg.norm(n)
+        N[i] = n / ln if ln > 1e-9 else N[i - 1]
+    B = np.cross(T, N)
+    ang = 2 * np.pi * np.arange(sides) / sides
+    nrm = np.cos(ang)[None, :, None] * N[:, None] + np.sin(ang)[None, :, None] * B[:, None]  # (m, s, 3)
+    verts = P[:, None] + radius * nrm
+    m = len(P)
+    i, k = np.meshgrid(np.arange(m - 1), np.arange(sides), indexing="ij")
+    a0, a1 = i * sides + k, i * sides + (k + 1) % sides
+    b0, b1 = a0 + sides, a1 + sides
+    faces = np.concatenate([np.stack([a0, a1, b1], -1).reshape(-1, 3), np.stack([a0, b1, b0], -1).reshape(-1, 3)])
+    return verts.reshape(-1, 3), nrm.reshape(-1, 3), faces
+
+
+def _spheres(points: np.ndarray, radius: float):
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=2)
+    n = np.asarray(s.vertices)
+    k = len(points)
+    verts = (points[:, None] + radius * n[None]).reshape(-1, 3)
+    faces = (np.asarray(s.faces)[None] + len(n) * np.arange(k)[:, None, None]).reshape(-1, 3)
+    return verts, np.tile(n, (k, 1)), faces
+
+
+def _vertex_values(mesh, values) -> np.ndarray:
+    """Per-vertex values (the mesh's numbering, or internal order when that is the same length) -> internal."""
+    v = as_numpy(values).astype(np.float64).reshape(-1) if np.ndim(as_numpy(values)) else None
+    if v is None or len(v) not in (mesh.n_input, len(mesh.vertices)):
+        raise ValueError(f"values must hold one number per mesh vertex ({mesh.n_input} in the mesh's numbering), "
+                         f"got shape {np.shape(as_numpy(values))}")
+    return v[mesh.index] if len(v) == mesh.n_input else v
+
+
+def _polylines(paths) -> list:
+    if isinstance(paths, (list, tuple)):
+        out = [as_numpy(p).astype(np.float64) for p in paths]
+    else:
+        a = as_numpy(paths).astype(np.float64)
+        out = [a] if a.ndim == 2 else list(a) if a.ndim == 3 else None
+        if out is None:
+            raise ValueError(f"paths must be (N, m, 3), (m, 3) or a list of (m_i, 3) arrays, got shape {a.shape}")
+    for p in out:
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise ValueError(f"each path must be an (m, 3) array of points, got shape {p.shape}")
+    return out
+
+
+def colorize(values, vrange=None) -> np.ndarray:
+    """Colours of the package's colour map: (N,) values -> (N, 3) uint8; NaN -> grey.
+
+    vrange : (low, high), the values mapped to the two ends (default: the finite values' min and max)."""
+    v = as_numpy(values).astype(np.float64).reshape(-1)
+    lo, hi = _range(v, vrange)
+    t = np.clip((v - lo) / (hi - lo), 0, 1) * (len(COLOR_STOPS) - 1)
+    k = np.minimum(np.floor(np.nan_to_num(t)).astype(int), len(COLOR_STOPS) - 2)
+    f = (np.nan_to_num(t) - k)[:, None]
+    rgb = (1 - f) * COLOR_STOPS[k] + f * COLOR_STOPS[k + 1]
+    rgb[~np.isfinite(v)] = 0.72
+    return np.round(rgb * 255).astype(np.uint8)
+
+
+def _range(v: np.ndarray, vrange):
+    if vrange is not None:
+        lo, hi = (float(x) for x in vrange)
+        if not (np.isfinite(lo) and np.isfinite(hi) and hi > lo):
+            raise ValueError(f"vrange must be (low, high) with low < high, got {vrange!r}")
+        return lo, hi
+    ok = v[np.isfinite(v)]
+    if not len(ok):
+        return 0.0, 1.0
+    lo, hi = float(ok.min()), float(ok.max())
+    return (lo, hi) if hi > lo else (lo, lo + 1.0)
+
+
+def render(model_or_mesh, values=None, *, sources=None, paths=None, isolines: int = 20, out=None,
+           size=(1024, 1024), view=None, vrange=None, points=None, supersample: int = 2,
+           path_radius: float | None = None, marker_radius: float | None = None, device=None) -> np.ndarray:
+    """Draw the mesh shaded by a per-vertex field with isolines, sources and points marked, paths as tubes.
+
+    Parameters
+    ----------
+    model_or_mesh : a Model with a mesh, or a mesh (Mesh, trimesh.Trimesh, (vertices, faces), file path)
+    values : (V,) float per vertex in the mesh's numbering (NaN: no value, drawn grey). None with a model and
+        ``sources``: the model's SSAD (one source) or MSAD (several) from them; None otherwise: plain grey.
+    sources : vertex indices (mesh numbering) or (S, 3) points, mesh units; drawn as gold spheres
+    paths : (N, m, 3), (m, 3) or a list of (m_i, 3) polylines, mesh units; drawn as tubes, colours cycled
+    isolines : number of equal steps of the value range between isolines (0: none)
+    out : image file to write (.png, or .jpg), atomically; None writes nothing
+    size : (width, height) in pixels
+    view : None (the default ``View``), a ``View``, a dict of its fields or (azimuth, elevation) in degrees
+    vrange : (low, high) values at the colour map's ends (default: the field's min and max); share it between
+        pictures that are to be compared
+    points : (K, 3) further points to mark (white spheres), mesh units
+    supersample : samples per pixel along each axis (anti-aliasing; 1 = none)
+    path_radius, marker_radius : tube and sphere radii, mesh units (default 0.6% and 2.5% of the bounding
+        sphere's radius)
+    device : Warp device (default: Warp's preferred one)
+
+    Returns
+    -------
+    (height, width, 3) uint8 RGB image
+    """
+    mesh = as_mesh(model_or_mesh)
+    model = model_or_mesh if hasattr(model_or_mesh, "net") else None
+    w, h = _size(size)
+    if not isinstance(isolines, (int, np.integer)) or isolines < 0:
+        raise ValueError(f"isolines must be an integer >= 0, got {isolines!r}")
+    if not isinstance(supersample, (int, np.integer)) or not 1 <= supersample <= 8:
+        raise ValueError(f"supersample must be an integer in 1..8, got {supersample!r}")
+    dev = resolve_device(device)
+    V, F = mesh.vertices, mesh.faces.astype(np.int64)
+    r0 = float(np.linalg.norm(V - (V.min(0) + V.max(0)) / 2, axis=1).max())
+
+    if values is None and model is not None and sources is not None:
+        from neurogf_warp.inference.queries import msad, ssad
+
+        src = as_numpy(sources)
+        one = src.size == 1 or (np.issubdtype(src.dtype, np.floating) and src.size == 3)
+        values = (ssad(model, src.reshape(-1)[0] if src.size == 1 else src.reshape(3), device=dev) if one
+                  else msad(model, src, device=dev))
+    vals = np.full(len(V), np.nan) if values is None else _vertex_values(mesh, values)
+    lo, hi = _range(vals, vrange)
+    t = (vals - lo) / (hi - lo)
+
+    parts = [(V, _vertex_normals(V, F), F, -1)]
+    rm = marker_radius if marker_radius is not None else 0.025 * r0
+    rp = path_radius if path_radius is not None else 0.006 * r0
+    palette = [SOURCE_COLOR, POINT_COLOR, *PATH_COLORS]
+    if sources is not None:
+        parts.append((*_spheres(points_of(mesh, sources, "sources"), rm), 0))
+    if points is not None:
+        parts.append((*_spheres(points_of(mesh, np.asarray(as_numpy(points), dtype=np.float64), "points"),
+                                0.75 * rm), 1))
+    if paths is not None:
+        for i, P in enumerate(_polylines(paths)):
+            tube = _tube(P, rp)
+            if tube is not None:
+                parts.append((*tube, 2 + i % len(PATH_COLORS)))
+    verts, norms, faces, color, vv = [], [], [], [], []
+    base = 0
+    for pv, pn, pf, c in parts:
+        verts.append(pv)
+        norms.append(pn)
+        faces.append(pf + base)
+        color.append(np.full(len(pf), c, dtype=np.int32))
+        vv.append(t if c < 0 else np.full(len(pv), np.nan))
+        base += len(pv)
+    verts = np.concatenate(verts)
+    flat = np.concatenate(faces).astype(np.int32).reshape(-1)
+    pts = wp.array(verts.astype(np.float32), dtype=wp.vec3, device=dev)
+    idx = wp.array(flat, dtype=wp.int32, device=dev)
+    bvh = wp.Mesh(points=pts, indices=idx)
+    scene = raycast.Scene()
+    scene.mesh = bvh.id
+    scene.faces = idx
+    scene.normals = wp.array(np.concatenate(norms).astype(np.float32), dtype=wp.vec3, device=dev)
+    scene.values = wp.array(np.concatenate(vv).astype(np.float32), dtype=wp.float32, device=dev)
+    scene.levels = float(isolines)
+    scene.face_color = wp.array(np.concatenate(color), dtype=wp.int32, device=dev)
+    scene.palette = wp.array(np.array(palette, dtype=np.float32), dtype=wp.vec3, device=dev)
+    scene.stops = wp.array(COLOR_STOPS.astype(np.float32), dtype=wp.vec3, device=dev)
+    scene.background = wp.vec3(*BACKGROUND)
+
+    s = int(supersample)
+    cam = _camera(V, View.of(view), w * s, h * s)
+    rgb = wp.empty((h * s, w * s), dtype=wp.vec3, device=dev)
+    level = wp.empty((h * s, w * s), dtype=wp.int32, device=dev)
+    wp.launch(raycast.trace, rgb.shape, inputs=[scene, cam], outputs=[rgb, level], device=dev)
+    if isolines:
+        lined = wp.empty_like(rgb)
+        wp.launch(raycast.isolines, rgb.shape, inputs=[level, max(1, s // 2), rgb], outputs=[lined], device=dev)
+        rgb = lined
+    img = rgb.numpy().reshape(h, s, w, s, 3).mean(axis=(1, 3))
+    img = np.round(np.clip(img, 0, 1) * 255).astype(np.uint8)
+    if out is not None:
+        write_image(out, img)
+    return img
+
+
+def _size(size):
+    try:
+        w, h = (int(x) for x in size)
+    except (TypeError, ValueError):
+        raise ValueError(f"size must be (width, height) in pixels, got {size!r}") from None
+    if not (1 <= w <= 16384 and 1 <= h <= 16384):
+        raise ValueError(f"size must be (width, height) with each in 1..16384 pixels, got {size!r}")
+    return w, h
+
+
+def write_image(path, image: np.ndarray) -> str:
+    """An (H, W, 3) uint8 image to a .png (or .jpg) file, atomically (Pillow)."""
+    ext = os.path.splitext(os.fspath(path))[1].lower()
+    fmt = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG"}.get(ext)
+    if fmt is None:
+        raise ValueError(f"out must name a .png or .jpg file, got {os.fspath(path)!r}")
+    try:
+        from PIL import Image
+    except ImportError as e:
+        raise ImportError("writing pictures needs Pillow: pip install pillow") from e
+    im = Image.fromarray(np.ascontiguousarray(image))
+    opts = {"optimize": True} if fmt == "PNG" else {"quality": 92}
+    return atomic_write(path, lambda f: im.save(f, format=fmt, **opts))
+
+
+def write_ply(path, mesh, values, *, vrange=None) -> str:
+    """A binary .ply of the mesh with vertex colours from ``values`` (MeshLab, Blender, trimesh read it).
+
+    Parameters
+    ----------
+    path : output file, written atomically
+    mesh : a Model with a mesh, or a mesh (Mesh, trimesh.Trimesh, (vertices, faces), file path)
+    values : (V,) per-vertex values in the mesh's numbering (e.g. ``ssad``'s result); NaN is drawn grey
+    vrange : (low, high) at the colour map's ends (default: the values' min and max)
+
+    The file holds the mesh's referenced vertices (those some face uses, in their order in the mesh as given;
+    unreferenced vertices are left out) as float32 x, y, z, uchar red, green, blue, alpha and float32 quality
+    (the value itself, which MeshLab shows as vertex quality), and the faces in their given order.
+    """
+    m = as_mesh(mesh)
+    v = _vertex_values(m, values)
+    rgb = colorize(v, vrange)
+    n, f = len(m.vertices), len(m.faces)
+    vert = np.empty(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
+                              ("blue", "u1"), ("alpha", "u1"), ("quality", "<f4")])
+    vert["x"], vert["y"], vert["z"] = m.vertices.T.astype(np.float32)
+    vert["red"], vert["green"], vert["blue"] = rgb.T
+    vert["alpha"] = 255
+    vert["quality"] = v.astype(np.float32)
+    face = np.empty(f, dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    face["n"], face["i"] = 3, m.faces
+    header = (f"ply\nformat binary_little_endian 1.0\ncomment neurogf_warp field colours\nelement vertex {n}\n"
+              "property float x\nproperty float y\nproperty float z\nproperty uchar red\nproperty uchar green\n"
+              "property uchar blue\nproperty uchar alpha\nproperty float quality\n"
+              f"element face {f}\nproperty list uchar int vertex_indices\nend_header\n").encode("ascii")
+
+    def write(fh):
+        fh.write(header)
+        fh.write(vert.tobytes())
+        fh.write(face.tobytes())
+
+    return atomic_write(path, write)
