@@ -237,6 +237,52 @@ def _nograd(fn):
 
 # ---- the queries -------------------------------------------------------------------------------------------------
 
+def device_bytes_in_use(dev) -> dict:
+    """Device memory in use, from the driver (total - free) and, on CUDA, from Warp's memory pool (Warp's
+    arrays come from the pool; memory freed to the pool shows there, not in the driver's count)."""
+    import warp as wp
+
+    wp.synchronize_device(dev)
+    out = {}
+    if dev.is_cuda:
+        out["device used (bytes)"] = int(dev.total_memory - dev.free_memory)
+        if wp.is_mempool_enabled(dev):
+            out["warp mempool used (bytes)"] = int(wp.get_mempool_used_mem_current(dev))
+    return out
+
+
+def bind_memory(ngf, model, src, device) -> dict:
+    """Memory before ``bind``, after it and one bound SSAD (tables and recorded launches made), and after
+    ``unbind`` (issue 20: unbind returns the bound memory); on the CPU only the bytes kept."""
+    import gc
+
+    import warp as wp
+
+    dev = wp.get_device(device)
+    model.unbind()
+    gc.collect()
+    before = device_bytes_in_use(dev)
+    kept = ngf.bind(model, device)
+    ngf.ssad(model, src, device=device, output="warp")
+    bound = device_bytes_in_use(dev)
+    model.unbind()
+    gc.collect()
+    after = device_bytes_in_use(dev)
+    out = {"kept by bind (bytes)": kept}
+    for k in before:
+        out[f"{k}: before bind"] = before[k]
+        out[f"{k}: bound, after one ssad"] = bound[k]
+        out[f"{k}: after unbind"] = after[k]
+    if "warp mempool used (bytes)" in before:
+        got_back = bound["warp mempool used (bytes)"] - after["warp mempool used (bytes)"]
+        out["returned by unbind (bytes)"] = got_back
+        print(f"memory: bind keeps {kept / 1e6:.1f} MB; unbind returns {got_back / 1e6:.1f} MB to Warp's pool "
+              f"(in use: {before['warp mempool used (bytes)'] / 1e6:.1f} MB before bind, "
+              f"{bound['warp mempool used (bytes)'] / 1e6:.1f} MB bound, "
+              f"{after['warp mempool used (bytes)'] / 1e6:.1f} MB after unbind)", flush=True)
+    return out
+
+
 def run(a) -> dict:
     cold_cache = tempfile.mkdtemp(prefix="warp-cache-")
     os.environ["WARP_CACHE_PATH"] = cold_cache  # a cold kernel cache: compile times measured from scratch
@@ -330,26 +376,29 @@ def run(a) -> dict:
             return net.distance_from_embeddings(es.expand(len(xv), -1), ev_c, xs.expand(len(xv), 3), xv) / scale
         return fn
 
+    from neurogf_warp.inference.state import query_state
     from neurogf_warp.kernels.inference import tensorcore as tc
 
-    W = dict(tc.WARPS)
-
     def tuned(label, fn, settings):
-        """Warp variants of one query under other tile settings (--tune): {name: callable}."""
+        """Warp variants of one query under other tile settings (--tune): {name: callable}. Each variant runs
+        with the model's state retuned (a new engine: its first call records launches again, as any first call)."""
         out = {label: fn}
         if not a.tune or not cuda:
             return out
+        state = query_state(model, device)
         for setting in settings:
             def run(setting=setting):
-                old = {k: getattr(tc, k) for k in setting}
-                for k, v in setting.items():
-                    setattr(tc, k, v)
-                try:
-                    return fn()
-                finally:
-                    for k, v in old.items():
-                        setattr(tc, k, v)
+                if state.tuning != tc.Tuning(**setting):
+                    state.retune(tc.Tuning(**setting))
+                return fn()
             out[f"{label} [{', '.join(f'{k}={v}' for k, v in setting.items())}]"] = run
+        base = out[label]
+
+        def default():
+            if state.tuning != tc.Tuning():
+                state.retune(tc.Tuning())
+            return base()
+        out[label] = default
         return out
 
     def add(query, variants, ref, flops, bytes_, extra=None):
@@ -401,12 +450,13 @@ def run(a) -> dict:
     want = set(a.queries.split(","))
     lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
     # SSAD, model bound to its mesh
+    res["memory"] = bind_memory(ngf, model, src, device)
     bytes_kept = ngf.bind(model, device)
-    res["memory"] = {"bound vertex embeddings (bytes)": bytes_kept}
+    res["memory"]["bound vertex embeddings (bytes)"] = bytes_kept
     n = len(mesh.vertices)
     v1 = tuned("warp ssad, bound (fp16 tensor cores)" if cuda else "warp ssad, bound",
                lambda: ngf.ssad(model, src, device=device, output=warp_out),
-               [{"SSAD": (1, False)}, {"SSAD": (1, True)}, {"WARPS": {**W, "ssad": 12}}, {"WARPS": {**W, "ssad": 24}}])
+               [{"ssad": (1, False)}, {"ssad": (1, True)}, {"warps_ssad": 12}, {"warps_ssad": 24}])
     if cuda:
         v1["warp ssad, bound, precision=fp32"] = lambda: ngf.ssad(model, src, device=device, output=warp_out,
                                                                     precision="fp32")
@@ -421,7 +471,7 @@ def run(a) -> dict:
     with torch.no_grad():
         ref_pt = dist_build(net64, torch.float64)(xs_pt, xv).cpu().numpy()
     v2 = tuned("warp ssad, cold, point source", lambda: ngf.ssad(model, pt, device=device, output=warp_out, cache=False),
-               [{"LIFT_SSAD": (1, 4)}, {"WARPS": {**W, "lift_ssad": 12}}, {"WARPS": {**W, "lift_ssad": 24}}])
+               [{"lift_ssad": (1, 4)}, {"warps_lift_ssad": 12}, {"warps_lift_ssad": 24}])
     if "ssad_cold" in want:
         v2.update(torch_forms.variants("ssad cold", dist_build, {"xs": xs_pt, "xv": xv}))
         add("ssad cold (point source)", v2, ref_pt, 2 * (M["lift"] + M["head"]) * n, n * 16)
@@ -458,7 +508,7 @@ def run(a) -> dict:
         with torch.no_grad():
             ref_m = sources_build(True, False, 1)(net64, torch.float64)(xss, xv).cpu().numpy()
         v3 = tuned("warp msad, bound", lambda: ngf.msad(model, srcs, device=device, output=warp_out),
-                   [{"SOURCE_GROUP": 1}, {"WARPS": {**W, "distance": 8}}, {"WARPS": {**W, "distance": 12}}])
+                   [{"source_group": 1}, {"warps_distance": 8}, {"warps_distance": 12}])
         v3.update(torch_forms.variants("msad", sources_build(True, False), {"xss": xss, "xv": xv},
                                        sources_build(True, True)))
         add(f"msad {sizes['S_msad']} sources (bound)", v3, ref_m, 2 * M["head"] * n * sizes["S_msad"],
@@ -474,7 +524,7 @@ def run(a) -> dict:
             refS = sources_build(False, False, 1)(net64, torch.float64)(xsm, xv).cpu().numpy()
         v4 = tuned(f"warp distance_matrix ({S}, V), bound",
                    lambda: ngf.distance_matrix(model, srcm, device=device, output=warp_out),
-                   [{"WARPS": {**W, "distance": 8}}])
+                   [{"warps_distance": 8}])
         tv = torch_forms.variants("matrix", sources_build(False, True), {"xss": xsm, "xv": xv})
         v4.update({f"{k}, cached e(x)": fn for k, fn in tv.items()})
         add(f"distance matrix {S} x V (bound)", v4, refS, 2 * M["head"] * n * S, n * (2 * 256 + 12) + 4 * S * n,
@@ -499,7 +549,7 @@ def run(a) -> dict:
         v5 = tuned("warp distance", lambda: ngf.distance(model, Pt, Qt, device=device, raw=True), [])
         v5.update(tuned("warp distance, check=False",
                         lambda: ngf.distance(model, Pt, Qt, device=device, raw=True, check=False),
-                        [{"PAIR_NC": 4}, {"WARPS": {**W, "pairs": 12}}]))
+                        [{"pair_nc": 4}, {"warps_pairs": 12}]))
         v5.update(torch_forms.variants("distance", pair_build, {"p": Pn, "q": Qn}))
         add(f"distance {N} pairs", v5, ref_pairs, 2 * (2 * M["lift"] + M["head"]) * N, 28 * N, {"pairs": N})
         del Pt, Qt, Pn, Qn
@@ -518,7 +568,7 @@ def run(a) -> dict:
             ref_sdf = sdf_build(net64, None)(Xn).cpu().numpy()
         v6 = tuned("warp sdf", lambda: ngf.sdf(model, Xt, device=device), [])
         v6.update(tuned("warp sdf, check=False", lambda: ngf.sdf(model, Xt, device=device, check=False),
-                        [{"SDF_TILE": (1, 8)}, {"SDF_TILE": (2, 2)}, {"WARPS": {**W, "sdf": 8}}]))
+                        [{"sdf_tile": (1, 8)}, {"sdf_tile": (2, 2)}, {"warps_sdf": 8}]))
         v6.update(torch_forms.variants("sdf", sdf_build, {"x": Xn}))
         add(f"sdf {N} points", v6, ref_sdf, 2 * (M["lift"] + M["head"]) * N, 16 * N)
         del Xt, Xn

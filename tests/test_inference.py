@@ -125,7 +125,9 @@ def test_ssad_matches_float64_with_cached_embeddings(D):
             ref = net.distance(x[[src]].expand(len(V), 3), x).numpy() / mesh.scale
         got = ngf.ssad(model, int(src), device=DEV, raw=True)
         assert np.abs(got - ref).max() <= 1e-5 * np.abs(ref).max(), f"seed {seed}, source {src}"
-    assert (("tile_head", DEV) in model._warp) == (D <= 256)
+    from neurogf_warp.inference.state import query_state
+
+    assert (query_state(model, DEV).tile_head is not None) == (D <= 256)
 
 
 @pytest.mark.parametrize("options", [dict(fourier=2, euclid=True, path_residual=True, path_window=True),

@@ -158,7 +158,9 @@ def test_vertex_queries_match_float64_bound_and_cold(device, D):
     close(cold, ref[0], "ssad cold " + msg)
     close(ngf.msad(model, srcs, cache=False, **kw), ref.min(0), "msad cold " + msg)
     bound = ngf.ssad(model, int(srcs[0]), **kw)
-    assert ("bound", str(wp.get_device(device)), "fp16") in model._warp, msg
+    from neurogf_warp.inference.state import query_state
+
+    assert "fp16" in query_state(model, device).bound, msg
     np.testing.assert_array_equal(bound, cold, err_msg=msg)
     close(ngf.msad(model, srcs, **kw), ref.min(0), "msad bound " + msg)
     close(ngf.distance_matrix(model, srcs, **kw), ref, "matrix " + msg)
@@ -223,10 +225,11 @@ def test_fp16_range_is_checked():
         tc.pack_weights(np.full((8, 16), 1e6))
 
 
-@pytest.mark.parametrize("setting", [{"SSAD": (1, True)}, {"SSAD": (1, False)}, {"SOURCE_GROUP": 1},
-                                     {"LIFT_SSAD": (1, 4)}, {"SDF_TILE": (1, 8)}, {"PAIR_NC": 4}], ids=str)
+@pytest.mark.parametrize("setting", [{"ssad": (1, True)}, {"ssad": (1, False)}, {"source_group": 1},
+                                     {"lift_ssad": (1, 4)}, {"sdf_tile": (1, 8)}, {"pair_nc": 4}], ids=str)
 def test_tile_variants_agree(setting):
     """Every tile layout the benchmarks tune computes the same numbers (same roundings, same sums per row)."""
+    from neurogf_warp.inference.state import query_state
     from neurogf_warp.kernels.inference import tensorcore as tc
 
     device = "cpu" if wp.is_cpu_available() else "cuda:0"
@@ -241,14 +244,10 @@ def test_tile_variants_agree(setting):
                 ngf.distance(model, p, p[::-1], **kw), ngf.sdf(model, p, **kw))
 
     base = run()
-    old = {k: getattr(tc, k) for k in setting}
-    try:
-        for k, v in setting.items():
-            setattr(tc, k, v)
-        other = run()
-    finally:
-        for k, v in old.items():
-            setattr(tc, k, v)
+    st = query_state(model, device)
+    st.retune(tc.Tuning(**setting))
+    assert st.engine.tuning == tc.Tuning(**setting)
+    other = run()
     for a, b in zip(base, other):
         np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
 

@@ -7,23 +7,28 @@ itself, and +inf between points of different connected components (no surface pa
 import warp as wp
 
 from . import mlp
+from . import tensorcore as tc
+
+# the finishing rule is the native header's ngf::finish_distance, for the per-thread kernels too
+wp.set_module_options({"extra_build_options": tc.BUILD})
 
 INF = wp.constant(float("inf"))
 NAN = wp.constant(float("nan"))
 
 
-@wp.func
-def finish_distance(head: float, x: wp.vec3, s: wp.vec3, frame: mlp.Frame, euclid: float, other_part: bool,
-                    raw: int) -> float:
-    """User-unit distance from a head value (network frame), the same rule as ngf::finish_distance."""
-    if other_part:
-        return INF
-    if raw == 0 and x[0] == s[0] and x[1] == s[1] and x[2] == s[2]:
-        return 0.0
-    d = (head + euclid * (wp.length(x - s) * frame.xscale)) * frame.dscale  # user-frame difference: symmetric
-    if raw != 0:
-        return d
-    return wp.max(d, 0.0)
+def _finish_distance(head: float, x: wp.vec3, s: wp.vec3, frame: mlp.Frame, euclid: float, other_part: bool,
+                     raw: int) -> float:
+    return float(0.0)  # a stub: the body is the native snippet below (the return statement types its result)
+
+
+_finish_distance.__name__ = _finish_distance.__qualname__ = "ngf_finish_distance"
+finish_distance = wp.func_native(tc._frame_cpp("frame") + """
+    const float xp[3] = {x[0], x[1], x[2]};
+    const float sp[3] = {s[0], s[1], s[2]};
+    return ngf::finish_distance(head, F, xp, sp, euclid, other_part, raw);
+""")(_finish_distance)
+finish_distance.__doc__ = """User-unit distance from a head value (network frame): ``ngf::finish_distance`` of the native header,
+the one definition of the rule for both backends."""
 
 
 @wp.kernel(enable_backward=False)
@@ -115,11 +120,3 @@ def check_points(a: wp.array(dtype=wp.vec3), b: wp.array(dtype=wp.vec3), frame: 
     if b.shape[0] > 0:
         if not in_domain(b[i], frame, limit):
             wp.atomic_min(bad, 1, i + 1)
-
-
-@wp.kernel(enable_backward=False)
-def gather_rows(rows: wp.array(dtype=wp.uint32), ids: wp.array(dtype=wp.int32), words: int,
-                out: wp.array(dtype=wp.uint32)):
-    """out[s] = row ids[s] of a (V, words) array stored flat (the sources' kept embeddings)."""
-    s, k = wp.tid()
-    out[s * words + k] = rows[ids[s] * words + k]

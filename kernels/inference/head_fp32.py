@@ -25,16 +25,16 @@ MAX_D = 256  # D = 512 would need a chunked second layer too (its H = 128)
 
 
 @functools.lru_cache(maxsize=None)
-def head_kernel(D: int, H: int, mathdx: bool = False, block: int = BLOCK, chunk: int = CHUNK):
+def head_kernel(D: int, H: int, block: int = BLOCK, chunk: int = CHUNK):
     """Kernel for embedding width D and head width H: out[0, x] = W2 relu(W1 relu(W0 |e_s - e_x| + b0) + b1).
 
     The first layer runs over D in chunks (a rolled loop: its trip count is an argument), so neither W0 nor
     the (D, block) input tile is ever whole in shared memory, which keeps several blocks resident per SM.
-    mathdx=False: Warp's scalar tile GEMM (compiles in seconds); True: cuBLASDx on CUDA (about a minute).
+    Warp's scalar tile GEMM, not cuBLASDx: it compiles in seconds instead of about a minute.
     """
     B, K = block, chunk
 
-    @wp.kernel(enable_backward=False, module="unique", module_options={"enable_mathdx_gemm": mathdx})
+    @wp.kernel(enable_backward=False, module="unique", module_options={"enable_mathdx_gemm": False})
     def head(es: wp.array2d(dtype=wp.float32), ex: wp.array2d(dtype=wp.float32),
              w0: wp.array2d(dtype=wp.float32), b0: wp.array2d(dtype=wp.float32),
              w1: wp.array2d(dtype=wp.float32), b1: wp.array2d(dtype=wp.float32),

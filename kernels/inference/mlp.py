@@ -283,13 +283,6 @@ def signed_distance_and_gradient(net: NeuroGFWeights, x: wp.vec3):
 
 
 @wp.func
-def sdf_gradient(net: NeuroGFWeights, x: wp.vec3, s: float) -> wp.vec3:
-    """Gradient of the SDF head at x (``s``, its value there, is not needed; kept for existing callers)."""
-    v, g = signed_distance_and_gradient(net, x)
-    return g
-
-
-@wp.func
 def _distance_and_gradient_to(net: NeuroGFWeights, p: wp.vec3, h0: vec_h, h1: vec_h, ep: vec_d, eq: vec_d,
                               q: wp.vec3):
     """d(p, q) and d/dp from p's lifting activations and q's embedding."""
@@ -369,33 +362,6 @@ def distance_pairs(net: NeuroGFWeights, ps: wp.array(dtype=wp.vec3), qs: wp.arra
                    frame: Frame, out: wp.array(dtype=wp.float32)):
     i = wp.tid()
     out[i] = geodesic_distance(net, to_net(frame, ps[i]), to_net(frame, qs[i])) * frame.dscale
-
-
-@wp.kernel(enable_backward=False)
-def distance_to_source(net: NeuroGFWeights, es: wp.array2d(dtype=wp.float32), src: wp.array(dtype=wp.vec3),
-                       xs: wp.array(dtype=wp.vec3), frame: Frame, index: wp.array(dtype=wp.int32),
-                       out: wp.array(dtype=wp.float32)):
-    """SSAD: source src[0] (embedding es[0]) to every point; result i goes to out[index[i]] (the user's numbering)."""
-    i = wp.tid()
-    out[index[i]] = distance_to_embedding(net, es, 0, to_net(frame, src[0]), to_net(frame, xs[i])) * frame.dscale
-
-
-@wp.kernel(enable_backward=False)
-def distance_to_nearest_source(net: NeuroGFWeights, es: wp.array2d(dtype=wp.float32), src: wp.array(dtype=wp.vec3),
-                               xs: wp.array(dtype=wp.vec3), frame: Frame, index: wp.array(dtype=wp.int32),
-                               out: wp.array(dtype=wp.float32)):
-    """MSAD: distance to the nearest of several sources (embeddings es); e(x) is computed once per point."""
-    i = wp.tid()
-    x = to_net(frame, xs[i])
-    ex = embed(net, x)
-    best = float(3.0e38)
-    for s in range(es.shape[0]):
-        es_s = vec_d()
-        for k in range(es.shape[1]):
-            es_s[k] = es[s, k]
-        d = distance_from_embeddings(net, es_s, ex) + net.euclid * wp.length(x - to_net(frame, src[s]))
-        best = wp.min(best, d)
-    out[index[i]] = best * frame.dscale
 
 
 @wp.kernel(enable_backward=False)

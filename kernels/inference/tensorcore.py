@@ -18,7 +18,9 @@ emulated; that form is slow and exists so the tests can check the GPU code's dat
 """
 
 import contextlib
+import dataclasses
 import functools
+import re
 from pathlib import Path
 
 import numpy as np
@@ -33,14 +35,26 @@ MODULE_OPTIONS = {"extra_build_options": BUILD, "enable_backward": False}
 SUPPORTED_D = (64, 128, 256)  # D = 512 would need 128 registers per lane for one tile's embeddings
 FP16_MAX = 65504.0
 BLOCK_THREADS = 128  # 4 warps per block on CUDA
-WARPS_PER_SM = 16    # persistent grid: resident warps per multiprocessor (the register use allows 8-20)
-CPU_WARPS = 1        # the CPU emulation runs one warp (32 fibers) through all tiles
-SSAD = (2, False)    # (m-tiles per warp, prefetch) of the single-source kernel on kept embeddings
-SOURCE_GROUP = 2     # sources that share each weight load in the multi-source kernels
-LIFT_SSAD = (1, 8)   # (m-tiles per warp, n-tiles per chunk) of the single-source kernel without kept embeddings
-SDF_TILE = (2, 4)    # (m-tiles per warp, n-tiles per chunk) of the SDF kernel
-PAIR_NC = 8          # n-tiles per chunk of the pair kernel (two m-tiles: p and q)
-WARPS = {"ssad": 16, "lift_ssad": 16, "distance": 16, "pairs": 16, "sdf": 16}  # persistent warps per SM
+
+
+@dataclasses.dataclass(frozen=True)
+class Tuning:
+    """Tile shapes and grid sizes of the tensor-core kernels: fixed when an engine is built and passed to every
+    launch (``benchmarks/queries.py --tune`` times the alternatives; every layout gives the same numbers)."""
+
+    ssad: tuple = (2, False)   # (m-tiles per warp, prefetch) of the single-source kernel on kept embeddings
+    source_group: int = 2      # sources that share each weight load in the multi-source kernels
+    lift_ssad: tuple = (1, 8)  # (m-tiles per warp, n-tiles per chunk) of the single-source kernel, rows lifted
+    sdf_tile: tuple = (2, 4)   # (m-tiles per warp, n-tiles per chunk) of the SDF kernel
+    pair_nc: int = 8           # n-tiles per chunk of the pair kernel (two m-tiles: p and q)
+    # persistent warps per multiprocessor of each kernel (the register use allows 8-20)
+    warps_ssad: int = 16
+    warps_lift_ssad: int = 16
+    warps_distance: int = 16
+    warps_pairs: int = 16
+    warps_sdf: int = 16
+    warps_other: int = 16      # embeddings and the path head
+    cpu_warps: int = 1         # the CPU emulation runs this many warps (32 fibers each) through all tiles
 
 
 @wp.struct
@@ -90,6 +104,7 @@ class Sources:
 
 REDUCE_MIN = 1  # flags of a distance launch: one value per row, the nearest source
 RAW = 2         # the network's own value (no clamping, no exact 0 at the source)
+# (the native code reads these bits through _DISTANCE_CPP, which is written from these two names)
 
 
 # ---- host-side packing -------------------------------------------------------------------------------------------
@@ -231,19 +246,64 @@ def empty_words(device) -> wp.array:
     return wp.empty(0, dtype=wp.uint32, device=device)
 
 
+# ---- the native structs, read from the header -----------------------------------------------------------------------
+# A packed-weight struct is declared twice, as a @wp.struct here and as a C++ struct in the header; the C++
+# initializer that turns one into the other is written from both declarations, which must name the same fields
+# in the same order (checked when this module is imported, and by tests/test_inference_contracts.py).
+
+def native_fields(struct: str) -> list:
+    """[(C++ type, field name)] of ``struct NAME { ... };`` in the header, in declaration order."""
+    m = re.search(r"^struct\s+(?:alignas\(\d+\)\s+)?" + struct + r"\s*\{(.*?)^\};", HEADER, re.S | re.M)
+    if m is None:
+        raise RuntimeError(f"native/neurogf_mma.h declares no struct {struct}")
+    out = []
+    body = re.sub(r"\{[^{}]*\}", ";", re.sub(r"//[^\n]*", "", m.group(1)))  # comments and function bodies out
+    for decl in body.split(";"):
+        decl = decl.strip()
+        if not decl or "(" in decl:  # member functions are not fields
+            continue
+        head, names = re.match(r"((?:const\s+)?[\w:]+\s*\**)\s*(.*)", decl, re.S).groups()
+        out += [(" ".join(head.replace("*", " *").split()), n.strip()) for n in names.split(",")]
+    return out
+
+
+def native_initializer(py_struct, native: str, var: str, name: str) -> str:
+    """C++ ``ngf::NATIVE NAME = {...};`` from the wp.struct value ``var``: arrays pass their data pointers cast to the
+    header's field types, scalars their values. Refuses structs whose fields differ."""
+    fields = native_fields(native)
+    py = list(py_struct.vars)
+    if [f for _, f in fields] != py:
+        raise RuntimeError(f"the fields of ngf::{native} {[f for _, f in fields]} differ from those of "
+                           f"{py_struct.__name__} {py}: change both together")
+    parts = []
+    for ctype, f in fields:
+        if ctype.endswith("*"):  # e.g. "const u32x2 *": a pointer to one of the header's types
+            *const, base, _ = ctype.split()
+            parts.append(f"({' '.join(const + ['ngf::' + base])}*){var}.{f}.data")
+        else:
+            parts.append(f"{var}.{f}")
+    return f"    ngf::{native} {name} = {{{', '.join(parts)}}};\n"
+
+
 # ---- kernels -------------------------------------------------------------------------------------------------------
 
+def native_init(native: str, name: str, values: dict) -> str:
+    """C++ ``ngf::NATIVE NAME = {...};`` from {field name: C++ expression}, in the header's field order; refuses a
+    missing or unknown field (for native structs assembled from several kernel arguments)."""
+    fields = [f for _, f in native_fields(native)]
+    if sorted(fields) != sorted(values):
+        raise RuntimeError(f"ngf::{native} has fields {fields}, the kernel gives {list(values)}: change both together")
+    return f"    ngf::{native} {name} = {{{', '.join(values[f] for f in fields)}}};\n"
+
+
 def _frame_cpp(name: str) -> str:
-    return (f"ngf::Frame F = {{{name}.center[0], {name}.center[1], {name}.center[2], {name}.xscale, {name}.dscale}};\n")
+    """ngf::Frame F from an ``mlp.Frame`` argument."""
+    return native_init("Frame", "F", {"cx": f"{name}.center[0]", "cy": f"{name}.center[1]", "cz": f"{name}.center[2]",
+                                      "xscale": f"{name}.xscale", "dscale": f"{name}.dscale"})
 
 
-_STRUCTS_CPP = """
-    ngf::Lifting L = {(const ngf::u32x2*)lift.w0.data, (const ngf::f32x2*)lift.b0.data,
-                      (const ngf::u32x2*)lift.w1.data, (const ngf::f32x2*)lift.b1.data,
-                      (const ngf::u32x2*)lift.w2.data, (const ngf::f32x2*)lift.b2.data, lift.octaves};
-    ngf::Head H = {(const ngf::u32x2*)head.w0.data, (const ngf::f32x2*)head.b0.data,
-                   (const ngf::u32x2*)head.w1.data, (const ngf::f32x2*)head.b1.data, (const ngf::f32x2*)head.w2.data};
-"""
+_STRUCTS_CPP = native_initializer(Lifting, "Lifting", "lift", "L") + native_initializer(Head, "Head", "head", "H")
+_PATH_CPP = native_initializer(PathHead, "PathWeights", "ph", "W")
 
 
 def _unique(fn, name):
@@ -251,13 +311,13 @@ def _unique(fn, name):
     return fn
 
 
-_DISTANCE_CPP = """
-    ngf::Sources S = {(const ngf::u32x4*)src.emb.data, (const float*)src.pos.data,
-                      src.comp.shape[0] ? (const int*)src.comp.data : nullptr,
-                      src_ids.shape[0] ? (const int*)src_ids.data : nullptr, src_row, n_src};
-    ngf::DistanceOut O = {(float*)out.data, ld, flags & 1, euclid,
-                          rows.comp.shape[0] ? (const int*)rows.comp.data : nullptr, (flags >> 1) & 1};
-"""
+_DISTANCE_CPP = native_init("Sources", "S", {
+    "emb": "(const ngf::u32x4*)src.emb.data", "pos": "(const float*)src.pos.data",
+    "comp": "src.comp.shape[0] ? (const int*)src.comp.data : nullptr",
+    "ids": "src_ids.shape[0] ? (const int*)src_ids.data : nullptr", "row0": "src_row", "count": "n_src"}) + \
+    native_init("DistanceOut", "O", {
+        "out": "(float*)out.data", "ld": "ld", "reduce_min": f"(flags & {REDUCE_MIN}) ? 1 : 0", "euclid": "euclid",
+        "row_comp": "rows.comp.shape[0] ? (const int*)rows.comp.data : nullptr", "raw": f"(flags & {RAW}) ? 1 : 0"})
 
 
 def _distance_kernel(call: str, name: str):
@@ -279,8 +339,10 @@ def _distance_kernel(call: str, name: str):
     return distance_rows
 
 
-# parameter indices of a distance launch that change from call to call
-DIST_SRC, DIST_IDS, DIST_ROW, DIST_COUNT, DIST_OUT, DIST_LD, DIST_FLAGS = 4, 5, 6, 7, 8, 9, 10
+def param_index(kernel) -> dict:
+    """{parameter name: position} of a kernel, for updating a recorded launch (``wp.Launch.set_param_at_index``)
+    by name; the warp count that ``launch`` appends is the last parameter."""
+    return {a.label: i for i, a in enumerate(kernel.adj.args)}
 
 
 @functools.lru_cache(maxsize=None)
@@ -369,14 +431,6 @@ def sdf_kernel(D: int, ks0: int, mt: int = 1, nc: int = 8):
 """, f"ngf_sdf_rows_{D}_{ks0}_{mt}_{nc}", wp.float32)
 
 
-_PATH_CPP = """
-    ngf::PathWeights W = {(const ngf::u32x2*)ph.wc.data, (const ngf::f32x2*)ph.bc.data, (const ngf::u32x2*)ph.wg.data,
-                          (const ngf::f32x2*)ph.b0.data, (const ngf::f32x2*)ph.wx.data, (const ngf::u32x2*)ph.w1.data,
-                          (const ngf::f32x2*)ph.b1.data, (const ngf::u32x2*)ph.w2.data, (const ngf::f32x2*)ph.b2.data,
-                          (const ngf::u32x2*)ph.w3.data, ph.residual, ph.window};
-"""
-
-
 @functools.lru_cache(maxsize=None)
 def path_pre_kernel(D: int, P1: int):
     """Per path: the guidance vector and the path-constant part of the point layer (N, P1) float32."""
@@ -434,21 +488,21 @@ def _cpu_blocks():
         wp.config.enable_cpu_blocks = old
 
 
-def warps_for(device, n_tiles: int, warps_per_sm: int | None = None) -> int:
+def warps_for(device, n_tiles: int, warps_per_sm: int, cpu_warps: int = 1) -> int:
     """Persistent warps for a launch over n_tiles tiles."""
     if device.is_cpu:
-        return max(1, min(CPU_WARPS, n_tiles))
-    cap = device.sm_count * (warps_per_sm or WARPS_PER_SM)
+        return max(1, min(cpu_warps, n_tiles))
+    cap = device.sm_count * warps_per_sm
     return max(1, min(cap, n_tiles))
 
 
-def launch(kernel, n_tiles: int, inputs: list, device, record: bool = False, warps_per_sm: int | None = None):
+def launch(kernel, n_tiles: int, inputs: list, device, warps_per_sm: int, cpu_warps: int = 1, record: bool = False):
     """Launch a per-warp kernel over n_tiles tiles; its last input is the warp count, appended here.
 
-    record: return a ``wp.Launch`` to replay (parameters updated with ``set_param_at_index``) instead of launching;
-    its warp count stays the one for n_tiles.
+    record: return a ``wp.Launch`` to replay (parameters updated by position, ``param_index``) instead of
+    launching; its warp count stays the one for n_tiles.
     """
-    n_warps = warps_for(device, n_tiles, warps_per_sm)
+    n_warps = warps_for(device, n_tiles, warps_per_sm, cpu_warps)
     kw = dict(dim=32 * n_warps, inputs=[*inputs, n_warps], device=device, record_cmd=record)
     if device.is_cpu:
         with _cpu_blocks():

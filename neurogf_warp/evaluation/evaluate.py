@@ -81,7 +81,7 @@ def _with_mesh(model, mesh):
         return model, model.mesh
     m = load_mesh(mesh)
     if model.mesh is None:
-        return dataclasses.replace(model, mesh=m, center=m.center, scale=m.scale, _warp={}), m
+        return dataclasses.replace(model, mesh=m, center=m.center, scale=m.scale, _states={}), m
     if model.mesh.fingerprint != m.fingerprint:
         raise ValueError("the model was trained on another mesh than the one given (fingerprints differ); "
                          "evaluate it on its own mesh")

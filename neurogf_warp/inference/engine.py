@@ -1,59 +1,79 @@
 """One model's networks packed for the tensor-core kernels on one device, and the launches that answer queries.
 
-The public functions in ``inference`` validate inputs and frames and call these; everything here takes and
-returns ``wp.array``s on the engine's device. Rows are points in the user's frame (``frame`` maps them to the
-network's), distances come back in user units.
+The backends (``backends.py``) call these; everything here takes and returns ``wp.array``s on the engine's device.
+Rows are points in the user's frame (``frame`` maps them to the network's), distances come back in user units.
 """
 from __future__ import annotations
 
-import numpy as np
 import warp as wp
 
 from neurogf_warp.kernels.inference import mlp, refine
 from neurogf_warp.kernels.inference import tensorcore as tc
-from neurogf_warp.model.folded import folded_layers
+from neurogf_warp.model.folded import NetShape
 
-__all__ = ["Engine", "supported"]
+__all__ = ["Engine", "fp16_refusal"]
 
 _UNSET = object()
+_EMBED_LAUNCHES = 16  # recorded embedding launches kept (a few sizes recur: single sources, path ends)
 
 
-def supported(net) -> bool:
-    """Whether the tensor-core kernels handle this network's widths."""
-    return net.D in tc.SUPPORTED_D
+def fp16_refusal(shape: NetShape) -> str | None:
+    """Why the tensor-core kernels cannot run a network of this shape (None: they can).
+
+    The native code is written for the released layout: lifting F -> D/4 -> D/2 -> D with D in SUPPORTED_D,
+    distance and SDF heads D -> D/4 -> D/4 -> 1, a guidance layer 2D -> D and a four-layer point-wise path head
+    whose widths are template parameters (P1, P2 multiples of 16; P3 is padded to 16 by the packing).
+    """
+    D = shape.D
+    if D not in tc.SUPPORTED_D:
+        return f"D = {D} (the tensor-core kernels support D in {tc.SUPPORTED_D})"
+    want_lift = (D // 4, D // 2, D)
+    if shape.lifting[1:] != want_lift:
+        return f"lifting widths {shape.lifting} (the tensor-core kernels need (F, {', '.join(map(str, want_lift))}))"
+    for name, head in (("distance", shape.distance), ("SDF", shape.sdf)):
+        if head != (D, D // 4, D // 4, 1):
+            return f"{name} head widths {head} (the tensor-core kernels need ({D}, {D // 4}, {D // 4}, 1))"
+    if shape.guidance != (2 * D, D):
+        return f"guidance widths {shape.guidance} (the tensor-core kernels need ({2 * D}, {D}))"
+    path = shape.path
+    if len(path) != 5 or path[0] != D + 3 or path[-1] != 3 or any(w % 16 for w in path[1:3]):
+        return (f"path head widths {path} (the tensor-core kernels need ({D + 3}, P1, P2, P3, 3), P1 and P2 "
+                "multiples of 16)")
+    return None
 
 
 class Engine:
-    """Packed fp16 weights of one network on one device (a few hundred KB) and its kernels."""
+    """Packed fp16 weights of one network on one device (a few hundred KB), its kernels and recorded launches.
 
-    def __init__(self, net, frame: mlp.Frame, device):
-        if not supported(net):
-            raise ValueError(f"the tensor-core kernels support D in {tc.SUPPORTED_D}, not {net.D}; use precision='fp32'")
-        self.device, self.frame, self.D = device, frame, net.D
-        layers = folded_layers(net)
-        self.ks0 = tc.input_ksteps(3 + 6 * net.fourier)
-        self.euclid = 1.0 if net.euclid else 0.0
-        self.lifting = tc.lifting_struct(layers["lifting"], net.fourier, device)
+    ``layers``: ``folded.folded_layers(net)``; ``shape``: the ``NetShape`` read from them (refused here, with the
+    reason, when the native kernels are not written for it); ``tuning``: the frozen tile settings of every launch.
+    """
+
+    def __init__(self, layers: dict, shape: NetShape, options: dict, frame: mlp.Frame, device,
+                 tuning: tc.Tuning = tc.Tuning()):
+        why = fp16_refusal(shape)
+        if why is not None:
+            raise ValueError(f"precision='fp16' cannot run this network: {why}; use precision='fp32'")
+        self.device, self.frame, self.D, self.tuning = device, frame, shape.D, tuning
+        self.ks0 = tc.input_ksteps(shape.lifting[0])
+        self.euclid = 1.0 if options["euclid"] else 0.0
+        self.lifting = tc.lifting_struct(layers["lifting"], options["fourier"], device)
         self.dist_head = tc.head_struct(layers["distance"], device)
         self.sdf_head = tc.head_struct(layers["sdf"], device)
-        self.path_head = tc.path_struct(layers["guidance"], layers["path"], net.path_residual, net.path_window, device)
+        self.path_head = tc.path_struct(layers["guidance"], layers["path"], options["path_residual"],
+                                        options["path_window"], device)
         self.path_widths = tc.path_widths(layers["path"])
         self._none = tc.empty_int(device)
         self._launches, self._last = {}, {}
 
-    # -- kernels, all compiled by warmup() --------------------------------------------------------------------
-    def kernels(self) -> dict:
-        D, k = self.D, self.ks0
-        return {"embed": tc.embed_kernel(D, k), "ssad": tc.ssad_kernel(D, *tc.SSAD),
-                "ssad_lifted": tc.lift_ssad_kernel(D, k, *tc.LIFT_SSAD),
-                "distance_cached": tc.distance_kernel(D, k, False, tc.SOURCE_GROUP),
-                "distance_lifted": tc.distance_kernel(D, k, True, tc.SOURCE_GROUP), "pairs": tc.pair_kernel(D, k, tc.PAIR_NC),
-                "sdf": tc.sdf_kernel(D, k, *tc.SDF_TILE), "path_pre": tc.path_pre_kernel(D, self.path_widths[0]),
-                "path_points": tc.path_points_kernel(*self.path_widths)}
+    def forget_launches(self):
+        """Drop every recorded launch: they hold references to the arrays they were recorded with."""
+        self._launches.clear()
+        self._last.clear()
 
-    def row_bytes(self) -> int:
-        """Bytes of one packed fp16 embedding."""
-        return 2 * self.D
+    def _launch(self, kernel, n_tiles: int, inputs: list, warps: int, record: bool = False):
+        t = self.tuning
+        return tc.launch(kernel, n_tiles, inputs, self.device, warps, t.cpu_warps, record=record)
 
     # -- queries ------------------------------------------------------------------------------------------------
     def embed(self, pts: wp.array, out: wp.array | None = None) -> wp.array:
@@ -65,13 +85,14 @@ class Engine:
             kernel = tc.embed_kernel(self.D, self.ks0)
             key = ("embed", n)
             if key not in self._launches:
-                if len(self._launches) > 16:  # bounded: a few sizes recur (single sources, paths)
+                if len(self._launches) > _EMBED_LAUNCHES:
                     for k in [k for k in self._launches if isinstance(k, tuple) and k[0] == "embed"]:
                         self._launches.pop(k)
                         self._last.pop(k, None)
-                self._launches[key] = tc.launch(kernel, -(-n // 16), [self.lifting, self.dist_head, self.frame, pts,
-                                                                       n, out], self.device, record=True)
-            self._replay(key, self._launches[key], {3: pts, 5: out})
+                cmd = self._launch(kernel, -(-n // 16), [self.lifting, self.dist_head, self.frame, pts, n, out],
+                                   self.tuning.warps_other, record=True)
+                self._launches[key] = (None, cmd, tc.param_index(kernel))
+            self._replay(key, {"pts": pts, "out": out})
         return out
 
     # -- distances from sources to rows ------------------------------------------------------------------------
@@ -101,54 +122,55 @@ class Engine:
         n = rows.n
         if not n or not count:
             return
+        t = self.tuning
         cached = rows.cached.shape[0] > 0
         if count == 1 and cached:
-            kind, kernel, mt = "ssad", tc.ssad_kernel(self.D, *tc.SSAD), tc.SSAD[0]
+            kernel, mt, warps = tc.ssad_kernel(self.D, *t.ssad), t.ssad[0], t.warps_ssad
         elif count == 1:
-            kind, kernel, mt = "lift_ssad", tc.lift_ssad_kernel(self.D, self.ks0, *tc.LIFT_SSAD), tc.LIFT_SSAD[0]
+            kernel, mt, warps = tc.lift_ssad_kernel(self.D, self.ks0, *t.lift_ssad), t.lift_ssad[0], t.warps_lift_ssad
         else:
-            kind, kernel, mt = "distance", tc.distance_kernel(self.D, self.ks0, not cached, tc.SOURCE_GROUP), 1
-        key = (kernel, tc.WARPS[kind])  # one recorded launch per kernel, re-recorded when the rows change
+            kernel, mt, warps = tc.distance_kernel(self.D, self.ks0, not cached, t.source_group), 1, t.warps_distance
+        key = kernel  # one recorded launch per kernel, re-recorded when the rows change
         cmd = self._launches.get(key)
         if cmd is None or cmd[0] is not rows:
             self._last.pop(key, None)
             tiles = -(-n // (16 * mt))
-            cmd = (rows, tc.launch(kernel, tiles, [self.lifting, self.dist_head, self.frame, rows, src, self._none,
-                                                   0, 1, out, 0, 0, self.euclid], self.device, record=True,
-                                   warps_per_sm=tc.WARPS[kind]))
-            self._launches[key] = cmd
+            self._launches[key] = (rows, self._launch(kernel, tiles, [self.lifting, self.dist_head, self.frame, rows,
+                                                                      src, self._none, 0, 1, out, 0, 0, self.euclid],
+                                                      warps, record=True), tc.param_index(kernel))
         flags = (tc.REDUCE_MIN if reduce_min else 0) | (tc.RAW if raw else 0)
-        self._replay(key, cmd[1], {tc.DIST_SRC: src, tc.DIST_IDS: ids if ids is not None else self._none,
-                                   tc.DIST_ROW: int(row0), tc.DIST_COUNT: int(count), tc.DIST_OUT: out,
-                                   tc.DIST_LD: int(ld), tc.DIST_FLAGS: flags})
+        self._replay(key, {"src": src, "src_ids": ids if ids is not None else self._none, "src_row": int(row0),
+                           "n_src": int(count), "out": out, "ld": int(ld), "flags": flags})
 
-    def _replay(self, key, launch, params: dict):
-        """Replay a recorded launch, packing only the parameters that differ from its previous call."""
+    def _replay(self, key, params: dict):
+        """Replay a recorded launch, packing only the parameters (by name) that differ from its previous call."""
+        _, launch, index = self._launches[key]
         last = self._last.setdefault(key, {})
-        for i, v in params.items():
-            if last.get(i, _UNSET) is not v and not (isinstance(v, int) and last.get(i) == v):
-                launch.set_param_at_index(i, v)
-                last[i] = v
+        for name, v in params.items():
+            if last.get(name, _UNSET) is not v and not (isinstance(v, int) and last.get(name) == v):
+                launch.set_param_at_index(index[name], v)
+                last[name] = v
         if self.device.is_cpu:
             with tc._cpu_blocks():
                 launch.launch()
         else:
             launch.launch()
 
-    def pairs(self, p: wp.array, q: wp.array, out: wp.array, raw: bool = False):
+    def pairs(self, p: wp.array, q: wp.array, out: wp.array, raw: bool = False, frame: mlp.Frame | None = None):
         n = p.shape[0]
         if n:
-            tc.launch(tc.pair_kernel(self.D, self.ks0, tc.PAIR_NC), -(-n // 16),
-                      [self.lifting, self.dist_head, self.frame, p, q, n, self.euclid, int(raw), out], self.device,
-                      warps_per_sm=tc.WARPS["pairs"])
+            self._launch(tc.pair_kernel(self.D, self.ks0, self.tuning.pair_nc), -(-n // 16),
+                         [self.lifting, self.dist_head, frame or self.frame, p, q, n, self.euclid, int(raw), out],
+                         self.tuning.warps_pairs)
 
-    def sdf(self, x: wp.array, out: wp.array):
+    def sdf(self, x: wp.array, out: wp.array, frame: mlp.Frame | None = None):
         n = x.shape[0]
         if n:
-            tc.launch(tc.sdf_kernel(self.D, self.ks0, *tc.SDF_TILE), -(-n // (16 * tc.SDF_TILE[0])),
-                      [self.lifting, self.sdf_head, self.frame, x, n, out], self.device, warps_per_sm=tc.WARPS["sdf"])
+            mt, nc = self.tuning.sdf_tile
+            self._launch(tc.sdf_kernel(self.D, self.ks0, mt, nc), -(-n // (16 * mt)),
+                         [self.lifting, self.sdf_head, frame or self.frame, x, n, out], self.tuning.warps_sdf)
 
-    def paths(self, p: wp.array, q: wp.array, out: wp.array):
+    def paths(self, p: wp.array, q: wp.array, out: wp.array, frame: mlp.Frame | None = None):
         """out: (N, m) vec3, the path head's points."""
         n, m = out.shape
         if not n:
@@ -158,10 +180,10 @@ class Engine:
         self.embed(p, ends[: n * D // 2])
         self.embed(q, ends[n * D // 2:])
         pre = wp.empty(n * P1, dtype=wp.float32, device=self.device)
-        tc.launch(tc.path_pre_kernel(D, P1), -(-n // 16),
-                  [self.path_head, ends[: n * D // 2], ends[n * D // 2:], n, pre], self.device)
-        tc.launch(tc.path_points_kernel(*self.path_widths), -(-(n * m) // 16),
-                  [self.path_head, self.frame, p, q, pre, n, m, out], self.device)
+        self._launch(tc.path_pre_kernel(D, P1), -(-n // 16), [self.path_head, ends[: n * D // 2], ends[n * D // 2:],
+                                                               n, pre], self.tuning.warps_other)
+        self._launch(tc.path_points_kernel(*self.path_widths), -(-(n * m) // 16),
+                     [self.path_head, frame or self.frame, p, q, pre, n, m, out], self.tuning.warps_other)
 
     # -- path shortening on the SDF surface ----------------------------------------------------------------------
     def newton_steps(self, x: wp.array, starts: wp.array, ends: wp.array, steps: int, midpoints: bool, h: float,

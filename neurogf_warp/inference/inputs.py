@@ -12,7 +12,7 @@ import torch
 import warp as wp
 
 from neurogf_warp.common.arrays import as_points, resolve_device
-from neurogf_warp.inference.state import frame_of, mesh_on
+from neurogf_warp.inference.state import query_state
 from neurogf_warp.kernels.inference import finish
 from neurogf_warp.model.model import Model
 
@@ -28,14 +28,11 @@ def check_domain(model: Model, pts: wp.array, name: str, other: wp.array | None 
     if not n:
         return
     dev = pts.device
-    key = ("check", str(dev))
-    if key not in model._warp:
-        model._warp[key] = (wp.empty(2, dtype=wp.int32, device=dev),
-                            wp.empty(2, dtype=wp.int32, device="cpu", pinned=dev.is_cuda))
-    bad, host = model._warp[key]
+    st = query_state(model, dev)
+    bad, host = st.check_buffers
     bad.fill_(_NO_BAD)
-    wp.launch(finish.check_points, n, inputs=[pts, other if other is not None else _empty_vec3(model, dev),
-                                              frame_of(model), DOMAIN, bad], device=dev)
+    wp.launch(finish.check_points, n, inputs=[pts, other if other is not None else st.no_points, st.frame, DOMAIN,
+                                              bad], device=dev)
     wp.copy(host, bad)
     if dev.is_cuda:
         wp.synchronize_stream(dev.stream)
@@ -47,13 +44,6 @@ def check_domain(model: Model, pts: wp.array, name: str, other: wp.array | None 
             where = ("outside the model's domain (the cube of half-side 1.5 bounding radii around the mesh's "
                      "bounding-box centre)") if np.all(np.isfinite(x)) else "non-finite (NaN or inf)"
             raise ValueError(f"{label}[{i - 1}] = {x.tolist()} is {where}")
-
-
-def _empty_vec3(model: Model, dev) -> wp.array:
-    key = ("no_points", str(dev))
-    if key not in model._warp:
-        model._warp[key] = wp.empty(0, dtype=wp.vec3, device=dev)
-    return model._warp[key]
 
 
 def points_in(model: Model, x, name: str, dev, check: bool = True):
@@ -108,17 +98,17 @@ def sources_in(model: Model, src, name: str, dev, one: bool = False):
     a = a.reshape(1, 3) if a.shape == (3,) else a
     if a.ndim != 2 or a.shape[1] != 3:
         raise ValueError(f"{name} must be vertex indices or points of shape (S, 3), got shape {np.shape(src)}")
-    _check_domain_host(model, a, name)
+    _check_domain_host(model, a, name, dev)
     comp = None
     if model.mesh is not None and model.mesh.n_components > 1:
         pts = wp.array(a.astype(np.float32), dtype=wp.vec3, device=dev)
-        comp = mesh_on(model, dev, name).components_of(pts).numpy()
+        comp = query_state(model, dev).mesh(name).components_of(pts).numpy()
     return a.astype(np.float64), None, comp
 
 
-def _check_domain_host(model: Model, a: np.ndarray, name: str):
+def _check_domain_host(model: Model, a: np.ndarray, name: str, dev):
     """check_domain for a few points already on the host (no device round trip)."""
-    f = frame_of(model)
+    f = query_state(model, dev).frame
     x = (a.astype(np.float32) - np.array(f.center, dtype=np.float32)) * np.float32(f.xscale)
     bad = ~np.all(np.isfinite(x) & (np.abs(x) <= DOMAIN), axis=1)
     if np.any(bad):
@@ -142,7 +132,7 @@ def pair_inputs(model, p, q, device, check: bool = True):
 def pair_components(model: Model, P, Q, dev):
     if model.mesh is None or model.mesh.n_components == 1:
         return None
-    md = mesh_on(model, dev, "distance")
+    md = query_state(model, dev).mesh("distance")
     return md.components_of(P), md.components_of(Q)
 
 

@@ -11,9 +11,9 @@ import warp as wp
 
 from neurogf_warp.common.arrays import Output, resolve_device
 from neurogf_warp.inference.inputs import pair_components, pair_inputs, points_in
-from neurogf_warp.inference.state import engine_of, frame_of, precision_of, warp_weights
+from neurogf_warp.inference.backends import backend_of
+from neurogf_warp.inference.state import query_state
 from neurogf_warp.kernels.inference import finish, mlp
-from neurogf_warp.kernels.inference import refine as refine_kernels
 from neurogf_warp.model.model import Model
 
 PROJECT_STEPS = 2  # Newton steps from a point near the surface; |sdf| falls ~10x per step (a trained SDF head)
@@ -51,21 +51,19 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None 
     if not isinstance(refine, (int, np.integer)) or isinstance(refine, bool) or refine < 0:
         raise ValueError(f"refine (shortening sweeps) must be an integer >= 0, got {refine!r}")
     dev, P, Q, kind, single = pair_inputs(model, p, q, device, check)
-    prec = precision_of(model, precision, dev)
+    st = query_state(model, dev)
+    be = backend_of(st, precision)
     n, m = P.shape[0], int(m)
     out = Output(kind, dev)
     res = out.empty((n, m), dtype=wp.vec3)
     if n and not refine:
-        if prec == "fp16":
-            engine_of(model, dev).paths(P, Q, res)
-        else:
-            _head_paths(model, P, Q, res, dev)
+        be.paths(P, Q, res)
     elif n:
-        _refined_paths(model, P, Q, res, int(refine), dev, prec)
+        _refined_paths(be, P, Q, res, int(refine), dev)
     if n and project == "sdf":
         flat = res.reshape(-1)
-        wp.launch(mlp.project_points, flat.shape[0], inputs=[warp_weights(model, dev), flat, frame_of(model),
-                                                             2 * PROJECT_STEPS], outputs=[flat], device=dev)
+        wp.launch(mlp.project_points, flat.shape[0], inputs=[st.weights, flat, st.frame, 2 * PROJECT_STEPS],
+                  outputs=[flat], device=dev)
     faces = None
     if n and project == "mesh":
         from neurogf_warp.mesh.surface import snap_to_mesh
@@ -92,52 +90,30 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None 
     return r[0] if single else r
 
 
-def _refined_paths(model: Model, P, Q, res, refine: int, dev, prec: str):
+def _refined_paths(be, P, Q, res, refine: int, dev):
+    """The refinement schedule of ``path`` on backend ``be`` (its ``settle`` and ``sweep`` steps)."""
     n, m = res.shape
     levels = _levels(m)
     cand = wp.empty((3 * n, levels[0]), dtype=wp.vec3, device=dev)
-    if prec == "fp16":
-        eng = engine_of(model, dev)
-        eng.paths(P, Q, cand[:n])
-        eng.paths(Q, P, cand[n:2 * n])
-    else:
-        _head_paths(model, P, Q, cand[:n], dev)
-        _head_paths(model, Q, P, cand[n:2 * n], dev)
+    be.paths(P, Q, cand[:n])
+    be.paths(Q, P, cand[n:2 * n])
     wp.launch(mlp.straight_paths, (n, levels[0]), inputs=[P, Q], outputs=[cand[2 * n:]], device=dev)
     starts, ends = wp.empty(3 * n, dtype=wp.vec3, device=dev), wp.empty(3 * n, dtype=wp.vec3, device=dev)
     for c, (a, b) in enumerate(((P, Q), (Q, P), (P, Q))):
         wp.copy(starts, a, dest_offset=c * n, count=n)
         wp.copy(ends, b, dest_offset=c * n, count=n)
-    if prec == "fp16":
-        # the same schedule with batched tensor-core SDF evaluations (kernels/refine.py)
-        h = refine_kernels.FD_STEP / (model.scale if model.in_mesh_frame else 1.0)
-        scratch = {}
-        for level, ml in enumerate(levels):
-            if level:
-                finer = wp.empty((3 * n, ml), dtype=wp.vec3, device=dev)
-                wp.launch(mlp.resample_paths, finer.shape, inputs=[cand], outputs=[finer], device=dev)
-                cand = finer
-            cand = wp.clone(eng.newton_steps(cand, starts, ends, PROJECT_STEPS, False, h, scratch))
-            for _ in range(refine):
-                cand = eng.newton_steps(cand, starts, ends, 1, True, h, scratch)
-        cand = eng.newton_steps(cand, starts, ends, 2 * PROJECT_STEPS, False, h, scratch)
-    else:
-        w, frame = warp_weights(model, dev), frame_of(model)
-        for level, ml in enumerate(levels):
-            if level:
-                finer = wp.empty((3 * n, ml), dtype=wp.vec3, device=dev)
-                wp.launch(mlp.resample_paths, finer.shape, inputs=[cand], outputs=[finer], device=dev)
-                cand = finer
-            wp.launch(mlp.pin_and_project, cand.shape, inputs=[w, starts, ends, frame, PROJECT_STEPS],
-                      outputs=[cand], device=dev)
-            tmp = wp.empty_like(cand)
-            for _ in range(refine):
-                wp.launch(mlp.relax_paths, cand.shape, inputs=[w, cand, frame, 1], outputs=[tmp], device=dev)
-                cand, tmp = tmp, cand
-        # a sweep takes one Newton step from the midpoint; at a crease the chord's midpoint lies deeper than
-        # one step reaches, so the result gets a full projection
-        wp.launch(mlp.pin_and_project, cand.shape, inputs=[w, starts, ends, frame, 2 * PROJECT_STEPS],
-                  outputs=[cand], device=dev)
+    scratch = {}
+    for level, ml in enumerate(levels):
+        if level:
+            finer = wp.empty((3 * n, ml), dtype=wp.vec3, device=dev)
+            wp.launch(mlp.resample_paths, finer.shape, inputs=[cand], outputs=[finer], device=dev)
+            cand = finer
+        cand = be.settle(cand, starts, ends, PROJECT_STEPS, scratch)
+        for _ in range(refine):
+            cand = be.sweep(cand, starts, ends, scratch)
+    # a sweep takes one Newton step from the midpoint; at a crease the chord's midpoint lies deeper than
+    # one step reaches, so the result gets a full projection
+    cand = be.settle(cand, starts, ends, 2 * PROJECT_STEPS, scratch)
     rev = wp.array([0, 1, 0], dtype=wp.int32, device=dev)
     wp.launch(mlp.pick_shortest, (n, m), inputs=[cand, 3, rev], outputs=[res], device=dev)
 
@@ -151,21 +127,6 @@ def _levels(m: int) -> list:
     return out
 
 
-def _head_paths(model: Model, P: wp.array, Q: wp.array, res: wp.array, dev):
-    """The path head's points into res (N, m), float32 per-thread kernels."""
-    n = P.shape[0]
-    w = warp_weights(model, dev)
-    e = wp.empty((2 * n, model.D), dtype=wp.float32, device=dev)
-    frame = frame_of(model)
-    wp.launch(mlp.embed_points, n, inputs=[w, P, frame], outputs=[e[:n]], device=dev)
-    wp.launch(mlp.embed_points, n, inputs=[w, Q, frame], outputs=[e[n:]], device=dev)
-    g = wp.empty((n, model.D), dtype=wp.float32, device=dev)
-    pre = wp.empty((n, w.p0_w.shape[0]), dtype=wp.float32, device=dev)
-    wp.launch(mlp.path_guidance, (n, model.D), inputs=[w, e, n], outputs=[g], device=dev)
-    wp.launch(mlp.path_first_layer, pre.shape, inputs=[w, g], outputs=[pre], device=dev)
-    wp.launch(mlp.path_points, res.shape, inputs=[w, P, Q, pre, frame], outputs=[res], device=dev)
-
-
 def project(model: Model, x, steps: int = PROJECT_STEPS, device=None):
     """Points moved onto the surface of the network's SDF head (Newton steps on its zero level set): (N, 3) -> (N, 3)."""
     if not isinstance(steps, (int, np.integer)) or isinstance(steps, bool) or steps < 0:
@@ -175,8 +136,9 @@ def project(model: Model, x, steps: int = PROJECT_STEPS, device=None):
     out = Output(kind, dev)
     res = out.empty(X.shape[0], dtype=wp.vec3)
     if X.shape[0]:
-        wp.launch(mlp.project_points, X.shape[0], inputs=[warp_weights(model, dev), X, frame_of(model), int(steps)],
-                  outputs=[res], device=dev)
+        st = query_state(model, dev)
+        wp.launch(mlp.project_points, X.shape[0], inputs=[st.weights, X, st.frame, int(steps)], outputs=[res],
+                  device=dev)
     if kind == "torch":
         r = wp.to_torch(res).view(-1, 3)
     elif kind == "warp":

@@ -22,7 +22,8 @@ precision:
 
 Vertex queries (ssad, msad, distance_matrix) keep the embeddings of every mesh vertex on the device after the
 first call (``cache=True``): fp16 packed, 2 D bytes per vertex (223 MB for 436,000 vertices at D = 256), or fp32,
-4 D bytes, for precision "fp32"; later calls then run only the distance head. ``Model.unbind`` frees them.
+4 D bytes, for precision "fp32"; later calls then run only the distance head. ``unbind`` (or
+``Model.unbind``) frees them and everything made from them.
 """
 from __future__ import annotations
 
@@ -34,25 +35,11 @@ import torch
 import warp as wp
 
 from neurogf_warp.common.arrays import Output, as_points, resolve_device
+from neurogf_warp.inference.backends import PerThread, backend_of, bind
 from neurogf_warp.inference.inputs import DOMAIN, pair_components, pair_inputs, points_in, single_answer, sources_in
 from neurogf_warp.inference.paths import PROJECT_STEPS, path, project  # noqa: F401  (public through this module)
-from neurogf_warp.inference.state import (
-    PRECISIONS,
-    MeshOnDevice,
-    bind,
-    binding_of,
-    bound_tables,
-    check_memory,
-    embed_fp32,
-    engine_of,
-    frame_of,
-    head_only_weights,
-    mesh_on,
-    precision_of,
-    unbind,
-    warp_weights,
-)
-from neurogf_warp.kernels.inference import finish, head_fp32, mlp
+from neurogf_warp.inference.state import PRECISIONS, check_memory, query_state, unbind
+from neurogf_warp.kernels.inference import finish
 from neurogf_warp.model.folded import BN_EPS, fold_batchnorm  # noqa: F401  (fold_batchnorm: public since the first release)
 from neurogf_warp.model.model import Model
 
@@ -64,13 +51,19 @@ CHUNK_BYTES = 1 << 30  # device memory for one chunk of a many-source result bou
 _warned_unbound = set()
 
 
+def warp_weights(model: Model, device=None):
+    """The model's folded float32 weights on ``device`` for the per-thread ``@wp.func``s (``mlp.NeuroGFWeights``)."""
+    return query_state(model, device).weights
+
+
 # ---- vertex queries ---------------------------------------------------------------------------------------------------
 
 def _vertex_distances(model: Model, src, name: str, device, output: str, precision: str, cache: bool,
                       reduce_min: bool, one: bool = False, raw: bool = False):
-    dev = resolve_device(device)
-    prec = precision_of(model, precision, dev)
-    md = mesh_on(model, dev, name)
+    st = query_state(model, device)
+    dev = st.device
+    be = backend_of(st, precision)
+    md = st.mesh(name)
     pts, ids, comp = sources_in(model, src, name, dev, one=one)
     S, V = len(pts), md.V
     rows_out = 1 if reduce_min else S
@@ -84,40 +77,13 @@ def _vertex_distances(model: Model, src, name: str, device, output: str, precisi
                   "sources) or fewer sources per call")
     if cache:
         try:
-            bind(model, dev, prec)
+            bind(model, dev, precision)
         except MemoryError as e:  # the query still runs, embedding the vertices as it goes
             if (id(model), str(dev)) not in _warned_unbound:
                 _warned_unbound.add((id(model), str(dev)))
                 warnings.warn(f"{e}; answering without kept embeddings", RuntimeWarning, stacklevel=3)
-    bound = binding_of(model, dev, prec)
     internal = wp.empty(rows_out * V, dtype=wp.float32, device=dev)
-    if prec == "fp16":
-        eng = engine_of(model, dev)
-        kw = dict(count=S, reduce_min=reduce_min, raw=raw)
-        if bound is not None and ids is not None:  # rows of the kept tables: nothing to embed or copy
-            rows, table = bound_tables(model, dev, md, bound)
-            if S == 1:
-                eng.distances(rows, table, internal, V, row0=int(ids[0]), **kw)
-            else:
-                eng.distances(rows, table, internal, V, ids=wp.array(ids.astype(np.int32), dtype=wp.int32,
-                                                                      device=dev), **kw)
-        else:
-            src_pos = wp.array(pts.astype(np.float32), dtype=wp.vec3, device=dev)
-            src_comp = wp.array(comp.astype(np.int32), dtype=wp.int32, device=dev) if comp is not None else None
-            rows = bound_tables(model, dev, md, bound)[0] if bound is not None else md.lifted_rows(eng)
-            eng.distances(rows, eng.sources(eng.embed(src_pos), src_pos, src_comp), internal, V, **kw)
-    else:
-        src_pos = wp.array(pts.astype(np.float32), dtype=wp.vec3, device=dev)
-        src_comp = wp.array(comp.astype(np.int32), dtype=wp.int32, device=dev) if comp is not None else None
-        head = _head_values_fp32(model, dev, md, src_pos, bound)
-        full = internal.reshape((rows_out, V)) if not reduce_min else wp.empty((S, V), dtype=wp.float32, device=dev)
-        none = wp.empty(0, dtype=wp.int32, device=dev)
-        wp.launch(finish.finish_rows, (S, V), inputs=[head, md.verts, md.comp if md.multi else none, src_pos,
-                                                      src_comp if src_comp is not None else none, frame_of(model),
-                                                      1.0 if model.net.euclid else 0.0, int(raw)], outputs=[full],
-                  device=dev)
-        if reduce_min:
-            wp.launch(finish.min_rows, V, inputs=[full], outputs=[internal], device=dev)
+    be.vertex_distances(md, pts, ids, comp, internal, reduce_min, raw)
     flat = rows_out == 1 and (one or reduce_min)
     if md.identity:
         res = internal if flat else internal.reshape((rows_out, V))
@@ -137,30 +103,6 @@ def _source_chunks(src, pts, ids, step: int):
                        if isinstance(src, torch.Tensor) else src)
     given = given.reshape(-1) if ids is not None else given.reshape(-1, 3)
     return [given[i:i + step] for i in range(0, len(flat), step)]
-
-
-def _head_values_fp32(model: Model, dev, md: MeshOnDevice, src_pos: wp.array, bound) -> wp.array:
-    """(S, V) distance-head values (network frame, no |x - s| term) from float32 per-thread or tile kernels."""
-    S, V = src_pos.shape[0], md.V
-    es = embed(model, src_pos, device=dev)
-    head = wp.empty((S, V), dtype=wp.float32, device=dev)
-    w = warp_weights(model, dev)
-    if bound is None or model.D > head_fp32.MAX_D:
-        wp.launch(head_fp32.head_rows, (S, V), outputs=[head], device=dev,
-                  inputs=[head_only_weights(model, dev), es, src_pos, md.verts, frame_of(model)])
-        return head
-    key = ("tile_head", str(dev))
-    if key not in model._warp:  # the tile kernel takes biases as (H, 1) columns
-        col = lambda b: wp.array(b.numpy().reshape(-1, 1), dtype=wp.float32, device=dev)
-        model._warp[key] = (w.g0_w, col(w.g0_b), w.g1_w, col(w.g1_b), w.g2_w)
-    weights = model._warp[key]
-    H, D = weights[0].shape
-    kernel = head_fp32.head_kernel(D, H, False, head_fp32.BLOCK, head_fp32.CHUNK)
-    for s in range(S):
-        wp.launch_tiled(kernel, dim=[(V + head_fp32.BLOCK - 1) // head_fp32.BLOCK],
-                        inputs=[es[s: s + 1], bound, *weights, D // head_fp32.CHUNK], outputs=[head[s: s + 1]],
-                        block_dim=head_fp32.THREADS, device=dev)
-    return head
 
 
 def ssad(model: Model, source, device=None, output: str = "numpy", precision: str = "auto", cache: bool = True,
@@ -218,8 +160,9 @@ def distance_matrix(model: Model, sources, targets=None, device=None, output: st
     """
     if targets is None:
         return _vertex_distances(model, sources, "sources", device, output, precision, cache, False, raw=raw)
-    dev = resolve_device(device)
-    prec = precision_of(model, precision, dev)
+    st = query_state(model, device)
+    dev = st.device
+    be = backend_of(st, precision)
     spts, _, scomp = sources_in(model, sources, "sources", dev)
     tpts, _, tcomp = sources_in(model, targets, "targets", dev)
     S, T = len(spts), len(tpts)
@@ -229,20 +172,7 @@ def distance_matrix(model: Model, sources, targets=None, device=None, output: st
     multi = scomp is not None and tcomp is not None
     tc_arr = wp.array(tcomp.astype(np.int32), dtype=wp.int32, device=dev) if multi else None
     sc_arr = wp.array(scomp.astype(np.int32), dtype=wp.int32, device=dev) if multi else None
-    if prec == "fp16":
-        eng = engine_of(model, dev)
-        eng.distances(eng.rows(tgt_pos, eng.embed(tgt_pos), tc_arr), eng.sources(eng.embed(src_pos), src_pos, sc_arr),
-                      res.reshape(-1), T, count=S, raw=raw)
-    else:
-        es = embed(model, src_pos, device=dev)
-        head = wp.empty((S, T), dtype=wp.float32, device=dev)
-        wp.launch(head_fp32.head_rows, (S, T), outputs=[head], device=dev,
-                  inputs=[head_only_weights(model, dev), es, src_pos, tgt_pos, frame_of(model)])
-        none = wp.empty(0, dtype=wp.int32, device=dev)
-        wp.launch(finish.finish_rows, (S, T), inputs=[head, tgt_pos, tc_arr if multi else none, src_pos,
-                                                      sc_arr if multi else none, frame_of(model),
-                                                      1.0 if model.net.euclid else 0.0, int(raw)], outputs=[res],
-                  device=dev)
+    be.target_distances(src_pos, tgt_pos, sc_arr, tc_arr, res, raw)
     return Output(output, dev).result(res)
 
 
@@ -257,18 +187,12 @@ def distance(model: Model, p, q, device=None, precision: str = "auto", check: bo
     ``raw``: the network's own values (no clamping at 0, no exact 0 for identical points).
     """
     dev, P, Q, kind, single = pair_inputs(model, p, q, device, check)
-    prec = precision_of(model, precision, dev)
+    be = backend_of(query_state(model, dev), precision)
     out = Output(kind, dev)
     res = out.empty(P.shape[0])
     n = P.shape[0]
     if n:
-        if prec == "fp16":
-            engine_of(model, dev).pairs(P, Q, res, raw)
-        else:
-            wp.launch(mlp.distance_pairs, n, inputs=[warp_weights(model, dev), P, Q, frame_of(model)], outputs=[res],
-                      device=dev)
-            if not raw:
-                wp.launch(finish.clamp_pairs, n, inputs=[P, Q, res], device=dev)
+        be.pairs(P, Q, res, raw)
         comps = pair_components(model, P, Q, dev)
         if comps is not None:
             wp.launch(finish.split_pairs, n, inputs=[*comps, res], device=dev)
@@ -279,15 +203,11 @@ def sdf(model: Model, x, device=None, precision: str = "auto", check: bool = Tru
     """Signed distance from the network's SDF head: (N, 3) -> (N,) float32 mesh units, negative inside; (3,) -> ()."""
     dev = resolve_device(device, like=x)
     X, kind, single = points_in(model, x, "x", dev, check)
-    prec = precision_of(model, precision, dev)
+    be = backend_of(query_state(model, dev), precision)
     out = Output(kind, dev)
     res = out.empty(X.shape[0])
     if X.shape[0]:
-        if prec == "fp16":
-            engine_of(model, dev).sdf(X, res)
-        else:
-            wp.launch(mlp.signed_distances, X.shape[0], inputs=[warp_weights(model, dev), X, frame_of(model)],
-                      outputs=[res], device=dev)
+        be.sdf(X, res)
     return single_answer(out.result(res), kind, single)
 
 
@@ -295,7 +215,7 @@ def embed(model: Model, x, device=None) -> wp.array:
     """Point embeddings e(x) of the lifting network: (N, 3) -> (N, D) float32 wp.array on the device."""
     dev = resolve_device(device, like=x)
     pts, _ = as_points(x, "x", dev, check=False, single=True)
-    return embed_fp32(model, pts, dev)
+    return PerThread(query_state(model, dev)).embed(pts)
 
 
 # ---- compilation --------------------------------------------------------------------------------------------------------
@@ -308,7 +228,7 @@ def warmup(model: Model, device=None, precision: str = "auto") -> dict:
     from Warp's kernel cache (``wp.config.kernel_cache_dir``) in milliseconds instead of compiling.
     """
     dev = resolve_device(device)
-    prec = precision_of(model, precision, dev)
+    prec = backend_of(query_state(model, dev), precision).precision
     t0 = time.perf_counter()
     x = model.mesh.vertices[:2] if model.mesh is not None else np.array([[0.1, 0.2, 0.3], [-0.3, 0.1, 0.0]])
     kw = dict(device=dev, precision=prec)

@@ -17,7 +17,7 @@ import warp as wp
 
 from neurogf_warp.common.arrays import resolve_device
 from neurogf_warp.inference.queries import embed
-from neurogf_warp.inference.state import frame_of, warp_weights
+from neurogf_warp.inference.state import query_state
 from neurogf_warp.kernels import field
 from neurogf_warp.kernels.inference import mlp
 from neurogf_warp.mesh.surface import points_of
@@ -26,14 +26,14 @@ __all__ = ["weights", "frame", "source_set"]
 
 
 def weights(model, device=None) -> mlp.NeuroGFWeights:
-    """The model's folded float32 weights on ``device`` (the same as ``warp_structs.weights(model, device)``)."""
-    return warp_weights(model, device)
+    """The model's folded float32 weights on ``device`` (kept by the model's per-device state)."""
+    return query_state(model, device).weights
 
 
 def frame(model) -> mlp.Frame:
     """Mesh coordinates -> network frame: ``mlp.to_net(f, x)``; network distances times ``f.dscale`` are in mesh
     units; ``mlp.from_net(f, y)`` maps network points back. The identity for a model without a mesh."""
-    return frame_of(model)
+    return query_state(model).frame
 
 
 def source_set(model, sources, device=None) -> field.SourceSet:
@@ -53,7 +53,7 @@ def source_set(model, sources, device=None) -> field.SourceSet:
         raise ValueError("sources is empty: give at least one vertex index or point")
     s = field.SourceSet()
     s.emb = embed(model, pts, dev)
-    f = frame_of(model)
+    f = query_state(model, dev).frame
     net_pts = (pts - np.asarray(f.center, dtype=np.float64)) * float(f.xscale)
     s.points = wp.array(net_pts.astype(np.float32), dtype=wp.vec3, device=dev)
     return s

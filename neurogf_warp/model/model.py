@@ -2,13 +2,25 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
 from neurogf_warp.mesh.mesh import Mesh
 from neurogf_warp.model.network import NeuroGFNet, SdfQuerier
 
-__all__ = ["Model"]
+__all__ = ["Model", "DeviceState"]
+
+
+class DeviceState(Protocol):
+    """What a model keeps on one device for its queries, as the model sees it (the inference stage's
+    ``QueryState``; the model stage does not import it)."""
+
+    def unbind(self) -> None:
+        """Free the kept vertex embeddings and everything made from them."""
+
+    def close(self) -> None:
+        """Free everything kept on the device."""
 
 
 @dataclass(eq=False)
@@ -30,9 +42,10 @@ class Model:
     config : dict
         How the model was made (training settings, source file).
 
-    Per-device state (folded weights, packed tensor-core weights, kept vertex embeddings) is cached in the
-    model by the inference stage (``neurogf_warp.bind``, the queries); ``invalidate()`` drops it after the network
-    is changed in place, ``unbind()`` frees the kept embeddings.
+    Per-device state (folded weights, packed tensor-core weights, mesh tables, kept vertex embeddings) is made
+    by the inference stage (``neurogf_warp.bind``, the queries) and kept in ``_states`` (device name -> a
+    ``DeviceState``); ``invalidate()`` frees all of it (call it after changing the network in place),
+    ``unbind()`` frees the kept embeddings.
     """
 
     net: NeuroGFNet
@@ -41,7 +54,7 @@ class Model:
     center: np.ndarray = field(default_factory=lambda: np.zeros(3))
     scale: float = 1.0
     config: dict = field(default_factory=dict)
-    _warp: dict = field(default_factory=dict, repr=False)  # device -> folded Warp weights
+    _states: dict = field(default_factory=dict, repr=False)  # device name -> DeviceState
 
     def __post_init__(self):
         self.net.eval()
@@ -60,15 +73,17 @@ class Model:
         return self.mesh is not None
 
     def unbind(self, device=None) -> None:
-        """Free the vertex embeddings kept on ``device`` (every device when None); see ``neurogf_warp.bind``."""
-        dev = None if device is None else str(device)
-        for key in [k for k in self._warp if isinstance(k, tuple) and k[0] in ("bound", "bound_tables")
-                    and (dev is None or k[1] == dev)]:
-            del self._warp[key]
+        """Free the vertex embeddings kept on ``device`` (a Warp device or its name, "cpu" or "cuda:N"; every
+        device when None) and everything made from them; see ``neurogf_warp.bind``."""
+        for name, state in self._states.items():
+            if device is None or name == str(device):
+                state.unbind()
 
     def invalidate(self):
-        """Forget all cached per-device state (weights, embeddings), e.g. after changing ``net`` in place."""
-        self._warp.clear()
+        """Free all per-device state (weights, tables, embeddings), e.g. after changing ``net`` in place."""
+        for state in self._states.values():
+            state.close()
+        self._states.clear()
 
     def __repr__(self):
         m = f"mesh with {self.mesh.n_input} vertices" if self.mesh is not None else "no mesh (normalized frame)"

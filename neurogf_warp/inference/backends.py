@@ -1,0 +1,295 @@
+"""The two ways a query runs, behind one interface: ``TensorCores`` (precision "fp16", the fused kernels of
+``kernels/inference/tensorcore.py``) and ``PerThread`` (precision "fp32", the per-thread float32 kernels of
+``kernels/inference/mlp.py`` and the tile head of ``head_fp32.py``).
+
+A backend is chosen once per (state, precision) by ``choose_backend``; the public queries call only these methods
+and never look at the precision:
+
+    bind()                                             keep every vertex's embedding; bytes kept
+    vertex_distances(md, pts, ids, comp, out, reduce_min, raw)   sources -> every mesh vertex (internal order)
+    target_distances(src, tgt, src_comp, tgt_comp, out, raw)     sources -> given targets, (S, T)
+    pairs(p, q, out, raw)                              distances of point pairs
+    sdf(x, out)                                        the SDF head
+    paths(p, q, out)                                   the path head's points, out (N, m) vec3
+    settle(x, starts, ends, steps, scratch)            path refinement: ends pinned, inner points onto the surface
+    sweep(x, starts, ends, scratch)                    one shortening sweep (midpoints, one Newton step)
+
+Every array is a ``wp.array`` on the state's device; points are in the user frame, distances in user units.
+"""
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from neurogf_warp.inference.engine import fp16_refusal
+from neurogf_warp.inference.state import PRECISIONS, MeshOnDevice, QueryState, check_memory, query_state
+from neurogf_warp.kernels.inference import finish, head_fp32, mlp
+from neurogf_warp.kernels.inference import refine as refine_kernels
+from neurogf_warp.model.folded import NetShape
+
+__all__ = ["backend_of", "bind", "fp32_refusal", "TensorCores", "PerThread"]
+
+_HID = mlp.MAX_D // 2   # the per-thread kernels' hidden vectors (vec_h)
+_ACC = mlp.MAX_D // 4   # their float64 accumulators of a head's first layer (vec_acc)
+
+
+def fp32_refusal(shape: NetShape) -> str | None:
+    """Why the per-thread float32 kernels cannot run a network of this shape (None: they can). Their weights
+    struct has three lifting layers, three-layer heads and a four-layer point-wise path head, and their local
+    vectors bound the widths."""
+    D = shape.D
+    if len(shape.lifting) != 4 or D > mlp.MAX_D or max(shape.lifting[1:3]) > _HID or \
+            shape.lifting[0] > 3 + 6 * mlp.MAX_FOURIER:
+        return (f"lifting widths {shape.lifting} (the per-thread kernels need (F, H1, H2, D): three layers, "
+                f"H1, H2 <= {_HID}, D <= {mlp.MAX_D}, F <= {3 + 6 * mlp.MAX_FOURIER})")
+    for name, head in (("distance", shape.distance), ("SDF", shape.sdf)):
+        if len(head) != 4 or head[0] != D or head[-1] != 1 or head[1] > _ACC or head[2] > _HID:
+            return (f"{name} head widths {head} (the per-thread kernels need ({D}, H1, H2, 1): three layers, "
+                    f"H1 <= {_ACC}, H2 <= {_HID})")
+    if shape.guidance != (2 * D, D):
+        return f"guidance widths {shape.guidance} (the per-thread kernels need ({2 * D}, {D}))"
+    p = shape.path
+    if len(p) != 5 or p[0] != D + 3 or p[-1] != 3 or max(p[1:4]) > _HID:
+        return f"path head widths {p} (the per-thread kernels need ({D + 3}, P1, P2, P3, 3), P1..P3 <= {_HID})"
+    return None
+
+
+def backend_of(state: QueryState, precision: str):
+    """The backend for ``precision`` ("auto", "fp16", "fp32") on the state's device, chosen once and kept in
+    ``state.backends``: "auto" is fp16 on CUDA devices where the tensor-core kernels run the network's shape,
+    else fp32. A network that the chosen backend cannot run is refused with an error naming its shape."""
+    b = state.backends.get(precision)
+    if b is None:
+        b = state.backends[precision] = _choose(state, precision)
+    return b
+
+
+def bind(model, device=None, precision: str = "auto") -> int:
+    """Embed every mesh vertex once and keep the result on ``device`` for later vertex queries; returns bytes kept.
+
+    fp16: packed (V, D/2) uint32, 2 D bytes per vertex; fp32: (V, D) float32, 4 D bytes per vertex.
+    ``neurogf_warp.unbind(model)`` (or ``model.unbind()``) frees them and everything made from them.
+    """
+    return backend_of(query_state(model, device), precision).bind()
+
+
+def _choose(state: QueryState, precision: str):
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+    fp16_no, fp32_no = fp16_refusal(state.shape), fp32_refusal(state.shape)
+    if precision == "auto":
+        precision = "fp16" if state.device.is_cuda and fp16_no is None else "fp32"
+    if precision == "fp16" and fp16_no is not None:
+        raise ValueError(f"precision='fp16' cannot run this network: {fp16_no}; use precision='fp32'")
+    if precision == "fp32" and fp32_no is not None:
+        raise ValueError(f"this network's shape ({state.shape}) is not supported by the per-thread kernels: {fp32_no}")
+    return TensorCores(state) if precision == "fp16" else PerThread(state)
+
+
+class _Backend:
+    precision = ""
+    bytes_per_channel = 0
+
+    def __init__(self, state: QueryState):
+        self.state = state
+        self.device = state.device
+
+    def bind(self) -> int:
+        st = self.state
+        md = st.mesh("binding")
+        b = st.bound.get(self.precision)
+        if b is None:
+            need = md.V * st.shape.D * self.bytes_per_channel
+            check_memory(self.device, need, f"keeping the embeddings of {md.V:,} vertices ({need / 1e6:.0f} MB)",
+                         "query with cache=False (every call then embeds the vertices) or free GPU memory", 0.5)
+            b = st.bound[self.precision] = self._embed_vertices(md)
+        return int(b.capacity)
+
+    @property
+    def kept(self):
+        """This backend's kept vertex embeddings, or None."""
+        return self.state.bound.get(self.precision)
+
+
+class TensorCores(_Backend):
+    """precision="fp16": the fused tensor-core kernels (``engine.Engine``)."""
+
+    precision = "fp16"
+    bytes_per_channel = 2
+
+    def __init__(self, state: QueryState):
+        super().__init__(state)
+        state.engine  # built (and the network's shape checked) now
+
+    @property
+    def eng(self):
+        return self.state.engine
+
+    def _embed_vertices(self, md: MeshOnDevice):
+        return self.eng.embed(md.verts)
+
+    def _tables(self, md: MeshOnDevice, bound):
+        """(rows, sources) tables of the kept vertex embeddings (made once per binding)."""
+        st = self.state
+        if st.tables is None or st.tables[0] is not bound:
+            eng = self.eng
+            st.tables = (bound, eng.rows(md.verts, bound, md.comp), eng.sources(bound, md.verts, md.comp))
+        return st.tables[1], st.tables[2]
+
+    def vertex_distances(self, md: MeshOnDevice, pts: np.ndarray, ids, comp, out: wp.array, reduce_min: bool,
+                         raw: bool):
+        eng, dev, bound = self.eng, self.device, self.kept
+        S, V = len(pts), md.V
+        kw = dict(count=S, reduce_min=reduce_min, raw=raw)
+        if bound is not None and ids is not None:  # rows of the kept tables: nothing to embed or copy
+            rows, table = self._tables(md, bound)
+            if S == 1:
+                eng.distances(rows, table, out, V, row0=int(ids[0]), **kw)
+            else:
+                eng.distances(rows, table, out, V, ids=wp.array(ids.astype(np.int32), dtype=wp.int32, device=dev),
+                              **kw)
+            return
+        src_pos = wp.array(pts.astype(np.float32), dtype=wp.vec3, device=dev)
+        src_comp = wp.array(comp.astype(np.int32), dtype=wp.int32, device=dev) if comp is not None else None
+        if bound is not None:
+            rows = self._tables(md, bound)[0]
+        else:
+            if md.lifted is None:
+                md.lifted = eng.rows(md.verts, None, md.comp)
+            rows = md.lifted
+        eng.distances(rows, eng.sources(eng.embed(src_pos), src_pos, src_comp), out, V, **kw)
+
+    def target_distances(self, src_pos, tgt_pos, src_comp, tgt_comp, out: wp.array, raw: bool):
+        eng = self.eng
+        eng.distances(eng.rows(tgt_pos, eng.embed(tgt_pos), tgt_comp), eng.sources(eng.embed(src_pos), src_pos,
+                                                                                   src_comp),
+                      out.reshape(-1), out.shape[1], count=out.shape[0], raw=raw)
+
+    def pairs(self, p, q, out, raw: bool):
+        self.eng.pairs(p, q, out, raw)
+
+    def sdf(self, x, out):
+        self.eng.sdf(x, out)
+
+    def paths(self, p, q, out):
+        self.eng.paths(p, q, out)
+
+    def _h(self) -> float:
+        m = self.state.model
+        return refine_kernels.FD_STEP / (m.scale if m.in_mesh_frame else 1.0)
+
+    def settle(self, x, starts, ends, steps: int, scratch: dict):
+        # a copy: the result lives in the scratch buffers that the next steps reuse
+        return wp.clone(self.eng.newton_steps(x, starts, ends, steps, False, self._h(), scratch))
+
+    def sweep(self, x, starts, ends, scratch: dict):
+        return self.eng.newton_steps(x, starts, ends, 1, True, self._h(), scratch)
+
+
+class PerThread(_Backend):
+    """precision="fp32": per-thread float32 kernels with float64 sums (and the tile head on kept embeddings)."""
+
+    precision = "fp32"
+    bytes_per_channel = 4
+
+    def embed(self, pts: wp.array) -> wp.array:
+        """Embeddings e(x) of (N,) vec3 points: (N, D) float32."""
+        st = self.state
+        out = wp.empty((pts.shape[0], st.shape.D), dtype=wp.float32, device=self.device)
+        if pts.shape[0]:
+            wp.launch(mlp.embed_points, pts.shape[0], inputs=[st.weights, pts, st.frame], outputs=[out],
+                      device=self.device)
+        return out
+
+    def _embed_vertices(self, md: MeshOnDevice):
+        return self.embed(md.verts)
+
+    def _head_values(self, md: MeshOnDevice, src_pos: wp.array) -> wp.array:
+        """(S, V) distance-head values (network frame, no |x - s| term) from per-thread or tile kernels."""
+        st, dev, bound = self.state, self.device, self.kept
+        S, V = src_pos.shape[0], md.V
+        es = self.embed(src_pos)
+        head = wp.empty((S, V), dtype=wp.float32, device=dev)
+        if bound is None or st.shape.D > head_fp32.MAX_D:
+            wp.launch(head_fp32.head_rows, (S, V), outputs=[head], device=dev,
+                      inputs=[st.head_weights, es, src_pos, md.verts, st.frame])
+            return head
+        if st.tile_head is None:  # the tile kernel takes biases as (H, 1) columns
+            w = st.weights
+            col = lambda b: wp.array(b.numpy().reshape(-1, 1), dtype=wp.float32, device=dev)
+            st.tile_head = (w.g0_w, col(w.g0_b), w.g1_w, col(w.g1_b), w.g2_w)
+        weights = st.tile_head
+        H, D = weights[0].shape
+        kernel = head_fp32.head_kernel(D, H, head_fp32.BLOCK, head_fp32.CHUNK)
+        for s in range(S):
+            wp.launch_tiled(kernel, dim=[(V + head_fp32.BLOCK - 1) // head_fp32.BLOCK],
+                            inputs=[es[s: s + 1], bound, *weights, D // head_fp32.CHUNK], outputs=[head[s: s + 1]],
+                            block_dim=head_fp32.THREADS, device=dev)
+        return head
+
+    def _finish(self, head, rows, row_comp, src, src_comp, out, raw: bool):
+        st = self.state
+        wp.launch(finish.finish_rows, head.shape, inputs=[head, rows, row_comp if row_comp is not None else st.no_ints,
+                                                          src, src_comp if src_comp is not None else st.no_ints,
+                                                          st.frame, 1.0 if st.options["euclid"] else 0.0, int(raw)],
+                  outputs=[out], device=self.device)
+
+    def vertex_distances(self, md: MeshOnDevice, pts: np.ndarray, ids, comp, out: wp.array, reduce_min: bool,
+                         raw: bool):
+        dev = self.device
+        S, V = len(pts), md.V
+        src_pos = wp.array(pts.astype(np.float32), dtype=wp.vec3, device=dev)
+        src_comp = wp.array(comp.astype(np.int32), dtype=wp.int32, device=dev) if comp is not None else None
+        head = self._head_values(md, src_pos)
+        full = out.reshape((S, V)) if not reduce_min else wp.empty((S, V), dtype=wp.float32, device=dev)
+        self._finish(head, md.verts, md.comp if md.multi else None, src_pos, src_comp, full, raw)
+        if reduce_min:
+            wp.launch(finish.min_rows, V, inputs=[full], outputs=[out], device=dev)
+
+    def target_distances(self, src_pos, tgt_pos, src_comp, tgt_comp, out: wp.array, raw: bool):
+        st = self.state
+        es = self.embed(src_pos)
+        head = wp.empty(out.shape, dtype=wp.float32, device=self.device)
+        wp.launch(head_fp32.head_rows, out.shape, outputs=[head], device=self.device,
+                  inputs=[st.head_weights, es, src_pos, tgt_pos, st.frame])
+        self._finish(head, tgt_pos, tgt_comp, src_pos, src_comp, out, raw)
+
+    def pairs(self, p, q, out, raw: bool):
+        st = self.state
+        wp.launch(mlp.distance_pairs, p.shape[0], inputs=[st.weights, p, q, st.frame], outputs=[out],
+                  device=self.device)
+        if not raw:
+            wp.launch(finish.clamp_pairs, p.shape[0], inputs=[p, q, out], device=self.device)
+
+    def sdf(self, x, out):
+        st = self.state
+        wp.launch(mlp.signed_distances, x.shape[0], inputs=[st.weights, x, st.frame], outputs=[out],
+                  device=self.device)
+
+    def paths(self, p, q, out):
+        st, dev = self.state, self.device
+        n, D = p.shape[0], st.shape.D
+        w, frame = st.weights, st.frame
+        e = wp.empty((2 * n, D), dtype=wp.float32, device=dev)
+        wp.launch(mlp.embed_points, n, inputs=[w, p, frame], outputs=[e[:n]], device=dev)
+        wp.launch(mlp.embed_points, n, inputs=[w, q, frame], outputs=[e[n:]], device=dev)
+        g = wp.empty((n, D), dtype=wp.float32, device=dev)
+        pre = wp.empty((n, w.p0_w.shape[0]), dtype=wp.float32, device=dev)
+        wp.launch(mlp.path_guidance, (n, D), inputs=[w, e, n], outputs=[g], device=dev)
+        wp.launch(mlp.path_first_layer, pre.shape, inputs=[w, g], outputs=[pre], device=dev)
+        wp.launch(mlp.path_points, out.shape, inputs=[w, p, q, pre, frame], outputs=[out], device=dev)
+
+    def settle(self, x, starts, ends, steps: int, scratch: dict):
+        st = self.state
+        wp.launch(mlp.pin_and_project, x.shape, inputs=[st.weights, starts, ends, st.frame, steps], outputs=[x],
+                  device=self.device)
+        return x
+
+    def sweep(self, x, starts, ends, scratch: dict):
+        st = self.state
+        if scratch.get("shape") != x.shape:
+            scratch.update(shape=x.shape, tmp=wp.empty_like(x))
+        y = scratch["tmp"]
+        wp.launch(mlp.relax_paths, x.shape, inputs=[st.weights, x, st.frame, 1], outputs=[y], device=self.device)
+        scratch["tmp"] = x
+        return y

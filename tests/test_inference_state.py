@@ -1,0 +1,117 @@
+"""The per-device query state (issue 20): one owner of what a model keeps on a device, freed by ``unbind`` /
+``invalidate``; the network's shape read from its weights and checked by each backend."""
+import gc
+import weakref
+
+import numpy as np
+import pytest
+import torch
+import warp as wp
+
+import neurogf_warp as ngf
+from neurogf_warp.inference.backends import backend_of, fp32_refusal
+from neurogf_warp.inference.engine import fp16_refusal
+from neurogf_warp.inference.state import QueryState, query_state
+from neurogf_warp.model.folded import folded_layers, net_shape
+from neurogf_warp.model.network import NeuroGFNet, _head
+
+DEV = "cpu"
+
+
+def small_model(D=64, seed=0, **options):
+    import trimesh
+
+    torch.manual_seed(seed)
+    tm = trimesh.creation.icosphere(subdivisions=1)
+    mesh = ngf.load_mesh((tm.vertices * [1.5, 1.0, 0.8] + [0.3, -0.2, 0.1], tm.faces))
+    net = NeuroGFNet(D, **options).eval()
+    return ngf.Model(net=net, mesh=mesh, center=mesh.center, scale=mesh.scale)
+
+
+def dead(refs) -> bool:
+    gc.collect()
+    return all(r() is None for r in refs)
+
+
+@pytest.mark.parametrize("precision", ["fp32", "fp16"])
+def test_unbind_leaves_no_reference_to_the_kept_embeddings(precision):
+    """After every kind of vertex query on a bound model (which makes tables and recorded launches from the kept
+    embeddings), unbind drops the last reference: the arrays are freed, and the next query binds anew."""
+    model = small_model(fourier=2, euclid=True)
+    kw = dict(device=DEV, precision=precision)
+    before = ngf.ssad(model, 3, cache=False, **kw)
+    ngf.bind(model, DEV, precision)
+    st = query_state(model, DEV)
+    kept = st.bound[precision]
+    refs = [weakref.ref(kept)]
+    np.testing.assert_array_equal(ngf.ssad(model, 3, **kw), before)  # tables + a recorded launch on them
+    ngf.msad(model, [1, 5, 9], **kw)
+    ngf.ssad(model, model.mesh.vertices[4], **kw)
+    if st.tables is not None:
+        refs += [weakref.ref(st.tables[1]), weakref.ref(st.tables[2])]
+    del kept
+    assert not dead(refs), "the binding should be alive while bound"
+    ngf.unbind(model, DEV)
+    assert dead(refs), "unbind left a reference to the kept embeddings"
+    assert st.bound == {} and st.tables is None
+    np.testing.assert_array_equal(ngf.ssad(model, 3, **kw), before)  # binds again, same answers
+    assert precision in st.bound
+
+
+def test_model_unbind_and_invalidate_free_the_state():
+    model = small_model()
+    ngf.ssad(model, 0, device=DEV, precision="fp32")
+    st = query_state(model, DEV)
+    refs = [weakref.ref(st.bound["fp32"]), weakref.ref(st.weights.l0_w), weakref.ref(st.mesh("x").verts)]
+    model.unbind("cuda:7")  # another device: nothing freed here
+    assert "fp32" in st.bound
+    model.unbind(wp.get_device(DEV))
+    assert dead(refs[:1]) and not dead(refs[1:])
+    model.invalidate()
+    del st
+    assert dead(refs) and model._states == {}
+    assert isinstance(query_state(model, DEV), QueryState)
+
+
+@pytest.mark.parametrize("D", [64, 128, 256])
+def test_supported_widths_are_read_from_the_weights(D):
+    """D = 64, 128, 256: the shape comes from the weights, both backends accept it, the fp16 engine packs it, and
+    the fp32 answers match float64 torch (the fp16 kernels themselves: tests/test_tensorcore.py)."""
+    model = small_model(D, seed=D, fourier=2, euclid=True)
+    shape = net_shape(folded_layers(model.net))
+    assert shape.D == D and shape.distance == (D, D // 4, D // 4, 1) and shape.lifting[0] == 15
+    assert fp16_refusal(shape) is None and fp32_refusal(shape) is None
+    st = query_state(model, DEV)
+    assert st.engine.D == D  # packed for the tensor-core kernels (launched only on a GPU or in the emulation)
+    V = model.mesh.vertices
+    x = torch.from_numpy(model.mesh.normalize(V[[0, 7]])).double()
+    with torch.no_grad():
+        ref = model.net.double().distance(x[:1], x[1:]).numpy() / model.scale
+    got = ngf.distance(model, V[[0]], V[[7]], device=DEV, precision="fp32", raw=True)
+    assert abs(got[0] - ref[0]) <= 1e-5 * max(1.0, abs(ref[0]))
+
+
+def test_other_shapes_run_in_fp32_or_are_refused_naming_the_shape():
+    """A head twice as wide runs in fp32 (and auto picks fp32 for it), fp16 refuses it; a deeper head is refused by
+    both, and every refusal names the widths."""
+    wide = small_model(64, seed=1)
+    wide.net.gdf_head = _head([64, 32, 32, 1]).eval()
+    with pytest.raises(ValueError, match=r"distance head widths \(64, 32, 32, 1\)"):
+        ngf.distance(wide, wide.mesh.vertices[:2], wide.mesh.vertices[2:4], device=DEV, precision="fp16")
+    x = wide.mesh.vertices[[0, 1]]
+    xn = torch.from_numpy(wide.mesh.normalize(x)).float()
+    with torch.no_grad():
+        ref = wide.net.distance(xn[:1], xn[1:]).numpy() / wide.scale
+    got = ngf.distance(wide, x[:1], x[1:], device=DEV, raw=True)
+    assert backend_of(query_state(wide, DEV), "auto").precision == "fp32"
+    assert abs(got[0] - ref[0]) <= 1e-4 * max(1.0, abs(ref[0]))
+
+    deep = small_model(64, seed=2)
+    deep.net.gdf_head = _head([64, 16, 16, 16, 1]).eval()
+    for prec in ("fp32", "fp16", "auto"):
+        with pytest.raises(ValueError, match=r"\(64, 16, 16, 16, 1\)"):
+            ngf.ssad(deep, 0, device=DEV, precision=prec)
+    big = small_model(64, seed=3)
+    big.net.sdf_head = _head([64, 256, 16, 1]).eval()  # wider than the per-thread accumulators
+    with pytest.raises(ValueError, match=r"SDF head widths \(64, 256, 16, 1\)"):
+        ngf.sdf(big, big.mesh.vertices[:2], device=DEV)
