@@ -29,6 +29,9 @@ class Model:
         The normalization: network coordinates = (x - center) * scale.
     config : dict
         How the model was made (training settings, source file).
+    mesh_frame : bool
+        True when ``center``/``scale`` are a mesh's frame even without a mesh attached (a model file saved
+        without its mesh keeps its normalization): queries then take and return mesh coordinates and units.
 
     Per-device state (folded weights, packed tensor-core weights, kept vertex embeddings) is cached in the
     model by the inference stage (``neurogf_warp.bind``, the queries); ``invalidate()`` drops it after the network
@@ -41,6 +44,7 @@ class Model:
     center: np.ndarray = field(default_factory=lambda: np.zeros(3))
     scale: float = 1.0
     config: dict = field(default_factory=dict)
+    mesh_frame: bool = False
     _warp: dict = field(default_factory=dict, repr=False)  # device -> folded Warp weights
 
     def __post_init__(self):
@@ -56,8 +60,8 @@ class Model:
 
     @property
     def in_mesh_frame(self) -> bool:
-        """True when inputs/outputs are in the mesh's coordinates (a mesh is attached)."""
-        return self.mesh is not None
+        """True when inputs/outputs are in the mesh's coordinates (a mesh is attached, or its frame was kept)."""
+        return self.mesh is not None or self.mesh_frame
 
     def unbind(self, device=None) -> None:
         """Free the vertex embeddings kept on ``device`` (every device when None); see ``neurogf_warp.bind``."""

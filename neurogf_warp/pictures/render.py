@@ -20,6 +20,7 @@ import numpy as np
 import warp as wp
 
 from neurogf_warp.common.arrays import resolve_device
+from neurogf_warp.common.checks import InputError, integer
 from neurogf_warp.common.files import atomic_write
 from neurogf_warp.kernels.pictures import raycast
 from neurogf_warp.mesh.surface import as_mesh, as_numpy, points_of
@@ -68,7 +69,7 @@ class View:
         point's offset from the centre, to look at that side of the mesh."""
         d = np.asarray(direction, dtype=np.float64).reshape(3)
         if not np.linalg.norm(d) > 0:
-            raise ValueError(f"direction must be a non-zero 3-vector, got {direction!r}")
+            raise InputError(f"direction must be a non-zero 3-vector, got {direction!r}")
         u, front, right = _axes(up)
         d = d / np.linalg.norm(d)
         az = math.degrees(math.atan2(d @ right, d @ front))
@@ -86,7 +87,7 @@ class View:
             known = {f.name for f in fields(cls)}
             bad = set(view) - known
             if bad:
-                raise ValueError(f"view: unknown keys {sorted(bad)}; known: {sorted(known)}")
+                raise InputError(f"view: unknown keys {sorted(bad)}; known: {sorted(known)}")
             return cls(**view)
         if isinstance(view, (tuple, list)) and len(view) == 2:
             return cls(azimuth=float(view[0]), elevation=float(view[1]))
@@ -100,7 +101,7 @@ def _axes(up: str):
     """(up, front, right) unit vectors for an up-axis name."""
     u = str(up).strip().lower()
     if u.lstrip("+-") not in _AXES or len(u.lstrip("+-")) != 1:
-        raise ValueError(f"view.up must be one of x, y, z, -x, -y, -z; got {up!r}")
+        raise InputError(f"view.up must be one of x, y, z, -x, -y, -z; got {up!r}")
     i = _AXES[u.lstrip("+-")]
     a, front = np.zeros(3), np.zeros(3)
     a[i], front[(i + 1) % 3] = (-1.0 if u.startswith("-") else 1.0), 1.0
@@ -110,7 +111,7 @@ def _axes(up: str):
 def _camera(vertices: np.ndarray, view: View, width: int, height: int) -> raycast.Camera:
     up, front, right = _axes(view.up)
     if not (0.0 < view.fov < 179.0) or not view.zoom > 0:
-        raise ValueError(f"view.fov must lie in (0, 179) degrees and view.zoom be > 0, got {view.fov}, {view.zoom}")
+        raise InputError(f"view.fov must lie in (0, 179) degrees and view.zoom be > 0, got {view.fov}, {view.zoom}")
     lo, hi = vertices.min(0), vertices.max(0)
     center = (lo + hi) / 2 if view.center is None else np.asarray(view.center, dtype=np.float64).reshape(3)
     radius = max(float(np.linalg.norm(vertices - center, axis=1).max()), 1e-12)
@@ -188,7 +189,7 @@ def _vertex_values(mesh, values) -> np.ndarray:
     """Per-vertex values (the mesh's numbering, or internal order when that is the same length) -> internal."""
     v = as_numpy(values).astype(np.float64).reshape(-1) if np.ndim(as_numpy(values)) else None
     if v is None or len(v) not in (mesh.n_input, len(mesh.vertices)):
-        raise ValueError(f"values must hold one number per mesh vertex ({mesh.n_input} in the mesh's numbering), "
+        raise InputError(f"values must hold one number per mesh vertex ({mesh.n_input} in the mesh's numbering), "
                          f"got shape {np.shape(as_numpy(values))}")
     return v[mesh.index] if len(v) == mesh.n_input else v
 
@@ -200,10 +201,10 @@ def _polylines(paths) -> list:
         a = as_numpy(paths).astype(np.float64)
         out = [a] if a.ndim == 2 else list(a) if a.ndim == 3 else None
         if out is None:
-            raise ValueError(f"paths must be (N, m, 3), (m, 3) or a list of (m_i, 3) arrays, got shape {a.shape}")
+            raise InputError(f"paths must be (N, m, 3), (m, 3) or a list of (m_i, 3) arrays, got shape {a.shape}")
     for p in out:
         if p.ndim != 2 or p.shape[1] != 3:
-            raise ValueError(f"each path must be an (m, 3) array of points, got shape {p.shape}")
+            raise InputError(f"each path must be an (m, 3) array of points, got shape {p.shape}")
     return out
 
 
@@ -225,7 +226,7 @@ def _range(v: np.ndarray, vrange):
     if vrange is not None:
         lo, hi = (float(x) for x in vrange)
         if not (np.isfinite(lo) and np.isfinite(hi) and hi > lo):
-            raise ValueError(f"vrange must be (low, high) with low < high, got {vrange!r}")
+            raise InputError(f"vrange must be (low, high) with low < high, got {vrange!r}")
         return lo, hi
     ok = v[np.isfinite(v)]
     if not len(ok):
@@ -266,9 +267,9 @@ def render(model_or_mesh, values=None, *, sources=None, paths=None, isolines: in
     model = model_or_mesh if hasattr(model_or_mesh, "net") else None
     w, h = _size(size)
     if not isinstance(isolines, (int, np.integer)) or isolines < 0:
-        raise ValueError(f"isolines must be an integer >= 0, got {isolines!r}")
+        raise InputError(f"isolines must be an integer >= 0, got {isolines!r}")
     if not isinstance(supersample, (int, np.integer)) or not 1 <= supersample <= 8:
-        raise ValueError(f"supersample must be an integer in 1..8, got {supersample!r}")
+        raise InputError(f"supersample must be an integer in 1..8, got {supersample!r}")
     dev = resolve_device(device)
     V, F = mesh.vertices, mesh.faces.astype(np.int64)
     r0 = float(np.linalg.norm(V - (V.min(0) + V.max(0)) / 2, axis=1).max())
@@ -343,9 +344,9 @@ def _size(size):
     try:
         w, h = (int(x) for x in size)
     except (TypeError, ValueError):
-        raise ValueError(f"size must be (width, height) in pixels, got {size!r}") from None
+        raise InputError(f"size must be (width, height) in pixels, got {size!r}") from None
     if not (1 <= w <= 16384 and 1 <= h <= 16384):
-        raise ValueError(f"size must be (width, height) with each in 1..16384 pixels, got {size!r}")
+        raise InputError(f"size must be (width, height) with each in 1..16384 pixels, got {size!r}")
     return w, h
 
 
@@ -354,7 +355,7 @@ def write_image(path, image: np.ndarray) -> str:
     ext = os.path.splitext(os.fspath(path))[1].lower()
     fmt = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG"}.get(ext)
     if fmt is None:
-        raise ValueError(f"out must name a .png or .jpg file, got {os.fspath(path)!r}")
+        raise InputError(f"out must name a .png or .jpg file, got {os.fspath(path)!r}")
     try:
         from PIL import Image
     except ImportError as e:
