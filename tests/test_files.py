@@ -82,3 +82,36 @@ def test_only_our_stale_temp_files_are_removed(tmp_path):
 def test_missing_folder_is_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="does not exist"):
         files.atomic_write_bytes(tmp_path / "no" / "m.ngf", b"x")
+
+
+def test_a_folder_as_target_is_named_not_a_temp_file(tmp_path):
+    (tmp_path / "m.ngf").mkdir()
+    with pytest.raises(IsADirectoryError, match=r"cannot write .*m\.ngf: it is a folder; give a file name") as e:
+        files.atomic_write_bytes(tmp_path / "m.ngf", b"x")
+    assert ".tmp-" not in str(e.value)
+    assert temp_files(tmp_path) == []
+
+
+@pytest.mark.parametrize("failure", [
+    lambda: OSError(28, "No space left on device"),         # ENOSPC from write, flush or fsync
+    lambda: OSError("48485 requested and 992 written"),    # numpy's short write: no errno
+])
+@pytest.mark.parametrize("existing", [True, False])
+def test_a_full_disk_says_so_and_keeps_the_old_file(tmp_path, failure, existing):
+    target = tmp_path / "d.npy"
+    if existing:
+        target.write_bytes(b"old")
+
+    def write(f):
+        f.write(b"partial")
+        raise failure()
+
+    with pytest.raises(OSError, match="no space left on the device") as e:
+        files.atomic_write(target, write)
+    assert isinstance(e.value, files.DiskFullError)
+    assert ("unchanged" if existing else "not written") in str(e.value)
+    assert target.exists() == existing and (not existing or target.read_bytes() == b"old")
+    assert temp_files(tmp_path) == []
+    # any other OSError passes through unchanged
+    with pytest.raises(OSError, match="^boom$"):
+        files.atomic_write(target, lambda f: (_ for _ in ()).throw(OSError("boom")))

@@ -131,7 +131,7 @@ def test_ply_keeps_unused_vertices_and_order(tmp_path, binary):
     # a header that promises more vertices than the file holds is refused before parsing
     data = ply_text(V, F, binary).replace(b"element vertex 7", b"element vertex 70000000")
     path.write_bytes(data)
-    with pytest.raises(ValueError, match="truncated or corrupt" if binary else "too short"):
+    with pytest.raises(ValueError, match="truncated or corrupt" if binary else "truncated or damaged"):
         ngf.load_mesh(path)
     if binary:  # a face list running past the end of the file
         path.write_bytes(ply_text(V, F, binary)[:-6])
@@ -328,3 +328,110 @@ def test_property_stl_numbering(tmp_path, mesh):
     inv = m.input_to_internal
     same = inv[:, None] == inv[None, :]
     np.testing.assert_array_equal(same, groups.reshape(-1)[:, None] == groups.reshape(-1)[None, :])
+
+
+# --- encodings, line ends and truncations (issue 21 items 2, 9, 11) ---------------------------------------------
+
+TRAILING_UNUSED = TET_OBJ + "v 8 8 8\n"  # an unused last vertex: a dropped first record would still load
+
+
+@pytest.mark.parametrize("name, encode", [
+    ("utf-8 BOM", lambda t: b"\xef\xbb\xbf" + t.encode()),
+    ("CRLF", lambda t: t.replace("\n", "\r\n").encode()),
+    ("BOM + CRLF", lambda t: b"\xef\xbb\xbf" + t.replace("\n", "\r\n").encode()),
+    ("CR only", lambda t: t.replace("\n", "\r").encode()),
+    ("UTF-16 LE with BOM", lambda t: t.encode("utf-16")),
+    ("UTF-16 BE with BOM", lambda t: b"\xfe\xff" + t.encode("utf-16-be")),
+    ("UTF-32 with BOM", lambda t: t.encode("utf-32")),
+    ("Latin-1 byte in a comment", lambda t: ("# caf\xe9, r\xe9sum\xe9\n" + t).encode("latin-1")),
+    ("Latin-1 byte in an object name", lambda t: ("o pi\xe8ce\n" + t).encode("latin-1")),
+])
+@pytest.mark.parametrize("text", [TET_OBJ, TRAILING_UNUSED])
+def test_obj_encodings_read_the_same_mesh(tmp_path, name, encode, text):
+    want_v, want_f, _ = read_mesh_file(write(tmp_path / "plain.obj", text))
+    path = tmp_path / "enc.obj"
+    path.write_bytes(encode(text))
+    v, f, _ = read_mesh_file(path)
+    np.testing.assert_array_equal(v, want_v, err_msg=name)
+    np.testing.assert_array_equal(f, want_f, err_msg=name)
+
+
+def test_obj_that_is_not_text_or_misencoded_is_refused_clearly(tmp_path):
+    path = tmp_path / "u16.obj"
+    path.write_bytes(TET_OBJ.encode("utf-16-le"))  # no byte-order mark: NUL bytes between the characters
+    with pytest.raises(ValueError, match="UTF-16 text without a byte-order mark, save it as UTF-8"):
+        read_mesh_file(path)
+    path.write_bytes(b"\xff\xfe" + b"v\x00 \x00" + b"\x00\xd8")  # a UTF-16 BOM, then a lone surrogate
+    with pytest.raises(ValueError, match="UTF-16-LE byte-order mark but is not UTF-16-LE text"):
+        read_mesh_file(path)
+    # a non-UTF-8 byte inside a coordinate is still an error naming the line
+    path.write_bytes(TET_OBJ.replace("v 1 0 0", "v 1 0 \xe9").encode("latin-1"))
+    with pytest.raises(ValueError, match="line 3: vertex coordinate"):
+        read_mesh_file(path)
+
+
+@pytest.mark.parametrize("index", ["99999999999999999999999", "-99999999999999999999999", str(2**63), str(-2**63 - 1)])
+def test_obj_face_index_beyond_int64_is_a_clear_error(tmp_path, index):
+    path = write(tmp_path / "big.obj", TET_OBJ + f"f 2 3 {index}\n")
+    with pytest.raises(ValueError, match=rf"line 10: vertex index {index} is out of range: the file has 5 vertex"):
+        read_mesh_file(path)
+
+
+PLY_V = np.array([[9, 9, 9], [0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 1.0], [7, 7, 7]])
+PLY_F = [[1, 2, 3, 4], [1, 2, 5], [2, 3, 5], [3, 4, 5], [4, 1, 5]]
+
+
+@pytest.mark.parametrize("faces", [PLY_F, PLY_F[1:]])  # mixed polygons, and triangles only (the fast path)
+def test_truncated_ascii_ply_is_refused_at_every_cut(tmp_path, faces):
+    full = ply_text(PLY_V, faces)
+    path = tmp_path / "cut.ply"
+    path.write_bytes(full)
+    assert len(read_mesh_file(path)[0]) == len(PLY_V)
+    body = full.index(b"end_header\n") + len(b"end_header\n")
+    # every record boundary (line end) and every cut inside a record (after each space) before the last value
+    cuts = [i + 1 for i in range(body, len(full) - 1) if full[i:i + 1] in (b"\n", b" ")]
+    assert len(cuts) > 20
+    for c in cuts:
+        path.write_bytes(full[:c])
+        with pytest.raises(ValueError, match="truncated") as e:
+            read_mesh_file(path)
+        assert str(path) in str(e.value)
+
+
+def test_ascii_ply_header_counts_must_match_the_body(tmp_path):
+    full = ply_text(PLY_V, PLY_F)
+    path = tmp_path / "h.ply"
+    for declared, match in ((2_000_000_000, "declares 2000000000 face records but the file ends after 5"),
+                            (6, "declares 6 face records but the file ends after 5"),
+                            (4, "values follow the last record the PLY header declares")):
+        path.write_bytes(full.replace(b"element face 5", f"element face {declared}".encode()))
+        with pytest.raises(ValueError, match=match):
+            read_mesh_file(path)
+    path.write_bytes(full.replace(b"element vertex 7", b"element vertex 9"))
+    with pytest.raises(ValueError, match="the header's counts are wrong|truncated|not a mesh file|index"):
+        read_mesh_file(path)
+    # CRLF line ends read the same mesh
+    path.write_bytes(full.replace(b"\n", b"\r\n"))
+    v, f, _ = read_mesh_file(path)
+    path.write_bytes(full)
+    v0, f0, _ = read_mesh_file(path)
+    np.testing.assert_array_equal(v, v0)
+    np.testing.assert_array_equal(f, f0)
+
+
+def test_truncated_binary_ply_and_stl_stay_refused(tmp_path):
+    full = ply_text(PLY_V, PLY_F, binary=True)
+    path = tmp_path / "b.ply"
+    body = full.index(b"end_header\n") + len(b"end_header\n")
+    for c in range(body, len(full)):
+        path.write_bytes(full[:c])
+        with pytest.raises(ValueError, match="truncated|runs past the end"):
+            read_mesh_file(path)
+    V, F, _, _ = icosphere_soup(0)
+    stl = tmp_path / "s.stl"
+    trimesh.Trimesh(V, F, process=False).export(stl)
+    data = stl.read_bytes()
+    for c in list(range(84, len(data), 50)) + [len(data) - 1]:
+        stl.write_bytes(data[:c])
+        with pytest.raises(ValueError, match="declares 20 triangles"):
+            read_mesh_file(stl)

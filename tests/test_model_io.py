@@ -437,3 +437,52 @@ def test_property_damaged_files_are_refused(tmp_path, saved_small_model, flips):
     except ValueError:
         return
     assert_same_model(model, back)
+
+
+@pytest.mark.parametrize("shift, stretch", [(0.0, 1.0), (250.0, 40.0), (-3.0, 0.01)])
+def test_saved_without_mesh_answers_in_the_same_frame(tmp_path, shift, stretch):
+    """save(include_mesh=False) then load(): the file keeps the normalization, so point queries answer in the
+    mesh's coordinates and units as before saving (they answered in the unit-sphere frame, 1-10% off)."""
+    ck, mesh = fandisk()
+    m = ngf.load_mesh(mesh)
+    model = ngf.load(ck, mesh=(m.vertices * stretch + shift, m.faces))
+    path = tmp_path / "bare.ngf"
+    ngf.save(model, path, include_mesh=False)
+    bare = ngf.load(path)
+    assert bare.mesh is None and bare.in_mesh_frame
+    v = model.mesh.vertices
+    rng = np.random.default_rng(0)
+    p, q = v[rng.choice(len(v), 64)], v[rng.choice(len(v), 64)]
+    for query in (lambda mo: ngf.distance(mo, p, q, device=DEV), lambda mo: ngf.sdf(mo, p, device=DEV),
+                  lambda mo: ngf.path(mo, p[:4], q[:4], m=16, device=DEV),
+                  lambda mo: ngf.ssad(mo, p[0], device=DEV) if mo.mesh is not None else None):
+        want, got = query(model), query(bare)
+        if got is not None:
+            np.testing.assert_array_equal(got, want)
+    # and the file loads with the mesh again, in the same frame
+    again = ngf.load(path, mesh=(m.vertices * stretch + shift, m.faces))
+    np.testing.assert_array_equal(ngf.distance(again, p, q, device=DEV), ngf.distance(model, p, q, device=DEV))
+    assert "mesh coordinates" in json.dumps(__import__("neurogf_warp.cli.main", fromlist=["x"]).model_summary(bare))
+
+
+def test_folder_paths_are_named_as_folders(tmp_path):
+    with pytest.raises(IsADirectoryError, match="is a folder: give the model file itself"):
+        ngf.load(tmp_path)
+    ck, mesh = fandisk()
+    model = ngf.load(ck, mesh=mesh)
+    (tmp_path / "m.ngf").mkdir()
+    with pytest.raises(IsADirectoryError, match=r"m\.ngf: it is a folder") as e:
+        ngf.save(model, tmp_path / "m.ngf")
+    assert ".tmp-" not in str(e.value)
+
+
+def test_another_mesh_error_names_the_remedy(tmp_path):
+    from neurogf_warp.common.checks import InputError
+    from neurogf_warp.model.checkpoint_match import MeshMismatchError
+
+    ck, mesh = fandisk()
+    path = tmp_path / "f.ngf"
+    ngf.save(ngf.load(ck, mesh=mesh), path)
+    with pytest.raises(MeshMismatchError, match="check_mesh=False") as e:
+        ngf.load(path, mesh=shared_path("meshes", "spot.obj"))
+    assert isinstance(e.value, InputError) and "check_mesh" not in e.value.problem

@@ -155,3 +155,78 @@ def test_write_ply_round_trip(tmp_path):
     with pytest.raises(ValueError, match="one number per mesh vertex"):
         ngf.write_ply(tmp_path / "g.ply", (V, F), values[:3])
     assert not (tmp_path / "g.ply").exists()
+
+
+# --- framing, up axis, the source's side, path targets (issue 22 item 7) ------------------------------------------
+
+def ellipsoid_mesh(radii, subdivisions=2):
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=subdivisions)
+    return np.asarray(s.vertices) * np.asarray(radii, dtype=np.float64), np.asarray(s.faces)
+
+
+def surface_mask(img):
+    return np.any(img < 250, axis=-1)
+
+
+@pytest.mark.parametrize("size", [(48, 32), (32, 48), (40, 40)])
+def test_everything_drawn_fits_with_a_margin_at_every_view(size):
+    """Wide, tall and square pictures, 24 views around and over an elongated mesh with a marker and a path
+    sticking out: the outermost 2 pixels are always background."""
+    V, F = ellipsoid_mesh((1.0, 0.3, 0.5), subdivisions=1)
+    path = np.stack([np.linspace(-1.0, 1.0, 20), np.zeros(20), 0.5 + 0.2 * np.sin(np.linspace(0, np.pi, 20))], 1)
+    for az in range(0, 360, 45):
+        for el in (-80, 0, 60):
+            img = ngf.render((V, F), V[:, 0], sources=[0], paths=[path], size=size, view=(az, el), isolines=0,
+                             supersample=1, device=DEV)
+            m = surface_mask(img)
+            border = np.concatenate([m[:2].ravel(), m[-2:].ravel(), m[:, :2].ravel(), m[:, -2:].ravel()])
+            assert m.sum() > 0.02 * m.size and not border.any(), (size, az, el)
+
+
+@pytest.mark.parametrize("axis", [1, 2])
+def test_auto_up_stands_a_tall_mesh_upright(axis):
+    """A mesh three times taller along y (y-up) or along z (z-up) comes out taller than wide by default;
+    up="x" lays it down, and View(up=...) overrides the choice."""
+    from neurogf_warp.pictures.render import choose_up
+
+    radii = [0.3, 0.3, 0.3]
+    radii[axis] = 1.0
+    V, F = ellipsoid_mesh(radii)
+    assert choose_up(V) == "yz"[axis - 1]
+
+    def height_over_width(view):
+        m = surface_mask(ngf.render((V, F), size=(64, 64), view=view, isolines=0, supersample=1, device=DEV))
+        rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+        return (rows.max() - rows.min()) / (cols.max() - cols.min())
+
+    assert height_over_width(None) > 2.0
+    # up x: azimuth 0 looks from +y, 90 from +z; look across the long axis
+    assert height_over_width({"up": "x", "azimuth": 90 if axis == 1 else 0, "elevation": 0}) < 0.5
+
+
+def test_the_default_view_faces_the_source():
+    """A source on the far side of the default view's camera (azimuth 30) is in plain sight, near the middle."""
+    V, F = ellipsoid_mesh((1.0, 0.6, 0.8))
+    for direction in ([-0.5, 0.1, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.2], [0.2, 1.0, 0.0]):
+        src = int(np.argmax(V @ np.asarray(direction)))
+        img = ngf.render((V, F), V[:, 0], sources=[src], size=(64, 64), isolines=0, supersample=1,
+                         marker_radius=0.1, device=DEV)
+        f = img.astype(int)
+        gold = (f[..., 0] > 150) & (f[..., 1] > 100) & (f[..., 2] < 60)
+        ys, xs = np.nonzero(gold)
+        assert len(xs) > 20, direction
+        assert abs(xs.mean() - 31.5) < 10 and abs(ys.mean() - 31.5) < 22, (direction, xs.mean(), ys.mean())
+
+
+def test_path_targets_are_marked():
+    V, F = grid()
+    path = np.stack([np.linspace(-0.8, 0.6, 30), np.linspace(-0.5, 0.4, 30), np.zeros(30)], 1)
+    size = (80, 64)
+    img = ngf.render((V, F), V[:, 1], paths=[path], size=size, view=TOP, isolines=0, supersample=1,
+                     marker_radius=0.15, path_radius=0.03, device=DEV).astype(int)
+    dark = np.all(img < 60, axis=-1)
+    ys, xs = np.nonzero(dark)
+    cx, cy = project(V[1:], TOP, size, path[-1])
+    assert len(xs) > 3 and abs(xs.mean() - cx) < 2 and abs(ys.mean() - cy) < 2

@@ -165,3 +165,59 @@ def test_workers_that_cannot_start_leave_the_work_here(solver, monkeypatch, requ
     assert pool.workers == 1 and pool.worker_batches == 0
     for (_, d), e in zip(got, expect):
         np.testing.assert_array_equal(d, e)
+
+
+DECOYS = {
+    # a checkout-like folder whose package cannot even be imported (no kernels/, say)
+    "broken": {"neurogf_warp/__init__.py": "raise ImportError('the decoy package was imported')\n"},
+    # one that imports and answers, wrongly: every row zero
+    "wrong": {"neurogf_warp/__init__.py": "",
+              "neurogf_warp/ground_truth/__init__.py": "",
+              "neurogf_warp/ground_truth/workers.py": (
+                  "import os, pickle, sys\nimport numpy as np\n"
+                  "def _serve():\n"
+                  "    out, inp = os.fdopen(os.dup(1), 'wb'), sys.stdin.buffer\n"
+                  "    _, mesh, _ = pickle.load(inp)\n"
+                  "    pickle.dump(('ready', None), out); out.flush()\n"
+                  "    while True:\n"
+                  "        try: _, s = pickle.load(inp)\n"
+                  "        except EOFError: return\n"
+                  "        pickle.dump(('rows', np.zeros((len(s), 10), np.float32)), out); out.flush()\n"
+                  "if __name__ == '__main__': _serve()\n")},
+}
+
+
+@pytest.mark.parametrize("decoy", sorted(DECOYS))
+def test_workers_run_the_callers_package_whatever_the_current_directory(solver, decoy, tmp_path, monkeypatch,
+                                                                       request):
+    """Run from a folder holding another neurogf_warp/ package (a checkout after pip install .): the workers
+    still import the caller's package, and take part without a warning."""
+    import warnings
+
+    for name, text in DECOYS[decoy].items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(text)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))  # even first on PYTHONPATH
+    batches = _batches(solver.nv, 24, 4)
+    expect = [solver.solve(b) for b in batches]
+    request.getfixturevalue("patient")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with DistanceRows(solver, workers=2) as pool:
+            got = list(pool.rows(batches))
+    assert pool.worker_batches > 0
+    for (_, d), e in zip(got, expect):
+        np.testing.assert_array_equal(d, e)
+
+
+def test_a_worker_that_cannot_start_says_why(solver, monkeypatch, request):
+    """The warning names the worker's own error (here: an import that fails in the worker), not the broken
+    pipe the caller sees."""
+    request.getfixturevalue("eager")
+    monkeypatch.setattr(solver_workers, "_BOOT", "raise ImportError('no module named neurogf_warp.kernels')")
+    batches = _batches(solver.nv, 16, 5)
+    with pytest.warns(RuntimeWarning, match=r"worker process failed: ImportError: no module named "
+                                            r"neurogf_warp\.kernels \(exit status 1"):
+        with DistanceRows(solver, workers=2) as pool:
+            assert len(list(pool.rows(batches))) == len(batches)

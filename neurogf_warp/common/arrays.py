@@ -4,12 +4,19 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from neurogf_warp.common.checks import InputError
+from neurogf_warp.common.warp_setup import init_warp, quiet_warp
+
 __all__ = ["resolve_device", "as_points", "Output"]
+
+# Every module of this package that uses Warp imports this one: Warp's log level is set here, once, before any
+# of our kernels loads (see common/warp_setup.py; NEUROGF_WARP_VERBOSE=1 keeps Warp's messages).
+quiet_warp()
 
 
 def resolve_device(device=None, like=None) -> wp.Device:
     """The Warp device to run on: explicit ``device``, else the input's device, else Warp's preferred one."""
-    wp.init()
+    init_warp()
     if device is None and like is not None:
         device = _device_of(like)
     if device is None:
@@ -22,7 +29,7 @@ def resolve_device(device=None, like=None) -> wp.Device:
         return wp.get_device(device)
     except Exception as e:
         known = ", ".join(str(d) for d in wp.get_devices())
-        raise ValueError(f"unknown device {device!r}: this machine has {known}") from e
+        raise InputError(f"unknown device {device!r}: this machine has {known}") from e
 
 
 def _device_of(x):
@@ -53,7 +60,7 @@ def as_points(x, name: str, device, check: bool = True, single: bool = False) ->
             raise TypeError(f"{name} must be a wp.array of vec3 or an (N, 3) float32 array, got dtype "
                             f"{wp.types.type_repr(x.dtype)} with shape {x.shape}")
         if check and not np.all(np.isfinite(arr.numpy())):
-            raise ValueError(f"{name} contains non-finite coordinates (NaN or inf)")
+            raise InputError(f"{name} contains non-finite coordinates (NaN or inf)")
         return (arr if arr.device == device else arr.to(device)), kind
     if _is_torch(x):
         import torch
@@ -65,9 +72,9 @@ def as_points(x, name: str, device, check: bool = True, single: bool = False) ->
         if single and t.shape == (3,):
             t = t.view(1, 3)
         if t.ndim != 2 or t.shape[1] != 3:
-            raise ValueError(f"{name} must have shape (N, 3), got {tuple(x.shape)}")
+            raise InputError(f"{name} must have shape (N, 3), got {tuple(x.shape)}")
         if check and not bool(torch.isfinite(t).all()):
-            raise ValueError(f"{name} contains non-finite coordinates (NaN or inf)")
+            raise InputError(f"{name} contains non-finite coordinates (NaN or inf)")
         t = t.to(device=wp.device_to_torch(device), dtype=torch.float32).contiguous()
         return wp.from_torch(t, dtype=wp.vec3), kind
     a = np.asarray(x)
@@ -76,9 +83,9 @@ def as_points(x, name: str, device, check: bool = True, single: bool = False) ->
     if single and a.shape == (3,):
         a = a.reshape(1, 3)
     if a.ndim != 2 or a.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (N, 3), got {a.shape}")
+        raise InputError(f"{name} must have shape (N, 3), got {a.shape}")
     if check and not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} contains non-finite coordinates (NaN or inf)")
+        raise InputError(f"{name} contains non-finite coordinates (NaN or inf)")
     return wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=wp.vec3, device=device), "numpy"
 
 
@@ -87,7 +94,7 @@ class Output:
 
     def __init__(self, kind: str, device):
         if kind not in ("numpy", "torch", "warp"):
-            raise ValueError(f"output must be 'numpy', 'torch' or 'warp', got {kind!r}")
+            raise InputError(f"output must be 'numpy', 'torch' or 'warp', got {kind!r}")
         self.kind, self.device = kind, device
 
     def empty(self, shape, dtype=wp.float32, fill=None):

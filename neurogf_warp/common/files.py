@@ -16,7 +16,7 @@ import re
 import tempfile
 import time
 
-__all__ = ["atomic_write", "atomic_write_bytes", "remove_stale_temp_files"]
+__all__ = ["atomic_write", "atomic_write_bytes", "remove_stale_temp_files", "DiskFullError"]
 
 TEMP_PREFIX = ".tmp-"
 # A temporary file whose writer is still alive (or whose pid may have been reused) counts as stale after
@@ -39,11 +39,20 @@ def atomic_write(path, write) -> str:
     Returns
     -------
     str, the path written.
+
+    Raises
+    ------
+    FileNotFoundError, IsADirectoryError
+        The folder does not exist, or ``path`` is a folder.
+    DiskFullError (an OSError)
+        The disk or quota is full; the target keeps its previous content.
     """
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(folder):
         raise FileNotFoundError(f"cannot write {path}: folder {folder} does not exist")
+    if os.path.isdir(path):
+        raise IsADirectoryError(f"cannot write {path}: it is a folder; give a file name inside it or elsewhere")
     remove_stale_temp_files(path)
     fd, tmp = tempfile.mkstemp(prefix=f"{TEMP_PREFIX}{os.getpid()}-", suffix="-" + os.path.basename(path), dir=folder)
     try:
@@ -53,13 +62,28 @@ def atomic_write(path, write) -> str:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         try:
             os.unlink(tmp)
         except OSError:
             pass
+        if isinstance(e, OSError) and _disk_full(e):
+            raise DiskFullError(errno.ENOSPC, f"cannot write {path}: no space left on the device (the file is "
+                                f"{'unchanged' if os.path.exists(path) else 'not written'}); free some space or "
+                                "write to another disk") from e
         raise
     return path
+
+
+class DiskFullError(OSError):
+    """A write ran out of disk space (or quota); the target was left as it was."""
+
+
+def _disk_full(e: OSError) -> bool:
+    """An out-of-space error: ENOSPC/EDQUOT, or numpy's short-write message, which carries no errno."""
+    if e.errno in (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)):
+        return True
+    return bool(re.search(r"\d+ requested and \d+ written", str(e)))
 
 
 def atomic_write_bytes(path, data: bytes) -> str:

@@ -5,6 +5,9 @@ batches of sources to the caller's solver and to worker processes (``python -m n
 each with its own solver on the same mesh and settings) and gives the rows back in batch order: every source is
 solved on its own, so the rows, and a dataset built from them, are the same with any number of workers.
 
+Workers run the very package their caller runs, whatever the current directory: the caller's package root is
+first on their ``sys.path`` and the current directory is not on it (see ``_BOOT``).
+
 Workers are plain subprocesses that talk over pipes (pickled messages), not ``multiprocessing``: a user's script
 then needs no ``if __name__ == "__main__":`` guard. They start only when the work left is worth their start-up
 (importing Warp, building the graph: about 2 s), ignore Ctrl-C (the caller stops them), and exit when the caller's
@@ -44,11 +47,13 @@ class _Worker:
     def __init__(self, mesh, settings: dict):
         import neurogf_warp
 
-        root = os.path.dirname(os.path.dirname(os.path.abspath(neurogf_warp.__file__)))
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")])))
+        package = os.path.abspath(neurogf_warp.__file__)
+        root = os.path.dirname(os.path.dirname(package))
         self.log = tempfile.TemporaryFile()  # its stderr, shown only if it fails
-        self.proc = subprocess.Popen([sys.executable, "-m", "neurogf_warp.ground_truth.workers"], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, stderr=self.log, env=env)
+        # -c, not -m: "-m" puts the current directory first on sys.path, where a checkout's (or any) neurogf_warp/
+        # folder would shadow the package this process runs; _BOOT puts this package's root first instead
+        self.proc = subprocess.Popen([sys.executable, "-c", _BOOT, root, package], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, stderr=self.log)
         self.closing = False
         self.failed = False  # it stopped answering: no more batches for it
         self._ready = False
@@ -75,11 +80,19 @@ class _Worker:
         return self._receive()
 
     def failure(self) -> str:
-        """The worker's exit status and the end of its stderr."""
-        self.proc.poll()
+        """Why the worker failed: the last line of its stderr (the exception, for a Python error), then its exit
+        status and the lines before."""
+        try:
+            self.proc.wait(timeout=2)  # a worker that failed is exiting: let its last words reach the log
+        except subprocess.TimeoutExpired:
+            pass
         self.log.seek(0)
-        tail = self.log.read().decode(errors="replace").strip().splitlines()[-5:]
-        return f"exit status {self.proc.returncode}: " + (" | ".join(tail) if tail else "no message")
+        lines = [ln for ln in self.log.read().decode(errors="replace").strip().splitlines() if ln.strip()]
+        status = "still running" if self.proc.returncode is None else f"exit status {self.proc.returncode}"
+        if not lines:
+            return f"no message ({status})"
+        before = " | ".join(ln.strip() for ln in lines[-5:-1])
+        return f"{lines[-1].strip()} ({status}{'; before: ' + before if before else ''})"
 
     def kill(self):
         """Stop the worker at once (a solve in progress is abandoned)."""
@@ -238,8 +251,25 @@ class DistanceRows:
             if i is not None:
                 done.put((i, None))
             if not w.closing:
-                warnings.warn(f"a ground-truth worker process failed ({e}; {w.failure()}); its work is done by "
-                              "this process", RuntimeWarning, stacklevel=2)
+                # the worker's own error is the cause; ours (a closed pipe, a truncated message) only the symptom
+                warnings.warn(f"a ground-truth worker process failed: {w.failure()}; its work is done by this "
+                              f"process (seen here as {type(e).__name__}: {e})", RuntimeWarning, stacklevel=2)
+
+
+# The worker's entry point (python -c _BOOT ROOT PACKAGE_FILE): import the caller's package from the caller's
+# package root, whatever the current directory holds, check that it is the same file, then serve.
+_BOOT = """
+import os, sys
+root, want = sys.argv[1], sys.argv[2]
+here = os.getcwd()
+sys.path[:] = [root] + [p for p in sys.path if p not in ("", ".") and os.path.abspath(p) not in (here, root)]
+import neurogf_warp
+got = os.path.abspath(neurogf_warp.__file__)
+if os.path.realpath(got) != os.path.realpath(want):
+    raise ImportError(f"the worker imported neurogf_warp from {got}, not the caller's {want}")
+from neurogf_warp.ground_truth.workers import _serve
+_serve()
+"""
 
 
 def _serve():
@@ -260,7 +290,6 @@ def _serve():
         import warp as wp
 
         wp.config.log_level = wp.LOG_WARNING
-        wp.config.quiet = True
         from neurogf_warp.ground_truth.solver import GeodesicSolver
 
         solver = GeodesicSolver(mesh, device="cpu", **settings)

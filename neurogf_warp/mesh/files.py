@@ -3,7 +3,13 @@
 ``read_mesh_file(path)`` returns every vertex record of the file, in file order, and the faces as triangles
 indexing them. Nothing is dropped, merged or reordered here: unreferenced vertices stay (trimesh's OBJ reader
 drops them, which shifts every later index), and STL keeps its three corners per triangle (welding is
-``neurogf_warp.mesh.mesh``'s job). Every error is a ``ValueError`` naming the file and what is wrong with it.
+``neurogf_warp.mesh.mesh``'s job). Every error is an ``InputError`` (a ``ValueError``) naming the file and what is
+wrong with it.
+
+Text (OBJ, ASCII PLY) may be UTF-8 with or without a byte-order mark, UTF-16 or UTF-32 with one, and end its
+lines in LF, CRLF or CR; bytes that are not UTF-8 are accepted in comments and other records that carry no
+geometry. An ASCII PLY body is checked record by record against its header, so a truncated file, or one with
+more data than its header declares, is refused rather than read short.
 """
 from __future__ import annotations
 
@@ -12,12 +18,15 @@ import re
 
 import numpy as np
 
+from neurogf_warp.common.checks import InputError
+
 __all__ = ["read_mesh_file", "MESH_SUFFIXES"]
 
 # Suffixes read here; anything else goes to trimesh's own loaders as given.
 MESH_SUFFIXES = (".obj", ".ply", ".stl")
 # Bytes looked at to tell text from binary data.
 SNIFF_BYTES = 4096
+INT64_MIN, INT64_MAX = -2**63, 2**63 - 1
 
 
 def read_mesh_file(path) -> tuple[np.ndarray, np.ndarray, str]:
@@ -47,14 +56,14 @@ def read_mesh_file(path) -> tuple[np.ndarray, np.ndarray, str]:
     """
     path = os.fspath(path)
     if os.path.isdir(path):
-        raise ValueError(f"{path} is a folder, not a mesh file")
+        raise InputError(f"{path} is a folder, not a mesh file")
     if not os.path.isfile(path):
         raise FileNotFoundError(f"mesh file not found: {path}")
     kind = os.path.splitext(path)[1].lower().lstrip(".")
     with open(path, "rb") as fh:
         data = fh.read()
     if not data.strip():
-        raise ValueError(f"mesh file {path} is empty")
+        raise InputError(f"mesh file {path} is empty")
     if kind == "obj":
         v, f = _read_obj(data, path)
     elif kind == "ply":
@@ -64,29 +73,45 @@ def read_mesh_file(path) -> tuple[np.ndarray, np.ndarray, str]:
     else:
         v, f = _read_other(path, kind)
     if len(f) == 0:
-        raise ValueError(f"mesh file {path} has no triangle faces: NeuroGF needs a triangle surface")
+        raise InputError(f"mesh file {path} has no triangle faces: NeuroGF needs a triangle surface")
     return v, f, kind
 
 
 # --- OBJ ------------------------------------------------------------------------------------------------------
 
-def _is_binary(data: bytes) -> bool:
+# Byte-order marks of the text encodings an OBJ may come in, longest first (UTF-32 LE starts like UTF-16 LE).
+_BOMS = ((b"\xff\xfe\x00\x00", "utf-32-le"), (b"\x00\x00\xfe\xff", "utf-32-be"), (b"\xef\xbb\xbf", "utf-8"),
+         (b"\xff\xfe", "utf-16-le"), (b"\xfe\xff", "utf-16-be"))
+# Control characters allowed in text: tab, LF, vertical tab, form feed, CR (and ESC, DEL are not).
+_TEXT_CONTROLS = frozenset(b"\t\n\x0b\x0c\r")
+# Fraction of other control bytes above which the data is binary, not text with a stray byte.
+MAX_CONTROL_FRACTION = 0.01
+
+
+def _decode_text(data: bytes, path: str, kind: str) -> str:
+    """The text of a text-format mesh file: a byte-order mark chooses UTF-8/16/32 (and is dropped); otherwise
+    UTF-8, where bytes that are not UTF-8 (e.g. a Latin-1 letter in a comment) become U+FFFD. Binary data (NUL
+    bytes, or many control bytes) is refused."""
+    for bom, encoding in _BOMS:
+        if data.startswith(bom):
+            try:
+                return data[len(bom):].decode(encoding)
+            except UnicodeDecodeError as e:
+                raise InputError(f"{path}: the file starts with a {encoding.upper()} byte-order mark but is not "
+                                 f"{encoding.upper()} text (byte {e.start + len(bom)}); save it as UTF-8 text") from None
     head = data[:SNIFF_BYTES]
-    if b"\x00" in head:
-        return True
-    try:
-        head.decode("utf-8")
-    except UnicodeDecodeError as e:
-        # a multi-byte character cut at the sniff boundary is still text
-        return e.start < len(head) - 4
-    return False
+    controls = sum(1 for b in head if b < 32 and b not in _TEXT_CONTROLS)
+    if b"\x00" in head or controls > MAX_CONTROL_FRACTION * len(head):
+        # UTF-16 text without a byte-order mark: every other byte of ASCII characters is NUL
+        utf16 = max(head[0::2].count(0), head[1::2].count(0)) > 0.4 * len(head) / 2
+        hint = " (if it is UTF-16 text without a byte-order mark, save it as UTF-8)" if utf16 else ""
+        raise InputError(f"{path} is not a mesh file: it holds binary data, and an {kind.upper()} file is text "
+                         f"(check that the file is not truncated, compressed or of another format){hint}")
+    return data.decode("utf-8", errors="replace")
 
 
 def _read_obj(data: bytes, path: str):
-    if _is_binary(data):
-        raise ValueError(f"{path} is not a mesh file: it holds binary data, and an OBJ file is text "
-                         "(check that the file is not truncated, compressed or of another format)")
-    text = data.decode("utf-8", errors="replace")
+    text = _decode_text(data, path, "obj")
     # a backslash at the end of a line continues it on the next one
     text = re.sub(r"\\\r?\n", " ", text)
     coords: list = []    # 3 coordinate strings per vertex record
@@ -104,35 +129,40 @@ def _read_obj(data: bytes, path: str):
         key = tok[0]
         if key == "v":
             if len(tok) < 4:
-                raise ValueError(f"{path}, line {lineno}: a vertex record needs 3 coordinates, got {len(tok) - 1}")
+                raise InputError(f"{path}, line {lineno}: a vertex record needs 3 coordinates, got {len(tok) - 1}")
             coords += tok[1:4]
             v_lines.append(lineno)
         elif key == "f":
             if len(tok) < 4:
-                raise ValueError(f"{path}, line {lineno}: a face needs at least 3 vertices, got {len(tok) - 1}")
+                raise InputError(f"{path}, line {lineno}: a face needs at least 3 vertices, got {len(tok) - 1}")
             corners += tok[1:]
             counts.append(len(tok) - 1)
             seen.append(len(v_lines))
             f_lines.append(lineno)
         # other records (vt, vn, g, o, s, usemtl, l, ...) carry no triangle topology
     if not v_lines:
-        raise ValueError(f"{path} is not a mesh file: it has no vertex records ('v x y z' lines)")
+        raise InputError(f"{path} is not a mesh file: it has no vertex records ('v x y z' lines)")
     if not f_lines:
-        raise ValueError(f"mesh file {path} has no faces ('f' lines): NeuroGF needs a triangle surface")
+        raise InputError(f"mesh file {path} has no faces ('f' lines): NeuroGF needs a triangle surface")
     n = len(v_lines)
     try:
         verts = np.array(coords, dtype=np.float64).reshape(n, 3)
     except ValueError:
         bad = next(i for i, c in enumerate(coords) if not _parses(float, c))
-        raise ValueError(f"{path}, line {v_lines[bad // 3]}: vertex coordinate {coords[bad]!r} is not a number") from None
+        raise InputError(f"{path}, line {v_lines[bad // 3]}: vertex coordinate {coords[bad]!r} is not a number") from None
     counts = np.asarray(counts, dtype=np.int64)
     face_of = np.repeat(np.arange(len(counts)), counts)  # face of each corner
     corners = [c.split("/", 1)[0] if "/" in c else c for c in corners]
     try:
         idx = np.array(corners, dtype=np.int64)
     except (ValueError, OverflowError):
-        bad = next(i for i, c in enumerate(corners) if not _parses(int, c))
-        raise ValueError(f"{path}, line {f_lines[face_of[bad]]}: face vertex {corners[bad]!r} is not an index") from None
+        for i, c in enumerate(corners):
+            if not _parses(int, c):
+                raise InputError(f"{path}, line {f_lines[face_of[i]]}: face vertex {c!r} is not an index") from None
+            if not INT64_MIN <= int(c) <= INT64_MAX:  # a valid integer, but no file has that many vertices
+                raise InputError(f"{path}, line {f_lines[face_of[i]]}: vertex index {c} is out of range: the file has "
+                                 f"{n} vertex records") from None
+        raise
     before = np.asarray(seen, dtype=np.int64)[face_of]
     # OBJ indices are 1-based; negative ones are relative: -1 is the last vertex defined before the face
     k = np.where(idx > 0, idx - 1, idx + before)
@@ -141,11 +171,11 @@ def _read_obj(data: bytes, path: str):
         i = int(np.flatnonzero(bad)[0])
         where = f"{path}, line {f_lines[face_of[i]]}"
         if idx[i] == 0:
-            raise ValueError(f"{where}: vertex index 0 is not valid (OBJ indices start at 1)")
+            raise InputError(f"{where}: vertex index 0 is not valid (OBJ indices start at 1)")
         if idx[i] < 0:
-            raise ValueError(f"{where}: relative index {idx[i]} points before the first vertex "
+            raise InputError(f"{where}: relative index {idx[i]} points before the first vertex "
                              f"({before[i]} defined before this face)")
-        raise ValueError(f"{where}: vertex index {idx[i]} is out of range: the file has {n} vertex records")
+        raise InputError(f"{where}: vertex index {idx[i]} is out of range: the file has {n} vertex records")
     return verts, _triangulate(k, counts)
 
 
@@ -188,10 +218,10 @@ _PLY_FACE_LISTS = ("vertex_indices", "vertex_index")
 def _ply_header(data: bytes, path: str) -> tuple[str, list, int]:
     """(encoding, elements as [name, count, [(property, type) or (property, count type, item type)]], header bytes)."""
     if not data.startswith(b"ply"):
-        raise ValueError(f"{path} is not a mesh file: a PLY file starts with 'ply' (found {data[:12]!r})")
+        raise InputError(f"{path} is not a mesh file: a PLY file starts with 'ply' (found {data[:12]!r})")
     end = data.find(b"end_header")
     if end < 0:
-        raise ValueError(f"{path} is not a valid PLY file: its header has no 'end_header' line")
+        raise InputError(f"{path} is not a valid PLY file: its header has no 'end_header' line")
     nl = data.find(b"\n", end)
     header_len = len(data) if nl < 0 else nl + 1
     enc, elements = None, []
@@ -205,19 +235,19 @@ def _ply_header(data: bytes, path: str) -> tuple[str, list, int]:
             try:
                 count = int(tok[2])
             except ValueError:
-                raise ValueError(f"{path}: PLY element {tok[1]!r} has a count {tok[2]!r} that is not a number") from None
+                raise InputError(f"{path}: PLY element {tok[1]!r} has a count {tok[2]!r} that is not a number") from None
             if count < 0:
-                raise ValueError(f"{path}: PLY element {tok[1]!r} has a negative count {count}")
+                raise InputError(f"{path}: PLY element {tok[1]!r} has a negative count {count}")
             elements.append([tok[1], count, []])
         elif tok[0] == "property" and elements:
             types = tok[2:4] if len(tok) >= 5 and tok[1] == "list" else tok[1:2]
             if len(types) not in (1, 2) or any(t not in _PLY_TYPES for t in types):
-                raise ValueError(f"{path}: PLY property line {line.strip()!r} has an unknown type")
+                raise InputError(f"{path}: PLY property line {line.strip()!r} has an unknown type")
             elements[-1][2].append((tok[-1], *types))
     if enc not in ("ascii", "binary_little_endian", "binary_big_endian"):
-        raise ValueError(f"{path}: unknown PLY format {enc!r} (expected ascii or binary_little/big_endian)")
+        raise InputError(f"{path}: unknown PLY format {enc!r} (expected ascii or binary_little/big_endian)")
     if not any(e[0] == "vertex" for e in elements):
-        raise ValueError(f"{path}: the PLY header declares no vertex element")
+        raise InputError(f"{path}: the PLY header declares no vertex element")
     return enc, elements, header_len
 
 
@@ -226,13 +256,12 @@ def _read_ply(data: bytes, path: str):
     n_vert = next(e[1] for e in elements if e[0] == "vertex")
     body = len(data) - header_len
     if enc == "ascii":
-        if n_vert > body:  # every ascii record takes at least a byte
-            raise ValueError(f"{path}: the PLY header declares {n_vert} vertices but the file is too short for them")
+        _check_ply_ascii(data[header_len:], elements, path)
     else:
         need = sum(e[1] * sum(np.dtype(_PLY_TYPES[p[1]]).itemsize for p in e[2]) for e in elements
                    if all(len(p) == 2 for p in e[2]))
         if need > body:
-            raise ValueError(f"{path}: the PLY header declares {need} bytes of fixed-size records but only {body} "
+            raise InputError(f"{path}: the PLY header declares {need} bytes of fixed-size records but only {body} "
                              "bytes follow it: the file is truncated or corrupt")
     try:
         v, f = _trimesh_arrays(path, "ply")
@@ -242,8 +271,59 @@ def _read_ply(data: bytes, path: str):
         # trimesh reads binary polygon lists of one length only; read mixed polygons record by record
         v, f = _ply_binary(data, header_len, elements, "<" if enc == "binary_little_endian" else ">", path)
     if len(v) != n_vert:
-        raise ValueError(f"{path}: the PLY header declares {n_vert} vertices but {len(v)} were read")
+        raise InputError(f"{path}: the PLY header declares {n_vert} vertices but {len(v)} were read")
     return v, f
+
+
+def _check_ply_ascii(body: bytes, elements: list, path: str) -> None:
+    """Walk an ASCII PLY body token by token against the header: every declared record must be there, whole,
+    and nothing may follow the last one (trimesh's reader stops quietly at the end of a short file, and reads
+    only the declared records of a long one, so a cut or mis-declared file would load as a smaller mesh)."""
+    tok = _decode_text(body, path, "ply").split()
+    pos = 0
+    for name, count, props in elements:
+        lists = [k for k, p in enumerate(props) if len(p) == 3]
+        if not lists:  # fixed-size records: one slice
+            need = count * len(props)
+            if pos + need > len(tok):
+                done = (len(tok) - pos) // max(1, len(props))
+                _truncated(path, name, count, done)
+            pos += need
+            continue
+        if len(lists) == 1 and count:  # the usual face element: try records of one length first
+            k = lists[0]
+            first = tok[pos + k] if pos + k < len(tok) else None
+            n0 = int(first) if first is not None and first.isdigit() else -1
+            length = len(props) + n0
+            if n0 >= 0 and pos + count * length <= len(tok) and all(
+                    t == first for t in tok[pos + k:pos + count * length:length]):
+                pos += count * length
+                continue
+        for done in range(count):  # records of several lengths (or a short file): one at a time
+            for p in props:
+                if pos >= len(tok):
+                    _truncated(path, name, count, done)
+                if len(p) == 3:
+                    try:
+                        n = int(tok[pos])
+                    except ValueError:
+                        raise InputError(f"{path}: PLY element {name!r}, record {done}: list length "
+                                         f"{tok[pos]!r} is not a number") from None
+                    if n < 0:
+                        raise InputError(f"{path}: PLY element {name!r}, record {done}: negative list length {n}")
+                    pos += n
+                pos += 1
+            if pos > len(tok):
+                _truncated(path, name, count, done)
+    if pos < len(tok):
+        raise InputError(f"{path}: {len(tok) - pos} values follow the last record the PLY header declares "
+                         f"({', '.join(f'{c} {n}' for n, c, _ in elements)}): the header's counts are wrong or "
+                         "the file is damaged")
+
+
+def _truncated(path: str, name: str, count: int, done: int):
+    raise InputError(f"{path}: the PLY header declares {count} {name} records but the file ends after {done} of "
+                     "them: it is truncated or damaged")
 
 
 def _ply_binary(data: bytes, off: int, elements: list, endian: str, path: str):
@@ -253,12 +333,12 @@ def _ply_binary(data: bytes, off: int, elements: list, endian: str, path: str):
         if all(len(p) == 2 for p in props):  # fixed-size records
             dt = np.dtype([(p[0], endian + _PLY_TYPES[p[1]]) for p in props])
             if off + count * dt.itemsize > len(data):
-                raise ValueError(f"{path}: PLY element {name!r} runs past the end of the file (truncated or corrupt)")
+                raise InputError(f"{path}: PLY element {name!r} runs past the end of the file (truncated or corrupt)")
             rec = np.frombuffer(data, dtype=dt, count=count, offset=off)
             off += count * dt.itemsize
             if name == "vertex":
                 if not all(c in dt.names for c in "xyz"):
-                    raise ValueError(f"{path}: the PLY vertex element has no x, y, z properties")
+                    raise InputError(f"{path}: the PLY vertex element has no x, y, z properties")
                 verts = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(np.float64)
             continue
         for _ in range(count):
@@ -268,24 +348,24 @@ def _ply_binary(data: bytes, off: int, elements: list, endian: str, path: str):
                     continue
                 cdt, idt = np.dtype(endian + _PLY_TYPES[p[1]]), np.dtype(endian + _PLY_TYPES[p[2]])
                 if off + cdt.itemsize > len(data):
-                    raise ValueError(f"{path}: PLY element {name!r} runs past the end of the file (truncated or corrupt)")
+                    raise InputError(f"{path}: PLY element {name!r} runs past the end of the file (truncated or corrupt)")
                 n = int(np.frombuffer(data, dtype=cdt, count=1, offset=off)[0])
                 off += cdt.itemsize
                 if n < 0 or off + n * idt.itemsize > len(data):
-                    raise ValueError(f"{path}: PLY element {name!r} runs past the end of the file (truncated or corrupt)")
+                    raise InputError(f"{path}: PLY element {name!r} runs past the end of the file (truncated or corrupt)")
                 if name == "face" and p[0] in _PLY_FACE_LISTS:
                     if n < 3:
-                        raise ValueError(f"{path}: a PLY face has {n} vertices; a face needs at least 3")
+                        raise InputError(f"{path}: a PLY face has {n} vertices; a face needs at least 3")
                     counts.append(n)
                     corners.append(np.frombuffer(data, dtype=idt, count=n, offset=off))
                 off += n * idt.itemsize
     if verts is None:
-        raise ValueError(f"{path}: could not read the PLY vertex element")
+        raise InputError(f"{path}: could not read the PLY vertex element")
     if not counts:
         return verts, np.zeros((0, 3), dtype=np.int64)
     k = np.concatenate(corners).astype(np.int64)
     if k.min() < 0 or k.max() >= len(verts):
-        raise ValueError(f"{path}: PLY face indices must lie in [0, {len(verts)}), found {k.min()}..{k.max()}")
+        raise InputError(f"{path}: PLY face indices must lie in [0, {len(verts)}), found {k.min()}..{k.max()}")
     return verts, _triangulate(k, np.asarray(counts, dtype=np.int64))
 
 
@@ -295,14 +375,14 @@ def _read_stl(data: bytes, path: str):
     if not data.lstrip()[:5].lower() == b"solid":
         # binary STL: 80-byte header, uint32 count, 50 bytes per triangle
         if len(data) < 84:
-            raise ValueError(f"{path} is not a mesh file: too short for a binary STL ({len(data)} bytes)")
+            raise InputError(f"{path} is not a mesh file: too short for a binary STL ({len(data)} bytes)")
         count = int(np.frombuffer(data[80:84], dtype="<u4")[0])
         if 84 + 50 * count > len(data):
-            raise ValueError(f"{path} is not a valid binary STL: it declares {count} triangles "
+            raise InputError(f"{path} is not a valid binary STL: it declares {count} triangles "
                              f"({84 + 50 * count} bytes) but has {len(data)} bytes")
     v, f = _trimesh_arrays(path, "stl")
     if len(v) != 3 * len(f):
-        raise ValueError(f"{path}: expected three corners per STL triangle, read {len(v)} for {len(f)}")
+        raise InputError(f"{path}: expected three corners per STL triangle, read {len(v)} for {len(f)}")
     return v, f
 
 
@@ -312,7 +392,7 @@ def _read_other(path: str, kind: str):
     import trimesh
 
     if kind not in trimesh.available_formats():
-        raise ValueError(f"{path}: unsupported mesh format {('.' + kind) if kind else '(no suffix)'}; use .obj, .ply, "
+        raise InputError(f"{path}: unsupported mesh format {('.' + kind) if kind else '(no suffix)'}; use .obj, .ply, "
                          f".stl or another format trimesh reads ({', '.join(sorted(trimesh.available_formats()))})")
     return _trimesh_arrays(path, kind)
 
@@ -325,14 +405,14 @@ def _trimesh_arrays(path: str, kind: str):
         tm = trimesh.load(path, file_type=kind or None, process=False, force="mesh")
     except ImportError as e:
         # trimesh reaches for an optional text-encoding detector when a file is not UTF-8: it is not text
-        raise ValueError(f"{path} is not a mesh file: it is not text that the {kind.upper()} reader understands") from None
+        raise InputError(f"{path} is not a mesh file: it is not text that the {kind.upper()} reader understands") from None
     except Exception as e:  # trimesh raises many types for bad or unknown files
-        raise ValueError(f"{path} is not a mesh file that the {kind.upper() or 'trimesh'} reader understands "
+        raise InputError(f"{path} is not a mesh file that the {kind.upper() or 'trimesh'} reader understands "
                          f"({type(e).__name__}: {e})") from None
     faces = getattr(tm, "faces", None)
     verts = getattr(tm, "vertices", None)
     if faces is None or verts is None or len(faces) == 0:
-        raise ValueError(f"mesh file {path} has no triangle faces: NeuroGF needs a triangle surface")
+        raise InputError(f"mesh file {path} has no triangle faces: NeuroGF needs a triangle surface")
     v = np.asarray(verts, dtype=np.float64).reshape(-1, 3)
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     return v, f

@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from neurogf_warp.common.checks import InputError
+
 __all__ = ["Mesh", "load_mesh", "mesh_fingerprint", "component_labels"]
 
 
@@ -153,7 +155,7 @@ class Mesh:
         """
         values = np.asarray(values)
         if values.shape[-1:] != (len(self.vertices),):
-            raise ValueError(f"values must have one entry per internal vertex ({len(self.vertices)}) on the last "
+            raise InputError(f"values must have one entry per internal vertex ({len(self.vertices)}) on the last "
                              f"axis, got shape {values.shape}")
         inv = self.input_to_internal
         out = np.full(values.shape[:-1] + (self.n_input,), fill, dtype=values.dtype)
@@ -229,21 +231,21 @@ def _from_arrays(vertices, faces, weld="auto", where: str = "") -> Mesh:
         raise TypeError(f"{pre}vertices must be numbers, got dtype {v.dtype}")
     v = v.astype(np.float64, copy=False)
     if v.ndim != 2 or v.shape[1] != 3:
-        raise ValueError(f"{pre}vertices must have shape (V, 3), got {v.shape}")
+        raise InputError(f"{pre}vertices must have shape (V, 3), got {v.shape}")
     if f.ndim != 2 or f.shape[1] != 3:
-        raise ValueError(f"{pre}faces must be triangles with shape (F, 3), got {f.shape}; triangulate the mesh first")
+        raise InputError(f"{pre}faces must be triangles with shape (F, 3), got {f.shape}; triangulate the mesh first")
     if len(f) == 0:
-        raise ValueError(f"{pre}the mesh has no faces: NeuroGF needs a triangle surface")
+        raise InputError(f"{pre}the mesh has no faces: NeuroGF needs a triangle surface")
     if not np.issubdtype(f.dtype, np.integer):
         raise TypeError(f"{pre}faces must be integer indices, got dtype {f.dtype}")
     if f.min() < 0 or f.max() >= len(v):
-        raise ValueError(f"{pre}face indices must lie in [0, {len(v)}), found {f.min()}..{f.max()}")
+        raise InputError(f"{pre}face indices must lie in [0, {len(v)}), found {f.min()}..{f.max()}")
     if weld not in ("auto", True, False):
-        raise ValueError(f"weld must be 'auto', True or False, got {weld!r}")
+        raise InputError(f"weld must be 'auto', True or False, got {weld!r}")
     f = f.astype(np.int64, copy=False)
     used = np.unique(f)
     if not np.all(np.isfinite(v[used])):
-        raise ValueError(f"{pre}the mesh has non-finite vertex coordinates (NaN or inf); clean the file first")
+        raise InputError(f"{pre}the mesh has non-finite vertex coordinates (NaN or inf); clean the file first")
     if weld == "auto":
         weld = _is_soup(f)
     if weld:
@@ -258,7 +260,7 @@ def _from_arrays(vertices, faces, weld="auto", where: str = "") -> Mesh:
     center = (lo + hi) / 2.0
     radius = np.linalg.norm(verts - center, axis=1).max()
     if not radius > 0:
-        raise ValueError(f"{pre}the mesh is degenerate: all referenced vertices coincide")
+        raise InputError(f"{pre}the mesh is degenerate: all referenced vertices coincide")
     fp = mesh_fingerprint(verts, tris)
     # format-1 model files stored the fingerprint of the arrays as given; keep it to recognise them
     v1 = mesh_fingerprint(v, f) if (len(index) != len(v) and len(index) == len(used)) else fp

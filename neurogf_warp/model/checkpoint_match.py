@@ -13,7 +13,9 @@ import warnings
 import numpy as np
 import torch
 
-__all__ = ["MeshMismatchWarning", "mesh_sdf_residual", "warn_if_mesh_mismatch", "MAX_MEAN_ABS_SDF"]
+from neurogf_warp.common.checks import InputError
+
+__all__ = ["MeshMismatchWarning", "MeshMismatchError", "mesh_sdf_residual", "warn_if_mesh_mismatch", "MAX_MEAN_ABS_SDF"]
 
 # Vertices looked at (evenly spaced through the vertex list).
 SAMPLES = 512
@@ -24,7 +26,21 @@ MAX_MEAN_ABS_SDF = 1e-2
 
 
 class MeshMismatchWarning(UserWarning):
-    """A released checkpoint was loaded with a mesh that does not lie on its SDF zero level set."""
+    """A released checkpoint was loaded with a mesh that does not lie on its SDF zero level set.
+
+    The Python API only warns (``load`` returns the model, whose every answer for that mesh is wrong); turn it
+    into an error with ``warnings.simplefilter("error", MeshMismatchWarning)``. The command line refuses such a
+    mesh (exit code 2) unless ``--allow-mesh-mismatch`` is given."""
+
+
+class MeshMismatchError(InputError):
+    """A model file was given a mesh other than the one it was trained on (fingerprints differ).
+
+    ``problem`` says what is wrong without the remedy, so that the command line can name its own flag."""
+
+    def __init__(self, problem: str, remedy: str):
+        super().__init__(f"{problem}. {remedy}")
+        self.problem = problem
 
 
 def mesh_sdf_residual(model, samples: int = SAMPLES) -> float:
@@ -42,7 +58,7 @@ def mesh_sdf_residual(model, samples: int = SAMPLES) -> float:
     float, normalized units (multiply by ``1 / model.scale`` for mesh units).
     """
     if model.mesh is None:
-        raise ValueError("mesh_sdf_residual needs a model with a mesh")
+        raise InputError("mesh_sdf_residual needs a model with a mesh")
     x = (model.mesh.vertices - model.center) * model.scale
     idx = np.unique(np.linspace(0, len(x) - 1, min(len(x), int(samples))).round().astype(np.int64))
     net = model.net

@@ -25,7 +25,8 @@ import torch
 
 from neurogf_warp.common.files import atomic_write_bytes
 from neurogf_warp.mesh.mesh import Mesh, component_labels, load_mesh, mesh_fingerprint
-from neurogf_warp.model.checkpoint_match import warn_if_mesh_mismatch
+from neurogf_warp.common.checks import InputError
+from neurogf_warp.model.checkpoint_match import MeshMismatchError, warn_if_mesh_mismatch
 from neurogf_warp.model.model import Model
 from neurogf_warp.model.network import MAX_FOURIER, SUPPORTED_D, NeuroGFNet, SdfQuerier
 
@@ -63,7 +64,8 @@ def save(model: Model, path, include_mesh: bool = True) -> str:
         Target file (``.ngf`` by convention). A failed or killed save leaves any previous file as it was.
     include_mesh : bool
         Store the mesh (vertices, faces, numbering map, component labels). Without it, loading needs
-        ``mesh=`` to answer vertex queries; the fingerprint is stored either way.
+        ``mesh=`` to answer vertex queries; the fingerprint and the normalization are stored either way, so
+        the loaded model still takes and returns points in the mesh's coordinates and units.
 
     Returns
     -------
@@ -98,7 +100,7 @@ def save(model: Model, path, include_mesh: bool = True) -> str:
     try:
         meta = json.loads(json.dumps(meta))  # the checksums cover the values as a reader will see them
     except (TypeError, ValueError) as e:
-        raise ValueError(f"cannot save: the model's config must be JSON data (numbers, strings, lists, dicts): {e}") from e
+        raise InputError(f"cannot save: the model's config must be JSON data (numbers, strings, lists, dicts): {e}") from e
     meta["checksums"] = {"tensors": {k: _digest_tensor(k, v) for k, v in tensors.items()},
                          "meta": {k: _digest_value(v) for k, v in meta.items()}}
     return atomic_write_bytes(path, st_save(tensors, metadata={"neurogf": json.dumps(meta)}))
@@ -118,7 +120,7 @@ def _strict_load(module: torch.nn.Module, state: dict, what: str, path: str):
             lines.append(f"  unexpected keys ({len(unexpected)}): {', '.join(unexpected[:12])}{' ...' if len(unexpected) > 12 else ''}")
         if shapes:
             lines.append("  shape mismatches: " + "; ".join(shapes[:8]))
-        raise ValueError("\n".join(lines))
+        raise InputError("\n".join(lines))
     module.load_state_dict({k: v.to(own[k].dtype) for k, v in state.items()}, strict=True)
 
 
@@ -127,39 +129,39 @@ def _check_weights(state: dict, path: str, prefix: str = ""):
     for k, v in state.items():
         if v.is_floating_point():
             if not bool(torch.isfinite(v).all()):
-                raise ValueError(f"{path}: tensor {prefix}{k} holds NaN or inf values: the file is damaged")
+                raise InputError(f"{path}: tensor {prefix}{k} holds NaN or inf values: the file is damaged")
             if k.endswith("running_var") and bool((v < 0).any()):
-                raise ValueError(f"{path}: tensor {prefix}{k} holds negative variances: the file is damaged")
+                raise InputError(f"{path}: tensor {prefix}{k} holds negative variances: the file is damaged")
 
 
 def _check_options(options, path: str) -> dict:
     if not isinstance(options, dict):
-        raise ValueError(f"{path}: metadata field 'net_options' must be a JSON object, got {type(options).__name__}")
+        raise InputError(f"{path}: metadata field 'net_options' must be a JSON object, got {type(options).__name__}")
     for k, v in options.items():
         if k not in NET_OPTIONS:
-            raise ValueError(f"{path}: unknown network option {k!r} in 'net_options' (known: {', '.join(NET_OPTIONS)}); "
+            raise InputError(f"{path}: unknown network option {k!r} in 'net_options' (known: {', '.join(NET_OPTIONS)}); "
                              "the file may come from a newer neurogf-warp")
         want = NET_OPTIONS[k]
         if (want is bool and not isinstance(v, bool)) or (want is int and (isinstance(v, bool) or not isinstance(v, int))):
-            raise ValueError(f"{path}: network option {k!r} must be {want.__name__}, got {v!r}")
+            raise InputError(f"{path}: network option {k!r} must be {want.__name__}, got {v!r}")
     if not 0 <= options.get("fourier", 0) <= MAX_FOURIER:
-        raise ValueError(f"{path}: network option 'fourier' must lie in 0..{MAX_FOURIER}, got {options['fourier']}")
+        raise InputError(f"{path}: network option 'fourier' must lie in 0..{MAX_FOURIER}, got {options['fourier']}")
     return options
 
 
 def _net_from_state(state: dict, path: str, options: dict | None = None) -> NeuroGFNet:
     w = state.get("lifting.2.linear.weight")
     if w is None and "fc.0.linear.weight" in state:
-        raise ValueError(f"{path} is an SDF-querier checkpoint, not a NeuroGF model: pass it as "
+        raise InputError(f"{path} is an SDF-querier checkpoint, not a NeuroGF model: pass it as "
                          "neurogf_warp.load(model_path, mesh=..., querier=this_path)")
     if w is None:
-        raise ValueError(f"{path} is not a NeuroGF checkpoint: no 'lifting.2.linear.weight' key "
+        raise InputError(f"{path} is not a NeuroGF checkpoint: no 'lifting.2.linear.weight' key "
                          f"(found {', '.join(list(state)[:5])} ...)")
     if w.ndim != 2:
-        raise ValueError(f"{path}: tensor lifting.2.linear.weight must be a matrix, got shape {tuple(w.shape)}")
+        raise InputError(f"{path}: tensor lifting.2.linear.weight must be a matrix, got shape {tuple(w.shape)}")
     D = int(w.shape[0])
     if D not in SUPPORTED_D:
-        raise ValueError(f"{path}: embedding width {D} is not supported (expected one of {SUPPORTED_D})")
+        raise InputError(f"{path}: embedding width {D} is not supported (expected one of {SUPPORTED_D})")
     opts = dict(options or {})
     w0 = state.get("lifting.0.linear.weight")
     if w0 is not None and w0.ndim == 2 and "fourier" not in opts:  # the input width says how many Fourier octaves
@@ -170,7 +172,7 @@ def _net_from_state(state: dict, path: str, options: dict | None = None) -> Neur
     try:
         net = NeuroGFNet(D, **opts)
     except (TypeError, ValueError) as e:
-        raise ValueError(f"{path}: unsupported network options {opts} ({e}); upgrade neurogf-warp") from e
+        raise InputError(f"{path}: unsupported network options {opts} ({e}); upgrade neurogf-warp") from e
     _strict_load(net, state, f"NeuroGF (D={D}, {net.options})", path)
     _check_weights(state, path)
     return net
@@ -180,11 +182,11 @@ def _read_torch(path: str) -> dict:
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
-        raise ValueError(f"could not read {path} as a PyTorch checkpoint: {e}") from e
+        raise InputError(f"could not read {path} as a PyTorch checkpoint: {e}") from e
     if isinstance(state, dict) and "state_dict" in state and isinstance(state["state_dict"], dict):
         state = state["state_dict"]
     if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-        raise ValueError(f"{path} does not hold a plain state_dict of tensors")
+        raise InputError(f"{path} does not hold a plain state_dict of tensors")
     return state
 
 
@@ -198,6 +200,9 @@ def load_querier(path) -> SdfQuerier:
 
 def _check_file(path) -> str:
     path = os.fspath(path)
+    if os.path.isdir(path):
+        raise IsADirectoryError(f"model file {path} is a folder: give the model file itself (e.g. model.ngf or a "
+                                "*_final.pth)")
     if not os.path.isfile(path):
         raise FileNotFoundError(f"model file not found: {path}")
     if not os.access(path, os.R_OK):
@@ -229,10 +234,18 @@ def load(path, mesh=None, querier=None, check_mesh: bool = True) -> Model:
 
     Raises
     ------
-    FileNotFoundError, PermissionError
-        For a missing or unreadable file.
-    ValueError
-        For anything wrong in the file, naming the field or tensor.
+    FileNotFoundError, IsADirectoryError, PermissionError
+        For a missing or unreadable file, or a folder.
+    InputError (a ValueError)
+        For anything wrong in the file, naming the field or tensor; ``MeshMismatchError`` (an InputError) for
+        a mesh whose fingerprint differs from the stored one.
+
+    Warns
+    -----
+    MeshMismatchWarning
+        A released checkpoint given a mesh that does not lie on its SDF zero level set: the model is returned,
+        but its answers for that mesh are wrong. Make it an error with
+        ``warnings.simplefilter("error", neurogf_warp.MeshMismatchWarning)``.
     """
     path = _check_file(path)
     with open(path, "rb") as f:
@@ -255,7 +268,7 @@ def load(path, mesh=None, querier=None, check_mesh: bool = True) -> Model:
 
 
 def _fail(path: str, what: str):
-    raise ValueError(f"{path}: {what}")
+    raise InputError(f"{path}: {what}")
 
 
 def _field(meta: dict, key: str, path: str):
@@ -304,7 +317,7 @@ def _read_ngf(path: str) -> tuple[dict, dict]:
             raw = (f.metadata() or {}).get("neurogf")
             tensors = {k: f.get_tensor(k) for k in f.keys()}
     except Exception as e:
-        raise ValueError(f"could not read {path}: not a neurogf-warp model file nor a PyTorch checkpoint, "
+        raise InputError(f"could not read {path}: not a neurogf-warp model file nor a PyTorch checkpoint, "
                          f"or a damaged one ({e})") from e
     meta = None
     if raw is not None:
@@ -313,7 +326,7 @@ def _read_ngf(path: str) -> tuple[dict, dict]:
         except ValueError:
             _fail(path, "the model metadata is not valid JSON (the file was edited or damaged)")
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise ValueError(f"{path} is a safetensors file but not a neurogf-warp model (no '{FORMAT}' metadata)")
+        raise InputError(f"{path} is a safetensors file but not a neurogf-warp model (no '{FORMAT}' metadata)")
     return meta, tensors
 
 
@@ -357,13 +370,14 @@ def _load_ngf(path: str, mesh, check_mesh: bool) -> Model:
         # format 1 stored the fingerprint of the input arrays as given (unused vertices included)
         known = {m.fingerprint} | ({m._v1_fingerprint} if version == 1 and m._v1_fingerprint else set())
         if check_mesh and want is not None and want not in known:
-            raise ValueError(f"{path} was trained on a different mesh (fingerprint {want[:12]}..., given "
-                             f"{m.fingerprint[:12]}...). Pass the training mesh, or check_mesh=False to query "
-                             "this mesh in the model's stored frame.")
+            raise MeshMismatchError(f"{path} was trained on a different mesh (fingerprint {want[:12]}..., given "
+                                    f"{m.fingerprint[:12]}...)", "Pass the training mesh, or check_mesh=False to "
+                                    "query this mesh in the model's stored frame.")
     else:
         m = stored
+    # without a mesh the stored normalization is still the frame the model answered in when it was saved
     return Model(net=net, querier=querier, mesh=m, center=np.asarray(center, dtype=np.float64), scale=float(scale),
-                 config=dict(config))
+                 config=dict(config), mesh_frame=m is None)
 
 
 def _stored_mesh(meta: dict, tensors: dict, version: int, fingerprint, path: str) -> Mesh | None:

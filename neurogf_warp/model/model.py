@@ -41,6 +41,9 @@ class Model:
         The normalization: network coordinates = (x - center) * scale.
     config : dict
         How the model was made (training settings, source file).
+    mesh_frame : bool
+        True when ``center``/``scale`` are a mesh's frame even without a mesh attached (a model file saved
+        without its mesh keeps its normalization): queries then take and return mesh coordinates and units.
 
     Per-device state (folded weights, packed tensor-core weights, mesh tables, kept vertex embeddings) is made
     by the inference stage (``neurogf_warp.bind``, the queries) and kept in ``_states`` (device name -> a
@@ -54,6 +57,7 @@ class Model:
     center: np.ndarray = field(default_factory=lambda: np.zeros(3))
     scale: float = 1.0
     config: dict = field(default_factory=dict)
+    mesh_frame: bool = False
     _states: dict = field(default_factory=dict, repr=False)  # device name -> DeviceState
 
     def __post_init__(self):
@@ -69,8 +73,8 @@ class Model:
 
     @property
     def in_mesh_frame(self) -> bool:
-        """True when inputs/outputs are in the mesh's coordinates (a mesh is attached)."""
-        return self.mesh is not None
+        """True when inputs/outputs are in the mesh's coordinates (a mesh is attached, or its frame was kept)."""
+        return self.mesh is not None or self.mesh_frame
 
     def unbind(self, device=None) -> None:
         """Free the vertex embeddings kept on ``device`` (a Warp device or its name, "cpu" or "cuda:N"; every

@@ -21,6 +21,8 @@ import math
 import torch
 from torch import nn
 
+from neurogf_warp.common.checks import InputError
+
 __all__ = ["FC", "PointMLP", "NeuroGFNet", "SdfQuerier", "widths", "fourier_features"]
 
 SUPPORTED_D = (64, 128, 256, 512)
@@ -70,9 +72,9 @@ class PointMLP(nn.Module):
 def widths(D: int, path_width: int = 1) -> dict:
     """Layer widths of each part for embedding width ``D``: {"lifting", "head", "guidance", "path"} -> lists."""
     if D not in SUPPORTED_D:
-        raise ValueError(f"D must be one of {SUPPORTED_D}, got {D}")
+        raise InputError(f"D must be one of {SUPPORTED_D}, got {D}")
     if path_width not in (1, 2) or path_width * D > 512:
-        raise ValueError(f"path_width must be 1 or 2 (2 only for D <= 256), got {path_width} with D={D}")
+        raise InputError(f"path_width must be 1 or 2 (2 only for D <= 256), got {path_width} with D={D}")
     w = path_width
     return {
         "lifting": [3, D // 4, D // 2, D],
@@ -103,11 +105,11 @@ class NeuroGFNet(nn.Module):
         super().__init__()
         w = widths(D, path_width)
         if not (isinstance(fourier, int) and 0 <= fourier <= MAX_FOURIER):
-            raise ValueError(f"fourier must be an integer in 0..{MAX_FOURIER}, got {fourier!r}")
+            raise InputError(f"fourier must be an integer in 0..{MAX_FOURIER}, got {fourier!r}")
         self.D, self.fourier, self.euclid, self.path_residual = D, fourier, bool(euclid), bool(path_residual)
         self.path_width, self.path_window = path_width, bool(path_window)
         if self.path_window and not self.path_residual:
-            raise ValueError("path_window scales the path offsets: it needs path_residual=True")
+            raise InputError("path_window scales the path offsets: it needs path_residual=True")
         lw = [3 + 6 * fourier] + w["lifting"][1:]
         self.lifting = nn.Sequential(*[FC(a, b) for a, b in zip(lw[:-1], lw[1:])])
         self.sdf_head = _head(w["head"])
@@ -146,7 +148,7 @@ class NeuroGFNet(nn.Module):
         d = self.gdf_head((es - et).abs()).squeeze(-1)
         if self.euclid:
             if p is None or q is None:
-                raise ValueError("this network adds |p - q| to its distances: pass the query points p and q too")
+                raise InputError("this network adds |p - q| to its distances: pass the query points p and q too")
             d = d + torch.linalg.vector_norm(p - q, dim=-1)
         return d
 

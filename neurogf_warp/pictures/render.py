@@ -20,11 +20,12 @@ import numpy as np
 import warp as wp
 
 from neurogf_warp.common.arrays import resolve_device
+from neurogf_warp.common.checks import InputError, integer
 from neurogf_warp.common.files import atomic_write
 from neurogf_warp.kernels.pictures import raycast
 from neurogf_warp.mesh.surface import as_mesh, as_numpy, points_of
 
-__all__ = ["render", "write_ply", "colorize", "View", "COLOR_STOPS"]
+__all__ = ["render", "write_ply", "colorize", "View", "choose_up", "COLOR_STOPS", "UP_CHOICES"]
 
 # equally spaced colours from the low end (a source: distance 0) to the high end of the value range
 COLOR_STOPS = np.array([
@@ -37,6 +38,7 @@ COLOR_STOPS = np.array([
 ])
 SOURCE_COLOR = (1.00, 0.80, 0.08)  # gold spheres at the sources
 POINT_COLOR = (0.96, 0.96, 0.96)  # white spheres at other marked points
+TARGET_COLOR = (0.10, 0.10, 0.12)  # dark spheres at the ends of paths
 PATH_COLORS = ((0.86, 0.08, 0.20), (0.98, 0.45, 0.05), (0.80, 0.15, 0.75))  # crimson, orange, magenta: cycled
 BACKGROUND = (1.0, 1.0, 1.0)
 
@@ -44,12 +46,14 @@ BACKGROUND = (1.0, 1.0, 1.0)
 @dataclass
 class View:
     """Where the camera looks from. The default: the bounding box's centre seen from azimuth 30 degrees,
-    elevation 20 degrees, the whole bounding sphere in a 30-degree vertical field of view, +y up.
+    elevation 20 degrees, everything drawn (the mesh, markers and paths) inside a 30-degree vertical field of
+    view with a margin, the up axis chosen automatically (``up="auto"``, see ``choose_up``). ``render`` with
+    sources and no view looks at the first source instead (``View.toward`` it).
 
     azimuth : degrees around the up axis; 0 looks from the +front axis (the axis after ``up`` in x, y, z
         order: +z for up y, +x for up z, +y for up x), 90 from the +right axis (up x front)
     elevation : degrees above the plane normal to ``up``
-    up : "x", "y", "z" or "-x", "-y", "-z" (mesh axes)
+    up : "auto", or the mesh axis drawn upward: "x", "y", "z", "-x", "-y", "-z"
     fov : vertical field of view, degrees
     zoom : > 1 moves the camera closer
     center : the point looked at, mesh units (default: the bounding box's centre)
@@ -57,22 +61,28 @@ class View:
 
     azimuth: float = 30.0
     elevation: float = 20.0
-    up: str = "y"
+    up: str = "auto"
     fov: float = 30.0
     zoom: float = 1.0
     center: tuple | None = None
 
     @classmethod
-    def toward(cls, direction, up: str = "y", **kw) -> "View":
+    def toward(cls, direction, up: str = "y", vertices=None, max_elevation: float = 90.0, **kw) -> "View":
         """The view from the bounding box's centre out along ``direction`` (a 3-vector, mesh axes), e.g. a
-        point's offset from the centre, to look at that side of the mesh."""
+        point's offset from the centre, to look at that side of the mesh. ``up="auto"`` needs ``vertices``
+        ((V, 3), to choose it); the elevation is clipped to +-``max_elevation`` degrees."""
         d = np.asarray(direction, dtype=np.float64).reshape(3)
         if not np.linalg.norm(d) > 0:
-            raise ValueError(f"direction must be a non-zero 3-vector, got {direction!r}")
+            raise InputError(f"direction must be a non-zero 3-vector, got {direction!r}")
+        if str(up).strip().lower() == "auto":
+            if vertices is None:
+                raise InputError('View.toward(..., up="auto") needs the mesh vertices (vertices=...) to choose the up axis')
+            up = choose_up(vertices)
         u, front, right = _axes(up)
         d = d / np.linalg.norm(d)
         az = math.degrees(math.atan2(d @ right, d @ front))
         el = math.degrees(math.asin(np.clip(d @ u, -1.0, 1.0)))
+        el = float(np.clip(el, -max_elevation, max_elevation))
         return cls(azimuth=az, elevation=el, up=up, **kw)
 
     @classmethod
@@ -86,7 +96,7 @@ class View:
             known = {f.name for f in fields(cls)}
             bad = set(view) - known
             if bad:
-                raise ValueError(f"view: unknown keys {sorted(bad)}; known: {sorted(known)}")
+                raise InputError(f"view: unknown keys {sorted(bad)}; known: {sorted(known)}")
             return cls(**view)
         if isinstance(view, (tuple, list)) and len(view) == 2:
             return cls(azimuth=float(view[0]), elevation=float(view[1]))
@@ -94,30 +104,55 @@ class View:
 
 
 _AXES = {"x": 0, "y": 1, "z": 2}
+UP_CHOICES = ("auto", "x", "y", "z", "-x", "-y", "-z")
+# up="auto" turns to +z when the mesh is this many times taller along z than along y
+Z_UP_RATIO = 1.2
+# room left around everything drawn: the bounding sphere is enlarged by this fraction
+FRAME_MARGIN = 0.06
+# the default view of a source looks at it from at most this far above or below
+SOURCE_VIEW_MAX_ELEVATION = 60.0
+
+
+def choose_up(vertices) -> str:
+    """The up axis for ``up="auto"``: "z" when the mesh's extent along z is at least ``Z_UP_RATIO`` times its
+    extent along y (a z-up scan or CAD part standing upright), else "y" (the OBJ/glTF convention). Extents
+    cannot tell every convention apart (a y-up car that is long along z comes out on its nose): pass ``up``
+    (``--up``) when the guess is wrong."""
+    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    ext = v.max(0) - v.min(0)
+    return "z" if ext[2] >= Z_UP_RATIO * ext[1] else "y"
 
 
 def _axes(up: str):
     """(up, front, right) unit vectors for an up-axis name."""
     u = str(up).strip().lower()
     if u.lstrip("+-") not in _AXES or len(u.lstrip("+-")) != 1:
-        raise ValueError(f"view.up must be one of x, y, z, -x, -y, -z; got {up!r}")
+        raise InputError(f"view.up must be one of auto, x, y, z, -x, -y, -z; got {up!r}")
     i = _AXES[u.lstrip("+-")]
     a, front = np.zeros(3), np.zeros(3)
     a[i], front[(i + 1) % 3] = (-1.0 if u.startswith("-") else 1.0), 1.0
     return a, front, np.cross(a, front)
 
 
-def _camera(vertices: np.ndarray, view: View, width: int, height: int) -> raycast.Camera:
-    up, front, right = _axes(view.up)
+def _camera(vertices: np.ndarray, view: View, width: int, height: int, extent: np.ndarray | None = None
+            ) -> raycast.Camera:
+    """The camera of ``view``: it looks at the centre of ``vertices``' bounding box (or ``view.center``) from far
+    enough that the sphere around that centre holding ``extent`` (every point drawn, default ``vertices``),
+    enlarged by ``FRAME_MARGIN``, fits in both the vertical and the horizontal field of view."""
+    up, front, right = _axes(choose_up(vertices) if str(view.up).strip().lower() == "auto" else view.up)
     if not (0.0 < view.fov < 179.0) or not view.zoom > 0:
-        raise ValueError(f"view.fov must lie in (0, 179) degrees and view.zoom be > 0, got {view.fov}, {view.zoom}")
+        raise InputError(f"view.fov must lie in (0, 179) degrees and view.zoom be > 0, got {view.fov}, {view.zoom}")
     lo, hi = vertices.min(0), vertices.max(0)
     center = (lo + hi) / 2 if view.center is None else np.asarray(view.center, dtype=np.float64).reshape(3)
-    radius = max(float(np.linalg.norm(vertices - center, axis=1).max()), 1e-12)
+    pts = vertices if extent is None else extent
+    radius = max(float(np.linalg.norm(pts - center, axis=1).max()), 1e-12) * (1.0 + FRAME_MARGIN)
     az, el = math.radians(view.azimuth), math.radians(view.elevation)
     back = math.cos(el) * (math.sin(az) * right + math.cos(az) * front) + math.sin(el) * up  # center -> eye
     half = math.tan(math.radians(view.fov) / 2)
-    dist = radius / math.sin(math.radians(view.fov) / 2) / view.zoom * (1.0 if width >= height else height / width)
+    # a sphere of radius r seen from distance d fills a cone of half-angle asin(r / d): that cone must fit in the
+    # narrower of the two half-angles of the picture
+    narrow = min(half, half * width / height)
+    dist = radius / math.sin(math.atan(narrow)) / view.zoom
     fwd = -back
     r = np.cross(fwd, up)
     if np.linalg.norm(r) < 1e-9:  # looking straight along the up axis: the limit of a slightly lower elevation
@@ -188,7 +223,7 @@ def _vertex_values(mesh, values) -> np.ndarray:
     """Per-vertex values (the mesh's numbering, or internal order when that is the same length) -> internal."""
     v = as_numpy(values).astype(np.float64).reshape(-1) if np.ndim(as_numpy(values)) else None
     if v is None or len(v) not in (mesh.n_input, len(mesh.vertices)):
-        raise ValueError(f"values must hold one number per mesh vertex ({mesh.n_input} in the mesh's numbering), "
+        raise InputError(f"values must hold one number per mesh vertex ({mesh.n_input} in the mesh's numbering), "
                          f"got shape {np.shape(as_numpy(values))}")
     return v[mesh.index] if len(v) == mesh.n_input else v
 
@@ -200,10 +235,10 @@ def _polylines(paths) -> list:
         a = as_numpy(paths).astype(np.float64)
         out = [a] if a.ndim == 2 else list(a) if a.ndim == 3 else None
         if out is None:
-            raise ValueError(f"paths must be (N, m, 3), (m, 3) or a list of (m_i, 3) arrays, got shape {a.shape}")
+            raise InputError(f"paths must be (N, m, 3), (m, 3) or a list of (m_i, 3) arrays, got shape {a.shape}")
     for p in out:
         if p.ndim != 2 or p.shape[1] != 3:
-            raise ValueError(f"each path must be an (m, 3) array of points, got shape {p.shape}")
+            raise InputError(f"each path must be an (m, 3) array of points, got shape {p.shape}")
     return out
 
 
@@ -225,7 +260,7 @@ def _range(v: np.ndarray, vrange):
     if vrange is not None:
         lo, hi = (float(x) for x in vrange)
         if not (np.isfinite(lo) and np.isfinite(hi) and hi > lo):
-            raise ValueError(f"vrange must be (low, high) with low < high, got {vrange!r}")
+            raise InputError(f"vrange must be (low, high) with low < high, got {vrange!r}")
         return lo, hi
     ok = v[np.isfinite(v)]
     if not len(ok):
@@ -245,11 +280,15 @@ def render(model_or_mesh, values=None, *, sources=None, paths=None, isolines: in
     values : (V,) float per vertex in the mesh's numbering (NaN: no value, drawn grey). None with a model and
         ``sources``: the model's SSAD (one source) or MSAD (several) from them; None otherwise: plain grey.
     sources : vertex indices (mesh numbering) or (S, 3) points, mesh units; drawn as gold spheres
-    paths : (N, m, 3), (m, 3) or a list of (m_i, 3) polylines, mesh units; drawn as tubes, colours cycled
+    paths : (N, m, 3), (m, 3) or a list of (m_i, 3) polylines, mesh units; drawn as tubes, colours cycled, each
+        one's last point (its target) marked with a dark sphere
     isolines : number of equal steps of the value range between isolines (0: none)
+    (everything drawn, markers and paths included, fits in the picture with a margin at every view)
     out : image file to write (.png, or .jpg), atomically; None writes nothing
     size : (width, height) in pixels
-    view : None (the default ``View``), a ``View``, a dict of its fields or (azimuth, elevation) in degrees
+    view : a ``View``, a dict of its fields or (azimuth, elevation) in degrees; None: with ``sources``, the view
+        toward the first source (``View.toward`` it from the bounding box's centre, elevation within +-60
+        degrees), else the default ``View``. The up axis is chosen by ``choose_up`` unless the view names one.
     vrange : (low, high) values at the colour map's ends (default: the field's min and max); share it between
         pictures that are to be compared
     points : (K, 3) further points to mark (white spheres), mesh units
@@ -265,10 +304,8 @@ def render(model_or_mesh, values=None, *, sources=None, paths=None, isolines: in
     mesh = as_mesh(model_or_mesh)
     model = model_or_mesh if hasattr(model_or_mesh, "net") else None
     w, h = _size(size)
-    if not isinstance(isolines, (int, np.integer)) or isolines < 0:
-        raise ValueError(f"isolines must be an integer >= 0, got {isolines!r}")
-    if not isinstance(supersample, (int, np.integer)) or not 1 <= supersample <= 8:
-        raise ValueError(f"supersample must be an integer in 1..8, got {supersample!r}")
+    isolines = integer("isolines", isolines, minimum=0)
+    supersample = integer("supersample", supersample, minimum=1, maximum=8)
     dev = resolve_device(device)
     V, F = mesh.vertices, mesh.faces.astype(np.int64)
     r0 = float(np.linalg.norm(V - (V.min(0) + V.max(0)) / 2, axis=1).max())
@@ -287,17 +324,23 @@ def render(model_or_mesh, values=None, *, sources=None, paths=None, isolines: in
     parts = [(V, _vertex_normals(V, F), F, -1)]
     rm = marker_radius if marker_radius is not None else 0.025 * r0
     rp = path_radius if path_radius is not None else 0.006 * r0
-    palette = [SOURCE_COLOR, POINT_COLOR, *PATH_COLORS]
+    palette = [SOURCE_COLOR, POINT_COLOR, TARGET_COLOR, *PATH_COLORS]
+    src_points = None
     if sources is not None:
-        parts.append((*_spheres(points_of(mesh, sources, "sources"), rm), 0))
+        src_points = points_of(mesh, sources, "sources")
+        parts.append((*_spheres(src_points, rm), 0))
     if points is not None:
         parts.append((*_spheres(points_of(mesh, np.asarray(as_numpy(points), dtype=np.float64), "points"),
                                 0.75 * rm), 1))
     if paths is not None:
-        for i, P in enumerate(_polylines(paths)):
+        lines = _polylines(paths)
+        for i, P in enumerate(lines):
             tube = _tube(P, rp)
             if tube is not None:
-                parts.append((*tube, 2 + i % len(PATH_COLORS)))
+                parts.append((*tube, 3 + i % len(PATH_COLORS)))
+        ends = np.array([P[np.isfinite(P).all(1)][-1] for P in lines if np.isfinite(P).all(1).any()])
+        if len(ends):
+            parts.append((*_spheres(ends, 0.6 * rm), 2))
     verts, norms, faces, color, vv = [], [], [], [], []
     base = 0
     for pv, pn, pf, c in parts:
@@ -324,7 +367,11 @@ def render(model_or_mesh, values=None, *, sources=None, paths=None, isolines: in
     scene.background = wp.vec3(*BACKGROUND)
 
     s = int(supersample)
-    cam = _camera(V, View.of(view), w * s, h * s)
+    if view is None and src_points is not None and len(src_points):
+        direction = src_points[0] - (V.min(0) + V.max(0)) / 2
+        if np.linalg.norm(direction) > 1e-9 * r0:  # a source at the very centre has no side to face
+            view = View.toward(direction, up="auto", vertices=V, max_elevation=SOURCE_VIEW_MAX_ELEVATION)
+    cam = _camera(V, View.of(view), w * s, h * s, extent=verts)
     rgb = wp.empty((h * s, w * s), dtype=wp.vec3, device=dev)
     level = wp.empty((h * s, w * s), dtype=wp.int32, device=dev)
     wp.launch(raycast.trace, rgb.shape, inputs=[scene, cam], outputs=[rgb, level], device=dev)
@@ -343,9 +390,9 @@ def _size(size):
     try:
         w, h = (int(x) for x in size)
     except (TypeError, ValueError):
-        raise ValueError(f"size must be (width, height) in pixels, got {size!r}") from None
+        raise InputError(f"size must be (width, height) in pixels, got {size!r}") from None
     if not (1 <= w <= 16384 and 1 <= h <= 16384):
-        raise ValueError(f"size must be (width, height) with each in 1..16384 pixels, got {size!r}")
+        raise InputError(f"size must be (width, height) with each in 1..16384 pixels, got {size!r}")
     return w, h
 
 
@@ -354,7 +401,7 @@ def write_image(path, image: np.ndarray) -> str:
     ext = os.path.splitext(os.fspath(path))[1].lower()
     fmt = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG"}.get(ext)
     if fmt is None:
-        raise ValueError(f"out must name a .png or .jpg file, got {os.fspath(path)!r}")
+        raise InputError(f"out must name a .png or .jpg file, got {os.fspath(path)!r}")
     try:
         from PIL import Image
     except ImportError as e:
