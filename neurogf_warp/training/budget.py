@@ -63,6 +63,7 @@ class ThreadChooser:
     """
 
     STAGES_TIMED = ("joint", "refine_dist")  # the stages whose steps fill a CPU run (1 and 10 per joint step)
+    MIN_STEPS = 100  # shorter stages stay at the count in use (one thread at first)
 
     def __init__(self, warm: int = 1, timed: int = 4):
         import torch
@@ -73,9 +74,11 @@ class ThreadChooser:
         self.chosen = {}  # stage -> count
         self._stage, self._i, self._times = None, 0, {}
 
-    def begin(self, stage: str) -> None:
-        """A stage starts: time the candidates on its first steps (if it is one of ``STAGES_TIMED``)."""
-        self._stage = stage if stage in self.STAGES_TIMED and len(self.candidates) > 1 else None
+    def begin(self, stage: str, planned: int | None = None) -> None:
+        """A stage starts (``planned`` steps): time the candidates on its first steps if it is one of
+        ``STAGES_TIMED`` and long enough (``MIN_STEPS``; in a short stage the trial would be most of it)."""
+        long_enough = planned is None or planned >= self.MIN_STEPS
+        self._stage = stage if stage in self.STAGES_TIMED and len(self.candidates) > 1 and long_enough else None
         self._i, self._times = 0, {c: 0.0 for c in self.candidates}
         if stage in self.STAGES_TIMED and len(self.candidates) == 1:
             self.chosen[stage] = self.candidates[0]
@@ -194,8 +197,15 @@ class Budget:
             lo, hi = 0.0, 1.0
             while cost(plan_for(hi)) <= left and hi < 1e6:
                 hi *= 2
-        if cost(plan_for(lo)) > left:
-            return self.floor(steps, stage_i, step)
+        if cost(plan_for(lo)) > left:  # the floor, and of the later stages' planned steps as many as still fit
+            plan = self.floor(steps, stage_i, step)
+            want = plan_for(lo)
+            for s in STAGES[stage_i + 1:]:
+                spare = left - cost(plan)
+                if spare <= 0:
+                    break
+                plan[s] = max(plan[s], min(want[s], int(spare / max(t[s], 1e-9))))
+            return plan
         for _ in range(60):  # bisection: the largest plan that fits
             mid = (lo + hi) // 2 if isinstance(lo, int) else (lo + hi) / 2
             if mid == lo:

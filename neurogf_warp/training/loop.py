@@ -68,7 +68,7 @@ class Runner:
                 self._replan(stage_i, step, bar)
                 t.set_modes(stage)
                 if self.threads is not None:
-                    self.threads.begin(stage)
+                    self.threads.begin(stage, t.steps[stage])
                 acc, acc_n = None, 0
                 t0 = seg0 = time.perf_counter()
                 seg_steps = 0
