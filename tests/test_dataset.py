@@ -134,7 +134,7 @@ def test_bad_files_and_settings(built, tmp_path):
     with pytest.raises(ValueError, match="gd_local1 has shape"):
         D.Dataset.load(wrong)
     assert not [f for f in os.listdir(path.parent) if f.startswith(".tmp")]
-    with pytest.raises(ValueError, match="n_sources must be an integer >= 1"):
+    with pytest.raises(ValueError, match="n_sources must be >= 1"):
         D.build_dataset(np.eye(3), None, n_sources=0)
     with pytest.raises(ValueError, match="target_pool"):
         D.build_dataset(np.eye(3), None, target_pool="everything")

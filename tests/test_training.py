@@ -175,10 +175,15 @@ def test_budget_replans_to_the_time_left():
     slow = b.replan(plan, 1, 500, now=92.0)
     left = 4e-3 * (slow["joint"] - 500) + 4e-3 * (slow["refine_dist"] + slow["refine_sdf"] + slow["refine_path"])
     assert slow["querier"] == plan["querier"] and slow["joint"] > 500 and 7.9 < left <= 8.0
-    # after the joint stage, the remaining stages are scaled together; a late plan keeps one more step
+    # after the joint stage, the remaining stages are scaled together; a late plan stops the stage now and skips
+    # the refinements after it (a budget holds even when the steps are slower than every estimate)
     after = b.replan(slow, 2, 10, now=99.0)
     assert after["joint"] == slow["joint"] and after["refine_dist"] < slow["refine_dist"]
-    assert b.replan(slow, 2, 10, now=200.0)["refine_dist"] == 11
+    late = b.replan(slow, 2, 10, now=200.0)
+    assert late["refine_dist"] == 10 and late["refine_sdf"] == late["refine_path"] == 0
+    # out of time before the joint stage: one querier and one joint step (there is no model without them)
+    assert b.replan(plan, 0, 0, now=200.0) == dict(plan, querier=1, joint=1, refine_dist=0, refine_sdf=0,
+                                                   refine_path=0)
 
 
 def test_old_checkpoint_format_is_refused_clearly(tmp_path):
@@ -276,24 +281,29 @@ def test_bad_network_options_are_rejected(bad, match):
 
 
 @pytest.mark.parametrize("fast", [1, 2])
-def test_threads_0_trains_with_the_count_timed_fastest(tmp_path, ellipsoid, tiny_dataset, monkeypatch, fast):
-    """threads=0: each candidate count is timed on the run's own steps and the fastest kept for the run (here the
-    timing is staged so that either count can win; torch's own count is restored after the call)."""
-    from neurogf_warp.training import budget
+def test_threads_0_keeps_the_count_timed_fastest_on_the_first_steps(monkeypatch, fast):
+    """threads=0: each candidate count runs a few real steps at the start of joint and refine_dist, and the count
+    whose steps were fastest is kept (here the step times are staged so that either count can win)."""
+    from neurogf_warp.training.budget import ThreadChooser
 
-    monkeypatch.setattr(torch, "get_num_threads", lambda n=[2]: n[0])  # a 2-core machine, whatever this one is
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 2)  # a 2-core machine, whatever this one is
     counts = []
     monkeypatch.setattr(torch, "set_num_threads", lambda n: counts.append(n))
+    ch = ThreadChooser(warm=1, timed=3)
+    for stage in ("querier", "joint", "refine_dist", "refine_sdf"):
+        ch.begin(stage)
+        for _ in range(20):
+            ch.step_done(1e-3 if counts and counts[-1] == fast else 3e-3)
+    assert ch.chosen == {"joint": fast, "refine_dist": fast}
+    assert counts == [1, 2, fast, 1, 2, fast, fast]  # both timed in each timed stage; later stages keep it
 
-    def staged(trainer, n=6):
-        c = counts[-1]
-        return {s: (1e-3 if c == fast else 3e-3) for s in STAGES}
 
-    monkeypatch.setattr(budget, "calibrate", staged)
-    train(ellipsoid, tmp_path / "m.ngf", config=small(epochs=1, iters_per_epoch=10, threads=0, val_every=0),
-          dataset=tiny_dataset, device="cpu", progress=False)
-    assert sorted(set(counts[:2])) == [1, 2]  # both timed
-    assert counts[2] == fast  # the fastest kept for the run ...
-    assert counts[-1] == 2  # ... and the caller's count restored
-    with pytest.raises(ValueError, match="threads must be None, 0"):
+def test_threads_0_run_records_the_counts_and_restores_torchs(tmp_path, ellipsoid, tiny_dataset):
+    n = torch.get_num_threads()
+    out = tmp_path / "m.ngf"
+    train(ellipsoid, out, config=small(epochs=1, iters_per_epoch=20, threads=0, val_every=0), dataset=tiny_dataset,
+          device="cpu", progress=False)
+    log = json.loads(open(RunFiles.for_model(out).log).read())
+    assert set(log["history"]["threads"]) == {"joint", "refine_dist"} and torch.get_num_threads() == n
+    with pytest.raises(ValueError, match="threads must be >= 0"):
         small(threads=-1)

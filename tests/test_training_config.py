@@ -30,7 +30,7 @@ def test_set_reaches_every_setting_by_flat_or_dotted_name_and_converts_text():
     ("lr", "-1", "lr must be > 0"), ("dist_loss", "huber", "dist_loss must be one of"),
     ("loss_weights", '{"foo": 1}', "loss_weights: unknown terms"), ("batch_g", "0", "batch_g must be >= 1"),
     ("path_window", "true", None), ("target_pool", "everything", "target_pool must be"),
-    ("n_sources", "0", "n_sources must be an integer >= 1"), ("epochs", "none", "epochs must be an integer"),
+    ("n_sources", "0", "n_sources must be >= 1"), ("epochs", "none", "epochs must be an integer"),
     ("schedul.lr", "1", "unknown setting"), ("lrr", "1", "did you mean lr"),
 ])
 def test_bad_values_are_refused_with_the_setting_named(key, value, match):

@@ -29,6 +29,7 @@ import numpy as np
 import warp as wp
 
 from neurogf_warp.common.arrays import resolve_device
+from neurogf_warp.common.checks import integer, number
 from neurogf_warp.common.files import atomic_write
 from neurogf_warp.ground_truth.geodesics import DEFAULT_K, PATH_DELTA, GeodesicSolver, resample_polyline
 from neurogf_warp.ground_truth.workers import DistanceRows
@@ -90,16 +91,11 @@ class DatasetSettings:
         counts = {"n_sources": 1, "n_global": 1, "n_local1": 1, "n_local2": 1, "n_path_sources": 0,
                   "n_path_global": 1, "n_path_local": 1, "n_test": 0, "n_surface": 1, "n_spread": 1, "k": 1}
         for name, lo in counts.items():
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
-                raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
+            integer(name, getattr(self, name), minimum=lo)
         for name in ("batch", "workers"):
-            v = getattr(self, name)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1):
-                raise ValueError(f"{name} must be None or an integer >= 1, got {v!r}")
-        if isinstance(self.local_ball, bool) or not isinstance(self.local_ball, (int, float)) \
-                or not 0 < self.local_ball <= 1:
-            raise ValueError(f"local_ball must be a fraction in (0, 1], got {self.local_ball!r}")
+            if getattr(self, name) is not None:
+                integer(name, getattr(self, name), minimum=1)
+        number("local_ball", self.local_ball, above=0, maximum=1)
         if self.target_pool not in ("spread", "all"):
             raise ValueError(f"target_pool must be 'spread' or 'all', got {self.target_pool!r}")
         return self
@@ -400,77 +396,84 @@ class _Targets:
         self.local = order[np.isfinite(d[order]) & (order != s)][:nball]
 
 
-def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, *, seed: int = 0, device=None,
-                  progress: bool = True, time_limit_s: float | None = None, **overrides) -> Dataset:
-    """Compute the NeuroGF training data for one mesh with the Warp geodesic solver.
+# Seconds a path source costs per second of a distance source (path solve with its finer delta, then tracing and
+# resampling): 1.15 on the 642-vertex ellipsoid with `cpu_small` (``timings``: paths_s per path source against
+# distances_s per source); the time limit reserves 1.6, headroom for meshes where tracing weighs more
+PATH_COST = 1.6
 
-    Parameters
-    ----------
-    mesh : path, trimesh.Trimesh, (vertices, faces) or Mesh
-    out_path : also save it there (``.npz``, atomic write); None keeps it in memory only
-    settings : DatasetSettings (default: the GPU recipe's); ``**overrides`` replace single fields of it,
-        e.g. ``n_sources=256``
-    seed : random seed of every draw (sources, targets, surface points)
-    device : Warp device of the solver (on the CPU, the distance sources are solved by ``settings.workers``
-        processes, one per core by default; the result does not depend on how many: ``solver_workers.py``)
-    progress : a progress bar on stderr
-    time_limit_s : seconds (from the start of the call) after which no further batch of distance sources is
-        solved: the dataset then has fewer than ``n_sources`` sources (at least one solver batch) and its meta says
-        ``"complete": False``. None (default) solves them all. The test and path sources come after it.
 
-    Returns
-    -------
-    Dataset
-    """
-    settings = dataclasses.replace(settings or DatasetSettings(), **overrides).validate()
-    if time_limit_s is not None and not (isinstance(time_limit_s, (int, float)) and time_limit_s >= 0):
-        raise ValueError(f"time_limit_s must be a number >= 0 or None, got {time_limit_s!r}")
-    from tqdm.auto import tqdm
+class _Clock:
+    """The dataset's time limit: seconds since the call started, and what is left of ``limit`` (None: no limit)."""
 
-    t_start = time.perf_counter()
-    m = load_mesh(mesh)
-    check_trainable(m)
-    st = settings
-    rng = np.random.default_rng(seed)
+    def __init__(self, t_start: float, limit: float | None):
+        self.t_start, self.limit = t_start, limit
+
+    def left(self) -> float:
+        return float("inf") if self.limit is None else self.limit - (time.perf_counter() - self.t_start)
+
+
+@dataclass
+class _Plan:
+    """Phase 1's draws: spread vertices, the held-out test sources, the distance sources in solve order, the path
+    sources (the first distance sources), the surface points and the local-ball size."""
+
+    spread: np.ndarray
+    test_src: np.ndarray
+    gd_src: np.ndarray
+    n_path_sources: int
+    surface: np.ndarray
+    nball: int
+    target_set: np.ndarray
+
+
+def _sample(m: Mesh, st: DatasetSettings, rng) -> _Plan:
+    """Phase 1: spread vertices (QSlim), test / distance / path sources, area-weighted surface points."""
     V = len(m.vertices)
-    xyz = m.normalized_vertices.astype(np.float32)
-    timings = {}
-
-    t0 = time.perf_counter()
     spread = spread_vertices(m, min(st.n_spread, max(V // 2, 1)))
     n_sources = min(st.n_sources, max(len(spread) - st.n_test, 1))
     perm = rng.permutation(spread)
     test_src = np.sort(perm[:st.n_test]) if len(perm) > n_sources else perm[:0]
     gd_src = perm[len(test_src): len(test_src) + n_sources]
-    n_path_sources = min(st.n_path_sources, len(gd_src))
-    path_src = gd_src[:n_path_sources]
     surface = surface_samples(m, max(st.n_surface, 30000), rng)
-    timings["sampling_s"] = time.perf_counter() - t0
-
     nball = int(min(V - 1, max(st.local_ball * V, 4 * st.n_local2, st.n_local1)))
     target_set = np.asarray(spread) if st.target_pool == "spread" else np.arange(V)
+    return _Plan(spread, test_src, gd_src, min(st.n_path_sources, len(gd_src)), surface, nball, target_set)
+
+
+def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _Clock, bar) -> tuple:
+    """Phase 2: the test sources' full rows, then distance sources in order, as many as the time limit allows
+    while keeping room for the paths still to come (at least one batch).
+
+    Returns (kept source ids, {"global"|"local1"|"local2": [(n, 7) rows per kept source]}, sources solved,
+    (T, V) test distances, worker batches).
+    """
+    xyz = m.normalized_vertices.astype(np.float32)
+    step = solver.batch
+    split = lambda ids: [ids[i: i + step] for i in range(0, len(ids), step)]  # noqa: E731
+    tests, sources = split(plan.test_src), split(plan.gd_src)
+    batches = tests + sources
     kept, rows = [], {"global": [], "local1": [], "local2": []}
-
-    batch = solver_batch(st.batch, device)
-    solver = GeodesicSolver(m, k=st.k, device=device, batch=batch, max_rows=max(len(gd_src), len(test_src), 1))
-    bar = tqdm(total=len(gd_src) + len(test_src) + n_path_sources, desc="ground truth", disable=not progress,
-               unit="source", dynamic_ncols=True)
-    t0 = time.perf_counter()
-    solved = 0
-
-    def more(_):  # asked before each batch of distance sources after the first
-        return time_limit_s is None or time.perf_counter() - t_start <= time_limit_s
-
-    def split(ids):
-        return [ids[i: i + solver.batch] for i in range(0, len(ids), solver.batch)]
-
+    test_dist = np.zeros((len(plan.test_src), len(m.vertices)), np.float32)
+    solved, t0 = [0], time.perf_counter()
     with DistanceRows(solver, st.workers) as rows_of:
-        batches = split(gd_src)
+        def more(i):  # asked before batch i > 0 starts: tests and one distance batch always, then by the clock
+            if i <= len(tests) or clock.limit is None:
+                return True
+            done = solved[0] + len(plan.test_src)
+            # wall seconds a source takes on one process (batches run side by side on ``workers`` of them)
+            latency = (time.perf_counter() - t0) / max(done, 1) * rows_of.workers
+            paths_to_come = min(plan.n_path_sources, solved[0] + step) * latency * PATH_COST
+            return clock.left() >= step * latency + paths_to_come
+
         for b, D in rows_of.rows(batches, more):
+            if b < len(tests):
+                test_dist[b * step: b * step + len(D)] = D
+                bar.update(len(D))
+                continue
             src = batches[b]
-            solved += len(src)
+            solved[0] += len(src)
             for j, s in enumerate(src):
-                tg = _Targets(D[j], s, target_set, nball)
+                tg = _Targets(D[j], s, plan.target_set, plan.nball)
                 if len(tg.reach) == 0:  # nothing reachable (a vertex of degenerate faces only)
                     continue
                 kept.append(s)
@@ -481,37 +484,33 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
                 rows["local1"].append(_rows(xyz, s, near, tg.d))
                 rows["local2"].append(_rows(xyz, s, _pick(rng, pool, st.n_local2), tg.d))
             bar.update(len(src))
-        if not kept:
-            raise ValueError("no training source reaches any other vertex: the mesh has no usable connected part")
-        if solved < len(gd_src):  # the time limit cut the sources short
-            bar.total = solved + len(test_src) + min(n_path_sources, solved)
-            bar.refresh()
-        gd_src = gd_src[:solved]
-        n_path_sources = min(n_path_sources, len(gd_src))
-        path_src = gd_src[:n_path_sources]
-        test_dist = np.zeros((len(test_src), V), np.float32)
-        for b, D in rows_of.rows(split(test_src)):
-            test_dist[b * solver.batch: b * solver.batch + len(D)] = D
-            bar.update(len(D))
-        timings["worker_batches"] = rows_of.worker_batches
-    timings["distances_s"] = time.perf_counter() - t0
-    timings["distance_iterations"] = solver.timings["iterations"]
-    del solver
+        worker_batches = rows_of.worker_batches
+    if not kept:
+        raise ValueError("no training source reaches any other vertex: the mesh has no usable connected part")
+    return kept, rows, solved[0], test_dist, worker_batches
 
-    # paths: near-Dijkstra order so every traced polyline is as long as its distance
-    t0 = time.perf_counter()
+
+def _paths(m: Mesh, st: DatasetSettings, plan: _Plan, path_src: np.ndarray, rng, batch, device, clock: _Clock,
+           bar) -> tuple:
+    """Phase 3: ground-truth paths from ``path_src`` (near-Dijkstra order, so every traced polyline is as long as
+    its distance), batch by batch while the time limit allows (at least one batch).
+
+    Returns ({"global"|"local": ((K, M, 3) float32 paths, (K,) source ids)}, stale traces, dropped paths,
+    solver iterations, path sources done).
+    """
     paths = {"global": [], "local": []}
     path_of = {"global": [], "local": []}
-    stale = 0
-    if n_path_sources:
-        ps = GeodesicSolver(m, k=st.k, device=device, batch=batch, delta=PATH_DELTA, max_rows=n_path_sources)
-        for i in range(0, n_path_sources, ps.batch):
+    stale, iterations, done = 0, [], 0
+    if len(path_src):
+        ps = GeodesicSolver(m, k=st.k, device=device, batch=batch, delta=PATH_DELTA, max_rows=len(path_src))
+        for i in range(0, len(path_src), ps.batch):
+            t_batch = time.perf_counter()
             src = path_src[i: i + ps.batch]
             ps.run(src)
             D = ps.vertex_distances()
             row_of, targets, count = [], [], []
             for j, s in enumerate(src):
-                tg = _Targets(D[j], s, target_set, nball)
+                tg = _Targets(D[j], s, plan.target_set, plan.nball)
                 for kind, pool, n in (("global", tg.reach, st.n_path_global), ("local", tg.local, st.n_path_local)):
                     t = _pick(rng, pool, n)
                     targets.append(t)
@@ -527,40 +526,118 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
                     path_of[kind].append(np.full(n, s, dtype=np.int64))
                 c += n
             bar.update(len(src))
-        timings["path_iterations"] = ps.timings["iterations"]
-    bar.close()
-    dropped, out_paths = 0, {}
+            done += len(src)
+            if clock.left() < time.perf_counter() - t_batch:  # the next batch would end past the limit
+                break
+        iterations = ps.timings["iterations"]
+    dropped, out = 0, {}
     for kind, m_pts in (("global", GLOBAL_PATH_POINTS), ("local", LOCAL_PATH_POINTS)):
         p = np.concatenate(paths[kind]) if paths[kind] else np.zeros((0, m_pts, 3), np.float32)
         src_of = np.concatenate(path_of[kind]) if path_of[kind] else np.zeros(0, np.int64)
         ok = np.isfinite(p).all(axis=(1, 2))
         dropped += int(np.sum(~ok))
-        out_paths[kind] = (p[ok].astype(np.float32), src_of[ok])
+        out[kind] = (p[ok].astype(np.float32), src_of[ok])
+    return out, stale, dropped, iterations, done
+
+
+def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, *, seed: int = 0, device=None,
+                  progress: bool = True, time_limit_s: float | None = None, **overrides) -> Dataset:
+    """Compute the NeuroGF training data for one mesh with the Warp geodesic solver.
+
+    Parameters
+    ----------
+    mesh : path, trimesh.Trimesh, (vertices, faces) or Mesh
+    out_path : also save it there (``.npz``, atomic write); None keeps it in memory only
+    settings : DatasetSettings (default: the GPU recipe's); ``**overrides`` replace single fields of it,
+        e.g. ``n_sources=256``
+    seed : random seed of every draw (sources, targets, surface points)
+    device : Warp device of the solver (on the CPU, the distance sources are solved by ``settings.workers``
+        processes, one per core by default; the result does not depend on how many: ``ground_truth/workers.py``)
+    progress : a progress bar on stderr
+    time_limit_s : seconds (from the start of the call) that the whole build may take: distance sources stop
+        between solver batches when the next batch and the paths still to come would not fit (at least one batch
+        is solved), and the path sources stop between batches (at least one). The dataset then has fewer than
+        ``n_sources`` distance sources or fewer path sources, and its meta says ``"complete": False``. The test
+        sources are always solved (first). None (default) solves them all.
+
+    Returns
+    -------
+    Dataset
+
+    Phases (one function each): ``_sample`` (sources, targets' pools, surface points), ``_distances`` (test and
+    distance sources with the solver, on every core), ``_paths`` (traced ground-truth paths), ``_assemble``.
+    """
+    settings = dataclasses.replace(settings or DatasetSettings(), **overrides).validate()
+    if time_limit_s is not None:
+        number("time_limit_s", time_limit_s, minimum=0)
+    from tqdm.auto import tqdm
+
+    t_start = time.perf_counter()
+    clock = _Clock(t_start, time_limit_s)
+    m = load_mesh(mesh)
+    check_trainable(m)
+    st = settings
+    rng = np.random.default_rng(seed)
+    timings = {}
+
+    t0 = time.perf_counter()
+    plan = _sample(m, st, rng)
+    timings["sampling_s"] = time.perf_counter() - t0
+
+    batch = solver_batch(st.batch, device)
+    solver = GeodesicSolver(m, k=st.k, device=device, batch=batch,
+                            max_rows=max(len(plan.gd_src), len(plan.test_src), 1))
+    bar = tqdm(total=len(plan.gd_src) + len(plan.test_src) + plan.n_path_sources, desc="ground truth",
+               disable=not progress, unit="source", dynamic_ncols=True)
+    t0 = time.perf_counter()
+    kept, rows, solved, test_dist, timings["worker_batches"] = _distances(m, st, plan, rng, solver, clock, bar)
+    if solved < len(plan.gd_src):  # the time limit cut the sources short
+        bar.total = solved + len(plan.test_src) + min(plan.n_path_sources, solved)
+        bar.refresh()
+    timings["distances_s"] = time.perf_counter() - t0
+    timings["distance_iterations"] = solver.timings["iterations"]
+    del solver
+
+    t0 = time.perf_counter()
+    gd_src = plan.gd_src[:solved]
+    path_src = gd_src[:min(plan.n_path_sources, len(gd_src))]
+    out_paths, stale, dropped, timings["path_iterations"], n_path_done = _paths(m, st, plan, path_src, rng, batch,
+                                                                                 device, clock, bar)
+    bar.close()
     timings["paths_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
+    complete = solved == len(plan.gd_src) and n_path_done == plan.n_path_sources
+    ds = _assemble(m, st, seed, plan, kept, rows, gd_src, n_path_done, out_paths, test_dist, complete,
+                   time_limit_s, stale, dropped, timings)
+    if out_path is not None:
+        ds.save(out_path)
+    return ds
 
+
+def _assemble(m: Mesh, st: DatasetSettings, seed: int, plan: _Plan, kept, rows, gd_src, n_path_sources, out_paths,
+              test_dist, complete: bool, time_limit_s, stale: int, dropped: int, timings: dict) -> Dataset:
+    """Phase 4: the Dataset and its meta (what was asked for, what was made, how long it took)."""
     meta = {
         "format_version": FORMAT_VERSION, "fingerprint": m.fingerprint, "n_input_vertices": m.n_input, "seed": seed,
         # what was asked for (before capping to the mesh): a cached dataset is reused only for the same request
         "requested": st.recipe(seed),
         "settings": dict(dataclasses.asdict(st), n_sources=len(gd_src), n_path_sources=int(n_path_sources),
-                         n_test=int(len(test_src)), n_spread=int(len(spread)), local_ball_vertices=nball,
-                         path_delta=PATH_DELTA),
-        "definitions": __doc__.split("Definitions used here", 1)[-1].strip(),
-        "complete": solved == n_sources, "time_limit_s": time_limit_s,
+                         n_test=int(len(plan.test_src)), n_spread=int(len(plan.spread)),
+                         local_ball_vertices=plan.nball, path_delta=PATH_DELTA),
+        # how sources, targets and paths are drawn: this module's docstring (format FORMAT_VERSION)
+        "definitions": f"neurogf_warp.dataset.build, dataset format {FORMAT_VERSION}",
+        "complete": bool(complete), "time_limit_s": time_limit_s,
         "sources_without_targets": int(len(gd_src) - len(kept)), "stale_paths": stale, "dropped_paths": dropped,
         "components": int(m.n_components), "units": "normalized (unit sphere)",
         "versions": {"warp": wp.config.version, "numpy": np.__version__},
         "timings": timings,
     }
-    ds = Dataset(
-        vertices=xyz, faces=m.faces.astype(np.int32), center=np.asarray(m.center, np.float64), scale=float(m.scale),
-        surface_points=surface, gd_src=np.asarray(kept, dtype=np.int64),
+    return Dataset(
+        vertices=m.normalized_vertices.astype(np.float32), faces=m.faces.astype(np.int32),
+        center=np.asarray(m.center, np.float64), scale=float(m.scale),
+        surface_points=plan.surface, gd_src=np.asarray(kept, dtype=np.int64),
         gd_global=np.stack(rows["global"]), gd_local1=np.stack(rows["local1"]), gd_local2=np.stack(rows["local2"]),
         path_global=out_paths["global"][0], path_global_src=out_paths["global"][1],
         path_local=out_paths["local"][0], path_local_src=out_paths["local"][1],
-        test_src=test_src.astype(np.int64), test_dist=test_dist, meta=meta,
+        test_src=plan.test_src.astype(np.int64), test_dist=test_dist, meta=meta,
     ).check()
-    if out_path is not None:
-        ds.save(out_path)
-    return ds

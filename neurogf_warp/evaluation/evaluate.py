@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from neurogf_warp.dataset.heat import HEAT_HINT, heat_distances, require_heat  # noqa: F401 - re-exported
 from neurogf_warp.evaluation import metrics
 from neurogf_warp.mesh.mesh import Mesh, load_mesh
 
@@ -24,17 +25,6 @@ if TYPE_CHECKING:
     from neurogf_warp.model.model import Model
 
 __all__ = ["evaluate", "load_reference", "format_table", "require_heat"]
-
-HEAT_HINT = 'the heat-method comparison needs potpourri3d: pip install "neurogf-warp[heat]"'
-
-
-def require_heat() -> None:
-    """Raise ImportError (naming the ``heat`` extra) when potpourri3d is not installed."""
-    import importlib.util
-
-    if importlib.util.find_spec("potpourri3d") is None:
-        raise ImportError(HEAT_HINT)
-
 
 def load_reference(path: "str | os.PathLike", mesh: Mesh) -> tuple:
     """Exact distances of a reference ``.npz`` on the mesh's internal vertices.
@@ -137,15 +127,9 @@ def _rel_stats(pred, gt) -> dict:
 def _heat(mesh: Mesh, source_ids, vertex_ids, progress):
     """Heat-method distances (potpourri3d defaults) from each source: (S, Vr) float64, mesh units."""
     require_heat()
-    import potpourri3d as pp3d
-
-    solver = pp3d.MeshHeatMethodDistanceSolver(mesh.normalized_vertices, mesh.faces.astype(np.int64))
-    out = np.empty((len(source_ids), len(vertex_ids)), np.float64)
     with _bar(len(source_ids), "heat method", progress) as bar:
-        for i, s in enumerate(source_ids):
-            out[i] = solver.compute_distance(int(s))[vertex_ids] / mesh.scale
-            bar.update(1)
-    return out
+        d = heat_distances(mesh.normalized_vertices, mesh.faces, source_ids, on_row=lambda: bar.update(1))
+    return d[:, vertex_ids] / mesh.scale
 
 
 def _paths(model, mesh: Mesh, rng, n_sources, n_targets, device, k, refine, progress) -> dict:

@@ -12,9 +12,10 @@ import os
 import time
 from typing import TYPE_CHECKING
 
+from neurogf_warp.common.checks import InputError, number, say
 from neurogf_warp.dataset.build import check_trainable
 from neurogf_warp.mesh.mesh import load_mesh
-from neurogf_warp.training.budget import Budget, calibrate, fastest_threads, fit_budget
+from neurogf_warp.training.budget import Budget, ThreadChooser, calibrate, fit_budget
 from neurogf_warp.training.checkpoint import (
     CKPT_VERSION,
     RunFiles,
@@ -24,21 +25,32 @@ from neurogf_warp.training.checkpoint import (
     save_model,
 )
 from neurogf_warp.training.config import STAGES, TrainConfig
-from neurogf_warp.training.data import TrainingData, _say, make_sdf_pool, obtain_dataset
+from neurogf_warp.training.data import TrainingData, make_sdf_pool, obtain_dataset
 from neurogf_warp.training.loop import Runner
 from neurogf_warp.training.presets import choose_preset, preset
+from neurogf_warp.training.quality import ModelQualityWarning, budget_verdict, final_verdict, heat_validation_mre
 
 if TYPE_CHECKING:
     import torch
 
     from neurogf_warp.model.model import Model
 
-__all__ = ["train", "resolve_config", "torch_device"]
+__all__ = ["train", "resolve_config", "torch_device", "check_budget", "ModelQualityWarning", "MAX_BUDGET_S"]
 
 SAVE_RESERVE_S = 1.0  # seconds of a budget kept for writing the model and the log
 # The largest share of a budgeted call that ground truth may take: where sources are slow (large meshes on a CPU),
 # more sources buy accuracy only while the steps left can still fit them, and past about a third they cannot
 DATA_SHARE = 1 / 3
+MAX_BUDGET_S = 30 * 24 * 3600.0  # 30 days: a larger budget is a typo (or inf / 1e308), refused before any work
+
+
+def check_budget(budget_seconds) -> float | None:
+    """``budget_seconds`` as a float, or None; InputError for a non-number, <= 0, not finite or above 30 days.
+
+    Cheap and import-free: callers (the command line, the demo) run it before loading anything."""
+    if budget_seconds is None:
+        return None
+    return number("budget_seconds", budget_seconds, above=0, maximum=MAX_BUDGET_S)
 
 
 def torch_device(device=None) -> "torch.device":
@@ -82,23 +94,49 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
     resume : continue the checkpoint in the run folder with its own settings (the settings given here are not
         used); a finished run's checkpoint gives its model back
     force : start over, replacing an existing run and model file
-    budget_seconds : fit the step counts so that the whole call (dataset, set-up, all stages, saving) takes about
-        this long; the counts are then fixed in the checkpoint
+    budget_seconds : seconds for the whole run (dataset, set-up, all stages, saving), a number > 0 and at most 30
+        days (InputError otherwise, before any work). The ground truth gets at most a third of it (fewer sources
+        when it runs short, noted in the dataset); the step counts are fitted to the rest and re-planned from the
+        measured step times. A run interrupted and continued by a later call gets what the earlier calls left.
     progress : progress bars and messages on stderr
     callback : ``callback(stage, step, terms)`` after every step (raise KeyboardInterrupt there to stop like Ctrl-C)
     **settings : any TrainConfig setting by name, e.g. ``D=128, lr=3e-3, n_sources=256, epochs=20``
 
     Without ``resume`` or ``force``, a call that finds a run of the same settings continues it (interrupted) or
     returns its model (finished), and one that finds a run of other settings, or a model file with no run, raises
-    ValueError. Ctrl-C writes a checkpoint and raises ``TrainingInterrupted``.
-    """
-    import torch
+    ValueError. Ctrl-C writes a checkpoint and raises ``TrainingInterrupted``. A second process training to the
+    same ``out`` while one runs gets an InputError (the run folder is locked with ``flock``).
 
+    The dataset's held-out sources score the final model (``validation_mre``) and, with potpourri3d installed, the
+    heat method on the same pairs (``heat_mre``); both, ``worse_than_heat`` and ``quality_warning`` go into the
+    model's ``config`` (the file's metadata) and the run's log. A model worse than the heat method, or a budget
+    predicted too small before the steps start, gives a ``ModelQualityWarning`` (``training.quality``).
+    """
     t_call = time.perf_counter()
-    if budget_seconds is not None and not (isinstance(budget_seconds, (int, float)) and budget_seconds > 0):
-        raise ValueError(f"budget_seconds must be a number > 0, got {budget_seconds!r}")
+    budget_seconds = check_budget(budget_seconds)
     files = RunFiles.for_model(out)
     files.check_writable()
+    created = not os.path.isdir(files.folder)
+    lock = files.lock()
+    try:
+        key = None if force else _call_key(mesh, config, device, dataset, budget_seconds, settings)
+        model = _quick_finished(files, key, progress)
+        if model is not None:
+            return model
+        return _train_locked(mesh, files, config, device, dataset, resume, force, budget_seconds, progress,
+                             callback, settings, key, t_call)
+    except BaseException:
+        if created and os.path.isdir(files.folder) and not os.listdir(files.folder):
+            os.rmdir(files.folder)  # refused before anything was written: leave no empty run folder
+        raise
+    finally:
+        lock.release()
+
+
+def _train_locked(mesh, files, config, device, dataset, resume, force, budget_seconds, progress, callback,
+                  settings, key, t_call):
+    import torch
+
     dev = torch_device(device)
     if dev.type == "cuda" and dev.index is None:  # generators and tensors must agree on the index
         dev = torch.device("cuda", torch.cuda.current_device())
@@ -110,7 +148,6 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
                else "given"}
 
     ck = _existing_run(files, mesh, request, resume, force, progress)
-    files.make_folder()
     files.clean_stale_temporaries()
     if ck is not None and finished(ck):
         return _finished_model(ck, files, mesh, progress)
@@ -121,74 +158,166 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
     if cfg.runtime.threads:
         torch.set_num_threads(cfg.runtime.threads)
     try:
-        return _run(mesh, files, cfg, request, ck, dataset, dev, budget_seconds, progress, callback, t_call)
+        return _run(mesh, files, cfg, request, ck, dataset, dev, progress, callback, t_call, key)
     finally:
         torch.set_num_threads(threads)
 
 
-def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, dev, budget_seconds, progress,
-         callback, t_call: float):
-    """Dataset, set-up, budget, the stages and the model file of a run (new, or continued from ``ck``)."""
+def _call_key(mesh, config, device, dataset, budget_seconds, settings) -> dict | None:
+    """What identifies a call cheaply, without loading torch or the mesh: the mesh file's path, size and time, and
+    the arguments as given; None when an argument is an object (a repeat must then take the full path)."""
+    from neurogf_warp.training.config import TrainConfig
+
+    if not isinstance(mesh, (str, os.PathLike)) or not os.path.isfile(mesh):
+        return None
+    if dataset is not None and not isinstance(dataset, (str, os.PathLike)):
+        return None
+    if config is not None and not isinstance(config, (str, TrainConfig)):
+        return None
+    if device is not None and not isinstance(device, str):
+        return None
+    st = os.stat(mesh)
+    key = {"mesh": [os.path.abspath(mesh), st.st_size, st.st_mtime_ns],
+           "config": config.to_dict() if isinstance(config, TrainConfig) else config, "device": device,
+           "dataset": None if dataset is None else os.path.abspath(dataset), "budget_seconds": budget_seconds,
+           "settings": settings}
+    try:
+        return json.loads(json.dumps(key))
+    except (TypeError, ValueError):  # a setting that is not plain data
+        return None
+
+
+def _quick_finished(files: RunFiles, key: dict | None, progress: bool):
+    """The finished model when the run folder's log says that this same call already finished it (the model file
+    and the checkpoint still there), else None; costs a JSON read and the model file's load."""
+    if key is None or not (os.path.isfile(files.model) and os.path.isfile(files.checkpoint)
+                           and os.path.isfile(files.log)):
+        return None
+    try:
+        with open(files.log) as f:
+            log = json.load(f)
+    except (OSError, ValueError):
+        return None
+    if log.get("call") != key or not log.get("finished"):
+        return None
+    from neurogf_warp.model.files import load
+
+    try:
+        model = load(files.model)
+    except (ValueError, OSError):
+        return None  # the full path says what is wrong and writes it again
+    say(progress, f"{files.model} is already trained (finished run in {files.folder}); pass force=True "
+                  "(--force) to train again")
+    _warn_again(model)
+    return model
+
+
+def _warn_again(model) -> None:
+    """A finished model that was worse than the heat method is still so: say it on every call that returns it."""
+    msg = (model.config or {}).get("quality_warning")
+    if msg:
+        import warnings
+
+        warnings.warn(msg, ModelQualityWarning, stacklevel=4)
+
+
+def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, dev, progress, callback,
+         t_call: float, key):
+    """Dataset, set-up, budget, the stages and the model file of a run (new, or continued from ``ck``).
+
+    The budget (``request["budget_seconds"]``) covers every call of a run: a continued run gets what the earlier
+    calls left (their wall seconds are kept in the checkpoint as ``spent_s``) and re-plans its steps to fit it."""
     import torch
 
+    budget_seconds = request.get("budget_seconds")
+    spent_before = float(ck.get("spent_s", 0.0)) if ck is not None else 0.0
+    deadline = None if budget_seconds is None else t_call + budget_seconds - spent_before - SAVE_RESERVE_S
     t_data = time.perf_counter()
-    limit = None if budget_seconds is None or ck is not None else DATA_SHARE * budget_seconds
+    # the ground truth's share counts from the start of the call (the mesh was loaded and checked in it)
+    limit = None if budget_seconds is None or ck is not None else \
+        max(0.0, DATA_SHARE * budget_seconds - (t_data - t_call))
     ds = obtain_dataset(mesh, dataset, files.dataset if dataset is None else None, cfg.data, cfg.seed, dev, progress,
                         time_limit_s=limit, partial_ok=ck is not None)
     dataset_s = time.perf_counter() - t_data
+    timings = {"dataset_s": dataset_s}
+    t0 = time.perf_counter()
+    if ck is not None and "heat_mre" in ck["history"]:
+        heat_mre = ck["history"]["heat_mre"]
+    else:  # the baseline on the held-out pairs, before any step (it is part of the budget)
+        heat_mre = heat_validation_mre(ds.vertices, ds.faces, ds.test_src, ds.test_dist)
+    timings["heat_s"] = time.perf_counter() - t0
     data = TrainingData(ds, dev)
+    t0 = time.perf_counter()
     pool = make_sdf_pool(mesh, data.surface_points, cfg.batches.sdf_pool, cfg.seed, dev)
+    timings["sdf_pool_s"] = time.perf_counter() - t0
     from neurogf_warp.training.trainer import Trainer
 
     trainer = Trainer(cfg, data, pool, dev)
-    budget, per = None, None
+    budget, per, chooser = None, None, None
     if dev.type == "cpu" and cfg.runtime.threads == 0:
-        cores = torch.get_num_threads()
-        threads, per = fastest_threads(trainer)
-        _say(progress, f"training with {threads} of {cores} torch thread{'s' if cores > 1 else ''} (timed fastest)")
+        chooser = ThreadChooser()  # the thread count is chosen on the first steps of the main stages
+        torch.set_num_threads(1)  # calibrated at one thread; the budget re-plans from the measured steps
     if ck is not None:
         trainer.load_state(ck)
         stage_i, step, history, elapsed = ck["stage"], ck["step"], ck["history"], ck["elapsed"]
-        _say(progress, f"continuing the run in {files.folder}: stage {STAGES[stage_i]}, step {step}")
+        say(progress, f"continuing the run in {files.folder}: stage {STAGES[stage_i]}, step {step}")
+        if deadline is not None:  # re-plan the steps left from the budget left
+            per = history.get("per_step") or calibrate(trainer, n=3)
+            budget = Budget(trainer.cfg, deadline, per)
+            say(progress, f"{budget_seconds - spent_before:.0f} s of the {budget_seconds:.0f} s budget left")
     else:
-        if budget_seconds is not None:
+        stage_i, step, elapsed = 0, 0, 0.0
+        history = {"loss": [], "val": []}
+        if deadline is not None:
             from neurogf_warp.training.acceleration import set_tf32
 
+            t0 = time.perf_counter()
             tf32 = set_tf32(cfg.runtime.tf32) if dev.type == "cuda" else None  # time what the run will do
             try:
-                per = per or calibrate(trainer, n=20 if trainer.graphs else 6)
+                per = calibrate(trainer, n=20 if trainer.graphs else 2)
             finally:
                 if tf32 is not None:
                     set_tf32(tf32)
-            deadline = t_call + budget_seconds - SAVE_RESERVE_S
+            timings["calibrate_s"] = time.perf_counter() - t0
             left = deadline - time.perf_counter()
-            if left < 0.2 * budget_seconds:
-                _say(True, f"warning: the dataset and set-up took {time.perf_counter() - t_call:.0f} s of the "
-                           f"{budget_seconds:.0f} s budget; training gets the minimum steps. Raise the budget or "
-                           "lower n_sources / n_path_sources")
             cfg = fit_budget(cfg, per, max(left, 0.0))
             trainer.cfg = cfg
             trainer.steps = cfg.stage_steps()
             budget = Budget(cfg, deadline, per)
-        stage_i, step, elapsed = 0, 0, 0.0
-        history = {"loss": [], "val": []}
+            history["budget_warning"] = budget_verdict(cfg.joint_steps, max(left, 0.0) / budget_seconds,
+                                                       len(ds.gd_src), cfg.data.n_sources, progress)
+    history["heat_mre"] = heat_mre
+    history["sources"] = {"distance": int(len(ds.gd_src)), "asked": int(cfg.data.n_sources),
+                          "test": int(len(ds.test_src)), "complete": bool(ds.meta.get("complete", True))}
+    history["per_step"] = per
     history["dataset_s"] = dataset_s
-    history["threads"] = torch.get_num_threads() if dev.type == "cpu" else None
+    history["threads"] = torch.get_num_threads() if dev.type == "cpu" else None  # chooser: per stage, below
     history["prep_s"] = time.perf_counter() - t_data
 
     def save(stage_i, step, history, elapsed):
+        spent = spent_before + time.perf_counter() - t_call
         return save_checkpoint({"version": CKPT_VERSION, "config": trainer.cfg.to_dict(), "request": request,
                                 "fingerprint": mesh.fingerprint, "stage": stage_i, "step": step, **trainer.state(),
-                                "history": history, "elapsed": elapsed}, files.checkpoint)
+                                "history": history, "elapsed": elapsed, "spent_s": spent}, files.checkpoint)
 
-    run = Runner(trainer, save, files.checkpoint, progress, callback, budget)
+    run = Runner(trainer, save, files.checkpoint, progress, callback, budget, chooser)
+    t0 = time.perf_counter()
     stage_i, step, history, elapsed = run(stage_i, step, history, elapsed)
-    info = dict(trainer.cfg.to_dict(), steps=trainer.steps, train_seconds=round(elapsed, 2))
+    timings["steps_s"] = time.perf_counter() - t0
+    if chooser is not None:
+        history["threads"] = chooser.chosen
+        say(progress, "torch threads (timed fastest on the first steps): "
+            + ", ".join(f"{k} {v}" for k, v in chooser.chosen.items()))
+    quality = final_verdict(trainer.validate(), heat_mre, progress)
+    history["quality"] = quality
+    info = dict(trainer.cfg.to_dict(), steps=trainer.steps, train_seconds=round(elapsed, 2), **quality,
+                budget_warning=history.get("budget_warning"))
     model = save_model(trainer.net, trainer.querier, mesh, files.model, info)
     call_s = time.perf_counter() - t_call
-    _write_log(files, info, history, {"call_s": call_s, "dataset_s": dataset_s, "budget_seconds": budget_seconds,
-                                      "calibrated_s_per_step": per})
-    _say(progress, f"saved {files.model} ({call_s:.0f} s in all, {elapsed:.0f} s of training steps)")
+    timings.update(call_s=call_s, spent_s=spent_before + call_s, budget_seconds=budget_seconds,
+                   calibrated_s_per_step=per)
+    _write_log(files, info, history, timings, key)
+    say(progress, f"saved {files.model} ({call_s:.0f} s)")
     return model
 
 
@@ -198,7 +327,7 @@ def _existing_run(files: RunFiles, mesh, request: dict, resume: bool, force: boo
         return None
     if not os.path.exists(files.checkpoint):
         if resume:
-            _say(True, f"no checkpoint at {files.checkpoint}; starting from scratch")
+            say(True, f"no checkpoint at {files.checkpoint}; starting from scratch")
         elif os.path.exists(files.model):
             raise ValueError(f"{files.model} exists and no run of it is in {files.folder}: pass force=True (--force) "
                              "to overwrite it, or write to another file")
@@ -242,27 +371,31 @@ def _finished_model(ck: dict, files: RunFiles, mesh, progress: bool):
     if os.path.exists(files.model):
         try:
             model = load(files.model)
-            _say(progress, f"{files.model} is already trained (finished run in {files.folder}); pass force=True "
-                           "(--force) to train again")
+            say(progress, f"{files.model} is already trained (finished run in {files.folder}); pass force=True "
+                          "(--force) to train again")
+            _warn_again(model)
             return model
         except (ValueError, OSError) as e:
-            _say(True, f"{files.model} is unreadable ({e}); writing it again from the finished run's checkpoint")
+            say(True, f"{files.model} is unreadable ({e}); writing it again from the finished run's checkpoint")
     cfg = ck["config"]
     net = cfg.network.build()
     net.load_state_dict(ck["net"])
     querier = SdfQuerier()
     querier.load_state_dict(ck["querier"])
-    info = dict(cfg.to_dict(), steps=ck["steps"], train_seconds=round(ck["elapsed"], 2))
+    info = dict(cfg.to_dict(), steps=ck["steps"], train_seconds=round(ck["elapsed"], 2),
+                **ck["history"].get("quality", {}), budget_warning=ck["history"].get("budget_warning"))
     model = save_model(net, querier, mesh, files.model, info)
     if not os.path.exists(files.log):
-        _write_log(files, info, ck["history"], {})
-    _say(progress, f"saved {files.model} from the finished run's checkpoint")
+        _write_log(files, info, ck["history"], {}, None)
+    say(progress, f"saved {files.model} from the finished run's checkpoint")
     return model
 
 
-def _write_log(files: RunFiles, info: dict, history: dict, timings: dict):
+def _write_log(files: RunFiles, info: dict, history: dict, timings: dict, key: dict | None):
+    """The run's log: settings, loss and validation history, timings, the verdict on its quality, and the call
+    that finished it (``call``: a repeat of that call answers from the model without loading anything else)."""
     from neurogf_warp.common.files import atomic_write
 
-    text = json.dumps({"config": info, "history": history, "timings": timings}).encode()
+    text = json.dumps({"config": info, "history": history, "timings": timings, "quality": history.get("quality"),
+                       "finished": True, "call": key}).encode()
     atomic_write(files.log, lambda f: f.write(text))
-

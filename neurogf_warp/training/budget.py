@@ -14,28 +14,33 @@ import time
 from neurogf_warp.training.acceleration import GRAPH_WARMUP, sync
 from neurogf_warp.training.config import STAGES, TrainConfig
 
-__all__ = ["calibrate", "fastest_threads", "fit_budget", "Budget"]
+__all__ = ["calibrate", "ThreadChooser", "fit_budget", "Budget"]
 
 SLACK = 0.95  # share of the time left that the initial plan fills (the loop itself: logging, validation)
 
 
-def calibrate(trainer, n: int = 6) -> dict:
-    """Seconds per step of each stage, timed on the trainer itself; its state is restored afterwards.
+def calibrate(trainer, n: int = 6, stages=STAGES, give_up_s: float | None = None) -> dict | None:
+    """Seconds per step of each of ``stages``, timed on the trainer itself; its state is restored afterwards.
+    With ``give_up_s``, None once the timing (warm-up included) has taken longer than that.
 
     (In place rather than on a copy: compiled loss functions are then compiled once, for the real run.)
     """
     saved = (copy.deepcopy(trainer.net.state_dict()), copy.deepcopy(trainer.querier.state_dict()),
              trainer.gen.get_state(), trainer._gen_at_batch)
-    warm = 2 + (GRAPH_WARMUP + 1 if trainer.graphs else 0)  # and the capture, when graphs are on
+    # one untimed step makes the optimizer and touches every buffer; with CUDA graphs, also compile and capture
+    warm = 2 + GRAPH_WARMUP + 1 if trainer.graphs else 1
     out = {}
+    start = time.perf_counter()
     try:
-        for stage in STAGES:
+        for stage in stages:
             trainer.set_modes(stage)
             for i in range(n + warm):
                 if i == warm:
                     sync(trainer.device)
                     t0 = time.perf_counter()
                 trainer.step(stage, 0)
+                if give_up_s is not None and time.perf_counter() - start > give_up_s:
+                    return None
             sync(trainer.device)
             out[stage] = (time.perf_counter() - t0) / n
     finally:
@@ -47,22 +52,63 @@ def calibrate(trainer, n: int = 6) -> dict:
     return out
 
 
-def fastest_threads(trainer) -> tuple:
-    """(count, seconds per step of each stage): the torch thread count among 1, min(4, n) and torch's own count n
-    with which this run's planned steps (``trainer.steps``, timed by ``calibrate``) take least time; torch is left
-    at that count."""
-    import torch
+class ThreadChooser:
+    """Chooses the torch thread count of a CPU run on the run's own steps (``threads=0``), at no extra cost.
 
-    n = torch.get_num_threads()
-    best = None
-    for c in sorted({1, min(4, n), n}):
-        torch.set_num_threads(c)
-        per = calibrate(trainer, n=4)
-        cost = sum(per[s] * max(trainer.steps[s], 1) for s in STAGES)
-        if best is None or cost < best[0]:
-            best = (cost, c, per)
-    torch.set_num_threads(best[1])
-    return best[1], best[2]
+    At the start of each stage in ``STAGES_TIMED`` every candidate count (1, min(4, n) and torch's own n) runs
+    ``warm`` + ``timed`` real training steps, and the count whose timed steps were fastest is kept for the rest of
+    the stage. On a busy machine several threads can be 3-10x slower than one (OpenMP threads wait on each other);
+    on an idle one two threads were 1.6x faster (benchmarks/RESULTS.md). Timing the candidates on extra steps
+    before the run took 14-40 s of a 20 s budget on this 2-core machine; here a step is never wasted.
+    """
+
+    STAGES_TIMED = ("joint", "refine_dist")  # the stages whose steps fill a CPU run (1 and 10 per joint step)
+    MIN_STEPS = 100  # shorter stages stay at the count in use (one thread at first)
+
+    def __init__(self, warm: int = 1, timed: int = 4):
+        import torch
+
+        n = torch.get_num_threads()
+        self.candidates = sorted({1, min(4, n), n})
+        self.warm, self.timed = warm, timed
+        self.chosen = {}  # stage -> count
+        self._stage, self._i, self._times = None, 0, {}
+
+    def begin(self, stage: str, planned: int | None = None) -> None:
+        """A stage starts (``planned`` steps): time the candidates on its first steps if it is one of
+        ``STAGES_TIMED`` and long enough (``MIN_STEPS``; in a short stage the trial would be most of it)."""
+        long_enough = planned is None or planned >= self.MIN_STEPS
+        self._stage = stage if stage in self.STAGES_TIMED and len(self.candidates) > 1 and long_enough else None
+        self._i, self._times = 0, {c: 0.0 for c in self.candidates}
+        if stage in self.STAGES_TIMED and len(self.candidates) == 1:
+            self.chosen[stage] = self.candidates[0]
+        if self._stage is not None:
+            self._set(self.candidates[0])
+        elif self.chosen:  # other stages: the count chosen last
+            self._set(list(self.chosen.values())[-1])
+
+    def step_done(self, seconds: float) -> None:
+        """After a step of the current stage that took ``seconds``."""
+        if self._stage is None:
+            return
+        per = self.warm + self.timed
+        c = self.candidates[self._i // per]
+        if self._i % per >= self.warm:
+            self._times[c] += seconds
+        self._i += 1
+        if self._i == per * len(self.candidates):
+            best = min(self.candidates, key=lambda k: self._times[k])
+            self.chosen[self._stage] = best
+            self._set(best)
+            self._stage = None
+        elif self._i % per == 0:
+            self._set(self.candidates[self._i // per])
+
+    @staticmethod
+    def _set(count: int) -> None:
+        import torch
+
+        torch.set_num_threads(count)
 
 
 def fit_budget(cfg: TrainConfig, per_step: dict, seconds: float) -> TrainConfig:
@@ -79,7 +125,7 @@ def fit_budget(cfg: TrainConfig, per_step: dict, seconds: float) -> TrainConfig:
         joint = avail / (per_joint + cfg.ratio("querier") * per_step["querier"])
         if cfg.ratio("querier") * joint > QUERIER_MAX:
             joint = (avail - per_step["querier"] * QUERIER_MAX) / per_joint
-    joint = max(10, int(joint))
+    joint = max(1, int(joint))  # a budget too small for even this is said so (training.quality)
     sched = cfg.schedule
     epochs = max(1, joint // sched.iters_per_epoch)
     if epochs * sched.iters_per_epoch > joint:  # fewer steps than one epoch: shrink the epoch
@@ -119,11 +165,13 @@ class Budget:
     def replan(self, steps: dict, stage_i: int, step: int, now: float | None = None) -> dict:
         """New step counts for the stages from ``stage_i`` on (``step`` steps of it done) that fit the time left;
         counts of finished stages are kept. Before the end of the joint stage the joint steps are re-fitted
-        (the later stages follow by their ratios); after it, the remaining stages are scaled together."""
+        (the later stages follow by their ratios); after it, the remaining stages are scaled together. When not
+        even that fits, the floor plan (``floor``): the current stage stops now, later refinements get none."""
         if stage_i >= len(STAGES):
             return dict(steps)
         left = self.deadline - (time.perf_counter() if now is None else now)
         t = self.per_step()
+        cur = STAGES[stage_i]
 
         def cost(plan):
             return sum(t[s] * max(0, plan[s] - (step if i == stage_i else 0))
@@ -135,14 +183,13 @@ class Budget:
                                       if STAGES.index(s) >= stage_i})
             else:
                 plan = dict(steps)
-                for i, s in enumerate(STAGES[stage_i:], stage_i):
+                for s in STAGES[stage_i:]:
                     plan[s] = max(1 if steps[s] > 0 else 0, int(round(x * steps[s])))
-            cur = STAGES[stage_i]
-            plan[cur] = max(plan[cur], step + 1 if step < steps[cur] else step)
+            plan[cur] = max(plan[cur], step)
             return plan
 
         if stage_i <= STAGES.index("joint"):
-            lo = step + 1 if STAGES[stage_i] == "joint" else 1
+            lo = max(step, 1) if cur == "joint" else 1
             hi = max(lo, 1)
             while cost(plan_for(hi)) <= left and hi < 10**9:
                 hi *= 2
@@ -150,8 +197,15 @@ class Budget:
             lo, hi = 0.0, 1.0
             while cost(plan_for(hi)) <= left and hi < 1e6:
                 hi *= 2
-        if cost(plan_for(lo)) > left:
-            return plan_for(lo)
+        if cost(plan_for(lo)) > left:  # the floor, and of the later stages' planned steps as many as still fit
+            plan = self.floor(steps, stage_i, step)
+            want = plan_for(lo)
+            for s in STAGES[stage_i + 1:]:
+                spare = left - cost(plan)
+                if spare <= 0:
+                    break
+                plan[s] = max(plan[s], min(want[s], int(spare / max(t[s], 1e-9))))
+            return plan
         for _ in range(60):  # bisection: the largest plan that fits
             mid = (lo + hi) // 2 if isinstance(lo, int) else (lo + hi) / 2
             if mid == lo:
@@ -161,3 +215,19 @@ class Budget:
             else:
                 hi = mid
         return plan_for(lo)
+
+    @staticmethod
+    def floor(steps: dict, stage_i: int, step: int) -> dict:
+        """The least a run out of time still does: the current stage stops after ``step`` steps (the querier and
+        joint stages after at least one, without which there is no model), a joint stage not yet begun gets one
+        step, and the refinements after it none."""
+        plan = dict(steps)
+        joint = STAGES.index("joint")
+        for i, s in enumerate(STAGES[stage_i:], stage_i):
+            least = 1 if i <= joint else 0
+            plan[s] = max(step, least) if i == stage_i else least
+        return plan
+
+    def near_deadline(self, stage: str, now: float) -> bool:
+        """True when two more steps of ``stage`` would reach the deadline: the loop then re-plans every step."""
+        return now + 2 * self.per_step()[stage] >= self.deadline

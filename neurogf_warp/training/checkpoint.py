@@ -15,10 +15,11 @@ from dataclasses import dataclass
 
 import torch
 
+from neurogf_warp.common.checks import InputError
 from neurogf_warp.mesh.mesh import Mesh
 from neurogf_warp.training.config import STAGES, TrainConfig
 
-__all__ = ["RunFiles", "save_checkpoint", "load_checkpoint", "save_model", "CKPT_VERSION", "finished"]
+__all__ = ["RunFiles", "RunLock", "save_checkpoint", "load_checkpoint", "save_model", "CKPT_VERSION", "finished"]
 
 # 2: the refine_dist stage; 3: network options in the config; 4: nested config and the run's request
 CKPT_VERSION = 4
@@ -69,6 +70,14 @@ class RunFiles:
     def make_folder(self) -> None:
         os.makedirs(self.folder, exist_ok=True)
 
+    def lock(self) -> "RunLock":
+        """Take the run folder for this process (creating it), or raise InputError when another process holds it.
+
+        An exclusive ``flock`` on the folder itself (no lock file): the kernel drops it when the holder exits or
+        is killed, so a dead run never blocks the next one. Release with ``.release()`` or ``with``."""
+        self.make_folder()
+        return RunLock(self.folder)
+
     def clean_stale_temporaries(self, min_age_s: float = 60.0) -> int:
         """Remove temporary files that a killed save left in the run folder or beside the model (untouched for
         ``min_age_s`` seconds, so a save in progress is never hit); returns how many."""
@@ -85,6 +94,33 @@ class RunFiles:
                 except OSError:
                     pass
         return n
+
+
+class RunLock:
+    """An exclusive advisory lock (``fcntl.flock``) on a folder, held until ``release()`` or process exit."""
+
+    def __init__(self, folder: str):
+        import fcntl
+
+        self.folder, self._fd = folder, os.open(folder, os.O_RDONLY)
+        try:
+            fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(self._fd)
+            self._fd = None
+            raise InputError(f"another training run is using {folder} (two runs cannot write one model): wait for "
+                             "it to finish, or write the model to another file") from None
+
+    def release(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)  # closing the descriptor drops the flock
+            self._fd = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.release()
 
 
 def _probe(folder: str) -> None:

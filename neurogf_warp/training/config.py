@@ -13,6 +13,7 @@ import json
 import math
 from dataclasses import dataclass, field
 
+from neurogf_warp.common.checks import integer
 from neurogf_warp.dataset.build import DatasetSettings
 from neurogf_warp.model.network import MAX_FOURIER, SUPPORTED_D, NeuroGFNet
 
@@ -145,8 +146,8 @@ class RuntimeConfig:
     threads: int | None = None
 
     def validate(self):
-        if self.threads is not None and (isinstance(self.threads, bool) or self.threads < 0):
-            raise ValueError(f"threads must be None, 0 (timed at the start) or >= 1, got {self.threads}")
+        if self.threads is not None:  # None: torch's own; 0: timed at the start; n >= 1
+            integer("threads", self.threads, minimum=0)
         if self.val_every < 0 or self.log_every < 1:
             raise ValueError(f"val_every must be >= 0 and log_every >= 1, got {self.val_every}, {self.log_every}")
         if not self.ckpt_every_s > 0:

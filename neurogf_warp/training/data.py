@@ -6,11 +6,11 @@ copy when it was built for the same mesh and settings, else a fresh build (then 
 from __future__ import annotations
 
 import os
-import sys
 
 import numpy as np
 import torch
 
+from neurogf_warp.common.checks import say
 from neurogf_warp.dataset.build import Dataset, build_dataset, sample_sdf_points, sdf_truth
 from neurogf_warp.mesh.mesh import Mesh
 
@@ -54,12 +54,6 @@ def warp_device(device) -> str:
     return "cpu" if d.type == "cpu" else f"cuda:{d.index or 0}"
 
 
-def _say(on: bool, msg: str):
-    """A status line on stderr (the training modules' one channel besides the progress bars), when ``on``."""
-    if on:
-        print(msg, file=sys.stderr, flush=True)
-
-
 def obtain_dataset(mesh: Mesh, dataset, cache: str | None, settings, seed: int, device, progress: bool,
                    time_limit_s: float | None = None, partial_ok: bool = False) -> Dataset:
     """The dataset to train on.
@@ -80,13 +74,13 @@ def obtain_dataset(mesh: Mesh, dataset, cache: str | None, settings, seed: int, 
             ds = Dataset.load(cache)
             if ds.fingerprint == mesh.fingerprint and _recipe_of(ds) == want and \
                     (partial_ok or ds.meta.get("complete", True)):
-                _say(progress, f"reusing dataset {cache}")
+                say(progress, f"reusing dataset {cache}")
                 return ds
-            _say(progress, f"dataset cache {cache} was built for another mesh, other settings or less time; "
+            say(progress, f"dataset cache {cache} was built for another mesh, other settings or less time; "
                            "rebuilding it")
         except (ValueError, OSError) as e:  # an unreadable cache is rebuilt, never trusted
-            _say(True, f"dataset cache {cache} is unreadable ({e}); rebuilding it")
-    _say(progress, "building the training dataset" + (f" -> {cache}" if cache else ""))
+            say(True, f"dataset cache {cache} is unreadable ({e}); rebuilding it")
+    say(progress, "building the training dataset" + (f" -> {cache}" if cache else ""))
     return build_dataset(mesh, cache, settings, seed=seed, device=warp_device(device), progress=progress,
                          time_limit_s=time_limit_s)
 

@@ -35,9 +35,10 @@ class Runner:
     step (raising KeyboardInterrupt there stops the run like Ctrl-C); budget: a ``budget.Budget`` or None.
     """
 
-    def __init__(self, trainer, save, ckpt_file: str, progress: bool, callback=None, budget=None):
+    def __init__(self, trainer, save, ckpt_file: str, progress: bool, callback=None, budget=None, threads=None):
         self.t, self.save, self.ckpt_file = trainer, save, ckpt_file
         self.progress, self.callback, self.budget = progress, callback, budget
+        self.threads = threads  # a budget.ThreadChooser (CPU, threads=0) or None
         self.stop = False
 
     def _on_sigint(self, signum, frame):
@@ -66,6 +67,8 @@ class Runner:
                 stage = STAGES[stage_i]
                 self._replan(stage_i, step, bar)
                 t.set_modes(stage)
+                if self.threads is not None:
+                    self.threads.begin(stage, t.steps[stage])
                 acc, acc_n = None, 0
                 t0 = seg0 = time.perf_counter()
                 seg_steps = 0
@@ -73,7 +76,10 @@ class Runner:
                     n = t.steps[stage]
                     interrupted = False
                     try:
+                        t_step = time.perf_counter()
                         terms = t.step(stage, step)
+                        if self.threads is not None:
+                            self.threads.step_done(time.perf_counter() - t_step)
                         step += 1
                         seg_steps += 1
                         vals = torch.stack([v.detach().float() for v in terms.values()])
@@ -110,7 +116,8 @@ class Runner:
                         t0 = now
                         self.save(stage_i, step, history, elapsed)
                         last_save = time.perf_counter()
-                    if self.budget is not None and now - seg0 > REPLAN_EVERY_S and step < t.steps[stage]:
+                    if self.budget is not None and step < t.steps[stage] and \
+                            (now - seg0 > REPLAN_EVERY_S or self.budget.near_deadline(stage, now)):
                         self.budget.record(stage, now - seg0, seg_steps)
                         seg0, seg_steps = now, 0
                         self._replan(stage_i, step, bar)

@@ -1,0 +1,185 @@
+"""Time to accuracy: train meshes at several budgets, each call timed whole, and score every model.
+
+One command; the package is imported from this checkout (nothing to install), and the meshes and exact references
+come from ``--shared`` (a folder with ``meshes/`` and ``reference/exact/``, as in ../shared):
+
+    python benchmarks/time_to_accuracy.py --device cuda:0 --shared /path/to/shared          # 20, 60, 120, 300 s
+    python benchmarks/time_to_accuracy.py --device cpu --meshes spot fandisk                 # 60, 180 s
+
+Per (mesh, budget): ``ngf.train(mesh, out, budget_seconds=B, device=..., force=True)`` (the preset the device and
+mesh size choose, ground truth included in the call), its real duration, then ``ngf.evaluate`` against the exact
+reference: MRE, p99 and max relative error over the reference's sources, the heat method (potpourri3d) on the same
+pairs, path Chamfer-L1 against solver paths raw and after ``--path-refine`` sweeps, SDF L1. The training log's
+timings say where the call went (dataset, set-up, steps). Writes ``<out>/time_to_accuracy.json`` and
+``<out>/time_to_accuracy.png`` (MRE against the call's seconds, one panel per mesh, the heat method dashed).
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import platform
+import sys
+import time
+import warnings
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _import_from_checkout():
+    """Import ``neurogf_warp`` from this checkout; map ``kernels/`` to ``neurogf_warp.kernels`` as the installed
+    package does (pyproject's package-dir), when no install provides it."""
+    sys.path.insert(0, str(ROOT))
+    import neurogf_warp
+
+    if importlib.util.find_spec("neurogf_warp.kernels") is None:
+        spec = importlib.util.spec_from_file_location("neurogf_warp.kernels", ROOT / "kernels" / "__init__.py",
+                                                      submodule_search_locations=[str(ROOT / "kernels")])
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules["neurogf_warp.kernels"] = mod
+        spec.loader.exec_module(mod)
+        neurogf_warp.kernels = mod
+    return neurogf_warp
+
+
+MESHES = {"spot": "spot.obj", "cow": "cow.obj", "alligator": "alligator.obj", "homer": "homer.obj",
+          "fandisk": "fandisk.obj", "cheburashka": "cheburashka.obj", "rocker-arm": "rocker-arm.obj",
+          "bunny": "stanford-bunny.obj", "igea": "igea.ply"}
+
+
+def _reference(shared: Path, name: str) -> Path:
+    return shared / "reference" / "exact" / (Path(MESHES[name]).stem + ".npz")
+
+
+def run_one(ngf, shared: Path, name: str, budget: float, a, work: Path) -> dict:
+    """Train ``name`` at ``budget`` seconds and evaluate the model: one row of the table."""
+    from neurogf_warp.training.checkpoint import RunFiles
+
+    out = work / f"{name}_{budget:g}s.ngf"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        t0 = time.perf_counter()
+        model = ngf.train(str(shared / "meshes" / MESHES[name]), out, budget_seconds=budget, device=a.device,
+                          force=True, progress=not a.quiet, **dict(a.settings))
+        call_s = time.perf_counter() - t0
+    log = json.loads(Path(RunFiles.for_model(out).log).read_text())
+    res = ngf.evaluate(model, reference=_reference(shared, name), heat=a.heat, n_path_sources=a.path_sources,
+                       n_path_targets=a.path_targets, path_refine=a.path_refine, device=a.device, progress=False,
+                       verbose=False)
+    n, h = res["neurogf"], res.get("heat", {})
+    cfg = log["config"]
+    return {"mesh": name, "vertices": res["vertices"], "budget_s": budget, "call_s": call_s,
+            "mre": n["mre"], "p99": n["p99_rel"], "max": n["max_rel"],
+            "heat_mre": h.get("mre"), "heat_p99": h.get("p99_rel"), "heat_max": h.get("max_rel"),
+            "chamfer": res.get("chamfer_l1"), "chamfer_refined": res.get("chamfer_l1_refined"),
+            "sdf_l1": res.get("sdf_l1"), "validation_mre": cfg.get("validation_mre"),
+            "validation_heat_mre": cfg.get("heat_mre"), "worse_than_heat": cfg.get("worse_than_heat"),
+            "budget_warning": cfg.get("budget_warning"), "preset": cfg.get("preset"), "steps": cfg.get("steps"),
+            "sources": log["history"].get("sources"), "timings": log["timings"],
+            "threads": log["history"].get("threads"),
+            "warnings": sorted({f"{w.category.__name__}: {w.message}" for w in caught})}
+
+
+def _plot(rows: list, path: Path) -> bool:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return False
+    names = list(dict.fromkeys(r["mesh"] for r in rows))
+    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.8), squeeze=False)
+    for ax, name in zip(axes[0], names):
+        rs = sorted((r for r in rows if r["mesh"] == name), key=lambda r: r["call_s"])
+        ax.semilogy([r["call_s"] for r in rs], [100 * r["mre"] for r in rs], "o-", label="NeuroGF")
+        heat = [r["heat_mre"] for r in rs if r["heat_mre"] is not None]
+        if heat:
+            ax.axhline(100 * heat[0], ls="--", color="0.4", label="heat method")
+        ax.set_title(f"{name} ({rs[0]['vertices']:,} vertices)")
+        ax.set_xlabel("seconds, whole train() call")
+        ax.set_ylabel("MRE vs exact (%)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    return True
+
+
+def _table(rows: list) -> str:
+    head = ("mesh", "budget", "call", "MRE", "p99", "max", "heat", "Chamfer", "refined", "SDF L1", "dataset",
+            "steps joint/rd")
+    lines = [head]
+    pct = lambda x: "-" if x is None else f"{100 * x:.3f}%"  # noqa: E731
+    sci = lambda x: "-" if x is None else f"{x:.3e}"  # noqa: E731
+    for r in rows:
+        st = r["steps"] or {}
+        lines.append((r["mesh"], f"{r['budget_s']:g} s", f"{r['call_s']:.1f} s", pct(r["mre"]), pct(r["p99"]),
+                      pct(r["max"]), pct(r["heat_mre"]), sci(r["chamfer"]), sci(r["chamfer_refined"]),
+                      sci(r["sdf_l1"]), f"{r['timings'].get('dataset_s', 0):.1f} s",
+                      f"{st.get('joint', '?')}/{st.get('refine_dist', '?')}"))
+    w = [max(len(x[i]) for x in lines) for i in range(len(head))]
+    return "\n".join("  ".join(c.rjust(w[i]) for i, c in enumerate(x)) for x in lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--device", default=None, help="cpu or cuda:N (default: cuda:0 if there is one)")
+    p.add_argument("--shared", default=str(ROOT.parent / "shared"),
+                   help="folder with meshes/ and reference/exact/ (default ../shared)")
+    p.add_argument("--meshes", nargs="+", default=None, choices=list(MESHES),
+                   help="default: spot fandisk bunny igea on a GPU, spot fandisk on the CPU")
+    p.add_argument("--budgets", nargs="+", type=float, default=None,
+                   help="seconds per call (default: 20 60 120 300 on a GPU, 60 180 on the CPU)")
+    p.add_argument("--path-sources", type=int, default=None, help="path pairs: sources (default GPU 16, CPU 4)")
+    p.add_argument("--path-targets", type=int, default=None, help="path pairs: targets per source (GPU 32, CPU 4)")
+    p.add_argument("--path-refine", type=int, default=50, help="shortening sweeps for the refined Chamfer (0: none)")
+    p.add_argument("--no-heat", dest="heat", action="store_false", help="skip the heat method")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a training setting, repeatable")
+    p.add_argument("--out", default=os.environ.get("OUT", str(ROOT / "benchmarks" / "results")))
+    p.add_argument("--work", default="/tmp/neurogf-time-to-accuracy", help="model files and run folders")
+    p.add_argument("-q", "--quiet", action="store_true")
+    a = p.parse_args(argv)
+
+    ngf = _import_from_checkout()
+    import torch
+
+    from neurogf_warp.training.config import parse_assignments
+
+    a.device = a.device or ("cuda:0" if torch.cuda.is_available() else "cpu")
+    gpu = a.device.startswith("cuda")
+    a.meshes = a.meshes or (["spot", "fandisk", "bunny", "igea"] if gpu else ["spot", "fandisk"])
+    a.budgets = a.budgets or ([20, 60, 120, 300] if gpu else [60, 180])
+    a.path_sources = a.path_sources if a.path_sources is not None else (16 if gpu else 4)
+    a.path_targets = a.path_targets if a.path_targets is not None else (32 if gpu else 4)
+    a.settings = parse_assignments(a.set)
+    shared = Path(a.shared)
+    for name in a.meshes:
+        for f in (shared / "meshes" / MESHES[name], _reference(shared, name)):
+            if not f.exists():
+                p.error(f"{f} not found: pass --shared with meshes/ and reference/exact/")
+    work, out = Path(a.work), Path(a.out)
+    work.mkdir(parents=True, exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for name in a.meshes:
+        for budget in a.budgets:
+            print(f"== {name}, budget {budget:g} s, {a.device}", flush=True)
+            rows.append(run_one(ngf, shared, name, budget, a, work))
+            print(_table(rows[-1:]), flush=True)
+    text = _table(rows)
+    print("\n" + text)
+    meta = {"device": a.device, "gpu": torch.cuda.get_device_name(0) if gpu else None, "host": platform.node(),
+            "cpu_cores": os.cpu_count(), "date_utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()),
+            "torch": torch.__version__, "argv": sys.argv[1:], "settings": a.settings,
+            "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
+    (out / "time_to_accuracy.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    plotted = _plot(rows, out / "time_to_accuracy.png")
+    print(f"wrote {out / 'time_to_accuracy.json'}" + (f" and {out / 'time_to_accuracy.png'}" if plotted else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
