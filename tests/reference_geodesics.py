@@ -170,3 +170,14 @@ def exact_distances(V, F, sources, samples: int = 32) -> np.ndarray:
         np.minimum.at(d, orig[orig >= 0], d0[orig >= 0])
         out[r] = d
     return out
+
+
+def gdist_distances(V, F, sources) -> np.ndarray:
+    """(S, V) exact polyhedral distances from tvb-gdist (MMP, float64) on the mesh as given; inf unreachable."""
+    import gdist
+
+    V = np.ascontiguousarray(V, dtype=np.float64)
+    F = np.ascontiguousarray(F, dtype=np.int32)
+    out = np.stack([gdist.compute_gdist(V, F, source_indices=np.array([s], np.int32)) for s in np.atleast_1d(sources)])
+    out[out >= np.finfo(np.float64).max / 2] = np.inf
+    return out

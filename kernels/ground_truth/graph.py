@@ -105,8 +105,10 @@ def face_has_node(graph: SteinerGraph, face: int, n: int) -> bool:
 
 @wp.func
 def common_face(graph: SteinerGraph, u: int, x: int) -> int:
-    """The face holding nodes u and x: >= 0, -2 when they share an edge (or are both vertices), -1 if none.
-    All faces of the edge are searched (three or more on a non-manifold edge)."""
+    """The face holding nodes u and x: >= 0, -2 when they lie on one edge (or are both vertices), -1 if none.
+    All faces of the edge are searched (three or more on a non-manifold edge). When several faces hold both
+    (duplicated faces: the same three vertices twice) the first is returned: the copies coincide, so the straight
+    segment u-x and its unfolding are the same in each."""
     e = -1
     other = u
     if x >= graph.nv:
@@ -116,17 +118,16 @@ def common_face(graph: SteinerGraph, u: int, x: int) -> int:
         other = x
     else:
         return -2
-    found = int(-1)
-    count = int(0)
+    if other >= graph.nv:
+        if steiner_edge(graph, other) == e:
+            return -2
+    elif graph.edges[e, 0] == other or graph.edges[e, 1] == other:
+        return -2
     for i in range(graph.edge_face_start[e], graph.edge_face_start[e + 1]):
         f = graph.edge_face_list[i]
         if face_has_node(graph, f, other):
-            count += 1
-            if found < 0:
-                found = f
-    if count >= 2:
-        return -2
-    return found
+            return f
+    return -1
 
 
 @wp.func
