@@ -29,23 +29,42 @@ class Topology:
         # faces repeating a vertex carry no area and would create zero-length edges
         keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])
         f = f[keep]
-        half = np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1).reshape(-1, 2)
-        half = np.sort(half, axis=1)
-        edges, inv = np.unique(half, axis=0, return_inverse=True)
-        inv = inv.reshape(-1)
+        nvtx = len(vertices)
+        # unique edges from one sort of int64 keys (lower * V + higher); the sort also gives each edge's faces in
+        # face order (stable), so no second sort is needed (np.unique(axis=0) plus two argsorts took 65 s for a
+        # 2.2M-vertex mesh on a 2-core machine)
+        a = f[:, [0, 1, 2]].reshape(-1)
+        b = f[:, [1, 2, 0]].reshape(-1)
+        key = np.minimum(a, b) * max(nvtx, 1) + np.maximum(a, b)
+        order = np.argsort(key, kind="stable")
+        sk = key[order]
+        new = np.ones(len(sk), dtype=bool)
+        new[1:] = sk[1:] != sk[:-1]
+        ids = np.cumsum(new) - 1
+        inv = np.empty(len(key), dtype=np.int64)
+        inv[order] = ids
+        uk = sk[new]
+        edges = np.stack([uk // max(nvtx, 1), uk % max(nvtx, 1)], axis=1)
         self.faces = f.astype(np.int32)
         self.edges = edges.astype(np.int32)
         self.face_edges = inv.reshape(-1, 3).astype(np.int32)
         ne = len(edges)
-        counts = np.bincount(inv, minlength=ne)
+        counts = np.bincount(ids, minlength=ne) if len(ids) else np.zeros(0, np.int64)
         self.nonmanifold_edges = int(np.sum(counts > 2))  # edges with three or more faces
         self.boundary_edges = int(np.sum(counts == 1))
-        nvtx = len(vertices)
-        fo = np.argsort(f.reshape(-1), kind="stable")
-        self.vertex_faces = (fo // 3).astype(np.int32)
-        self.vertex_face_start = np.r_[0, np.cumsum(np.bincount(f.reshape(-1), minlength=nvtx))].astype(np.int32)
-        self.edge_faces = np.argsort(inv, kind="stable").astype(np.int32) // 3
+        self.edge_faces = (order // 3).astype(np.int32)
         self.edge_face_start = np.r_[0, np.cumsum(counts)].astype(np.int32)
+        # faces around each vertex, in face order: a bucket build (scipy's COO -> CSR places entries row by row in
+        # input order, O(n)) instead of a comparison sort
+        import scipy.sparse as sp
+
+        flat = f.reshape(-1)
+        n = len(flat)
+        m = sp.coo_matrix((np.arange(n, dtype=np.int64) // 3 + 1, (flat, np.arange(n))), shape=(nvtx, max(n, 1)))
+        m = m.tocsr()
+        m.sort_indices()  # columns are positions in `flat`: face order within each vertex
+        self.vertex_faces = (m.data - 1).astype(np.int32)
+        self.vertex_face_start = m.indptr.astype(np.int32)
         self.face_ok = window_faces(vertices, f)
         self._vertices = np.asarray(vertices, dtype=np.float64)
 
