@@ -11,6 +11,8 @@ CPU smoke run (here):
    sources (distances to every vertex, copied to the host): sources/s, iterations, nodes, batch rows. The cost
    exponent is fitted (log-log) from 139K to 2.2M. On the 436K mesh also the public call
    `ngf.geodesic_distances(mesh, 256 sources)` end to end (solver set-up included: the figure a user gets).
+   Rows: the 556K mesh with the solver's memory budget at 12.5% and 50% of the free memory (the default is 25%):
+   whether a batch of more source rows costs more per source tells if the iterations are latency-bound.
 2. Accuracy: every mesh class of `tests/geodesic_meshes.mesh_classes` (stretched, needles, slivers, duplicated
    faces, CAD-like fans; 6 sources each, exact: tvb-gdist on the CPU) and the shared meshes' exact references
    (`reference/exact/*.npz`, all their sources): MRE, max and min relative error.
@@ -46,8 +48,11 @@ def bunny(subdivisions: int):
     return np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64)
 
 
-def rate(name, V, F, device, max_sources: int, out: dict):
-    """Warm-up batch, then one timed batch: sources/s of distances to every vertex (copied to the host)."""
+def rate(name, V, F, device, max_sources: int, out: dict, memory_fraction: float | None = None, key="scaling",
+         warmup: bool = True):
+    """Warm-up batch, then one timed batch: sources/s of distances to every vertex (copied to the host).
+    memory_fraction: the solver's memory budget as a fraction of the free device memory (default: the solver's
+    own, 25%). Without warm-up the timed batch includes the graph capture (milliseconds on CUDA)."""
     import warp as wp
 
     from neurogf_warp.ground_truth.geodesics import GeodesicSolver
@@ -55,25 +60,30 @@ def rate(name, V, F, device, max_sources: int, out: dict):
 
     t0 = time.perf_counter()
     m = load_mesh((V, F))
-    solver = GeodesicSolver(m, device=device, max_rows=max_sources)
+    budget = None
+    dev = wp.get_device(device)
+    if memory_fraction is not None and dev.is_cuda:
+        budget = memory_fraction * float(dev.free_memory)
+    solver = GeodesicSolver(m, device=device, max_rows=max_sources, memory_budget=budget)
     setup = time.perf_counter() - t0
     rng = np.random.default_rng(0)
     n = min(solver.batch, max_sources)
     src = rng.choice(solver.nv, 2 * n, replace=len(V) < 2 * n)
     t0 = time.perf_counter()
-    solver.run(src[:n])
-    solver.vertex_distances()
-    wp.synchronize_device(solver.device)
+    if warmup:
+        solver.run(src[:n])
+        solver.vertex_distances()
+        wp.synchronize_device(solver.device)
     warm = time.perf_counter() - t0
     t0 = time.perf_counter()
     solver.run(src[n:])
     solver.vertex_distances()
     wp.synchronize_device(solver.device)
     dt = time.perf_counter() - t0
-    row = dict(mesh=name, vertices=len(m.vertices), faces=len(m.faces), nodes=solver.n_nodes, batch=solver.batch,
+    row = dict(mesh=name, memory_fraction=memory_fraction, vertices=len(m.vertices), faces=len(m.faces), nodes=solver.n_nodes, batch=solver.batch,
                sources=n, setup_s=setup, warmup_s=warm, solve_s=dt, sources_per_s=n / dt,
                iterations=solver.timings["iterations"][-1], relaxed_per_source=solver.work_stats()["relaxed_per_source"])
-    out.setdefault("scaling", []).append(row)
+    out.setdefault(key, []).append(row)
     print(f"{name:28s} V={row['vertices']:>9,d} nodes={row['nodes']:>10,d} batch={row['batch']:4d} "
           f"{n} sources in {dt:.2f} s: {row['sources_per_s']:.2f} sources/s ({row['iterations']} iterations; "
           f"set-up {setup:.1f} s, warm-up {warm:.1f} s)", flush=True)
@@ -129,7 +139,7 @@ def main(argv=None) -> int:
     ap.add_argument("--subdivisions", type=int, default=3, help="bunny midpoint subdivisions: 0..N (3: 2.2M)")
     ap.add_argument("--max-sources", type=int, default=64, help="sources in the timed batch (at most one batch)")
     ap.add_argument("--public-sources", type=int, default=256)
-    ap.add_argument("--skip", default="", help="comma list of stages to skip: scaling,public,classes,shared")
+    ap.add_argument("--skip", default="", help="comma list of stages to skip: scaling,public,rows,classes,shared")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     if a.shared:
@@ -166,6 +176,13 @@ def main(argv=None) -> int:
             stage("scaling-436K", rate, "benchmark bunny 436K (QSlim)", V436, F436, dev, a.max_sources, out)
             if "public" not in skip:
                 stage("public", public_call, V436, F436, dev, a.public_sources, out)
+        if not a.small and "rows" not in skip:
+            # does a batch of more rows cost more per source? (latency-bound iterations: no; throughput-bound: yes)
+            V2, F2 = bunny(2)
+            for frac in (0.125, 0.5):
+                stage(f"rows-{frac}", rate, f"bunny x2, memory {frac:.0%}", V2, F2, dev, 512, out, frac, "rows",
+                      False)
+            del V2, F2
         pts = [(r["vertices"], r["sources_per_s"]) for r in out.get("scaling", []) if "subdivided" in r["mesh"]
                and r["vertices"] > 100_000]
         if len(pts) >= 2:
