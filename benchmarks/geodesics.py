@@ -1,14 +1,22 @@
-"""Ground-truth geodesic benchmark: sources/second, peak memory, accuracy vs tvb-gdist (exact) and heat method.
+"""Ground-truth geodesic benchmark: sources/second as the mesh grows, and accuracy against exact MMP per mesh class.
 
-GPU (lead's machine):   python benchmarks/geodesics.py --device cuda:0
-CPU smoke test (here):  python benchmarks/geodesics.py --device cpu --small
+GPU (lead's machine, under 8 minutes on an H200):
+    python benchmarks/geodesics.py --device cuda:0 --shared PATH --json out.json
+CPU smoke run (here):
+    python benchmarks/geodesics.py --device cpu --small --json out.json
 
-Distances and paths come from the same solver runs (paths for the first --path-sources sources); a progress line
-per batch (flushed) shows the rate so far.
-
-Default mesh: a generated bumpy torus of about --vertices (436,000; 660 x 660) vertices, clean triangles.
-Prints a table and writes JSON (--json). Compile time is measured apart from run time; every stage reports
-errors instead of aborting the whole run.
+1. Scaling: the shared bunny (34,834 vertices) midpoint-subdivided 0..3 times (139K, 556K, 2.2M vertices; the
+   surface is unchanged) and the 436K-vertex benchmark mesh (`common.subdivided_bunny`: subdivided, then QSlim).
+   Per mesh: one `GeodesicSolver` at the defaults, a warm-up batch (graph capture), then one timed batch of
+   sources (distances to every vertex, copied to the host): sources/s, iterations, nodes, batch rows. The cost
+   exponent is fitted (log-log) from 139K to 2.2M. On the 436K mesh also the public call
+   `ngf.geodesic_distances(mesh, 256 sources)` end to end (solver set-up included: the figure a user gets).
+   Rows: the 556K mesh with the solver's memory budget at 12.5% and 50% of the free memory (the default is 25%):
+   whether a batch of more source rows costs more per source tells if the iterations are latency-bound.
+2. Accuracy: every mesh class of `tests/geodesic_meshes.mesh_classes` (stretched, needles, slivers, duplicated
+   faces, CAD-like fans; 6 sources each, exact: tvb-gdist on the CPU) and the shared meshes' exact references
+   (`reference/exact/*.npz`, all their sources): MRE, max and min relative error.
+Prints a table and writes JSON (--json). Every stage reports errors instead of aborting the run.
 """
 from __future__ import annotations
 
@@ -22,207 +30,194 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import ROOT, bumpy_torus, find_shared  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import common  # noqa: E402
 
 
-def make_mesh(small: bool, vertices: int):
+def bunny(subdivisions: int):
     import trimesh
 
-    if small:
-        tm = trimesh.load(find_shared("meshes", "fandisk.obj"), process=False, force="mesh")
-        return np.asarray(tm.vertices), np.asarray(tm.faces), "fandisk"
-    n = int(round(np.sqrt(vertices)))
-    v, f = bumpy_torus(n)
-    return v, f, f"bumpy-torus-{n}x{n}"
+    tm = trimesh.load(common.find_shared("meshes", "stanford-bunny.obj"), process=False, force="mesh")
+    v, f = np.asarray(tm.vertices), np.asarray(tm.faces)
+    used = np.unique(f)
+    remap = np.full(len(v), -1)
+    remap[used] = np.arange(len(used))
+    v, f = v[used], remap[f]
+    for _ in range(subdivisions):
+        v, f = trimesh.remesh.subdivide(v, f)
+    return np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64)
 
 
-def peak_mem(device) -> float | None:
+def rate(name, V, F, device, max_sources: int, out: dict, memory_fraction: float | None = None, key="scaling",
+         warmup: bool = True):
+    """Warm-up batch, then one timed batch: sources/s of distances to every vertex (copied to the host).
+    memory_fraction: the solver's memory budget as a fraction of the free device memory (default: the solver's
+    own, 25%). Without warm-up the timed batch includes the graph capture (milliseconds on CUDA)."""
     import warp as wp
 
-    for name in ("get_mempool_used_mem_high", "get_mempool_used_mem_current"):
-        fn = getattr(wp, name, None)
-        if fn is not None and device.is_cuda:
-            try:
-                return float(fn(device))
-            except Exception:  # noqa: BLE001
-                pass
-    return None
+    from neurogf_warp.ground_truth.geodesics import GeodesicSolver
+    from neurogf_warp.mesh.mesh import load_mesh
+
+    t0 = time.perf_counter()
+    m = load_mesh((V, F))
+    budget = None
+    dev = wp.get_device(device)
+    if memory_fraction is not None and dev.is_cuda:
+        budget = memory_fraction * float(dev.free_memory)
+    solver = GeodesicSolver(m, device=device, max_rows=max_sources, memory_budget=budget)
+    setup = time.perf_counter() - t0
+    rng = np.random.default_rng(0)
+    n = min(solver.batch, max_sources)
+    src = rng.choice(solver.nv, 2 * n, replace=len(V) < 2 * n)
+    t0 = time.perf_counter()
+    if warmup:
+        solver.run(src[:n])
+        solver.vertex_distances()
+        wp.synchronize_device(solver.device)
+    warm = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    solver.run(src[n:])
+    solver.vertex_distances()
+    wp.synchronize_device(solver.device)
+    dt = time.perf_counter() - t0
+    row = dict(mesh=name, memory_fraction=memory_fraction, vertices=len(m.vertices), faces=len(m.faces), nodes=solver.n_nodes, batch=solver.batch,
+               sources=n, setup_s=setup, warmup_s=warm, solve_s=dt, sources_per_s=n / dt,
+               iterations=solver.timings["iterations"][-1], relaxed_per_source=solver.work_stats()["relaxed_per_source"])
+    out.setdefault(key, []).append(row)
+    print(f"{name:28s} V={row['vertices']:>9,d} nodes={row['nodes']:>10,d} batch={row['batch']:4d} "
+          f"{n} sources in {dt:.2f} s: {row['sources_per_s']:.2f} sources/s ({row['iterations']} iterations; "
+          f"set-up {setup:.1f} s, warm-up {warm:.1f} s)", flush=True)
+    del solver
+
+
+def public_call(V, F, device, n: int, out: dict):
+    import neurogf_warp as ngf
+
+    src = np.random.default_rng(1).choice(len(V), n, replace=False)
+    t0 = time.perf_counter()
+    d = ngf.geodesic_distances((V, F), src, device=device)
+    dt = time.perf_counter() - t0
+    out["public_call"] = dict(vertices=len(V), sources=n, seconds=dt, sources_per_s=n / dt,
+                              finite=bool(np.isfinite(d).all()))
+    print(f"ngf.geodesic_distances on {len(V):,d} vertices, {n} sources: {dt:.2f} s ({n / dt:.2f} sources/s, "
+          "set-up included)", flush=True)
+
+
+def accuracy(name, V, F, src, exact, device, out: dict):
+    from neurogf_warp.ground_truth.geodesics import geodesic_distances
+
+    t0 = time.perf_counter()
+    d = geodesic_distances((V, F), src, device=device).astype(np.float64)
+    dt = time.perf_counter() - t0
+    ok = np.isfinite(exact) & (exact > 0) & np.isfinite(d)
+    rel = (d[ok] - exact[ok]) / exact[ok]
+    row = dict(mesh=name, vertices=len(V), sources=len(src), mre=float(np.abs(rel).mean()), max_rel=float(rel.max()),
+               min_rel=float(rel.min()), pairs_over_half_percent=int((rel > 5e-3).sum()), seconds=dt,
+               meets=bool(np.abs(rel).mean() <= 5e-4 and rel.max() <= 5e-3))
+    out.setdefault("accuracy", []).append(row)
+    print(f"{name:24s} V={len(V):>7,d} MRE {row['mre'] * 100:.4f}%  max {row['max_rel'] * 100:.3f}%  "
+          f"min {row['min_rel']:.1e}  >0.5%: {row['pairs_over_half_percent']}  ({dt:.1f} s) "
+          f"{'ok' if row['meets'] else 'MISSED'}", flush=True)
+
+
+def shared_reference(name):
+    import trimesh
+
+    ref = np.load(common.find_shared("reference", "exact", f"{name}.npz"))
+    ext = "ply" if name == "igea" else "obj"
+    tm = trimesh.load(common.find_shared("meshes", f"{name}.{ext}"), process=False, force="mesh")
+    inv = np.full(len(tm.vertices), -1)
+    inv[ref["orig_index"]] = np.arange(len(ref["orig_index"]))
+    return ref["positions"].astype(np.float64), inv[np.asarray(tm.faces)], ref["sources"], ref["dist"].astype(np.float64)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cuda:0")
-    ap.add_argument("--small", action="store_true", help="fandisk, few sources (CPU smoke test)")
-    ap.add_argument("--vertices", type=int, default=436_000, help="vertices of the generated torus")
-    ap.add_argument("--sources", type=int, default=None, help="default 1024 (8 with --small)")
-    ap.add_argument("--path-sources", type=int, default=None, help="default = --sources (2 with --small)")
-    ap.add_argument("--paths", type=int, default=32, help="paths per path source")
-    ap.add_argument("--check", type=int, default=None, help="sources checked against gdist (3; 2 with --small)")
-    ap.add_argument("--k", type=int, default=None)
-    ap.add_argument("--batch", type=int, default=None)
+    ap.add_argument("--shared", default=None, help="the shared data folder (meshes/, reference/)")
+    ap.add_argument("--small", action="store_true", help="CPU smoke run: bunny only, few sources, small meshes")
+    ap.add_argument("--subdivisions", type=int, default=3, help="bunny midpoint subdivisions: 0..N (3: 2.2M)")
+    ap.add_argument("--max-sources", type=int, default=64, help="sources in the timed batch (at most one batch)")
+    ap.add_argument("--public-sources", type=int, default=256)
+    ap.add_argument("--skip", default="", help="comma list of stages to skip: scaling,public,rows,classes,shared")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
+    if a.shared:
+        common.SHARED = Path(a.shared).resolve()
+    skip = set(filter(None, a.skip.split(",")))
 
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING
     wp.init()
     from neurogf_warp.ground_truth import geodesics as G
-    from neurogf_warp.mesh.mesh import load_mesh
 
-    k = a.k or G.DEFAULT_K
-    n_src = a.sources or (8 if a.small else 1024)
-    n_psrc = a.path_sources if a.path_sources is not None else (2 if a.small else n_src)
-    n_check = a.check if a.check is not None else (2 if a.small else 3)
-    res = {"device": a.device, "k": k, "errors": {}}
     dev = wp.get_device(a.device)
-    res["device_name"] = dev.name if hasattr(dev, "name") else str(dev)
-
+    out = {"device": a.device, "device_name": getattr(dev, "name", str(dev)), "k": G.DEFAULT_K,
+           "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "errors": {}}
     t0 = time.perf_counter()
-    V, F, name = make_mesh(a.small, a.vertices)
-    m = load_mesh((V, F))
-    res.update(mesh=name, vertices=len(m.vertices), faces=len(m.faces), mesh_build_s=time.perf_counter() - t0)
-    rng = np.random.default_rng(0)
-    src = rng.choice(len(m.vertices), n_src, replace=False)
+    G.load_kernels(dev)
+    out["compile_s"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    try:
-        G.load_kernels(dev)
-        res["compile_s"] = time.perf_counter() - t0
-    except Exception as e:  # noqa: BLE001
-        res["errors"]["compile"] = repr(e)
-        traceback.print_exc()
-
-    # distances and paths from the same runs (paths for the first --path-sources sources)
-    D = None
-    try:
-        solver = G.GeodesicSolver(m, k=k, device=dev, batch=a.batch, max_rows=n_src)
-        res.update(nodes=solver.n_nodes, batch=solver.batch, setup_s=solver.timings["setup_s"],
-                   bytes_per_row=solver.bytes_per_row)
-        print(f"nodes {solver.n_nodes}, batch {solver.batch} rows, "
-              f"{solver.bytes_per_row / 1e9:.3f} GB per row", flush=True)
-        solver.run(src[: solver.batch])  # warm-up: graph capture + first replay
-        wp.synchronize_device(dev)
-        solver.timings.update(solve_s=0.0, iterations=[], work=[])
-        nb = (n_src + solver.batch - 1) // solver.batch
-        D = np.empty((min(n_check, n_src), len(m.vertices)), np.float32)
-        t_path = 0.0
-        npts = 0
-        lens_err, stale = [], 0
-        visits = relaxed = 0.0
-        t0 = time.perf_counter()
-        for bi, i in enumerate(range(0, n_src, solver.batch)):
-            s = src[i: i + solver.batch]
-            solver.run(s)
-            ws = solver.work_stats()
-            visits += ws["visits_per_source"] * len(s)
-            relaxed += (ws["relaxed_per_source"] or 0.0) * len(s)
-            dist = solver.vertex_distances()
-            if i < len(D):
-                D[i: i + len(s)] = dist[: len(D) - i]
-            npr = min(len(s), max(0, n_psrc - i))
-            if npr:
-                tp = time.perf_counter()
-                rows = np.repeat(np.arange(npr), a.paths)
-                tg = rng.integers(0, len(m.vertices), len(rows))
-                pts, offs, st = solver.trace(rows, tg)
-                P = G.resample_polyline(pts, offs, 128)
-                t_path += time.perf_counter() - tp
-                npts += len(pts)
-                stale += int(np.sum(st != 0))
-                d = dist[rows, tg]
-                seg = np.linalg.norm(np.diff(pts.astype(np.float64), axis=0), axis=1)
-                cs = np.r_[0, np.cumsum(seg)]
-                L = cs[offs[1:] - 1] - cs[offs[:-1]]
-                ok = np.isfinite(d) & (d > 0) & (st == 0)  # flagged paths come back as NaN
-                lens_err.extend((np.abs(L[ok] - d[ok]) / d[ok]).tolist())
-                del P
-            el = time.perf_counter() - t0
-            done = i + len(s)
-            print(f"batch {bi + 1}/{nb}: {done} sources in {el:.1f} s ({done / el:.2f} sources/s), "
-                  f"{solver.timings['iterations'][-1]} iterations, {ws['visits_per_source']:.3g} node visits/source",
-                  flush=True)
-        wp.synchronize_device(dev)
-        dt = time.perf_counter() - t0
-        res.update(total_s=dt, sources_per_s=n_src / dt, dist_s=dt - t_path, dist_sources_per_s=n_src / (dt - t_path),
-                   iterations=solver.timings["iterations"], captured_graph=solver.captured,
-                   peak_mem_bytes=peak_mem(dev), state_bytes=solver.batch * solver.bytes_per_row,
-                   node_visits_per_source=visits / n_src, relaxed_per_source=relaxed / n_src)
-        if n_psrc:
-            res.update(path_s=t_path, path_sources_per_s=min(n_psrc, n_src) / max(t_path, 1e-9),
-                       paths_total=min(n_psrc, n_src) * a.paths,
-                       path_points_mean=npts / max(min(n_psrc, n_src) * a.paths, 1), path_stale=stale,
-                       path_len_vs_dist_max_rel=float(np.max(lens_err)) if len(lens_err) else None)
-        D = D / m.scale
-        del solver
-    except Exception as e:  # noqa: BLE001
-        res["errors"]["distances"] = repr(e)
-        traceback.print_exc()
-
-    # exact (tvb-gdist) and heat (potpourri3d) on the first n_check sources, CPU
-    if n_check and D is not None:
-        csrc = src[:n_check]
+    def stage(key, fn, *args):
         try:
-            import gdist
-
-            t0 = time.perf_counter()
-            ex = np.stack([gdist.compute_gdist(m.vertices.astype(np.float64), m.faces.astype(np.int32),
-                                               source_indices=np.array([s], np.int32)) for s in csrc])
-            res["gdist_s_per_source"] = (time.perf_counter() - t0) / n_check
-            mk = np.isfinite(ex) & (ex > 0) & np.isfinite(D)
-            rel = (D[mk] - ex[mk]) / ex[mk]
-            res.update(ours_mre=float(rel.mean()), ours_max_rel=float(rel.max()), ours_min_rel=float(rel.min()))
-            try:
-                import potpourri3d as pp3d
-
-                t0 = time.perf_counter()
-                hs = pp3d.MeshHeatMethodDistanceSolver(m.vertices, m.faces)
-                res["heat_setup_s"] = time.perf_counter() - t0
-                t0 = time.perf_counter()
-                H = np.stack([hs.compute_distance(int(s)) for s in csrc])
-                res["heat_s_per_source"] = (time.perf_counter() - t0) / n_check
-                rh = np.abs(H[mk] - ex[mk]) / ex[mk]
-                res.update(heat_mre=float(rh.mean()), heat_max_rel=float(rh.max()))
-            except Exception as e:  # noqa: BLE001
-                res["errors"]["heat"] = repr(e)
-        except Exception as e:  # noqa: BLE001
-            res["errors"]["gdist"] = repr(e)
+            fn(*args)
+        except Exception as e:  # noqa: BLE001 - report and go on
+            out["errors"][key] = repr(e)
             traceback.print_exc()
 
-    def fmt(key, unit="", scale=1.0, prec=3):
-        v = res.get(key)
-        return "n/a" if v is None else f"{v * scale:.{prec}f}{unit}"
+    if "scaling" not in skip:
+        print("== scaling (subdivided bunny; 436K benchmark mesh)", flush=True)
+        for s in range((0 if a.small else a.subdivisions) + 1):
+            stage(f"scaling-{s}", lambda s=s: rate(f"bunny x{s} subdivided", *bunny(s), dev,
+                                                   4 if a.small else a.max_sources, out))
+        if not a.small:
+            V436, F436 = common.subdivided_bunny(436_000)
+            stage("scaling-436K", rate, "benchmark bunny 436K (QSlim)", V436, F436, dev, a.max_sources, out)
+            if "public" not in skip:
+                stage("public", public_call, V436, F436, dev, a.public_sources, out)
+        if not a.small and "rows" not in skip:
+            # does a batch of more rows cost more per source? (latency-bound iterations: no; throughput-bound: yes)
+            V2, F2 = bunny(2)
+            for frac in (0.125, 0.5):
+                stage(f"rows-{frac}", rate, f"bunny x2, memory {frac:.0%}", V2, F2, dev, 512, out, frac, "rows",
+                      False)
+            del V2, F2
+        pts = [(r["vertices"], r["sources_per_s"]) for r in out.get("scaling", []) if "subdivided" in r["mesh"]
+               and r["vertices"] > 100_000]
+        if len(pts) >= 2:
+            x, y = np.log([p[0] for p in pts]), np.log([1.0 / p[1] for p in pts])
+            out["cost_exponent_139K_up"] = float(np.polyfit(x, y, 1)[0])
+            print(f"cost per source grows like V^{out['cost_exponent_139K_up']:.2f} above 100K vertices", flush=True)
 
-    print(f"\nmesh {res['mesh']}: {res['vertices']} vertices, {res['faces']} faces; device {res['device_name']}; "
-          f"k={k}, nodes={res.get('nodes')}, batch={res.get('batch')}")
-    rows = [
-        ("compile (s)", fmt("compile_s")), ("setup (s)", fmt("setup_s")),
-        (f"distances + paths: {n_src} sources (s)", fmt("total_s")), ("sources / s (both)", fmt("sources_per_s", prec=2)),
-        ("distance solve (s)", fmt("dist_s")), ("distance sources / s", fmt("dist_sources_per_s", prec=2)),
-        (f"paths: {n_psrc} sources x {a.paths}, trace + resample (s)", fmt("path_s")),
-        ("node visits / source", fmt("node_visits_per_source", prec=0)),
-        ("relaxed nodes / source", fmt("relaxed_per_source", prec=0)),
-        ("stale paths", fmt("path_stale", prec=0)),
-        ("path length vs distance, max rel", fmt("path_len_vs_dist_max_rel", prec=2 if False else 7)),
-        ("peak GPU mempool (GB)", fmt("peak_mem_bytes", scale=1e-9)),
-        ("solver state estimate (GB)", fmt("state_bytes", scale=1e-9)),
-        (f"ours vs gdist MRE % ({n_check} src)", fmt("ours_mre", scale=100, prec=4)),
-        ("ours vs gdist max rel %", fmt("ours_max_rel", scale=100, prec=3)),
-        ("ours vs gdist min rel (>= -1e-6)", fmt("ours_min_rel", prec=8)),
-        ("gdist exact, s / source (CPU)", fmt("gdist_s_per_source")),
-        ("heat (pp3d) MRE % / max %", f"{fmt('heat_mre', scale=100, prec=3)} / {fmt('heat_max_rel', scale=100, prec=1)}"),
-        ("heat setup / s per source (CPU)", f"{fmt('heat_setup_s')} / {fmt('heat_s_per_source', prec=4)}"),
-    ]
-    w = max(len(r[0]) for r in rows)
-    for r in rows:
-        print(f"  {r[0]:<{w}}  {r[1]}")
-    if res["errors"]:
-        print("errors:", json.dumps(res["errors"], indent=1))
-    out = a.json or str(ROOT / "benchmarks" / f"geodesics_{'small' if a.small else 'full'}_{dev.alias.replace(':', '')}.json")
-    with open(out, "w") as f:
-        json.dump(res, f, indent=1, default=float)
-    print(f"wrote {out}")
-    return 1 if res["errors"] else 0
+    if "classes" not in skip:
+        print("== accuracy per mesh class (exact: tvb-gdist, float64, CPU)", flush=True)
+        from tests import geodesic_meshes as M
+        from tests.reference_geodesics import gdist_distances
+
+        for name, (V, F, R) in M.mesh_classes().items():
+            def one(name=name, V=V, F=F, R=R):
+                src = np.random.default_rng(0).choice(len(V), 6, replace=False)
+                accuracy(name, V, F, src, gdist_distances(V, R, src), dev, out)
+            stage(f"class-{name}", one)
+
+    if "shared" not in skip:
+        print("== accuracy on the shared meshes (exact references)", flush=True)
+        names = ["fandisk", "spot", "cow"] if a.small else ["fandisk", "spot", "cow", "homer", "rocker-arm",
+                                                            "cheburashka", "alligator", "stanford-bunny", "igea"]
+        for name in names:
+            def one(name=name):
+                V, F, src, ex = shared_reference(name)
+                accuracy(name, V, F, src, ex, dev, out)
+            stage(f"shared-{name}", one)
+
+    if out["errors"]:
+        print("errors:", json.dumps(out["errors"], indent=1))
+    path = a.json or str(common.ROOT / "benchmarks" / f"geodesics_{'small' if a.small else 'full'}_"
+                                                      f"{dev.alias.replace(':', '')}.json")
+    Path(path).write_text(json.dumps(out, indent=1, default=float))
+    print(f"wrote {path}")
+    return 1 if out["errors"] else 0
 
 
 if __name__ == "__main__":

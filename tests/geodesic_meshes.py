@@ -256,3 +256,108 @@ def scattered_parts(count=44, seed=0):
         part.append(np.full(len(v), i))
         n += len(v)
     return np.concatenate(Vs), np.concatenate(Fs), np.concatenate(part)
+
+
+# ---- mesh classes of issue 24 (exact reference: tvb-gdist, float64) ------------------------------------------
+
+STRETCHES = {"stretched-0.01": (1.0, 0.01, 0.01), "stretched-100-1-0.01": (100.0, 1.0, 0.01),
+             "stretched-1e-4": (1.0, 1e-4, 1e-4)}
+
+
+def duplicated_faces(subdivisions=2, count=60, seed=0):
+    """An icosphere with `count` of its faces added a second time (same three vertices, same order): every edge
+    of a duplicated face has three or more faces and its two copies coincide."""
+    V, F = icosphere(subdivisions)
+    rng = np.random.default_rng(seed)
+    dup = F[rng.choice(len(F), count, replace=False)]
+    return V, np.concatenate([F, dup])
+
+
+def slivered(subdivisions=2, count=40, lift=1e-3, seed=0):
+    """An icosphere with `count` near-flat caps (slivers: three almost collinear vertices). Each cap comes from
+    splitting an edge ab at its midpoint n, lifting n off the edge by `lift` x |ab| (outwards), and flipping the
+    new edge nc of one side, so that the triangle (a, n, b) appears with height lift x |ab|."""
+    V, F = icosphere(subdivisions)
+    rng = np.random.default_rng(seed)
+    V = [p for p in V]
+    F = [list(f) for f in F]
+    used = set()
+    for _ in range(count):
+        for _try in range(100):
+            f = int(rng.integers(len(F)))
+            le = int(rng.integers(3))
+            a, b, c = F[f][le], F[f][(le + 1) % 3], F[f][(le + 2) % 3]
+            if not ({a, b, c} & used):
+                break
+        others = [g for g, h in enumerate(F) if g != f and a in h and b in h]
+        if len(others) != 1:
+            continue
+        g = others[0]
+        d = [x for x in F[g] if x not in (a, b)][0]
+        used.update((a, b, c, d))
+        mid = 0.5 * (V[a] + V[b])
+        n = len(V)
+        V.append(mid + lift * np.linalg.norm(V[b] - V[a]) * mid / np.linalg.norm(mid))
+        # face f (a, b, c) split at n into (a, n, c) + (n, b, c), then the edge n-c flipped: (a, n, b) + (a, b, c)
+        F[f] = [a, n, b]
+        F.append([a, b, c])
+        # the other face (b, a, d) is split at n: (b, n, d) + (n, a, d)
+        F[g] = [b, n, d]
+        F.append([n, a, d])
+    return np.asarray(V), np.asarray(F, dtype=np.int64)
+
+
+def fan_cylinder(sectors=48, radius=0.5, height=2.0):
+    """A closed CAD-like cylinder: two rings of `sectors` vertices and nothing between them (long thin side
+    triangles, aspect about height / (2 pi radius / sectors)), each cap a fan around its centre vertex."""
+    th = 2 * np.pi * np.arange(sectors) / sectors
+    ring = np.c_[radius * np.cos(th), radius * np.sin(th)]
+    V = np.concatenate([np.c_[ring, np.zeros(sectors)], np.c_[ring, np.full(sectors, height)],
+                        [[0.0, 0.0, 0.0], [0.0, 0.0, height]]])
+    F = []
+    c0, c1 = 2 * sectors, 2 * sectors + 1
+    for i in range(sectors):
+        j = (i + 1) % sectors
+        F += [[i, j, sectors + j], [i, sectors + j, sectors + i], [c0, j, i], [c1, sectors + i, sectors + j]]
+    return V, np.asarray(F, dtype=np.int64)
+
+
+def fan_box(n=4, size=(2.0, 1.0, 0.3)):
+    """A closed CAD-like box: every face a fan around its centre over `n` boundary segments per side (few large
+    triangles; on the long faces thin ones, aspect up to about size ratio x n)."""
+    import trimesh
+
+    g = np.linspace(0.0, 1.0, n + 1)[:-1]
+    loop = [(t, 0.0) for t in g] + [(1.0, t) for t in g] + [(1 - t, 1.0) for t in g] + [(0.0, 1 - t) for t in g]
+    pts, faces = [], []
+    for axis in range(3):
+        for side in (0.0, 1.0):
+            u, v = (axis + 1) % 3, (axis + 2) % 3
+            base = len(pts)
+            for a, b in [(0.5, 0.5)] + loop:
+                p = np.zeros(3)
+                p[axis], p[u], p[v] = side, a, b
+                pts.append(p)
+            m = len(loop)
+            for i in range(m):
+                f = [base, base + 1 + i, base + 1 + (i + 1) % m]
+                faces.append(f if side == 1.0 else f[::-1])
+    tm = trimesh.Trimesh(np.asarray(pts) * np.asarray(size), np.asarray(faces), process=True)  # welds the seams
+    trimesh.repair.fix_normals(tm)
+    return np.asarray(tm.vertices, dtype=np.float64), np.asarray(tm.faces, dtype=np.int64)
+
+
+def mesh_classes():
+    """name -> (V, F, R): one small mesh of each class of issue 24 (stretched, needles, slivers, duplicated faces,
+    coarse CAD-like fans) and R, the faces of the same surface that the exact reference (tvb-gdist,
+    `reference_geodesics.gdist_distances`) runs on: F itself, except for duplicated faces (gdist needs a manifold;
+    the copies add no surface, so the icosphere's own faces give the same distances)."""
+    out = {name: icosphere(2, axes) for name, axes in STRETCHES.items()}
+    out["needles"] = split_edges(*icosphere(2, (1.0, 0.8, 0.6)), 60)
+    out["slivers"] = slivered()
+    out["fan-cylinder"] = fan_cylinder()
+    out["fan-box"] = fan_box()
+    out = {name: (V, F, F) for name, (V, F) in out.items()}
+    V, F = duplicated_faces()
+    out["duplicated-faces"] = (V, F, F[: len(F) - 60])
+    return out

@@ -29,21 +29,27 @@ def steiner_graph(mesh, k: int):
     from neurogf_warp.ground_truth.steiner_graph import Topology
 
     m = load_mesh(mesh)
-    topo = Topology(m.vertices, m.faces)
     pos = m.normalized_vertices
-    nv, ne = len(pos), len(topo.edges)
-    t = (np.arange(k) + 1.0) / (k + 1.0)
-    e0, e1 = pos[topo.edges[:, 0]], pos[topo.edges[:, 1]]
-    epts = (e0[:, None, :] + t[None, :, None] * (e1 - e0)[:, None, :]).reshape(-1, 3)
+    # the solver's own tables (its Steiner points per edge, k or more on thin faces), on the same positions
+    topo = Topology(pos.astype(np.float32), m.faces)
+    start, node_edge, node_t = topo.steiner_nodes(k)
+    nv = len(pos)
+    e0, e1 = pos[topo.edges[node_edge, 0]], pos[topo.edges[node_edge, 1]]
+    epts = e0 + node_t[:, None].astype(np.float64) * (e1 - e0)
     allpos = np.concatenate([pos, epts])
     F = len(topo.faces)
-    slots = np.concatenate([topo.faces, (nv + topo.face_edges[:, :, None] * k + np.arange(k)).reshape(F, -1)], 1)
-    ii, jj = np.meshgrid(np.arange(slots.shape[1]), np.arange(slots.shape[1]), indexing="ij")
-    sel = ii < jj
-    a = slots[:, ii[sel]].ravel()
-    b = slots[:, jj[sel]].ravel()
+    counts = np.diff(start)
+    per_face = [np.concatenate([topo.faces[f]] + [nv + start[e] + np.arange(counts[e]) for e in topo.face_edges[f]])
+                for f in range(F)]
+    a_list, b_list = [], []
+    for sl in per_face:
+        i, j = np.triu_indices(len(sl), 1)
+        a_list.append(sl[i])
+        b_list.append(sl[j])
+    a = np.concatenate(a_list)
+    b = np.concatenate(b_list)
     w = np.linalg.norm(allpos[a] - allpos[b], axis=1)
-    n = nv + ne * k
+    n = nv + len(node_edge)
     # a node pair on two faces would be summed by the sparse constructor: keep one copy
     key = np.minimum(a, b).astype(np.int64) * n + np.maximum(a, b)
     _, first = np.unique(key, return_index=True)
@@ -169,4 +175,15 @@ def exact_distances(V, F, sources, samples: int = 32) -> np.ndarray:
         d = np.full(n, np.inf)
         np.minimum.at(d, orig[orig >= 0], d0[orig >= 0])
         out[r] = d
+    return out
+
+
+def gdist_distances(V, F, sources) -> np.ndarray:
+    """(S, V) exact polyhedral distances from tvb-gdist (MMP, float64) on the mesh as given; inf unreachable."""
+    import gdist
+
+    V = np.ascontiguousarray(V, dtype=np.float64)
+    F = np.ascontiguousarray(F, dtype=np.int32)
+    out = np.stack([gdist.compute_gdist(V, F, source_indices=np.array([s], np.int32)) for s in np.atleast_1d(sources)])
+    out[out >= np.finfo(np.float64).max / 2] = np.inf
     return out

@@ -1,10 +1,11 @@
 """The Steiner graph on a triangle mesh as the solver's kernels see it: node ids, positions, face slots, edge frames.
 
-Nodes: the V mesh vertices, then k Steiner points per unique edge (node V + e*k + j sits at t = (j+1)/(k+1) from
-the edge's lower vertex to its higher one). The graph is never stored: all 3 + 3k boundary nodes of a face are
-joined to each other, so relaxing face by face visits every graph edge. A face's boundary nodes are its "slots":
-0..2 its vertices, 3 + le*k + j the j-th Steiner point of its local edge le (which joins its vertices le and
-(le + 1) % 3).
+Nodes: the V mesh vertices, then the Steiner points of each unique edge e: count(e) = edge_node_start[e + 1] -
+edge_node_start[e] points (k on a well-shaped mesh, more on edges much longer than their faces are wide: see
+steiner_graph.steiner_counts), node V + edge_node_start[e] + j at t = (j+1)/(count(e)+1) from the edge's lower
+vertex to its higher one. The graph is never stored: all boundary nodes of a face are joined to each other, so
+relaxing face by face visits every graph edge. A face's boundary nodes are its "slots": 0..2 its vertices, then
+the Steiner points of its local edges 0, 1, 2 in turn (local edge le joins its vertices le and (le + 1) % 3).
 """
 import warp as wp
 
@@ -18,7 +19,8 @@ class SteinerGraph:
     """The mesh tables of one solver (all int32 ids; positions in the normalized frame)."""
 
     nv: int  # mesh vertices: node ids 0..nv-1
-    k: int  # Steiner points per edge
+    k: int  # Steiner points per edge on well-shaped faces (the fewest on any edge)
+    kmax: int  # the most Steiner points on any edge
     windows: int  # 1: unfolding windows on; 0: the plain Steiner graph
     pos: wp.array(dtype=wp.vec3)  # (V,) vertex positions
     faces: wp.array2d(dtype=int)  # (F, 3)
@@ -29,12 +31,28 @@ class SteinerGraph:
     vertex_faces: wp.array(dtype=int)  # faces around each vertex
     edge_face_start: wp.array(dtype=int)  # (E + 1,) CSR offsets into edge_face_list
     edge_face_list: wp.array(dtype=int)  # all faces of each edge (three or more on a non-manifold edge)
+    edge_node_start: wp.array(dtype=int)  # (E + 1,) Steiner node offsets (from nv) of each edge
+    node_edge: wp.array(dtype=int)  # (N - V,) the edge of each Steiner node
+    node_t: wp.array(dtype=float)  # (N - V,) its parameter along the edge from the lower vertex
 
 
 @wp.func
 def steiner_edge(graph: SteinerGraph, n: int) -> int:
     """The edge a Steiner node lies on (n >= nv)."""
-    return (n - graph.nv) // graph.k
+    return graph.node_edge[n - graph.nv]
+
+
+@wp.func
+def edge_count(graph: SteinerGraph, e: int) -> int:
+    """Steiner points on edge e."""
+    return graph.edge_node_start[e + 1] - graph.edge_node_start[e]
+
+
+@wp.func
+def face_slots(graph: SteinerGraph, face: int) -> int:
+    """Boundary nodes of a face: its 3 vertices and the Steiner points of its 3 edges."""
+    return (3 + edge_count(graph, graph.face_edges[face, 0]) + edge_count(graph, graph.face_edges[face, 1])
+            + edge_count(graph, graph.face_edges[face, 2]))
 
 
 @wp.func
@@ -42,9 +60,8 @@ def node_pos(graph: SteinerGraph, n: int) -> wp.vec3:
     if n < graph.nv:
         return graph.pos[n]
     m = n - graph.nv
-    e = m // graph.k
-    j = m - e * graph.k
-    t = float(j + 1) / float(graph.k + 1)
+    e = graph.node_edge[m]
+    t = graph.node_t[m]
     a = graph.pos[graph.edges[e, 0]]
     b = graph.pos[graph.edges[e, 1]]
     return a + t * (b - a)
@@ -55,8 +72,14 @@ def slot_node(graph: SteinerGraph, face: int, i: int) -> int:
     """The node in slot i of a face."""
     if i < 3:
         return graph.faces[face, i]
-    le = (i - 3) // graph.k
-    return graph.nv + graph.face_edges[face, le] * graph.k + (i - 3 - le * graph.k)
+    r = i - 3
+    for le in range(3):
+        e = graph.face_edges[face, le]
+        c = edge_count(graph, e)
+        if r < c:
+            return graph.nv + graph.edge_node_start[e] + r
+        r -= c
+    return -1
 
 
 @wp.func
@@ -69,29 +92,36 @@ def slot_of(graph: SteinerGraph, face: int, n: int) -> int:
             return 1
         return 2
     m = n - graph.nv
-    e = m // graph.k
-    le = int(0)
-    if graph.face_edges[face, 1] == e:
-        le = 1
-    elif graph.face_edges[face, 2] == e:
-        le = 2
-    return 3 + le * graph.k + (m - e * graph.k)
+    e = graph.node_edge[m]
+    off = int(3)
+    for le in range(3):
+        fe = graph.face_edges[face, le]
+        if fe == e:
+            return off + m - graph.edge_node_start[e]
+        off += edge_count(graph, fe)
+    return -1
 
 
 @wp.func
-def slots_share_edge(i: int, j: int, k: int) -> bool:
+def slot_edges(graph: SteinerGraph, face: int, i: int):
+    """The local edges slot i of a face lies on: a vertex slot on two (i and (i + 2) % 3), a Steiner slot on one
+    (returned twice)."""
+    if i < 3:
+        return i, (i + 2) % 3
+    r = i - 3
+    for le in range(3):
+        c = edge_count(graph, graph.face_edges[face, le])
+        if r < c:
+            return le, le
+        r -= c
+    return -1, -1
+
+
+@wp.func
+def slots_share_edge(graph: SteinerGraph, face: int, i: int, j: int) -> bool:
     """Whether slots i and j of a face lie on one of its edges (a vertex slot lies on two)."""
-    # local edge le joins face vertices le and (le+1)%3: vertex slot i lies on edges i and (i+2)%3
-    ei0 = i
-    ei1 = (i + 2) % 3
-    if i >= 3:
-        ei0 = (i - 3) // k
-        ei1 = ei0
-    ej0 = j
-    ej1 = (j + 2) % 3
-    if j >= 3:
-        ej0 = (j - 3) // k
-        ej1 = ej0
+    ei0, ei1 = slot_edges(graph, face, i)
+    ej0, ej1 = slot_edges(graph, face, j)
     return ei0 == ej0 or ei0 == ej1 or ei1 == ej0 or ei1 == ej1
 
 
@@ -105,8 +135,10 @@ def face_has_node(graph: SteinerGraph, face: int, n: int) -> bool:
 
 @wp.func
 def common_face(graph: SteinerGraph, u: int, x: int) -> int:
-    """The face holding nodes u and x: >= 0, -2 when they share an edge (or are both vertices), -1 if none.
-    All faces of the edge are searched (three or more on a non-manifold edge)."""
+    """The face holding nodes u and x: >= 0, -2 when they lie on one edge (or are both vertices), -1 if none.
+    All faces of the edge are searched (three or more on a non-manifold edge). When several faces hold both
+    (duplicated faces: the same three vertices twice) the first is returned: the copies coincide, so the straight
+    segment u-x and its unfolding are the same in each."""
     e = -1
     other = u
     if x >= graph.nv:
@@ -116,17 +148,16 @@ def common_face(graph: SteinerGraph, u: int, x: int) -> int:
         other = x
     else:
         return -2
-    found = int(-1)
-    count = int(0)
+    if other >= graph.nv:
+        if steiner_edge(graph, other) == e:
+            return -2
+    elif graph.edges[e, 0] == other or graph.edges[e, 1] == other:
+        return -2
     for i in range(graph.edge_face_start[e], graph.edge_face_start[e + 1]):
         f = graph.edge_face_list[i]
         if face_has_node(graph, f, other):
-            count += 1
-            if found < 0:
-                found = f
-    if count >= 2:
-        return -2
-    return found
+            return f
+    return -1
 
 
 @wp.func

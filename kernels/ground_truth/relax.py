@@ -20,6 +20,7 @@ from .graph import (
     SteinerGraph,
     common_face,
     edge_frame,
+    face_slots,
     node_pos,
     slot_node,
     slot_of,
@@ -109,7 +110,7 @@ def face_candidate(graph: SteinerGraph, win: Windows, s: int, u: int, du: float,
     x = slot_node(graph, face, j)
     px = node_pos(graph, x)
     d = du + wp.length(px - pu)
-    if through and not slots_share_edge(iu, j, graph.k):
+    if through and not slots_share_edge(graph, face, iu, j):
         dw = ray_length(win.along[s, u], win.height[s, u], win.sigma[s, u], lo, hi, A, eh, elen, px)
         if dw < d:
             d = dw
@@ -181,7 +182,6 @@ def relax_frontier(graph: SteinerGraph, state: NodeState, front: Frontier):
     it = front.iteration[0]
     n = front.active_count[s]
     th = front.threshold[s]
-    ns = 3 + 3 * graph.k
     nrel = int(0)
     nread = int(0)
     pmin = float(INF)
@@ -231,7 +231,7 @@ def relax_frontier(graph: SteinerGraph, state: NodeState, front: Frontier):
                 face = graph.edge_face_list[fi]
             iu = slot_of(graph, face, u)
             through = has_window and f_in != face and graph.window_face[face] != wp.int8(0)
-            for j in range(ns):
+            for j in range(face_slots(graph, face)):
                 if j == iu:
                     continue
                 x, d = face_candidate(graph, state.win, s, u, du, pu, iu, j, face, through, A, eh, elen, lo, hi)

@@ -72,14 +72,22 @@ def window_interval(graph: SteinerGraph, win: Windows, s: int, u: int, elen: flo
     them). Returns (lo, hi)."""
     lo = win.lo[s, u]
     hi = win.hi[s, u]
-    first = graph.nv + ((u - graph.nv) // graph.k) * graph.k
-    for _round in range(graph.k - 1):
-        for j in range(graph.k):
+    e = graph.node_edge[u - graph.nv]
+    first = graph.nv + graph.edge_node_start[e]
+    count = graph.edge_node_start[e + 1] - graph.edge_node_start[e]
+    # merging can chain through neighbours: repeat while an interval grew (at most count - 1 rounds)
+    for _round in range(count - 1):
+        grew = bool(False)
+        for j in range(count):
             w = first + j
             if w != u and same_source(win, s, u, w, elen):
                 if win.lo[s, w] <= hi and win.hi[s, w] >= lo:
+                    if win.lo[s, w] < lo or win.hi[s, w] > hi:
+                        grew = True
                     lo = wp.min(lo, win.lo[s, w])
                     hi = wp.max(hi, win.hi[s, w])
+        if not grew:
+            break
     return lo, hi
 
 

@@ -90,7 +90,9 @@ class GeodesicSolver:
         nvx = self.mesh.normalized_vertices
         mean_len = float(np.linalg.norm(nvx[e[:, 0]] - nvx[e[:, 1]], axis=1).mean()) if len(e) else 1.0
         self.delta = float(delta) * mean_len if delta > 0 else float("inf")
-        self.n_nodes = self.nv + len(self.topo.edges) * self.k
+        # Steiner points: k per edge, more on long edges of thin faces (steiner_graph.steiner_counts)
+        self.nodes = self.topo.steiner_nodes(self.k)
+        self.n_nodes = self.nv + len(self.nodes[1])
         if self.n_nodes >= 2**31 - 1:
             raise ValueError(f"mesh too large for int32 node ids at k={self.k} ({self.n_nodes} nodes); lower k")
         free = None
@@ -137,7 +139,8 @@ class GeodesicSolver:
     def _alloc(self):
         kg = _kernels()
         d, b, n = self.device, self.batch, self.n_nodes
-        self.graph = self.topo.to_warp(self.mesh.normalized_vertices.astype(np.float32), self.k, self.windows, d)
+        self.graph = self.topo.to_warp(self.mesh.normalized_vertices.astype(np.float32), self.k, self.windows, d,
+                                       self.nodes)
         z = lambda dt: wp.zeros((b, n), dtype=dt, device=d)  # noqa: E731
 
         def windows():
@@ -331,7 +334,7 @@ class GeodesicSolver:
         if T == 0:
             return np.zeros((0, 3), np.float32), np.zeros(1, np.int64), np.zeros(0, np.int32)
         if max_steps is None:
-            max_steps = 4 * (max(self.timings["iterations"][-1], 1) + 16) * (self.k + 1)
+            max_steps = 4 * (max(self.timings["iterations"][-1], 1) + 16) * (self.graph.kmax + 1)
             max_steps = max(max_steps, int(64 * np.sqrt(len(self.topo.faces))) + 1024)
         d = self.device
         q = kg.paths.PathQuery()
