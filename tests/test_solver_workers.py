@@ -108,6 +108,17 @@ def test_a_failing_worker_is_reported_and_its_work_done_here(solver, monkeypatch
         real(self, mesh, dict(settings, batch=1))  # the worker's solver refuses the batches of 4 it is sent
 
     monkeypatch.setattr(solver_workers._Worker, "__init__", broken)
+    # this process waits (up to 60 s) for a worker to fail before solving on, however slowly workers start
+    pools, init, run = [], DistanceRows.__init__, GeodesicSolver.run
+    monkeypatch.setattr(DistanceRows, "__init__", lambda self, *a, **k: (init(self, *a, **k), pools.append(self))[0])
+
+    def waiting(self, sources):
+        end = time.monotonic() + 60
+        while pools and not any(w.failed for w in pools[-1]._pool) and time.monotonic() < end:
+            time.sleep(0.05)
+        return run(self, sources)
+
+    monkeypatch.setattr(GeodesicSolver, "run", waiting)
     with pytest.warns(RuntimeWarning, match=r"worker process failed.*run\(\) takes 1..1 sources"):
         with DistanceRows(solver, workers=2) as pool:
             got = list(pool.rows(batches))
