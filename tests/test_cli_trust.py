@@ -233,3 +233,24 @@ def test_library_calls_are_quiet_unless_asked(verbose, tmp_path):
         assert "Warp 1." in res.stdout and "Module " in res.stdout
     else:
         assert res.stdout == "ok (1, 4)\n" and res.stderr == "", res.stdout + res.stderr
+
+
+@pytest.mark.parametrize("quiet", [False, True])
+def test_warnings_are_one_line_and_silent_with_quiet(quiet, capsys):
+    """A warning (a failing ground-truth worker's, say, raised in a feeding thread) is one line in the command's
+    name, without Python source, and -q silences it."""
+    import argparse
+    import threading
+    import warnings
+
+    args = argparse.Namespace(quiet=quiet, command="data")
+    with cli._one_line_warnings(args):
+        t = threading.Thread(target=lambda: warnings.warn("a ground-truth worker process failed: ImportError: x",
+                                                          RuntimeWarning))
+        t.start()
+        t.join()
+    err = capsys.readouterr().err
+    if quiet:
+        assert err == ""
+    else:
+        assert err == "neurogf-warp data: warning: a ground-truth worker process failed: ImportError: x\n"
