@@ -230,3 +230,15 @@ def test_path_targets_are_marked():
     ys, xs = np.nonzero(dark)
     cx, cy = project(V[1:], TOP, size, path[-1])
     assert len(xs) > 3 and abs(xs.mean() - cx) < 2 and abs(ys.mean() - cy) < 2
+
+
+def test_several_sources_are_faced_when_on_one_side():
+    from neurogf_warp.pictures.render import source_side
+
+    V, _ = ellipsoid_mesh((1.0, 0.6, 0.8))
+    side = V[V[:, 0] > 0.5][:5]  # five sources on the +x side
+    d = source_side(side, V)
+    assert d is not None and d[0] > 0.8 * np.linalg.norm(d)
+    around = V[[np.argmax(V[:, 0]), np.argmin(V[:, 0]), np.argmax(V[:, 1]), np.argmin(V[:, 1])]]
+    assert source_side(around, V) is None  # no side to face: the default view
+    assert source_side(np.zeros((1, 3)), V) is None  # a source at the centre

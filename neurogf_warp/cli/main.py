@@ -263,7 +263,7 @@ def _add_render(sub, common):
     s = sub.add_parser("render", parents=[common], help="a picture of the distance field (and paths)",
                        description="Render the mesh coloured by the geodesic distance from the sources, with isolines "
                        "and optionally shortest paths to some vertices (their targets marked with dark spheres). The "
-                       "camera faces the first source unless --view is given; everything fits in the frame.")
+                       "camera faces the source(s) unless --view is given; everything fits in the frame.")
     _model_args(s)
     s.add_argument("--source", type=int, nargs="+", default=[0], metavar="V",
                    help="source vertex indices (default 0); several: distance to the nearest")
@@ -283,7 +283,7 @@ def _add_render(sub, common):
     s.add_argument("--view", type=float, nargs=2, default=None, metavar=("AZIMUTH", "ELEVATION"),
                    help="camera direction in degrees: azimuth around the up axis (0: from the axis after it in x, y, "
                         "z order, e.g. +z for up y) and elevation above the plane across it (default: facing the "
-                        "first source, elevation within 60 degrees)")
+                        "source, or several sources when they lie mostly on one side; elevation within 60 degrees)")
     s.add_argument("--up", default="auto", choices=("auto", "x", "y", "z", "-x", "-y", "-z"),
                    help="the mesh axis drawn upward (default auto: z when the mesh is at least 1.2 times taller "
                         "along z than along y, else y)")
@@ -806,10 +806,12 @@ def _cmd_render(args) -> int:
             s = np.repeat(mesh.vertices[mesh.vertex(np.asarray(src[:1]))], len(tg), axis=0)
             paths = np.asarray(ngf.path(model, s, v, m=128, refine=args.refine, project="mesh", device=args.device))
     view = None if args.view is None else View(azimuth=args.view[0], elevation=args.view[1], up=args.up)
-    if view is None and args.up != "auto":  # face the source, with the given up axis
-        v = mesh.vertices
-        c = mesh.vertices[mesh.vertex(np.asarray(src[:1]))][0] - (v.min(0) + v.max(0)) / 2
-        view = View.toward(c, up=args.up, max_elevation=60.0) if np.linalg.norm(c) > 0 else View(up=args.up)
+    if view is None and args.up != "auto":  # face the sources as render would, with the given up axis
+        from neurogf_warp.pictures.render import SOURCE_VIEW_MAX_ELEVATION, source_side
+
+        side = source_side(mesh.vertices[mesh.vertex(np.asarray(src))], mesh.vertices)
+        view = View(up=args.up) if side is None else View.toward(side, up=args.up,
+                                                                 max_elevation=SOURCE_VIEW_MAX_ELEVATION)
     render(model, values, sources=src, paths=paths, isolines=args.isolines, out=args.output, size=tuple(args.size),
            view=view, vrange=args.vrange, device=args.device)
     _say(args, f"render: {what} field from {_plural(len(src), 'source')}, {_plural(len(args.paths or []), 'path')}: "

@@ -111,6 +111,8 @@ Z_UP_RATIO = 1.2
 FRAME_MARGIN = 0.06
 # the default view of a source looks at it from at most this far above or below
 SOURCE_VIEW_MAX_ELEVATION = 60.0
+# several sources are faced when the mean of their unit directions from the centre is at least this long
+SOURCES_ON_ONE_SIDE = 0.35
 
 
 def choose_up(vertices) -> str:
@@ -121,6 +123,22 @@ def choose_up(vertices) -> str:
     v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     ext = v.max(0) - v.min(0)
     return "z" if ext[2] >= Z_UP_RATIO * ext[1] else "y"
+
+
+def source_side(sources: np.ndarray, vertices: np.ndarray):
+    """The direction, from the bounding box's centre, that the default view of ``sources`` ((S, 3), mesh units)
+    looks along: toward the one source; for several, the mean of their unit directions, when they lie mostly on
+    one side (its length at least ``SOURCES_ON_ONE_SIDE``). None: no side to face (sources all around, or one at
+    the centre), and the default ``View`` is used."""
+    c = (vertices.min(0) + vertices.max(0)) / 2
+    d = np.asarray(sources, dtype=np.float64).reshape(-1, 3) - c
+    n = np.linalg.norm(d, axis=1)
+    scale = float(np.linalg.norm(vertices - c, axis=1).max())
+    d, n = d[n > 1e-9 * scale], n[n > 1e-9 * scale]
+    if not len(d):
+        return None
+    mean = (d / n[:, None]).mean(0)
+    return mean if np.linalg.norm(mean) >= (SOURCES_ON_ONE_SIDE if len(d) > 1 else 0.0) else None
 
 
 def _axes(up: str):
@@ -287,8 +305,8 @@ def render(model_or_mesh, values=None, *, sources=None, paths=None, isolines: in
     out : image file to write (.png, or .jpg), atomically; None writes nothing
     size : (width, height) in pixels
     view : a ``View``, a dict of its fields or (azimuth, elevation) in degrees; None: with ``sources``, the view
-        toward the first source (``View.toward`` it from the bounding box's centre, elevation within +-60
-        degrees), else the default ``View``. The up axis is chosen by ``choose_up`` unless the view names one.
+        toward them (``source_side``: the one source, or several when they lie mostly on one side; elevation
+        within +-60 degrees), else the default ``View``. The up axis is chosen by ``choose_up`` unless the view names one.
     vrange : (low, high) values at the colour map's ends (default: the field's min and max); share it between
         pictures that are to be compared
     points : (K, 3) further points to mark (white spheres), mesh units
@@ -368,8 +386,8 @@ def render(model_or_mesh, values=None, *, sources=None, paths=None, isolines: in
 
     s = int(supersample)
     if view is None and src_points is not None and len(src_points):
-        direction = src_points[0] - (V.min(0) + V.max(0)) / 2
-        if np.linalg.norm(direction) > 1e-9 * r0:  # a source at the very centre has no side to face
+        direction = source_side(src_points, V)
+        if direction is not None:
             view = View.toward(direction, up="auto", vertices=V, max_elevation=SOURCE_VIEW_MAX_ELEVATION)
     cam = _camera(V, View.of(view), w * s, h * s, extent=verts)
     rgb = wp.empty((h * s, w * s), dtype=wp.vec3, device=dev)
