@@ -31,6 +31,7 @@ import numpy as np
 import warp as wp
 
 import neurogf_warp as ngf
+from neurogf_warp.common.warp_setup import init_warp
 from neurogf_warp.inference.warp_structs import frame, source_set, weights
 from neurogf_warp.kernels import field
 from neurogf_warp.pictures.render import View
@@ -108,7 +109,7 @@ def main(argv=None) -> int:
     ap.add_argument("--require-arrival", action="store_true",
                     help="exit with status 1 when an agent has not arrived after --steps steps")
     a = ap.parse_args(argv)
-    wp.config.log_level = wp.LOG_WARNING
+    init_warp()  # Warp started the package's way: quiet unless NEUROGF_WARP_VERBOSE=1
     if (a.model is None) != (a.mesh is None) and a.model is None:
         ap.error("--mesh needs --model")
     model_path, mesh_path = (a.model, a.mesh) if a.model else default_files()
@@ -143,7 +144,7 @@ def main(argv=None) -> int:
     frames = []
     for f, k in enumerate(np.linspace(0, a.steps, a.frames).round().astype(int)):
         img = ngf.render(model, field_values, sources=[target], points=xs[k], paths=list(xs[:k + 1].transpose(1, 0, 2)),
-                         size=(a.size, a.size), view=view, isolines=16, out=os.path.join(a.out, f"frame_{f:03d}.png"),
+                         size=(a.size, a.size), view=view, isolines=16, path_targets=False, out=os.path.join(a.out, f"frame_{f:03d}.png"),
                          device=a.device)
         frames.append(img)
     from PIL import Image

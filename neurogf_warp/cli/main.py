@@ -778,7 +778,7 @@ def _cmd_render(args) -> int:
 
     import neurogf_warp as ngf
     from neurogf_warp.evaluation import fields
-    from neurogf_warp.pictures.render import View, render
+    from neurogf_warp.pictures.render import Style, View, render
 
     model = _load_model(args, needs_mesh=True)
     mesh = model.mesh
@@ -812,8 +812,8 @@ def _cmd_render(args) -> int:
         side = source_side(mesh.vertices[mesh.vertex(np.asarray(src))], mesh.vertices)
         view = View(up=args.up) if side is None else View.toward(side, up=args.up,
                                                                  max_elevation=SOURCE_VIEW_MAX_ELEVATION)
-    render(model, values, sources=src, paths=paths, isolines=args.isolines, out=args.output, size=tuple(args.size),
-           view=view, vrange=args.vrange, device=args.device)
+    render(model, values, sources=src, paths=paths, view=view, style=Style(isolines=args.isolines, vrange=args.vrange),
+           size=tuple(args.size), out=args.output, device=args.device)
     _say(args, f"render: {what} field from {_plural(len(src), 'source')}, {_plural(len(args.paths or []), 'path')}: "
                f"{args.output}")
     return 0
