@@ -380,7 +380,10 @@ def _load_model(args, needs_mesh: bool):
     """The model of ``args.model`` (with ``--mesh``): a mesh that is not the model's is refused unless
     ``--allow-mesh-mismatch``; then it is used, with a warning (unless -q)."""
     import neurogf_warp as ngf
-    from neurogf_warp.model.checkpoint_match import MeshMismatchError, MeshMismatchWarning
+    from neurogf_warp.model.checkpoint_match import (
+        MeshMismatchError,
+        MeshMismatchWarning,
+    )
 
     allow = getattr(args, "allow_mesh_mismatch", False)
     with warnings.catch_warnings(record=True) as caught:
