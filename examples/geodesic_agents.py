@@ -29,11 +29,11 @@ from pathlib import Path
 
 import numpy as np
 import warp as wp
-from neurogf_warp.kernels import field
 
 import neurogf_warp as ngf
 from neurogf_warp.common.warp_setup import init_warp
 from neurogf_warp.inference.warp_structs import frame, source_set, weights
+from neurogf_warp.kernels import field
 from neurogf_warp.pictures.render import View
 
 PROJECT_STEPS = 2  # Newton steps back onto the surface after each move; |sdf| falls ~10x per step
