@@ -186,10 +186,10 @@ def test_budgets_are_checked_before_any_work(command, value, tmp_path, capsys, m
 def test_a_closed_stdout_ends_quietly(trained, tmp_path):
     """`neurogf-warp path ... | head -2` (and `info --json | head`): exit 0, nothing on stderr."""
     v = trained[0].mesh.vertices
-    np.save(tmp_path / "p.npy", np.repeat(v[:1], 40, axis=0))
-    np.save(tmp_path / "q.npy", v[10:50])
+    np.save(tmp_path / "p.npy", np.repeat(v[:1], 10, axis=0))  # 4,000 CSV rows: more than a pipe holds
+    np.save(tmp_path / "q.npy", v[10:20])
     env = dict(os.environ, NEUROGF_DEBUG="")
-    for argv in (["path", str(trained[1]), "--p", str(tmp_path / "p.npy"), "--q", str(tmp_path / "q.npy"), "--m", "2000",
+    for argv in (["path", str(trained[1]), "--p", str(tmp_path / "p.npy"), "--q", str(tmp_path / "q.npy"), "--m", "400",
                   "--project", "none", "-q"], ["info", str(trained[1]), "--json"]):
         proc = subprocess.Popen([sys.executable, "-m", "neurogf_warp.cli.main", *argv], stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, env=env)
