@@ -1,7 +1,9 @@
 """The README's pictures: the released bunny NeuroGF's SSAD, MSAD (5 sources) and paths next to the exact
 field and the heat method's, each made by one ``neurogf-warp render`` command (printed as it runs).
 
-    python examples/readme_pictures.py [--shared ../shared] [--out docs/pictures] [--size 512]
+    python examples/readme_pictures.py --out FOLDER [--shared ../shared] [--size 512]
+
+It writes only into the folder you name (``--out docs/pictures`` remakes the README's own pictures).
 
 The colour scale of each row is the exact field's range, so the three pictures of a row compare directly.
 """
@@ -18,10 +20,12 @@ HERE = Path(__file__).resolve().parent
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--shared", default=str(HERE.parents[1] / "shared"), help="the shared test-data folder")
-    ap.add_argument("--out", default=str(HERE.parent / "docs" / "pictures"))
-    ap.add_argument("--size", type=int, default=512)
-    ap.add_argument("--device", default=None)
+    ap.add_argument("--shared", default=str(HERE.parents[1] / "shared"),
+                    help="the shared test-data folder (default: ../shared beside the checkout)")
+    ap.add_argument("--out", required=True, help="folder for the nine pictures (created if missing); "
+                    "docs/pictures to remake the README's")
+    ap.add_argument("--size", type=int, default=512, help="picture width and height in pixels (default 512)")
+    ap.add_argument("--device", default=None, help="cpu or cuda:N (default: Warp's preferred device)")
     a = ap.parse_args(argv)
     from neurogf_warp.cli.main import main as cli
 

@@ -69,3 +69,28 @@ def test_example_command_writes_frames_and_gif(tmp_path):
     assert sorted(f.name for f in tmp_path.iterdir()) == ["agents.gif", "frame_000.png", "frame_001.png"]
     gif = Image.open(tmp_path / "agents.gif")
     assert gif.size == (40, 40) and gif.n_frames == 2
+
+
+def test_example_reports_agents_that_do_not_arrive(tmp_path, capsys):
+    """Two steps are too few to arrive: the summary names the agents that did not, and --require-arrival turns
+    that into exit status 1 (the example's stated guarantee: arrival is reported, never assumed)."""
+    ex = load_example()
+    argv = ["--model", str(shared_path("checkpoints", "official", "NeuroGF_Pretrainer__fandisk_final.pth")),
+            "--mesh", str(shared_path("meshes", "fandisk.obj")), "--agents", "3", "--steps", "2", "--frames", "1",
+            "--size", "24", "--out", str(tmp_path), "--device", DEV, "--seed", "3"]
+    assert ex.main(argv) == 0
+    out = capsys.readouterr().out
+    assert "0 arrived" in out and "3 did not (agents 0, 1, 2" in out, out
+    assert ex.main(argv + ["--require-arrival"]) == 1
+
+
+def test_readme_pictures_writes_only_where_told(capsys):
+    """The README-pictures script needs --out: it has no default folder inside the checkout to write into."""
+    spec = importlib.util.spec_from_file_location("readme_pictures", EXAMPLE.parent / "readme_pictures.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    import pytest
+
+    with pytest.raises(SystemExit) as e:
+        mod.main([])
+    assert e.value.code == 2 and "--out" in capsys.readouterr().err

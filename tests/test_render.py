@@ -230,3 +230,41 @@ def test_path_targets_are_marked():
     ys, xs = np.nonzero(dark)
     cx, cy = project(V[1:], TOP, size, path[-1])
     assert len(xs) > 3 and abs(xs.mean() - cx) < 2 and abs(ys.mean() - cy) < 2
+
+
+def test_several_sources_are_faced_when_on_one_side():
+    from neurogf_warp.pictures.render import source_side
+
+    V, _ = ellipsoid_mesh((1.0, 0.6, 0.8))
+    side = V[V[:, 0] > 0.5][:5]  # five sources on the +x side
+    d = source_side(side, V)
+    assert d is not None and d[0] > 0.8 * np.linalg.norm(d)
+    around = V[[np.argmax(V[:, 0]), np.argmin(V[:, 0]), np.argmax(V[:, 1]), np.argmin(V[:, 1])]]
+    assert source_side(around, V) is None  # no side to face: the default view
+    assert source_side(np.zeros((1, 3)), V) is None  # a source at the centre
+
+
+def test_style_groups_the_drawing_settings():
+    """style=Style(...) or a dict draws the same picture as the same settings given as keywords; unknown names
+    and bad values are refused."""
+    from neurogf_warp.pictures.render import Style
+
+    V, F = grid(6)
+    kw = dict(size=(24, 24), view=TOP, device=DEV)
+    flat = ngf.render((V, F), V[:, 0], isolines=3, vrange=(-1, 1), supersample=1, **kw)
+    assert np.array_equal(ngf.render((V, F), V[:, 0], style=Style(isolines=3, vrange=(-1, 1), supersample=1), **kw), flat)
+    assert np.array_equal(ngf.render((V, F), V[:, 0], style={"isolines": 5, "vrange": (-1, 1), "supersample": 1},
+                                     isolines=3, **kw), flat)  # keywords override the style
+    with pytest.raises(ValueError, match=r"unknown picture setting\(s\) \['isoline'\]"):
+        ngf.render((V, F), V[:, 0], isoline=3, **kw)
+    with pytest.raises(ValueError, match="supersample must be <= 8"):
+        ngf.render((V, F), V[:, 0], style=Style(supersample=9), **kw)
+
+
+def test_path_targets_can_be_left_unmarked():
+    V, F = grid()
+    path = np.stack([np.linspace(-0.8, 0.6, 30), np.linspace(-0.5, 0.4, 30), np.zeros(30)], 1)
+    kw = dict(paths=[path], size=(80, 64), view=TOP, isolines=0, supersample=1, marker_radius=0.15, path_radius=0.03,
+              device=DEV)
+    img = ngf.render((V, F), V[:, 1], path_targets=False, **kw).astype(int)
+    assert not np.all(img < 60, axis=-1).any()

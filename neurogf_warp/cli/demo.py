@@ -12,6 +12,8 @@ import os
 import sys
 import time
 
+from neurogf_warp.common.checks import say
+
 __all__ = ["run_demo"]
 
 CPU_BUDGET_S = 180.0
@@ -19,8 +21,7 @@ GPU_BUDGET_S = 300.0
 
 
 def _say(on: bool, msg: str):
-    if on:
-        print(msg, flush=True)
+    say(on, msg, sys.stdout)  # the demo's report is its output: stdout
 
 
 def run_demo(out_dir="neurogf-demo", *, mesh=None, device=None, budget_seconds: float | None = None,

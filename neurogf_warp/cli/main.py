@@ -1,9 +1,16 @@
-"""The ``neurogf-warp`` command line: one argparse program; every subcommand's parser is here.
+"""The ``neurogf-warp`` command line: one argparse program, one function per subcommand that builds its parser
+(``_add_<command>``) and one that runs it (``_cmd_<command>``); the domain logic lives in the library.
 
 Each subcommand checks its options and output file first, then calls the public API (torch and Warp are
-imported only then, so ``--help`` is fast). Exit codes: 0 success, 1 failure, 2 bad input, 130 interrupted;
-errors are one line on stderr (a traceback only with ``--verbose`` or NEUROGF_DEBUG=1). Warp's banner,
-module-compile lines and the CUDA-driver warning of a GPU-less machine are shown only with ``--verbose``.
+imported only then, so ``--help`` is fast). Results go to the file named with ``-o``, or to stdout when a
+command has no ``-o``: nothing is written that the user did not name. Messages go to stderr in the command
+line's own terms (its flags, not the Python API's arguments); ``-q`` keeps only results and errors.
+
+Exit codes: 0 success; 2 bad input (``common.checks.InputError``, and for now the plain ``ValueError`` and
+file errors that the other stages raise for bad input, see ``USER_ERRORS``); 1 a failure (a full disk, a
+device error) or a bug of ours, reported as such with how to report it; 130 interrupted. A closed stdout
+(``neurogf-warp info --json | head``) ends the command quietly. Warp's banner, module-compile lines and the
+CUDA-driver warning of a GPU-less machine are shown only with ``--verbose``.
 """
 from __future__ import annotations
 
@@ -11,23 +18,32 @@ import argparse
 import contextlib
 import os
 import sys
-import tempfile
 import time
+import warnings
 
 from neurogf_warp import __version__
+from neurogf_warp.common.checks import InputError, number, say
 
-__all__ = ["main", "build_parser", "BadInput"]
+__all__ = ["main", "build_parser", "BadInput", "model_summary"]
 
 PROG = "neurogf-warp"
 PRESET_HELP = ("training preset: default (the GPU recipe), paper (the published network and recipe), cpu (a few "
                "minutes on a CPU), cpu_large (cpu for meshes above 15,000 vertices), cpu_small (a seconds-long smoke "
                "run); default: chosen by the device and the mesh size")
 VALUE_FORMATS = (".npy", ".csv", ".ply")
-CUDA_WARNING = "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver. GPU execution will not be available."
+ISSUES = "the neurogf-warp issue tracker"
+# `path --refine` cost, measured: on an H200 (README, benchmarks/RESULTS.md) and on the shared 2-core CPU of
+# issue 21 (200 pairs of a D=128 CPU-preset model in 174 s) and 2026-11-24 (20 pairs of the released fandisk,
+# D=256, in 484 s with other jobs running)
+REFINE_COST = ("costly on a CPU: every sweep re-evaluates the SDF network at every point (measured on a shared "
+               "2-core CPU: {cpu}); on an H200, 1,000 pairs of 128 points with 50 sweeps take 50 ms")
+REFINE_CPU = "0.9 to 24 s per pair of 128 points with 50 sweeps"
+
+BadInput = InputError  # the name this module used before common.checks had the type
 
 
-class BadInput(ValueError):
-    """A problem with what the user asked for (exit code 2)."""
+class _StdoutClosed(Exception):
+    """The reader of our stdout went away (a pipe into ``head``): stop quietly."""
 
 
 # ------------------------------------------------------------------------------------------ parser
@@ -36,7 +52,8 @@ def _common() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(add_help=False)
     p.add_argument("--device", default=None, help="cpu or cuda:N (default: the GPU if there is one, else cpu)")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("-q", "--quiet", action="store_true", help="no progress bars or messages, only results and errors")
+    g.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress bars, messages or warnings: only results and errors")
     g.add_argument("-v", "--verbose", action="store_true",
                    help="also Warp's own log (banner, kernel compilation) and a traceback on errors")
     return p
@@ -46,6 +63,10 @@ def _model_args(p: argparse.ArgumentParser):
     p.add_argument("model", help="model file: an .ngf written by train, or a released NeuroGF *_final.pth")
     p.add_argument("--mesh", default=None,
                    help="the model's mesh file; required for a released .pth (an .ngf carries its own)")
+    p.add_argument("--allow-mesh-mismatch", action="store_true",
+                   help="go on when --mesh is not the mesh the model was trained on (another fingerprint for an "
+                        ".ngf, off the checkpoint's surface for a .pth); its answers are then not geodesics of "
+                        "that mesh. Without it such a mesh is refused (exit code 2)")
 
 
 def _pair_args(p: argparse.ArgumentParser):
@@ -57,8 +78,22 @@ def _pair_args(p: argparse.ArgumentParser):
 
 
 def _values_output(p: argparse.ArgumentParser):
-    p.add_argument("-o", "--output", default="distances.npy",
-                   help="output file: .npy, .csv (vertex,distance) or .ply (the mesh coloured by distance)")
+    p.add_argument("-o", "--output", default=None,
+                   help="output file: .npy, .csv (vertex,distance) or .ply (the mesh coloured by distance); "
+                        "default: print one distance per line to stdout, line i for vertex i ('nan' for vertices "
+                        "no face uses)")
+
+
+def _budget(text: str) -> float:
+    """--budget-seconds: a finite number of seconds > 0, checked while parsing (before any work or folder)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    try:
+        return number("--budget-seconds", value, above=0.0)
+    except InputError as e:
+        raise argparse.ArgumentTypeError(str(e).replace("--budget-seconds ", "")) from None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -71,7 +106,13 @@ def build_parser() -> argparse.ArgumentParser:
                "input, 130 interrupted")
     p.add_argument("--version", action="version", version=f"{PROG} {__version__}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    for add in (_add_demo, _add_data, _add_train, _add_eval, _add_ssad, _add_msad, _add_distance, _add_path,
+                _add_info, _add_render):
+        add(sub, common)
+    return p
 
+
+def _add_demo(sub, common):
     d = sub.add_parser("demo", parents=[common], help="train on the bundled mesh (or yours), report accuracy, answer SSAD",
                        description="The main job: train a NeuroGF on the bundled default mesh (or --mesh), measure its "
                        "accuracy against the solver (and the heat method when potpourri3d is installed), and answer "
@@ -79,10 +120,13 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("-o", "--output", default="neurogf-demo",
                    help="output folder for the model, its run files and the results (default: ./neurogf-demo)")
     d.add_argument("--mesh", default=None, help="a mesh file (default: the bundled generated blob, 2,562 vertices)")
-    d.add_argument("--budget-seconds", type=float, default=None,
+    d.add_argument("--budget-seconds", type=_budget, default=None,
                    help="seconds for the whole training call, dataset included (default 180 on a CPU, 300 on a GPU)")
     d.add_argument("--force", action="store_true", help="train again even if the folder holds a finished run")
+    d.set_defaults(run=_cmd_demo)
 
+
+def _add_data(sub, common):
     t = sub.add_parser("data", parents=[common], help="build a training dataset (ground-truth geodesics and paths)",
                        description="Compute NeuroGF training data for a mesh with the Warp geodesic solver: distance "
                        "rows from sources to targets, shortest paths, surface points and held-out test fields.")
@@ -96,7 +140,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--seed", type=int, default=0, help="random seed of every draw (default 0)")
     t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="any other dataset setting, e.g. --set n_global=2048 (repeatable)")
+    t.set_defaults(run=_cmd_data)
 
+
+def _add_train(sub, common):
     t = sub.add_parser("train", parents=[common], help="train a NeuroGF model for a mesh",
                        description="Train a NeuroGF for one mesh and write the model file. The run's checkpoint, "
                        "cached dataset and log go to the folder <model>.train beside it. Running the same command "
@@ -105,7 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("-o", "--output", required=True, help="model file to write (e.g. model.ngf)")
     t.add_argument("--preset", default=None, help=PRESET_HELP)
     t.add_argument("--paper", action="store_true", help="the same as --preset paper")
-    t.add_argument("--budget-seconds", type=float, default=None,
+    t.add_argument("--budget-seconds", type=_budget, default=None,
                    help="fit the step counts so that the whole call, dataset included, takes about this long")
     g = t.add_mutually_exclusive_group()
     g.add_argument("--resume", action="store_true",
@@ -124,7 +171,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="any training setting, e.g. --set batch_g=131072 --set schedule.lr=3e-3 (repeatable; "
                         "names as in neurogf_warp.training.TrainConfig)")
+    t.set_defaults(run=_cmd_train)
 
+
+def _add_eval(sub, common):
     e = sub.add_parser("eval", parents=[common], help="measure a model's accuracy",
                        description="Distance MRE against an exact reference (or the solver), path Chamfer-L1 against "
                        "solver paths, SDF L1; optionally the heat method on the same sources.")
@@ -138,10 +188,14 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--no-paths", action="store_true", help="skip the path comparison")
     e.add_argument("--no-sdf", action="store_true", help="skip the SDF comparison")
     e.add_argument("--path-refine", type=int, default=0, metavar="N",
-                   help="also score the paths after N shortening sweeps per level (e.g. 50; slow on a CPU)")
+                   help="also score the paths after N shortening sweeps per level (e.g. 50; "
+                        + REFINE_COST.format(cpu=REFINE_CPU) + ")")
     e.add_argument("--seed", type=int, default=0, help="random seed of the solver sources and path pairs")
     e.add_argument("--json", default=None, help="also write the results to this .json file")
+    e.set_defaults(run=_cmd_eval)
 
+
+def _add_ssad(sub, common):
     s = sub.add_parser("ssad", parents=[common], help="distances from one source to every mesh vertex",
                        description="Single source, all destinations: the model's geodesic distance from one vertex "
                        "or point to every vertex of the mesh, in mesh units and the mesh file's vertex numbering.")
@@ -151,7 +205,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default 0)")
     g.add_argument("--point", type=float, nargs=3, metavar=("X", "Y", "Z"), help="source point in mesh coordinates")
     _values_output(s)
+    s.set_defaults(run=_cmd_ssad)
 
+
+def _add_msad(sub, common):
     s = sub.add_parser("msad", parents=[common], help="distance from every vertex to the nearest of several sources",
                        description="Multiple sources, all destinations: each vertex's geodesic distance to its "
                        "nearest source vertex.")
@@ -159,38 +216,62 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--sources", type=int, nargs="+", required=True, metavar="V",
                    help="source vertex indices, 0-based, the mesh's own numbering")
     _values_output(s)
+    s.set_defaults(run=_cmd_msad)
 
+
+def _add_distance(sub, common):
     s = sub.add_parser("distance", parents=[common], help="geodesic distances between point pairs",
                        description="Geodesic distance between points p and q (mesh coordinates and units), pair by "
                        "pair; points should lie on or near the surface.")
     _pair_args(s)
-    s.add_argument("-o", "--output", default=None, help="output .npy or .csv (default: print the distances)")
+    s.add_argument("-o", "--output", default=None, help="output .npy or .csv (default: print the distances to stdout, "
+                   "one per line)")
+    s.set_defaults(run=_cmd_distance)
 
+
+def _add_path(sub, common):
     s = sub.add_parser("path", parents=[common], help="shortest paths between point pairs",
-                       description="Shortest surface paths from p to q as m points each (mesh coordinates).")
+                       description="Shortest surface paths from p to q as m points each (mesh coordinates). By "
+                       "default every point is put on the mesh (--project mesh); the summary line says how far "
+                       "the network's own points were from it.")
     _pair_args(s)
     s.add_argument("--m", type=int, default=128, help="points per path, ends included (default 128)")
     s.add_argument("--refine", type=int, default=0, metavar="N",
-                   help="N shortening sweeps per level on the SDF surface (e.g. 50; default 0: the network's path)")
-    s.add_argument("-o", "--output", default="paths.npy",
-                   help="output .npy of shape (N, m, 3), or .csv with rows path,point,x,y,z")
+                   help="N shortening sweeps per level on the network's SDF surface (e.g. 50; default 0: the path "
+                        "head's path); " + REFINE_COST.format(cpu=REFINE_CPU))
+    s.add_argument("--project", choices=("none", "sdf", "mesh"), default=None,
+                   help="where the points go: mesh (each snapped to the closest point of the mesh; the default "
+                        "when the model has a mesh), sdf (Newton steps onto the network's SDF surface; the default "
+                        "without a mesh), none (the network's points as they come: they can lie inside or outside "
+                        "the surface)")
+    s.add_argument("-o", "--output", default=None,
+                   help="output .npy of shape (N, m, 3), or .csv with rows path,point,x,y,z; default: print the "
+                        "CSV rows to stdout")
+    s.set_defaults(run=_cmd_path)
 
+
+def _add_info(sub, common):
     s = sub.add_parser("info", parents=[common], help="what a model file holds",
                        description="Print what a model file holds: network width and options, normalization, mesh "
                        "size, fingerprint and components, training settings and steps.")
     _model_args(s)
     s.add_argument("--json", action="store_true", help="print it as JSON")
+    s.set_defaults(run=_cmd_info)
 
+
+def _add_render(sub, common):
     s = sub.add_parser("render", parents=[common], help="a picture of the distance field (and paths)",
                        description="Render the mesh coloured by the geodesic distance from the sources, with isolines "
-                       "and optionally shortest paths to some vertices.")
+                       "and optionally shortest paths to some vertices (their targets marked with dark spheres). The "
+                       "camera faces the source(s) unless --view is given; everything fits in the frame.")
     _model_args(s)
     s.add_argument("--source", type=int, nargs="+", default=[0], metavar="V",
                    help="source vertex indices (default 0); several: distance to the nearest")
     s.add_argument("--paths", type=int, nargs="+", default=None, metavar="V",
                    help="also draw the shortest paths from the first source to these vertices")
     s.add_argument("--refine", type=int, default=0, metavar="N",
-                   help="shortening sweeps for the model's paths (path(refine=N); default 0: the path head's)")
+                   help="shortening sweeps for the model's paths (default 0: the path head's); "
+                        + REFINE_COST.format(cpu=REFINE_CPU))
     field = s.add_mutually_exclusive_group()
     field.add_argument("--exact", metavar="REF.npz", help="draw the exact field of this reference file (positions, "
                        "file_index or orig_index, sources, dist) instead of the model's; paths from the geodesic solver")
@@ -200,62 +281,57 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--vrange", type=float, nargs=2, default=None, metavar=("LOW", "HIGH"),
                    help="the colour scale's range in mesh units (default: the field's), to compare pictures")
     s.add_argument("--view", type=float, nargs=2, default=None, metavar=("AZIMUTH", "ELEVATION"),
-                   help="camera direction in degrees (default 30 20)")
+                   help="camera direction in degrees: azimuth around the up axis (0: from the axis after it in x, y, "
+                        "z order, e.g. +z for up y) and elevation above the plane across it (default: facing the "
+                        "source, or several sources when they lie mostly on one side; elevation within 60 degrees)")
+    s.add_argument("--up", default="auto", choices=("auto", "x", "y", "z", "-x", "-y", "-z"),
+                   help="the mesh axis drawn upward (default auto: z when the mesh is at least 1.2 times taller "
+                        "along z than along y, else y)")
     s.add_argument("--size", type=int, nargs=2, default=(1024, 1024), metavar=("W", "H"), help="picture size in pixels")
-    s.add_argument("-o", "--output", default="picture.png", help="picture file (.png)")
-    return p
+    s.add_argument("-o", "--output", required=True, help="picture file (.png)")
+    s.set_defaults(run=_cmd_render)
 
 
 # ------------------------------------------------------------------------------------------ helpers
 
-@contextlib.contextmanager
-def _filtered_stderr():
-    """Send file descriptor 2 to a temporary file while the block runs, then pass on all but the CUDA-driver
-    warning (written by Warp's native library, which Python's sys.stderr does not see)."""
-    sys.stderr.flush()
-    saved = os.dup(2)
-    with tempfile.TemporaryFile() as tmp:
-        os.dup2(tmp.fileno(), 2)
-        try:
-            yield
-        finally:
-            sys.stderr.flush()
-            os.dup2(saved, 2)
-            os.close(saved)
-            tmp.seek(0)
-            rest = tmp.read().decode(errors="replace").replace(CUDA_WARNING, "")
-            if rest.strip():
-                sys.stderr.write(rest if rest.endswith("\n") else rest + "\n")
-
-
 def start_warp(verbose: bool):
     """Import and initialize Warp: quiet (log level WARNING, no driver warning) unless ``verbose``."""
-    with contextlib.nullcontext() if verbose else _filtered_stderr():
-        import warp as wp
+    from neurogf_warp.common.warp_setup import init_warp
 
-        wp.config.log_level = wp.LOG_INFO if verbose else wp.LOG_WARNING
-        wp.init()
-    return wp
+    return init_warp(verbose=True if verbose else None)
 
 
 def _say(args, msg: str):
-    if not args.quiet:
-        print(msg, file=sys.stderr, flush=True)
+    say(not args.quiet, msg)
+
+
+def _plural(n: int, word: str, plural: str | None = None) -> str:
+    """'1 path', '3 paths'."""
+    return f"{n} {word if n == 1 else (plural or word + 's')}"
+
+
+def _stdout_write(text: str):
+    """Write to stdout; a reader that went away (``| head``) ends the command quietly."""
+    try:
+        sys.stdout.write(text)
+        sys.stdout.flush()
+    except BrokenPipeError:
+        raise _StdoutClosed() from None
 
 
 def _check_output(path: str, formats: tuple, what: str = "output") -> str:
     """Refuse an unknown extension or a folder that cannot be written, before any work."""
     ext = os.path.splitext(path)[1].lower()
     if ext not in formats:
-        raise BadInput(f"{what} {path!r}: the file extension chooses the format; use one of {', '.join(formats)}")
+        raise InputError(f"{what} {path!r}: the file extension chooses the format; use one of {', '.join(formats)}")
     full = os.path.abspath(path)
     if os.path.isdir(full):
-        raise BadInput(f"{what} {path!r} is a folder; give a file name")
+        raise InputError(f"{what} {path!r} is a folder; give a file name")
     folder = os.path.dirname(full)
     if not os.path.isdir(folder):
-        raise BadInput(f"cannot write {path}: folder {folder} does not exist")
+        raise InputError(f"cannot write {path}: folder {folder} does not exist")
     if not os.access(folder, os.W_OK) or (os.path.exists(full) and not os.access(full, os.W_OK)):
-        raise BadInput(f"cannot write {path}: permission denied")
+        raise InputError(f"cannot write {path}: permission denied")
     return ext
 
 
@@ -290,20 +366,54 @@ def _write_array(path: str, a, header: str, fmt):
         atomic_write(path, lambda f: np.savetxt(f, a, fmt=fmt, delimiter=",", header=header, comments=""))
 
 
-def _load_model(args, needs_mesh: bool):
-    import neurogf_warp as ngf
+def _print_array(a, header: str | None, fmt):
+    import io
 
-    model = ngf.load(args.model, mesh=args.mesh)
+    import numpy as np
+
+    buf = io.StringIO()
+    np.savetxt(buf, a, fmt=fmt, delimiter=",", header=header or "", comments="")
+    _stdout_write(buf.getvalue())
+
+
+def _load_model(args, needs_mesh: bool):
+    """The model of ``args.model`` (with ``--mesh``): a mesh that is not the model's is refused unless
+    ``--allow-mesh-mismatch``; then it is used, with a warning (unless -q)."""
+    import neurogf_warp as ngf
+    from neurogf_warp.model.checkpoint_match import (
+        MeshMismatchError,
+        MeshMismatchWarning,
+    )
+
+    allow = getattr(args, "allow_mesh_mismatch", False)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", MeshMismatchWarning)
+        try:
+            model = ngf.load(args.model, mesh=args.mesh, check_mesh=not allow)
+        except MeshMismatchError as e:
+            raise InputError(f"{e.problem}. Pass the mesh it was trained on with --mesh, or --allow-mesh-mismatch "
+                             "to query this mesh in the model's stored frame anyway") from None
+    for w in caught:
+        if issubclass(w.category, MeshMismatchWarning):
+            if not allow:
+                raise InputError(f"{w.message} To go on anyway, pass --allow-mesh-mismatch.")
+            _say(args, f"{PROG} {args.command}: warning: {w.message} (going on: --allow-mesh-mismatch)")
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     if needs_mesh and model.mesh is None:
-        raise BadInput(f"{args.model} carries no mesh: pass the mesh it was trained on with --mesh MESHFILE")
+        raise InputError(f"{args.model} carries no mesh: pass the mesh it was trained on with --mesh MESHFILE")
     return model
 
 
 def _vertex_indices(model, indices, flag: str):
-    n = model.mesh.n_input
+    m = model.mesh
+    n = m.n_input
     for i in indices:
         if i < 0 or i >= n:
-            raise BadInput(f"{flag} {i} is out of range: the mesh has {n} vertices, numbered 0 to {n - 1}")
+            raise InputError(f"{flag} {i} is out of range: the mesh has {n} vertices, numbered 0 to {n - 1}")
+        if m.input_to_internal[i] < 0:
+            raise InputError(f"{flag} {i}: vertex {i} is not used by any face of the mesh, so it has no geodesic "
+                             "distances; pick a vertex of the surface")
     return list(indices)
 
 
@@ -319,27 +429,43 @@ def _points(values, flag: str):
     if len(values) == 1:
         path = values[0]
         if not os.path.isfile(path):
-            raise BadInput(f"{flag} {path}: no such file (give X Y Z, or a .npy / .csv file of (N, 3) points)")
+            raise InputError(f"{flag} {path}: no such file (give X Y Z, or a .npy / .csv file of (N, 3) points)")
         ext = os.path.splitext(path)[1].lower()
         try:
             a = np.load(path, allow_pickle=False) if ext == ".npy" else \
                 np.loadtxt(path, delimiter=",", ndmin=2) if ext == ".csv" else None
         except Exception as e:  # noqa: BLE001 - any unreadable file is bad input
-            raise BadInput(f"{flag} {path}: unreadable ({e})") from e
+            raise InputError(f"{flag} {path}: unreadable ({e})") from e
         if a is None:
-            raise BadInput(f"{flag} {path}: use a .npy or .csv file")
+            raise InputError(f"{flag} {path}: use a .npy or .csv file")
         a = np.asarray(a, dtype=np.float64)
         if a.ndim != 2 or a.shape[1] != 3:
-            raise BadInput(f"{flag} {path}: expected (N, 3) points, got shape {a.shape}")
+            raise InputError(f"{flag} {path}: expected (N, 3) points, got shape {a.shape}")
         return a
-    raise BadInput(f"{flag} takes three numbers X Y Z or one file, got {' '.join(values)}")
+    raise InputError(f"{flag} takes three numbers X Y Z or one file, got {' '.join(values)}")
 
 
 def _pairs(args):
     p, q = _points(args.p, "--p"), _points(args.q, "--q")
     if len(p) != len(q):
-        raise BadInput(f"--p has {len(p)} points and --q {len(q)}; give as many of each")
+        raise InputError(f"--p has {len(p)} points and --q {len(q)}; give as many of each")
     return p, q
+
+
+def _nonnegative(args, *flags):
+    for flag in flags:
+        v = getattr(args, flag)
+        if v is not None and v < 0:
+            raise InputError(f"--{flag.replace('_', '-')} must be >= 0, got {v}")
+
+
+def _require_heat():
+    from neurogf_warp.evaluation.evaluate import require_heat
+
+    try:
+        require_heat()
+    except ImportError as e:
+        raise InputError(str(e)) from None
 
 
 # ------------------------------------------------------------------------------------------ commands
@@ -356,6 +482,7 @@ def _cmd_data(args) -> int:
     from neurogf_warp.training.config import parse_assignments
 
     _check_output(args.output, (".npz",), "dataset file")
+    _nonnegative(args, "sources", "path_sources", "test_sources", "k")
     changes = parse_assignments(args.set)
     for flag, name in (("sources", "n_sources"), ("path_sources", "n_path_sources"), ("test_sources", "n_test"),
                        ("k", "k")):
@@ -370,14 +497,15 @@ def _cmd_data(args) -> int:
     cfg = preset(args.preset or choose_preset(dev.type, len(mesh.vertices)))
     bad = [k for k in changes if k.split(".")[-1] not in {f for f in cfg.data.__dataclass_fields__}]
     if bad:
-        raise BadInput(f"--set {bad[0]}: not a dataset setting (see neurogf_warp.DatasetSettings)")
+        raise InputError(f"--set {bad[0]}: not a dataset setting (see neurogf_warp.DatasetSettings)")
     settings = cfg.set(**changes).data
     t0 = time.perf_counter()
     ds = ngf.build_dataset(mesh, args.output, settings, seed=args.seed, device=str(dev), progress=not args.quiet)
     m = ds.meta
-    _say(args, f"wrote {args.output}: {len(ds.gd_src)} sources, {len(ds.path_global) + len(ds.path_local)} paths "
-               f"({m['dropped_paths']} untraceable left out), {len(ds.test_src)} test sources, "
-               f"{os.path.getsize(args.output) / 1e6:.1f} MB in {time.perf_counter() - t0:.1f} s")
+    _say(args, f"wrote {args.output}: {_plural(len(ds.gd_src), 'source')}, "
+               f"{_plural(len(ds.path_global) + len(ds.path_local), 'path')} ({m['dropped_paths']} untraceable left "
+               f"out), {_plural(len(ds.test_src), 'test source')}, {os.path.getsize(args.output) / 1e6:.1f} MB in "
+               f"{time.perf_counter() - t0:.1f} s")
     return 0
 
 
@@ -385,9 +513,9 @@ def _cmd_train(args) -> int:
     from neurogf_warp.training.config import parse_assignments
 
     if os.path.splitext(args.output)[1].lower() != ".ngf":
-        raise BadInput(f"model file {args.output!r}: use the .ngf extension")
+        raise InputError(f"model file {args.output!r}: use the .ngf extension")
     if args.preset and args.paper:
-        raise BadInput("--paper is --preset paper: give one of them")
+        raise InputError("--paper is --preset paper: give one of them")
     changes = parse_assignments(args.set)
     for flag, name in (("D", "D"), ("epochs", "epochs"), ("iters_per_epoch", "iters_per_epoch"), ("lr", "lr"),
                        ("n_sources", "n_sources"), ("seed", "seed")):
@@ -397,33 +525,39 @@ def _cmd_train(args) -> int:
         changes["amp"] = False
     if args.no_compile:
         changes["compile"] = False
-    if args.budget_seconds is not None and not args.budget_seconds > 0:
-        raise BadInput(f"--budget-seconds must be > 0, got {args.budget_seconds}")
     if args.dataset is not None and not os.path.isfile(args.dataset):
-        raise BadInput(f"--dataset {args.dataset}: no such file")
+        raise InputError(f"--dataset {args.dataset}: no such file")
     import neurogf_warp as ngf
 
-    ngf.train(args.mesh, args.output, config="paper" if args.paper else args.preset, device=args.device,
-              dataset=args.dataset, resume=args.resume, force=args.force, budget_seconds=args.budget_seconds,
-              progress=not args.quiet, **changes)
+    try:
+        ngf.train(args.mesh, args.output, config="paper" if args.paper else args.preset, device=args.device,
+                  dataset=args.dataset, resume=args.resume, force=args.force, budget_seconds=args.budget_seconds,
+                  progress=not args.quiet, **changes)
+    except ValueError as e:
+        raise InputError(_in_cli_terms(str(e))) from None
     return 0
 
 
+# The training stage's messages name its Python arguments; on the command line they are flags.
+_API_TO_FLAG = (("pass force=True (--force)", "pass --force"), ("force=True (--force)", "--force"),
+                ("pass resume=True (--resume)", "pass --resume"), ("resume=True (--resume)", "--resume"),
+                ("force=True", "--force"), ("resume=True", "--resume"), ("budget_seconds", "--budget-seconds"))
+
+
+def _in_cli_terms(msg: str) -> str:
+    for api, flag in _API_TO_FLAG:
+        msg = msg.replace(api, flag)
+    return msg
+
+
 def _cmd_eval(args) -> int:
-    for flag in ("sources", "path_sources", "path_targets", "path_refine"):
-        if getattr(args, flag) < 0:
-            raise BadInput(f"--{flag.replace('_', '-')} must be >= 0, got {getattr(args, flag)}")
+    _nonnegative(args, "sources", "path_sources", "path_targets", "path_refine")
     if args.json:
         _check_output(args.json, (".json",), "--json")
     if args.heat:
-        from neurogf_warp.evaluation.evaluate import require_heat
-
-        try:
-            require_heat()
-        except ImportError as e:
-            raise BadInput(str(e)) from None
+        _require_heat()
     if args.reference is not None and not os.path.isfile(args.reference):
-        raise BadInput(f"--reference {args.reference}: no such file")
+        raise InputError(f"--reference {args.reference}: no such file")
     import json
 
     from neurogf_warp.common.files import atomic_write
@@ -455,20 +589,29 @@ def _timed_twice(fn):
     return out, first, time.perf_counter() - t, compiled
 
 
-def _report_values(args, model, d, first, again, compiled, what):
+def _emit_values(args, model, d, first, again, compiled, what):
+    """Per-vertex distances to -o, or to stdout (one per line); then the summary line on stderr."""
     import numpy as np
 
+    if args.output is None:
+        _print_array(np.asarray(d, dtype=np.float64), None, "%.9g")
+        where = "printed"
+    else:
+        _write_values(args.output, d, model.mesh)
+        where = f"written to {args.output}"
     ok = np.isfinite(d)
     note = "includes kernel compilation" if compiled else "kernels from the cache"
-    _say(args, f"{what}: {int(ok.sum())} of {len(d)} distances written to {args.output} (min {np.nanmin(d):.6g}, "
-               f"max {np.nanmax(d[ok]) if ok.any() else float('nan'):.6g}, mesh units); first call {first:.2f} s "
+    _say(args, f"{what}: {int(ok.sum())} of {_plural(len(d), 'distance')} {where} (min "
+               f"{np.nanmin(d) if ok.any() else float('nan'):.6g}, max "
+               f"{np.nanmax(d[ok]) if ok.any() else float('nan'):.6g}, mesh units); first call {first:.2f} s "
                f"({note}), second {again * 1e3:.1f} ms")
 
 
 def _cmd_ssad(args) -> int:
-    _check_output(args.output, VALUE_FORMATS)
+    if args.output is not None:
+        _check_output(args.output, VALUE_FORMATS)
     if args.source is not None and args.source < 0:
-        raise BadInput(f"--source must be a vertex index >= 0, got {args.source}")
+        raise InputError(f"--source must be a vertex index >= 0, got {args.source}")
     import numpy as np
 
     import neurogf_warp as ngf
@@ -479,20 +622,19 @@ def _cmd_ssad(args) -> int:
     else:
         src = _vertex_indices(model, [0 if args.source is None else args.source], "--source")[0]
     d, first, again, compiled = _timed_twice(lambda: ngf.ssad(model, src, device=args.device))
-    _write_values(args.output, d, model.mesh)
-    _report_values(args, model, d, first, again, compiled, "ssad")
+    _emit_values(args, model, d, first, again, compiled, "ssad")
     return 0
 
 
 def _cmd_msad(args) -> int:
-    _check_output(args.output, VALUE_FORMATS)
+    if args.output is not None:
+        _check_output(args.output, VALUE_FORMATS)
     import neurogf_warp as ngf
 
     model = _load_model(args, needs_mesh=True)
     src = _vertex_indices(model, args.sources, "--sources")
     d, first, again, compiled = _timed_twice(lambda: ngf.msad(model, src, device=args.device))
-    _write_values(args.output, d, model.mesh)
-    _report_values(args, model, d, first, again, compiled, "msad")
+    _emit_values(args, model, d, first, again, compiled, "msad")
     return 0
 
 
@@ -507,34 +649,81 @@ def _cmd_distance(args) -> int:
     model = _load_model(args, needs_mesh=False)
     d = np.asarray(ngf.distance(model, p, q, device=args.device))
     if args.output is None:
-        print("\n".join(f"{x:.9g}" for x in d))
+        _print_array(d.astype(np.float64), None, "%.9g")
     else:
         _write_array(args.output, d, "distance", "%.9g")
-        _say(args, f"distance: {len(d)} values written to {args.output}")
+        _say(args, f"distance: {_plural(len(d), 'value')} written to {args.output}")
     return 0
 
 
 def _cmd_path(args) -> int:
-    _check_output(args.output, (".npy", ".csv"))
+    if args.output is not None:
+        _check_output(args.output, (".npy", ".csv"))
     if args.m < 2:
-        raise BadInput(f"--m (points per path) must be >= 2, got {args.m}")
-    if args.refine < 0:
-        raise BadInput(f"--refine must be >= 0, got {args.refine}")
+        raise InputError(f"--m (points per path) must be >= 2, got {args.m}")
+    _nonnegative(args, "refine")
     p, q = _pairs(args)
     import numpy as np
 
     import neurogf_warp as ngf
 
-    model = _load_model(args, needs_mesh=False)
-    paths = np.asarray(ngf.path(model, p, q, m=args.m, refine=args.refine, device=args.device))
-    if args.output.lower().endswith(".npy"):
+    model = _load_model(args, needs_mesh=args.project == "mesh")
+    project = args.project or ("mesh" if model.mesh is not None else "sdf")
+    raw = np.asarray(ngf.path(model, p, q, m=args.m, refine=args.refine, device=args.device))
+    paths = _put_on_surface(model, raw, project, args.device)
+    n, m = paths.shape[:2]
+    rows = np.column_stack([np.repeat(np.arange(n), m), np.tile(np.arange(m), n), paths.reshape(-1, 3)])
+    fmt = ["%d", "%d", "%.9g", "%.9g", "%.9g"]
+    if args.output is None:
+        _print_array(rows, "path,point,x,y,z", fmt)
+        where = "printed"
+    elif args.output.lower().endswith(".npy"):
         _write_array(args.output, paths, "", None)
+        where = f"written to {args.output}"
     else:
-        n, m = paths.shape[:2]
-        rows = np.column_stack([np.repeat(np.arange(n), m), np.tile(np.arange(m), n), paths.reshape(-1, 3)])
-        _write_array(args.output, rows, "path,point,x,y,z", ["%d", "%d", "%.9g", "%.9g", "%.9g"])
-    _say(args, f"path: {len(paths)} paths of {args.m} points written to {args.output}")
+        _write_array(args.output, rows, "path,point,x,y,z", fmt)
+        where = f"written to {args.output}"
+    note = _offset_note(model, raw, paths, project)
+    _say(args, f"path: {_plural(n, 'path')} of {args.m} points {where}{note}")
     return 0
+
+
+def _put_on_surface(model, raw, project: str, device):
+    """The path points ``raw`` (N, m, 3) as ``path(..., project=project)`` gives them (the same steps on the same
+    points), keeping ``raw`` to report how far off they were. NaN rows (pairs across components) stay NaN."""
+    import numpy as np
+
+    import neurogf_warp as ngf
+    from neurogf_warp.inference.paths import PROJECT_STEPS
+    from neurogf_warp.mesh.surface import snap_to_mesh
+
+    if project == "none":
+        return raw
+    ok = np.isfinite(raw).all(-1)
+    centre = np.asarray(model.center if model.in_mesh_frame else np.zeros(3), dtype=np.float32)  # inside the domain
+    flat = np.where(ok[..., None], raw, centre).reshape(-1, 3)
+    if project == "mesh":
+        out = np.asarray(snap_to_mesh(model, flat, device=device)[0])
+    else:
+        out = np.asarray(ngf.project(model, flat, steps=2 * PROJECT_STEPS, device=device))
+    out = out.reshape(raw.shape).astype(raw.dtype)
+    out[~ok] = np.nan
+    return out
+
+
+def _offset_note(model, raw, paths, project: str) -> str:
+    """How far the network's own path points were from where they were put (mesh units)."""
+    import numpy as np
+
+    if project == "none":
+        return " (the network's points as they come, not projected onto the surface: --project mesh or sdf puts them on it)"
+    ok = np.isfinite(raw).all(-1) & np.isfinite(paths).all(-1)
+    if not ok.any():
+        return ""
+    off = np.linalg.norm((raw - paths)[ok], axis=-1)
+    where = "the mesh" if project == "mesh" else "the network's SDF surface"
+    return (f", every point on {where} (the network's points were up to {off.max():.3g} mesh units off it, median "
+            f"{np.median(off):.3g})")
 
 
 def model_summary(model) -> dict:
@@ -560,50 +749,51 @@ def _cmd_info(args) -> int:
     model = _load_model(args, needs_mesh=False)
     info = model_summary(model)
     if args.json:
-        print(json.dumps(info, indent=1))
+        _stdout_write(json.dumps(info, indent=1) + "\n")
         return 0
-    print(f"{args.model}: NeuroGF, D={info['D']}, options {info['network_options']}, "
-          f"SDF querier {'included' if info['querier'] else 'not included'}")
+    lines = [f"{args.model}: NeuroGF, D={info['D']}, options {info['network_options']}, "
+             f"SDF querier {'included' if info['querier'] else 'not included'}"]
     n = info["normalization"]
-    print(f"  frame: {n['frame']}; normalized = (x - {[round(c, 6) for c in n['center']]}) * {n['scale']:.6g}")
+    lines.append(f"  frame: {n['frame']}; normalized = (x - {[round(c, 6) for c in n['center']]}) * {n['scale']:.6g}")
     if "mesh" in info:
         m = info["mesh"]
-        print(f"  mesh: {m['vertices_as_given']} vertices as given ({m['vertices_used']} used by faces), {m['faces']} "
-              f"faces, {m['components']} connected component(s), fingerprint {m['fingerprint'][:16]}...")
+        lines.append(f"  mesh: {m['vertices_as_given']} vertices as given ({m['vertices_used']} used by faces), "
+                     f"{_plural(m['faces'], 'face')}, {_plural(m['components'], 'connected component')}, "
+                     f"fingerprint {m['fingerprint'][:16]}...")
     else:
-        print("  mesh: none stored (pass --mesh to query by vertex)")
+        lines.append("  mesh: none stored (pass --mesh to query by vertex)")
     t = info.get("training")
     if t:
         steps = t.get("steps")
-        print(f"  training: preset {t.get('preset', '?')}, steps {steps}, {t.get('train_seconds', '?')} s of steps"
-              if steps else f"  from: {t.get('source', t)}")
+        lines.append(f"  training: preset {t.get('preset', '?')}, steps {steps}, {t.get('train_seconds', '?')} s of "
+                     "steps" if steps else f"  from: {t.get('source', t)}")
+    _stdout_write("\n".join(lines) + "\n")
     return 0
 
 
 def _cmd_render(args) -> int:
     _check_output(args.output, (".png",), "picture")
     if args.isolines < 0 or min(args.size) < 16 or args.refine < 0:
-        raise BadInput("--isolines and --refine must be >= 0 and --size at least 16 x 16 pixels")
+        raise InputError("--isolines and --refine must be >= 0 and --size at least 16 x 16 pixels")
     if args.heat:
-        from neurogf_warp.evaluation.evaluate import require_heat
-
-        require_heat()
+        _require_heat()
     import numpy as np
 
     import neurogf_warp as ngf
-    from neurogf_warp.pictures.render import render
+    from neurogf_warp.evaluation import fields
+    from neurogf_warp.pictures.render import Style, View, render
 
     model = _load_model(args, needs_mesh=True)
     mesh = model.mesh
     src = _vertex_indices(model, args.source, "--source")
     if args.exact:
-        values, what = _exact_field(args.exact, mesh, src), "exact"
+        try:
+            values = fields.exact_field(args.exact, mesh, src)
+        except InputError as e:
+            raise InputError(f"--{e}") from None  # "source 5 is not one of ..." -> "--source 5 ..."
+        what = "exact"
     elif args.heat:
-        import potpourri3d as pp3d
-
-        solver = pp3d.MeshHeatMethodDistanceSolver(mesh.vertices, mesh.faces.astype(np.int64))
-        values = mesh.to_input(solver.compute_distance_multisource([int(i) for i in mesh.vertex(np.asarray(src))]))
-        what = "heat method"
+        values, what = fields.heat_field(mesh, src), "heat method"
     else:
         values = ngf.ssad(model, src[0], device=args.device) if len(src) == 1 else ngf.msad(model, src, device=args.device)
         what = "NeuroGF"
@@ -613,46 +803,52 @@ def _cmd_render(args) -> int:
         if args.exact:
             paths = ngf.geodesic_paths(mesh, src[0], tg, m=128, device=args.device)
         elif args.heat:
-            import potpourri3d as pp3d
-
-            flip = pp3d.EdgeFlipGeodesicSolver(mesh.vertices, mesh.faces.astype(np.int64))
-            s0 = int(mesh.vertex(np.asarray(src[:1]))[0])
-            paths = [flip.find_geodesic_path(s0, int(t)) for t in mesh.vertex(np.asarray(tg))]
+            paths = fields.heat_paths(mesh, src[0], tg)
         else:
             v = mesh.vertices[mesh.vertex(np.asarray(tg))]
             s = np.repeat(mesh.vertices[mesh.vertex(np.asarray(src[:1]))], len(tg), axis=0)
-            paths = np.asarray(ngf.path(model, s, v, m=128, refine=args.refine, device=args.device))
-    render(model, values, sources=src, paths=paths, isolines=args.isolines, out=args.output, size=tuple(args.size),
-           view=None if args.view is None else tuple(args.view), vrange=args.vrange, device=args.device)
-    _say(args, f"render: {what} field from {len(src)} source(s), {len(args.paths or [])} path(s): {args.output}")
+            paths = np.asarray(ngf.path(model, s, v, m=128, refine=args.refine, project="mesh", device=args.device))
+    view = None if args.view is None else View(azimuth=args.view[0], elevation=args.view[1], up=args.up)
+    if view is None and args.up != "auto":  # face the sources as render would, with the given up axis
+        from neurogf_warp.pictures.render import SOURCE_VIEW_MAX_ELEVATION, source_side
+
+        side = source_side(mesh.vertices[mesh.vertex(np.asarray(src))], mesh.vertices)
+        view = View(up=args.up) if side is None else View.toward(side, up=args.up,
+                                                                 max_elevation=SOURCE_VIEW_MAX_ELEVATION)
+    render(model, values, sources=src, paths=paths, view=view, style=Style(isolines=args.isolines, vrange=args.vrange),
+           size=tuple(args.size), out=args.output, device=args.device)
+    _say(args, f"render: {what} field from {_plural(len(src), 'source')}, {_plural(len(args.paths or []), 'path')}: "
+               f"{args.output}")
     return 0
 
 
-def _exact_field(ref, mesh, sources):
-    """Exact distance to the nearest of ``sources`` (file numbering) per vertex, from a reference file."""
-    import numpy as np
-
-    from neurogf_warp.evaluation.evaluate import load_reference
-
-    vids, sids, dist = load_reference(ref, mesh)
-    want = mesh.vertex(np.asarray(sources))
-    rows = []
-    for s, w in zip(sources, want):
-        hit = np.flatnonzero(sids == w)
-        if not len(hit):
-            raise BadInput(f"--source {s} is not one of {ref}'s sources ({', '.join(map(str, mesh.index[sids]))})")
-        rows.append(dist[hit[0]])
-    out = np.full(len(mesh.vertices), np.nan)
-    out[vids] = np.min(rows, axis=0)
-    return mesh.to_input(out)
+# errors that mean "what was asked for is wrong" (exit 2). InputError is ours; the plain ValueError is still what
+# the training and inference stages raise for bad arguments, and the file errors come from the user's paths.
+USER_ERRORS = (InputError, ValueError, FileNotFoundError, IsADirectoryError, NotADirectoryError, FileExistsError,
+               PermissionError)
 
 
-COMMANDS = {"demo": _cmd_demo, "data": _cmd_data, "train": _cmd_train, "eval": _cmd_eval, "ssad": _cmd_ssad,
-            "msad": _cmd_msad, "distance": _cmd_distance, "path": _cmd_path, "info": _cmd_info, "render": _cmd_render}
+@contextlib.contextmanager
+def _one_line_warnings(args):
+    """Warnings as one line on stderr in the command's name (no Python source line), none with -q."""
+    def show(message, category, filename, lineno, file=None, line=None):
+        if not args.quiet:
+            print(f"{PROG} {args.command}: warning: {message}", file=sys.stderr, flush=True)
 
-# errors that mean "what was asked for is wrong" (exit 2); anything else is a failure (exit 1)
-BAD_INPUT = (BadInput, ValueError, TypeError, IndexError, FileNotFoundError, IsADirectoryError, NotADirectoryError,
-             FileExistsError, PermissionError)
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")
+        warnings.showwarning = show
+        yield
+
+
+def _quiet_stdout_exit():
+    """After a closed stdout: point it at /dev/null so that the interpreter's final flush cannot fail again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):
+        pass
 
 
 def main(argv=None) -> int:
@@ -664,21 +860,32 @@ def main(argv=None) -> int:
         return 2
     debug = args.verbose or os.environ.get("NEUROGF_DEBUG", "") not in ("", "0")
     try:
-        start_warp(args.verbose)
-        return COMMANDS[args.command](args)
+        with _one_line_warnings(args):
+            start_warp(args.verbose)
+            return args.run(args)
+    except _StdoutClosed:
+        _quiet_stdout_exit()
+        return 0
     except KeyboardInterrupt as e:  # TrainingInterrupted says where its checkpoint is
         msg = str(e) or "interrupted"
         print(f"{PROG} {args.command}: {msg}", file=sys.stderr)
         return 130
-    except BAD_INPUT as e:
+    except USER_ERRORS as e:
         if debug:
             raise
         print(f"{PROG} {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except OSError as e:  # the machine, not the input and not our code: a full disk, a device error
+        if debug:
+            raise
+        print(f"{PROG} {args.command}: failed: {e}", file=sys.stderr)
+        return 1
     except Exception as e:  # noqa: BLE001 - the one place that turns failures into an exit code
         if debug:
             raise
-        print(f"{PROG} {args.command}: failed: {type(e).__name__}: {e}", file=sys.stderr)
+        print(f"{PROG} {args.command}: internal error: {type(e).__name__}: {e}\n"
+              f"This is a bug in neurogf-warp, not a problem with your input. Please report it to {ISSUES} with "
+              f"the command line and the traceback that the same command prints with --verbose.", file=sys.stderr)
         return 1
 
 

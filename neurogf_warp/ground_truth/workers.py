@@ -27,6 +27,8 @@ import warnings
 
 import numpy as np
 
+from neurogf_warp.common.checks import integer
+
 __all__ = ["DistanceRows", "cpu_cores", "MAX_WORKERS"]
 
 MAX_WORKERS = 8  # processes in all (the caller included); each holds Warp and a solver (~0.3 GB)
@@ -125,9 +127,8 @@ class DistanceRows:
     """
 
     def __init__(self, solver, workers: int | None = None):
-        if workers is not None and (isinstance(workers, bool) or not isinstance(workers, (int, np.integer))
-                                    or workers < 1):
-            raise ValueError(f"workers must be None or an integer >= 1, got {workers!r}")
+        if workers is not None:
+            workers = integer("workers", workers, minimum=1)
         self.solver = solver
         if not solver.device.is_cpu:
             workers = 1

@@ -75,8 +75,11 @@ def sources_in(model: Model, src, name: str, dev, one: bool = False):
     elif isinstance(src, torch.Tensor):
         src = src.detach().cpu().numpy()
     a = np.asarray(src)
-    if a.dtype == object or a.size == 0:
+    if a.size == 0:
         raise ValueError(f"{name} is empty: give a vertex index, a list of indices or (S, 3) points")
+    if a.dtype == object:  # None, an integer beyond int64, ragged lists, ...
+        raise ValueError(f"{name} must be a vertex index (an integer below 2**63), a list of indices or (S, 3) points, "
+                         f"got {str(src)[:80]!r}")
     if np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.bool_):
         if np.issubdtype(a.dtype, np.bool_):
             raise TypeError(f"{name} must be vertex indices (integers) or points (floats), got booleans")

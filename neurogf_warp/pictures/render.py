@@ -25,7 +25,7 @@ from neurogf_warp.common.files import atomic_write
 from neurogf_warp.kernels.pictures import raycast
 from neurogf_warp.mesh.surface import as_mesh, as_numpy, points_of
 
-__all__ = ["render", "write_ply", "colorize", "View", "choose_up", "COLOR_STOPS", "UP_CHOICES"]
+__all__ = ["render", "write_ply", "colorize", "View", "Style", "choose_up", "COLOR_STOPS", "UP_CHOICES"]
 
 # equally spaced colours from the low end (a source: distance 0) to the high end of the value range
 COLOR_STOPS = np.array([
@@ -111,6 +111,8 @@ Z_UP_RATIO = 1.2
 FRAME_MARGIN = 0.06
 # the default view of a source looks at it from at most this far above or below
 SOURCE_VIEW_MAX_ELEVATION = 60.0
+# several sources are faced when the mean of their unit directions from the centre is at least this long
+SOURCES_ON_ONE_SIDE = 0.35
 
 
 def choose_up(vertices) -> str:
@@ -121,6 +123,22 @@ def choose_up(vertices) -> str:
     v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     ext = v.max(0) - v.min(0)
     return "z" if ext[2] >= Z_UP_RATIO * ext[1] else "y"
+
+
+def source_side(sources: np.ndarray, vertices: np.ndarray):
+    """The direction, from the bounding box's centre, that the default view of ``sources`` ((S, 3), mesh units)
+    looks along: toward the one source; for several, the mean of their unit directions, when they lie mostly on
+    one side (its length at least ``SOURCES_ON_ONE_SIDE``). None: no side to face (sources all around, or one at
+    the centre), and the default ``View`` is used."""
+    c = (vertices.min(0) + vertices.max(0)) / 2
+    d = np.asarray(sources, dtype=np.float64).reshape(-1, 3) - c
+    n = np.linalg.norm(d, axis=1)
+    scale = float(np.linalg.norm(vertices - c, axis=1).max())
+    d, n = d[n > 1e-9 * scale], n[n > 1e-9 * scale]
+    if not len(d):
+        return None
+    mean = (d / n[:, None]).mean(0)
+    return mean if np.linalg.norm(mean) >= (SOURCES_ON_ONE_SIDE if len(d) > 1 else 0.0) else None
 
 
 def _axes(up: str):
@@ -269,9 +287,52 @@ def _range(v: np.ndarray, vrange):
     return (lo, hi) if hi > lo else (lo, lo + 1.0)
 
 
-def render(model_or_mesh, values=None, *, sources=None, paths=None, isolines: int = 20, out=None,
-           size=(1024, 1024), view=None, vrange=None, points=None, supersample: int = 2,
-           path_radius: float | None = None, marker_radius: float | None = None, device=None) -> np.ndarray:
+@dataclass
+class Style:
+    """How a picture is drawn, apart from what (values, markers, paths) and from where (``View``).
+
+    isolines : number of equal steps of the value range between isolines (0: none)
+    vrange : (low, high) values at the colour map's ends (default: the field's min and max); share it between
+        pictures that are to be compared
+    supersample : samples per pixel along each axis (anti-aliasing; 1 = none), 1..8
+    path_radius, marker_radius : tube and sphere radii, mesh units (default 0.6% and 2.5% of the bounding
+        sphere's radius)
+    path_targets : mark each path's last point (its target) with a dark sphere
+    """
+
+    isolines: int = 20
+    vrange: tuple | None = None
+    supersample: int = 2
+    path_radius: float | None = None
+    marker_radius: float | None = None
+    path_targets: bool = True
+
+    @classmethod
+    def of(cls, style=None, **changes) -> "Style":
+        """A Style from None (the default), a Style or a dict of its fields, with ``changes`` applied; unknown
+        names are refused, naming the known ones."""
+        known = {f.name for f in fields(cls)}
+        if style is None:
+            base = {}
+        elif isinstance(style, cls):
+            base = {f: getattr(style, f) for f in known}
+        elif isinstance(style, dict):
+            base = dict(style)
+        else:
+            raise InputError(f"style must be None, a Style or a dict of its fields, got {style!r}")
+        base.update(changes)
+        bad = sorted(set(base) - known)
+        if bad:
+            raise InputError(f"unknown picture setting(s) {bad}; known: {sorted(known)} (see neurogf_warp.pictures."
+                             "render.Style)")
+        out = cls(**base)
+        out.isolines = integer("isolines", out.isolines, minimum=0)
+        out.supersample = integer("supersample", out.supersample, minimum=1, maximum=8)
+        return out
+
+
+def render(model_or_mesh, values=None, *, sources=None, paths=None, points=None, view=None, style=None,
+           size=(1024, 1024), out=None, device=None, **style_fields) -> np.ndarray:
     """Draw the mesh shaded by a per-vertex field with isolines, sources and points marked, paths as tubes.
 
     Parameters
@@ -281,20 +342,17 @@ def render(model_or_mesh, values=None, *, sources=None, paths=None, isolines: in
         ``sources``: the model's SSAD (one source) or MSAD (several) from them; None otherwise: plain grey.
     sources : vertex indices (mesh numbering) or (S, 3) points, mesh units; drawn as gold spheres
     paths : (N, m, 3), (m, 3) or a list of (m_i, 3) polylines, mesh units; drawn as tubes, colours cycled, each
-        one's last point (its target) marked with a dark sphere
-    isolines : number of equal steps of the value range between isolines (0: none)
-    (everything drawn, markers and paths included, fits in the picture with a margin at every view)
-    out : image file to write (.png, or .jpg), atomically; None writes nothing
-    size : (width, height) in pixels
-    view : a ``View``, a dict of its fields or (azimuth, elevation) in degrees; None: with ``sources``, the view
-        toward the first source (``View.toward`` it from the bounding box's centre, elevation within +-60
-        degrees), else the default ``View``. The up axis is chosen by ``choose_up`` unless the view names one.
-    vrange : (low, high) values at the colour map's ends (default: the field's min and max); share it between
-        pictures that are to be compared
+        one's last point (its target) marked with a dark sphere unless ``path_targets=False``
     points : (K, 3) further points to mark (white spheres), mesh units
-    supersample : samples per pixel along each axis (anti-aliasing; 1 = none)
-    path_radius, marker_radius : tube and sphere radii, mesh units (default 0.6% and 2.5% of the bounding
-        sphere's radius)
+    view : where from: a ``View``, a dict of its fields or (azimuth, elevation) in degrees; None: with
+        ``sources``, the view toward them (``source_side``: the one source, or several when they lie mostly on
+        one side; elevation within +-60 degrees), else the default ``View``. The up axis is chosen by
+        ``choose_up`` unless the view names one. Everything drawn, markers and paths included, fits in the
+        picture with a margin at every view.
+    style : how: a ``Style`` or a dict of its fields (isolines, vrange, supersample, path_radius,
+        marker_radius, path_targets); ``style_fields`` given as keywords (``isolines=0``) override it
+    size : (width, height) in pixels
+    out : image file to write (.png, or .jpg), atomically; None writes nothing
     device : Warp device (default: Warp's preferred one)
 
     Returns
@@ -304,8 +362,9 @@ def render(model_or_mesh, values=None, *, sources=None, paths=None, isolines: in
     mesh = as_mesh(model_or_mesh)
     model = model_or_mesh if hasattr(model_or_mesh, "net") else None
     w, h = _size(size)
-    isolines = integer("isolines", isolines, minimum=0)
-    supersample = integer("supersample", supersample, minimum=1, maximum=8)
+    st = Style.of(style, **style_fields)
+    isolines, vrange, supersample = st.isolines, st.vrange, st.supersample
+    path_radius, marker_radius = st.path_radius, st.marker_radius
     dev = resolve_device(device)
     V, F = mesh.vertices, mesh.faces.astype(np.int64)
     r0 = float(np.linalg.norm(V - (V.min(0) + V.max(0)) / 2, axis=1).max())
@@ -339,7 +398,7 @@ def render(model_or_mesh, values=None, *, sources=None, paths=None, isolines: in
             if tube is not None:
                 parts.append((*tube, 3 + i % len(PATH_COLORS)))
         ends = np.array([P[np.isfinite(P).all(1)][-1] for P in lines if np.isfinite(P).all(1).any()])
-        if len(ends):
+        if len(ends) and st.path_targets:
             parts.append((*_spheres(ends, 0.6 * rm), 2))
     verts, norms, faces, color, vv = [], [], [], [], []
     base = 0
@@ -368,8 +427,8 @@ def render(model_or_mesh, values=None, *, sources=None, paths=None, isolines: in
 
     s = int(supersample)
     if view is None and src_points is not None and len(src_points):
-        direction = src_points[0] - (V.min(0) + V.max(0)) / 2
-        if np.linalg.norm(direction) > 1e-9 * r0:  # a source at the very centre has no side to face
+        direction = source_side(src_points, V)
+        if direction is not None:
             view = View.toward(direction, up="auto", vertices=V, max_elevation=SOURCE_VIEW_MAX_ELEVATION)
     cam = _camera(V, View.of(view), w * s, h * s, extent=verts)
     rgb = wp.empty((h * s, w * s), dtype=wp.vec3, device=dev)
