@@ -1,0 +1,231 @@
+"""Warp inference of the generalizable network: encoder (conditioning) and query network (pairs).
+
+:class:`WarpGenNet` holds the folded weights on one device in one arithmetic mode; :meth:`WarpGenNet.encode`
+turns a point cloud (unit-sphere frame) into a :class:`Encoded` state (per-point features F, the precomputed
+``G = W_F F + b`` of ``fuse``, a hash grid for the nearest-point lookup) and :meth:`WarpGenNet.ratio` evaluates
+pairs against it. Everything stays on the device; nothing synchronizes with the host except the hash-grid build.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from ..kernels.generalizable import kernels
+from .network import K_NEIGHBOURS, GenNeuroGF, folded_layers
+
+
+def default_mode(device) -> str:
+    """float64 on the CPU (exact parity, cheap there), float32 on CUDA (speed; 1e-5-level agreement)."""
+    return "fp64" if wp.get_device(device).is_cpu else "fp32"
+
+
+@dataclass
+class Encoded:
+    """A conditioned point cloud on the device (unit-sphere frame)."""
+
+    cloud: wp.array  # (N, 3) storage dtype
+    feats: wp.array  # (N, 128) per-point features F
+    fused: wp.array  # (N, 128) G = W_F F + b_fuse (fuse before the coordinate term and ReLU)
+    grid: wp.HashGrid | None
+    radius: float  # hash-grid query radius (unit frame); the lookup is exact regardless (brute-force fallback)
+    neighbours: list  # the three (N, k) kNN index arrays (for tests)
+
+
+class WarpGenNet:
+    """The released (or a trained) :class:`GenNeuroGF` as Warp arrays on ``device``.
+
+    mode: ``"fp64"``, ``"fp32"`` or ``"mixed"`` (see ``kernels/generalizable``); default: :func:`default_mode`.
+    knn_chunks: candidate chunks per point of the neighbour search (parallelism on a GPU; 1 on the CPU).
+    """
+
+    def __init__(self, net: GenNeuroGF, device=None, mode: str | None = None, knn_chunks: int | None = None,
+                 use_grid: bool = True):
+        self.device = wp.get_device(device)
+        self.mode = mode or default_mode(self.device)
+        self.k = kernels(self.mode)
+        self.np_dtype = np.float64 if self.mode == "fp64" else np.float32
+        self.knn_chunks = knn_chunks or (1 if self.device.is_cpu else 8)
+        self.use_grid = use_grid
+        self.kk = net.backbone.econv_1.k
+        L = folded_layers(net)
+        a = self._arr
+        w = {}
+        for name, split in (("e1a", 3), ("e2a", 64), ("e3", 64)):  # edge layers on [f_i, f_j - f_i]
+            W, b = L[name]
+            Wa, Wb = W[:, :split], W[:, split:]
+            w[name + "P"] = (a(Wa - Wb), a(b))
+            w[name + "Q"] = (a(Wb), a(np.zeros(W.shape[0])))
+        for name in ("e1b", "e2b", "pw", "mlp1", "head0", "head1"):
+            W, b = L[name]
+            w[name] = (a(W), a(b))
+        W, b = L["mlp0"]
+        w["mlp0cw"] = (a(W[:, :320]), a(b))
+        w["mlp0f"] = a(W[:, 320:])
+        W, b = L["fuse"]
+        w["fuseF"] = (a(W[:, :128]), a(b))
+        w["fuseX"] = a(W[:, 128:])
+        w["head2"] = a(L["head2"][0])
+        self.w = w
+        self._zero128 = a(np.zeros(128))
+
+    def _arr(self, x):
+        x = np.ascontiguousarray(np.asarray(x, dtype=np.float64).astype(self.np_dtype))
+        return wp.array(x, dtype=self.k.dtype, device=self.device)
+
+    # ---- encoder -------------------------------------------------------------------------------------------
+    def knn(self, f: wp.array, kk: int | None = None) -> wp.array:
+        """Exact kk nearest neighbours of each row of f (N, C) among the rows, closest first, self included,
+        ties -> smaller index. Returns (N, kk) int32."""
+        kk = kk or self.kk
+        n = f.shape[0]
+        g = max(1, min(self.knn_chunks, n // kk))
+        n_per = (n + g - 1) // g
+        pd = wp.empty((n, g, kk), dtype=self.k.acc, device=self.device)
+        pi = wp.empty((n, g, kk), dtype=wp.int32, device=self.device)
+        nbr = wp.empty((n, kk), dtype=wp.int32, device=self.device)
+        wp.launch(self.k.knn_partial, (n, g), inputs=[f, n_per, kk, pd, pi], device=self.device)
+        wp.launch(self.k.knn_merge, (n, g, kk), inputs=[pd, pi, nbr], device=self.device)
+        return nbr
+
+    def _linear(self, x, x_off, wb, relu, y, y_off=0):
+        W, b = wb
+        wp.launch(self.k.linear, (x.shape[0], W.shape[0]), inputs=[x, x_off, W, b, int(relu), y, y_off],
+                  device=self.device)
+
+    def encode(self, cloud) -> Encoded:
+        """cloud: (N, 3) points in the unit-sphere frame (numpy/torch/wp; N >= k = 40) -> :class:`Encoded`."""
+        dev, T = self.device, self.k.dtype
+        if isinstance(cloud, wp.array) and cloud.dtype == T and cloud.ndim == 2 and cloud.device == dev:
+            X = cloud
+        else:
+            X = self._arr(np.asarray(cloud.numpy() if isinstance(cloud, wp.array) else cloud))
+        n = X.shape[0]
+        if n < self.kk:
+            raise ValueError(f"the point cloud has {n} points; the encoder needs at least k={self.kk}")
+        emp = lambda c: wp.empty((n, c), dtype=T, device=dev)  # noqa: E731
+        cat = emp(192)  # [f1, f2, f3]
+        P, Q = emp(64), emp(64)
+        w = self.w
+        nbrs = []
+        # block 1: neighbours in xyz space
+        nbr = self.knn(X)
+        nbrs.append(nbr)
+        self._linear(X, 0, w["e1aP"], False, P)
+        self._linear(X, 0, w["e1aQ"], False, Q)
+        wp.launch(self.k.edge_two_layers, (n, 64), inputs=[P, Q, nbr, *w["e1b"], cat, 0], device=dev)
+        # block 2: neighbours in f1 space
+        nbr = self.knn(self._columns(cat, 0, 64))
+        nbrs.append(nbr)
+        self._linear(cat, 0, w["e2aP"], False, P)
+        self._linear(cat, 0, w["e2aQ"], False, Q)
+        wp.launch(self.k.edge_two_layers, (n, 64), inputs=[P, Q, nbr, *w["e2b"], cat, 64], device=dev)
+        # block 3: neighbours in f2 space, one layer: no per-edge matrix (see the kernels' docstring)
+        nbr = self.knn(self._columns(cat, 64, 64))
+        nbrs.append(nbr)
+        self._linear(cat, 64, w["e3P"], False, P)
+        self._linear(cat, 64, w["e3Q"], False, Q)
+        wp.launch(self.k.edge_one_layer, (n, 64), inputs=[P, Q, nbr, cat, 128], device=dev)
+        # codeword: max over points of pw_embedding([f1, f2, f3])
+        E = emp(320)
+        self._linear(cat, 0, w["pw"], True, E)
+        cw = wp.empty((1, 320), dtype=T, device=dev)
+        wp.launch(self.k.column_max, 320, inputs=[E, cw], device=dev)
+        # mlp.0 on [codeword, f]: the codeword part is the same for every point -> a per-cloud bias
+        bias = wp.empty((1, 128), dtype=T, device=dev)
+        self._linear(cw, 0, w["mlp0cw"], False, bias)
+        H = emp(128)
+        self._linear(cat, 0, (w["mlp0f"], bias.reshape((128,))), True, H)
+        F = emp(128)
+        self._linear(H, 0, w["mlp1"], True, F)
+        G = emp(128)
+        self._linear(F, 0, w["fuseF"], False, G)
+        grid, radius = None, 0.0
+        if self.use_grid:
+            grid, radius = self._grid(X)
+        return Encoded(X, F, G, grid, radius, nbrs)
+
+    def _columns(self, x: wp.array, off: int, width: int) -> wp.array:
+        """A contiguous copy of columns [off, off + width) of x (the kNN kernel reads whole rows)."""
+        n = x.shape[0]
+        y = wp.empty((n, width), dtype=x.dtype, device=self.device)
+        eye = self._eye(width)
+        wp.launch(self.k.linear, (n, width), inputs=[x, off, eye, self._zeros(width), 0, y, 0], device=self.device)
+        return y
+
+    def _eye(self, n):
+        key = ("eye", n)
+        if key not in self.w:
+            self.w[key] = self._arr(np.eye(n))
+        return self.w[key]
+
+    def _zeros(self, n):
+        key = ("zeros", n)
+        if key not in self.w:
+            self.w[key] = self._arr(np.zeros(n))
+        return self.w[key]
+
+    def _grid(self, X: wp.array):
+        """A hash grid over the cloud for the nearest-point lookup of queries.
+
+        radius: 4 / sqrt(N) in the unit frame (about twice the typical spacing of N points on a surface of area
+        ~4 pi r^2 / 2); queries farther than that from every point fall back to a brute-force scan (exact)."""
+        n = X.shape[0]
+        pts = wp.array(np.asarray(X.numpy(), dtype=np.float32), dtype=wp.vec3, device=self.device) \
+            if self.device.is_cpu else self._vec3(X)
+        radius = float(4.0 / np.sqrt(n))
+        dim = int(max(8, min(128, np.ceil(2.0 / radius))))
+        grid = wp.HashGrid(dim, dim, dim, device=self.device)
+        grid.build(pts, radius)
+        self._grid_pts = pts  # the grid refers to these points: keep them alive
+        return grid, radius
+
+    def _vec3(self, X: wp.array) -> wp.array:
+        import torch  # noqa: F401  (device-side cast without a host round trip)
+        t = wp.to_torch(X).float().contiguous()
+        return wp.from_torch(t, dtype=wp.vec3)
+
+    # ---- queries -------------------------------------------------------------------------------------------
+    def ratio(self, enc: Encoded, s, t) -> wp.array:
+        """The network's raw ratio for pairs s[m], t[m] ((M, 3), unit frame) -> (M,) storage dtype."""
+        S, Tt = self._arr(np.asarray(s)), self._arr(np.asarray(t))
+        m = S.shape[0]
+        out = wp.empty(m, dtype=self.k.dtype, device=self.device)
+        w = self.w
+        grid_id = enc.grid.id if enc.grid is not None else wp.uint64(0)
+        wp.launch(self.k.pair_ratio, m,
+                  inputs=[enc.cloud, grid_id, enc.radius, int(enc.grid is not None), enc.fused, w["fuseX"],
+                          *w["head0"], *w["head1"], w["head2"], S, Tt, out], device=self.device)
+        return out
+
+    def nearest(self, enc: Encoded, pts: wp.array) -> wp.array:
+        """Nearest cloud point of each row of pts (M, 3) (storage dtype, unit frame) -> (M,) int32."""
+        out = wp.empty(pts.shape[0], dtype=wp.int32, device=self.device)
+        grid_id = enc.grid.id if enc.grid is not None else wp.uint64(0)
+        wp.launch(self.k.nearest, pts.shape[0],
+                  inputs=[enc.cloud, grid_id, enc.radius, int(enc.grid is not None), pts, out], device=self.device)
+        return out
+
+    def distances(self, enc: Encoded, S: wp.array, T: wp.array, scale: float, matrix: bool,
+                  s_nn=None, t_nn=None, s_comp=None, t_comp=None, out=None) -> wp.array:
+        """Distances in user units (float32): pairs (S[m], T[m]) or, with ``matrix``, all S x T (row-major).
+
+        S, T: (., 3) storage dtype, unit frame; scale: unit-frame length per user unit; s_nn/t_nn: optional
+        precomputed nearest cloud points; s_comp/t_comp: optional component labels (int32) -> +inf across."""
+        n_t = T.shape[0] if matrix else 0
+        m = S.shape[0] * T.shape[0] if matrix else S.shape[0]
+        if out is None:
+            out = wp.empty(m, dtype=wp.float32, device=self.device)
+        if m == 0:
+            return out
+        e = wp.empty(0, dtype=wp.int32, device=self.device)
+        w = self.w
+        grid_id = enc.grid.id if enc.grid is not None else wp.uint64(0)
+        wp.launch(self.k.pair_distance, m,
+                  inputs=[enc.cloud, grid_id, enc.radius, int(enc.grid is not None), enc.fused, w["fuseX"],
+                          *w["head0"], *w["head1"], w["head2"],
+                          S, s_nn if s_nn is not None else e, s_comp if s_comp is not None else e,
+                          T, t_nn if t_nn is not None else e, t_comp if t_comp is not None else e,
+                          float(scale), n_t, out], device=self.device)
+        return out
