@@ -253,13 +253,15 @@ def _build(mode: str) -> SimpleNamespace:
                       b1: wp.array(dtype=T), w2: wp.array2d(dtype=T),
                       s: wp.array2d(dtype=T), si: wp.array(dtype=wp.int32), sc: wp.array(dtype=wp.int32),
                       t: wp.array2d(dtype=T), ti: wp.array(dtype=wp.int32), tc: wp.array(dtype=wp.int32),
-                      scale: float, n_t: int, out: wp.array(dtype=wp.float32)):
+                      cx: wp.float64, cy: wp.float64, cz: wp.float64, scale: wp.float64, n_t: int,
+                      out: wp.array(dtype=wp.float32)):
         """Thread m: pair (s[m // n_t], t[m % n_t]) when n_t > 0 (a source x target matrix), else (s[m], t[m]).
 
-        Distance in user units = max(ratio, 1) * |s - t| / scale: a geodesic is never shorter than the straight
-        segment, so ratios below 1 (network error) are raised to 1; exactly 0 for s == t. ``si``/``ti``: the
-        nearest cloud point of each point if precomputed (length > 0), else found here. ``sc``/``tc``: connected
-        component labels (length 0: one component); different labels give +inf.
+        s, t are in user units; the unit frame is ``(x - c) * scale``. Distance (user units) =
+        max(ratio, 1) * |s - t|: a geodesic is never shorter than the straight segment, so ratios below 1
+        (network error) are raised to 1; exactly 0 for s == t, never negative. ``si``/``ti``: the nearest cloud
+        point of each point if precomputed (length > 0), else found here. ``sc``/``tc``: connected-component
+        labels (length 0: one component); different labels give +inf.
         """
         m = wp.tid()
         a = m
@@ -271,19 +273,26 @@ def _build(mode: str) -> SimpleNamespace:
             if sc[a] != tc[bb]:
                 out[m] = wp.inf
                 return
-        sx = A(s[a, 0])
-        sy = A(s[a, 1])
-        sz = A(s[a, 2])
-        tx = A(t[bb, 0])
-        ty = A(t[bb, 1])
-        tz = A(t[bb, 2])
-        ex = sx - tx
-        ey = sy - ty
-        ez = sz - tz
+        ux = A(s[a, 0])
+        uy = A(s[a, 1])
+        uz = A(s[a, 2])
+        vx = A(t[bb, 0])
+        vy = A(t[bb, 1])
+        vz = A(t[bb, 2])
+        ex = ux - vx
+        ey = uy - vy
+        ez = uz - vz
         e2 = ex * ex + ey * ey + ez * ez
         if e2 == A(0.0):
             out[m] = 0.0
             return
+        sc_ = A(scale)
+        sx = (ux - A(cx)) * sc_
+        sy = (uy - A(cy)) * sc_
+        sz = (uz - A(cz)) * sc_
+        tx = (vx - A(cx)) * sc_
+        ty = (vy - A(cy)) * sc_
+        tz = (vz - A(cz)) * sc_
         i_s = int(0)
         i_t = int(0)
         if si.shape[0] > 0:
@@ -296,9 +305,38 @@ def _build(mode: str) -> SimpleNamespace:
             i_t = nearest_point(cloud, grid, radius, use_grid, tx, ty, tz)
         d = fuse_diff(g, wx, i_s, i_t, sx, sy, sz, tx, ty, tz)
         r = wp.max(head(d, w0, b0, w1, b1, w2), A(1.0))
-        out[m] = float(r * wp.sqrt(e2) / A(scale))
+        out[m] = float(r * wp.sqrt(e2))
+
+    @wp.kernel(**opts)
+    def to_unit(x: wp.array2d(dtype=T), cx: wp.float64, cy: wp.float64, cz: wp.float64, scale: wp.float64,
+                y: wp.array2d(dtype=T), v: wp.array(dtype=wp.vec3)):
+        """Thread i: y[i] = (x[i] - c) * scale (storage dtype) and its float32 vec3 copy (for the hash grid)."""
+        i = wp.tid()
+        a = (wp.float64(x[i, 0]) - cx) * scale
+        b = (wp.float64(x[i, 1]) - cy) * scale
+        c = (wp.float64(x[i, 2]) - cz) * scale
+        y[i, 0] = T(a)
+        y[i, 1] = T(b)
+        y[i, 2] = T(c)
+        v[i] = wp.vec3(float(a), float(b), float(c))
+
+    @wp.kernel(**opts)
+    def point_component(mesh: wp.uint64, x: wp.array2d(dtype=T), cx: wp.float64, cy: wp.float64,
+                        cz: wp.float64, scale: wp.float64, face_comp: wp.array(dtype=wp.int32),
+                        out: wp.array(dtype=wp.int32)):
+        """Thread i: the connected component of the mesh triangle closest to x[i] (user units; the wp.Mesh is in
+        the unit frame)."""
+        i = wp.tid()
+        p = wp.vec3(float((wp.float64(x[i, 0]) - cx) * scale), float((wp.float64(x[i, 1]) - cy) * scale),
+                    float((wp.float64(x[i, 2]) - cz) * scale))
+        q = wp.mesh_query_point_no_sign(mesh, p, 1.0e30)
+        if q.result:
+            out[i] = face_comp[q.face]
+        else:
+            out[i] = -1
 
     return SimpleNamespace(mode=mode, dtype=T, acc=A, module=module, knn_partial=knn_partial, knn_merge=knn_merge,
                            linear=linear, edge_two_layers=edge_two_layers, edge_one_layer=edge_one_layer,
                            column_max=column_max, nearest=nearest, pair_ratio=pair_ratio,
-                           pair_distance=pair_distance)
+                           pair_distance=pair_distance, to_unit=to_unit,
+                           point_component=point_component)

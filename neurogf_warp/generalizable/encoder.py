@@ -31,6 +31,7 @@ class Encoded:
     grid: wp.HashGrid | None
     radius: float  # hash-grid query radius (unit frame); the lookup is exact regardless (brute-force fallback)
     neighbours: list  # the three (N, k) kNN index arrays (for tests)
+    points32: wp.array | None = None  # (N,) vec3 float32 copy of ``cloud`` (the hash grid's points)
 
 
 class WarpGenNet:
@@ -94,14 +95,20 @@ class WarpGenNet:
         wp.launch(self.k.linear, (x.shape[0], W.shape[0]), inputs=[x, x_off, W, b, int(relu), y, y_off],
                   device=self.device)
 
-    def encode(self, cloud) -> Encoded:
-        """cloud: (N, 3) points in the unit-sphere frame (numpy/torch/wp; N >= k = 40) -> :class:`Encoded`."""
+    def encode(self, cloud, center=(0.0, 0.0, 0.0), scale: float = 1.0) -> Encoded:
+        """Condition the network on a point cloud.
+
+        cloud: (N, 3), N >= k = 40: numpy (any float dtype) or a wp.array2d of the storage dtype on this device
+        (then nothing is copied from the host). ``(cloud - center) * scale`` must be the cloud in the network's
+        unit-sphere frame (defaults: the cloud is in that frame already). Returns :class:`Encoded`.
+        """
         dev, T = self.device, self.k.dtype
-        if isinstance(cloud, wp.array) and cloud.dtype == T and cloud.ndim == 2 and cloud.device == dev:
-            X = cloud
-        else:
-            X = self._arr(np.asarray(cloud.numpy() if isinstance(cloud, wp.array) else cloud))
-        n = X.shape[0]
+        if not (isinstance(cloud, wp.array) and cloud.dtype == T and cloud.ndim == 2 and cloud.device == dev):
+            cloud = self._arr(np.asarray(cloud.numpy() if isinstance(cloud, wp.array) else cloud))
+        n = cloud.shape[0]
+        X = wp.empty((n, 3), dtype=T, device=dev)
+        V = wp.empty(n, dtype=wp.vec3, device=dev)
+        wp.launch(self.k.to_unit, n, inputs=[cloud, *(float(c) for c in center), float(scale), X, V], device=dev)
         if n < self.kk:
             raise ValueError(f"the point cloud has {n} points; the encoder needs at least k={self.kk}")
         emp = lambda c: wp.empty((n, c), dtype=T, device=dev)  # noqa: E731
@@ -143,8 +150,8 @@ class WarpGenNet:
         self._linear(F, 0, w["fuseF"], False, G)
         grid, radius = None, 0.0
         if self.use_grid:
-            grid, radius = self._grid(X)
-        return Encoded(X, F, G, grid, radius, nbrs)
+            grid, radius = self._grid(V)
+        return Encoded(X, F, G, grid, radius, nbrs, V)
 
     def _columns(self, x: wp.array, off: int, width: int) -> wp.array:
         """A contiguous copy of columns [off, off + width) of x (the kNN kernel reads whole rows)."""
@@ -166,25 +173,17 @@ class WarpGenNet:
             self.w[key] = self._arr(np.zeros(n))
         return self.w[key]
 
-    def _grid(self, X: wp.array):
+    def _grid(self, pts: wp.array):
         """A hash grid over the cloud for the nearest-point lookup of queries.
 
         radius: 4 / sqrt(N) in the unit frame (about twice the typical spacing of N points on a surface of area
         ~4 pi r^2 / 2); queries farther than that from every point fall back to a brute-force scan (exact)."""
-        n = X.shape[0]
-        pts = wp.array(np.asarray(X.numpy(), dtype=np.float32), dtype=wp.vec3, device=self.device) \
-            if self.device.is_cpu else self._vec3(X)
+        n = pts.shape[0]
         radius = float(4.0 / np.sqrt(n))
         dim = int(max(8, min(128, np.ceil(2.0 / radius))))
         grid = wp.HashGrid(dim, dim, dim, device=self.device)
-        grid.build(pts, radius)
-        self._grid_pts = pts  # the grid refers to these points: keep them alive
+        grid.build(pts, radius)  # the grid refers to pts: Encoded keeps them alive
         return grid, radius
-
-    def _vec3(self, X: wp.array) -> wp.array:
-        import torch  # noqa: F401  (device-side cast without a host round trip)
-        t = wp.to_torch(X).float().contiguous()
-        return wp.from_torch(t, dtype=wp.vec3)
 
     # ---- queries -------------------------------------------------------------------------------------------
     def ratio(self, enc: Encoded, s, t) -> wp.array:
@@ -207,12 +206,13 @@ class WarpGenNet:
                   inputs=[enc.cloud, grid_id, enc.radius, int(enc.grid is not None), pts, out], device=self.device)
         return out
 
-    def distances(self, enc: Encoded, S: wp.array, T: wp.array, scale: float, matrix: bool,
+    def distances(self, enc: Encoded, S: wp.array, T: wp.array, center, scale: float, matrix: bool,
                   s_nn=None, t_nn=None, s_comp=None, t_comp=None, out=None) -> wp.array:
         """Distances in user units (float32): pairs (S[m], T[m]) or, with ``matrix``, all S x T (row-major).
 
-        S, T: (., 3) storage dtype, unit frame; scale: unit-frame length per user unit; s_nn/t_nn: optional
-        precomputed nearest cloud points; s_comp/t_comp: optional component labels (int32) -> +inf across."""
+        S, T: (., 3) storage dtype, user units, ``(x - center) * scale`` = unit frame; s_nn/t_nn: optional
+        precomputed nearest cloud points (int32); s_comp/t_comp: optional component labels (int32), +inf across.
+        """
         n_t = T.shape[0] if matrix else 0
         m = S.shape[0] * T.shape[0] if matrix else S.shape[0]
         if out is None:
@@ -227,5 +227,5 @@ class WarpGenNet:
                           *w["head0"], *w["head1"], w["head2"],
                           S, s_nn if s_nn is not None else e, s_comp if s_comp is not None else e,
                           T, t_nn if t_nn is not None else e, t_comp if t_comp is not None else e,
-                          float(scale), n_t, out], device=self.device)
+                          *(float(c) for c in center), float(scale), n_t, out], device=self.device)
         return out
