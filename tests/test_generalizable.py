@@ -163,3 +163,16 @@ def test_query_kernels_random(random_net, use_grid):
     np.testing.assert_array_equal(got_nn, nn_s)
     got = wn.ratio(enc, s[0].numpy(), t[0].numpy()).numpy()
     assert np.abs(got - want).max() <= 1e-10 * max(1.0, np.abs(want).max())
+
+
+def test_load_hook_dispatch(tmp_path):
+    """hooks.load_if_generalizable: the released file -> a GeneralizableModel; another torch file -> None."""
+    from neurogf_warp.generalizable.hooks import load_if_generalizable
+    from neurogf_warp.generalizable.model import GeneralizableModel
+
+    m = load_if_generalizable(shared_path("checkpoints", "official", "GenNeuroGF.pth"))
+    assert isinstance(m, GeneralizableModel)
+    assert load_if_generalizable(shared_path("checkpoints", "official", "NeuroGF_Pretrainer__bunny_final.pth")) is None
+    junk = tmp_path / "x.pth"
+    junk.write_bytes(b"not a checkpoint")
+    assert load_if_generalizable(junk) is None

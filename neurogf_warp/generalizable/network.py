@@ -219,3 +219,11 @@ def folded_layers(net: GenNeuroGF) -> "OrderedDict[str, tuple]":
     out["fuse"] = _fold(net.fuse)
     out["head0"], out["head1"], out["head2"] = _fold(net.head[0]), _fold(net.head[1]), _fold(net.head[2])
     return out
+
+
+def is_generalizable_file(path) -> bool:
+    """True when ``path`` is a torch file holding the generalizable network's state_dict (released or trained)."""
+    try:
+        return is_generalizable_state_dict(load_state_dict_file(path))
+    except Exception:  # noqa: BLE001  (anything unreadable is simply not ours)
+        return False
