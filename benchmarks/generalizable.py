@@ -8,9 +8,10 @@ What it does, on one device and arithmetic mode (default: fp32 on CUDA, fp64 on 
 2. check: a fresh random shape (a noise-displaced ellipsoid, 2,048 points, seeded by --seed) and random pairs
    near it: the Warp ratio against the float64 torch network (mean / max relative difference; fails the run
    with exit status 1 above 1e-5 mean or 1e-3 max);
-3. conditioning a 2,048-point cloud: (a) ``WarpGenNet.encode`` of a device-resident cloud, (b) the same under
-   a CUDA graph when capture works, (c) the user call ``model.condition(numpy points)`` (host normalization and
-   upload included); median of --repeats runs, each CUDA-synchronized;
+3. conditioning a 2,048-point cloud: (a) ``WarpGenNet.encode(X, into=state)`` of a device-resident cloud into
+   reused buffers (steady state, no allocation), (b) ``encode`` allocating new buffers, (c) the user call
+   ``model.condition(numpy points)`` (host normalization and upload included), (d) (a) replayed as a CUDA graph
+   when capture works (measured last); median of --repeats runs, each CUDA-synchronized;
 4. pairs: 1M (--pairs) random pairs of points near the surface, distances in user units
    (``WarpGenNet.distances``, nearest-cloud-point lookup included), median wall of --repeats synchronized runs and
    the kernel time from Warp's CUDA activity timers (``wp.timing_begin``);
@@ -80,11 +81,12 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=50)
     ap.add_argument("--knn-chunks", type=int, default=None)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--quick", action="store_true", help="CPU smoke run: 20K pairs, 3 repeats")
+    ap.add_argument("--quick", action="store_true", help="CPU smoke run: 20K pairs, 2 repeats (1 for the slower variants)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     if a.quick:
-        a.pairs, a.repeats = min(a.pairs, 20_000), min(a.repeats, 3)
+        a.pairs, a.repeats = min(a.pairs, 20_000), min(a.repeats, 2)
+    few = 1 if a.quick else max(3, a.repeats // 5)  # repeats of the slower conditioning variants
 
     import torch
     import warp as wp
@@ -132,20 +134,14 @@ def main(argv=None):
 
     # 3. conditioning
     X = wn._arr(unit)  # device-resident input, storage dtype
-    enc_ms, enc_min = median_ms(lambda: wn.encode(X), a.repeats, sync)
-    graph_ms = graph_note = None
-    if dev.is_cuda:
-        try:
-            with wp.ScopedCapture(dev) as cap:
-                wn.encode(X)
-            graph_ms, _ = median_ms(lambda: wp.capture_launch(cap.graph), a.repeats, sync)
-        except Exception as e:  # noqa: BLE001  (report, do not fail the benchmark)
-            graph_note = f"capture failed: {type(e).__name__}: {str(e)[:120]}"
-    cond_ms, _ = median_ms(lambda: model.condition(cloud, device=dev, mode=mode), max(3, a.repeats // 5), sync)
-    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL) if dev.is_cuda else None
-    wn.encode(X)
+    enc_new_ms, _ = median_ms(lambda: wn.encode(X), few, sync)  # allocates every call
+    state = wn.encode(X)
+    enc_ms, enc_min = median_ms(lambda: wn.encode(X, into=state), a.repeats, sync)  # steady state: no allocation
+    cond_ms, _ = median_ms(lambda: model.condition(cloud, device=dev, mode=mode), few, sync)
     enc_kernel_ms = None
     if dev.is_cuda:
+        wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+        wn.encode(X, into=state)
         res = wp.timing_end()
         enc_kernel_ms = float(sum(r.elapsed for r in res))
 
@@ -172,12 +168,22 @@ def main(argv=None):
     want_d = np.maximum(w, 1.0) * np.linalg.norm(P[sel] - Q[sel], axis=1)
     pair_check = float((np.abs(d[sel] - want_d) / want_d).max())
 
+    # 5. conditioning under a CUDA graph (last: a failed capture must not disturb the other measurements)
+    graph_ms = graph_note = None
+    if dev.is_cuda:
+        try:
+            with wp.ScopedCapture(dev) as cap:
+                wn.encode(X, into=state)
+            graph_ms, _ = median_ms(lambda: wp.capture_launch(cap.graph), a.repeats, sync)
+        except Exception as e:  # noqa: BLE001  (report, do not fail the benchmark)
+            graph_note = f"capture failed: {type(e).__name__}: {str(e)[:120]}"
+
     result = {
         "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"), "device": str(dev),
         "device_name": dev.name, "host": platform.node(), "mode": mode, "weights": weights,
         "points": a.points, "pairs": a.pairs, "repeats": a.repeats, "knn_chunks": wn.knn_chunks,
         "compile_first_call_s": compile_s, "check_vs_torch_fp64": check,
-        "encode_ms_median": enc_ms, "encode_ms_min": enc_min, "encode_graph_ms_median": graph_ms,
+        "encode_ms_median": enc_ms, "encode_ms_min": enc_min, "encode_new_buffers_ms_median": enc_new_ms, "encode_graph_ms_median": graph_ms,
         "encode_graph_note": graph_note, "encode_kernels_ms_sum": enc_kernel_ms, "condition_numpy_ms_median": cond_ms,
         "pairs_ms_median": pair_ms, "pairs_ms_min": pair_min, "pairs_kernel_ms_median": pair_kernel_ms,
         "pairs_per_s": a.pairs / (pair_ms / 1e3), "pairs_max_rel_vs_torch_fp64": pair_check,
@@ -189,7 +195,8 @@ def main(argv=None):
         ("compile + first call", f"{compile_s:.2f} s"),
         ("check vs float64 torch", f"mean {check['mean_rel']:.2e}, max {check['max_rel']:.2e} "
                                    f"({'ok' if check['ok'] else 'FAIL'})"),
-        (f"encode {a.points} pts (device input)", f"{f(enc_ms)} ms median, {f(enc_min)} min"),
+        (f"encode {a.points} pts (device input)", f"{f(enc_ms)} ms median, {f(enc_min)} min (reused buffers)"),
+        ("encode, new buffers each call", f"{f(enc_new_ms)} ms median"),
         ("encode under a CUDA graph", f"{f(graph_ms)} ms" + (f" ({graph_note})" if graph_note else "")),
         ("encode kernels (Warp timers, sum)", f"{f(enc_kernel_ms)} ms"),
         ("model.condition(numpy)", f"{f(cond_ms)} ms median"),

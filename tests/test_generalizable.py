@@ -105,11 +105,12 @@ def test_knn_kernel_exact_with_ties(chunks):
     n, kk = f.shape[0], 12
     g = chunks
     n_per = (n + g - 1) // g
-    F = wp.array(f, dtype=wp.float64, device=dev)
+    wide = np.concatenate([rng.standard_normal((n, 2)), f, rng.standard_normal((n, 2))], axis=1)
+    F = wp.array(wide, dtype=wp.float64, device=dev)  # the kernel reads columns 2..6 only
     pd = wp.empty((n, g, kk), dtype=wp.float64, device=dev)
     pi = wp.empty((n, g, kk), dtype=wp.int32, device=dev)
     nbr = wp.empty((n, kk), dtype=wp.int32, device=dev)
-    wp.launch(k.knn_partial, (n, g), inputs=[F, n_per, kk, pd, pi], device=dev)
+    wp.launch(k.knn_partial, (n, g), inputs=[F, 2, f.shape[1], n_per, kk, pd, pi], device=dev)
     wp.launch(k.knn_merge, (n, g, kk), inputs=[pd, pi, nbr], device=dev)
     ref = knn_indices(torch.tensor(f)[None], kk, exact=True)[0].numpy()
     np.testing.assert_array_equal(nbr.numpy(), ref)
@@ -176,3 +177,17 @@ def test_load_hook_dispatch(tmp_path):
     junk = tmp_path / "x.pth"
     junk.write_bytes(b"not a checkpoint")
     assert load_if_generalizable(junk) is None
+
+
+def test_encode_into_reuses_buffers(random_net):
+    """encode(into=state) overwrites an earlier state with the same arrays and gives a fresh encode's result."""
+    rng = np.random.default_rng(9)
+    a, b = rng.uniform(-1, 1, (64, 3)), rng.uniform(-1, 1, (64, 3))
+    wn = WarpGenNet(random_net, "cpu", mode="fp64")
+    fresh = wn.encode(b).fused.numpy()
+    st = wn.encode(a)
+    ids = {k: v.ptr for k, v in st.scratch.items()}
+    grid = st.grid
+    again = wn.encode(b, into=st)
+    assert again is st and st.grid is grid and {k: v.ptr for k, v in st.scratch.items()} == ids
+    np.testing.assert_array_equal(st.fused.numpy(), fresh)

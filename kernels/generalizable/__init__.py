@@ -44,13 +44,13 @@ def _build(mode: str) -> SimpleNamespace:
     INF = float("inf")
 
     @wp.kernel(**opts)
-    def knn_partial(f: wp.array2d(dtype=T), n_per: int, kk: int,
+    def knn_partial(f: wp.array2d(dtype=T), c_off: int, nc: int, n_per: int, kk: int,
                     pd: wp.array3d(dtype=A), pi: wp.array3d(dtype=wp.int32)):
         """Thread (i, g): the kk nearest of point i among candidates [g n_per, (g+1) n_per), sorted by
-        (distance, index). pd/pi (N, G, kk) hold the sorted list (inf / -1 where the chunk has fewer)."""
+        (distance, index), in the feature space of columns [c_off, c_off + nc) of f. pd/pi (N, G, kk) hold the
+        sorted list (inf / -1 where the chunk has fewer)."""
         i, g = wp.tid()
         n = f.shape[0]
-        nc = f.shape[1]
         for m in range(kk):
             pd[i, g, m] = A(INF)
             pi[i, g, m] = -1
@@ -60,7 +60,7 @@ def _build(mode: str) -> SimpleNamespace:
         worst = A(INF)
         for j in range(j0, j1):
             d = A(0.0)
-            for c in range(nc):
+            for c in range(c_off, c_off + nc):
                 e = A(f[i, c]) - A(f[j, c])
                 d += e * e
             # strict comparisons: among equal distances the earlier (smaller) index stays first

@@ -7,7 +7,7 @@ pairs against it. Everything stays on the device; nothing synchronizes with the 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
@@ -32,6 +32,7 @@ class Encoded:
     radius: float  # hash-grid query radius (unit frame); the lookup is exact regardless (brute-force fallback)
     neighbours: list  # the three (N, k) kNN index arrays (for tests)
     points32: wp.array | None = None  # (N,) vec3 float32 copy of ``cloud`` (the hash grid's points)
+    scratch: dict = field(default_factory=dict)  # every device array of the encoder, reused by encode(into=)
 
 
 class WarpGenNet:
@@ -69,24 +70,34 @@ class WarpGenNet:
         w["fuseX"] = a(W[:, 128:])
         w["head2"] = a(L["head2"][0])
         self.w = w
-        self._zero128 = a(np.zeros(128))
 
     def _arr(self, x):
         x = np.ascontiguousarray(np.asarray(x, dtype=np.float64).astype(self.np_dtype))
         return wp.array(x, dtype=self.k.dtype, device=self.device)
 
     # ---- encoder -------------------------------------------------------------------------------------------
-    def knn(self, f: wp.array, kk: int | None = None) -> wp.array:
-        """Exact kk nearest neighbours of each row of f (N, C) among the rows, closest first, self included,
-        ties -> smaller index. Returns (N, kk) int32."""
+    def _buf(self, scratch: dict, name: str, shape, dtype):
+        """A device array from ``scratch`` (reused when its shape and dtype fit), else a new one stored there:
+        re-encoding into an earlier state allocates nothing (and can be captured in a CUDA graph)."""
+        a = scratch.get(name)
+        if a is None or a.shape != tuple(shape) or a.dtype != dtype:
+            a = scratch[name] = wp.empty(shape, dtype=dtype, device=self.device)
+        return a
+
+    def knn(self, f: wp.array, c_off: int = 0, nc: int | None = None, kk: int | None = None,
+            scratch: dict | None = None, tag: str = "") -> wp.array:
+        """Exact kk nearest neighbours of each row of f[:, c_off:c_off + nc] among the rows, closest first, self
+        included, ties -> smaller index. Returns (N, kk) int32."""
         kk = kk or self.kk
+        nc = f.shape[1] - c_off if nc is None else nc
+        scratch = {} if scratch is None else scratch
         n = f.shape[0]
         g = max(1, min(self.knn_chunks, n // kk))
         n_per = (n + g - 1) // g
-        pd = wp.empty((n, g, kk), dtype=self.k.acc, device=self.device)
-        pi = wp.empty((n, g, kk), dtype=wp.int32, device=self.device)
-        nbr = wp.empty((n, kk), dtype=wp.int32, device=self.device)
-        wp.launch(self.k.knn_partial, (n, g), inputs=[f, n_per, kk, pd, pi], device=self.device)
+        pd = self._buf(scratch, "knn_d", (n, g, kk), self.k.acc)
+        pi = self._buf(scratch, "knn_i", (n, g, kk), wp.int32)
+        nbr = self._buf(scratch, "nbr" + tag, (n, kk), wp.int32)
+        wp.launch(self.k.knn_partial, (n, g), inputs=[f, c_off, nc, n_per, kk, pd, pi], device=self.device)
         wp.launch(self.k.knn_merge, (n, g, kk), inputs=[pd, pi, nbr], device=self.device)
         return nbr
 
@@ -95,85 +106,68 @@ class WarpGenNet:
         wp.launch(self.k.linear, (x.shape[0], W.shape[0]), inputs=[x, x_off, W, b, int(relu), y, y_off],
                   device=self.device)
 
-    def encode(self, cloud, center=(0.0, 0.0, 0.0), scale: float = 1.0) -> Encoded:
+    def encode(self, cloud, center=(0.0, 0.0, 0.0), scale: float = 1.0, into: Encoded | None = None) -> Encoded:
         """Condition the network on a point cloud.
 
         cloud: (N, 3), N >= k = 40: numpy (any float dtype) or a wp.array2d of the storage dtype on this device
         (then nothing is copied from the host). ``(cloud - center) * scale`` must be the cloud in the network's
-        unit-sphere frame (defaults: the cloud is in that frame already). Returns :class:`Encoded`.
+        unit-sphere frame (defaults: the cloud is in that frame already). ``into``: an earlier result whose
+        arrays (and hash grid) are overwritten and returned (no allocation when N is unchanged; that earlier
+        state is then gone). Returns :class:`Encoded`.
         """
         dev, T = self.device, self.k.dtype
         if not (isinstance(cloud, wp.array) and cloud.dtype == T and cloud.ndim == 2 and cloud.device == dev):
             cloud = self._arr(np.asarray(cloud.numpy() if isinstance(cloud, wp.array) else cloud))
         n = cloud.shape[0]
-        X = wp.empty((n, 3), dtype=T, device=dev)
-        V = wp.empty(n, dtype=wp.vec3, device=dev)
-        wp.launch(self.k.to_unit, n, inputs=[cloud, *(float(c) for c in center), float(scale), X, V], device=dev)
         if n < self.kk:
             raise ValueError(f"the point cloud has {n} points; the encoder needs at least k={self.kk}")
-        emp = lambda c: wp.empty((n, c), dtype=T, device=dev)  # noqa: E731
-        cat = emp(192)  # [f1, f2, f3]
-        P, Q = emp(64), emp(64)
+        sc = into.scratch if into is not None else {}
+        buf = lambda name, c: self._buf(sc, name, (n, c), T)  # noqa: E731
+        X = buf("X", 3)
+        V = self._buf(sc, "V", (n,), wp.vec3)
+        wp.launch(self.k.to_unit, n, inputs=[cloud, *(float(c) for c in center), float(scale), X, V], device=dev)
+        cat = buf("cat", 192)  # [f1, f2, f3]
+        P, Q = buf("P", 64), buf("Q", 64)
         w = self.w
-        nbrs = []
         # block 1: neighbours in xyz space
-        nbr = self.knn(X)
-        nbrs.append(nbr)
+        n1 = self.knn(X, scratch=sc, tag="1")
         self._linear(X, 0, w["e1aP"], False, P)
         self._linear(X, 0, w["e1aQ"], False, Q)
-        wp.launch(self.k.edge_two_layers, (n, 64), inputs=[P, Q, nbr, *w["e1b"], cat, 0], device=dev)
+        wp.launch(self.k.edge_two_layers, (n, 64), inputs=[P, Q, n1, *w["e1b"], cat, 0], device=dev)
         # block 2: neighbours in f1 space
-        nbr = self.knn(self._columns(cat, 0, 64))
-        nbrs.append(nbr)
+        n2 = self.knn(cat, 0, 64, scratch=sc, tag="2")
         self._linear(cat, 0, w["e2aP"], False, P)
         self._linear(cat, 0, w["e2aQ"], False, Q)
-        wp.launch(self.k.edge_two_layers, (n, 64), inputs=[P, Q, nbr, *w["e2b"], cat, 64], device=dev)
+        wp.launch(self.k.edge_two_layers, (n, 64), inputs=[P, Q, n2, *w["e2b"], cat, 64], device=dev)
         # block 3: neighbours in f2 space, one layer: no per-edge matrix (see the kernels' docstring)
-        nbr = self.knn(self._columns(cat, 64, 64))
-        nbrs.append(nbr)
+        n3 = self.knn(cat, 64, 64, scratch=sc, tag="3")
         self._linear(cat, 64, w["e3P"], False, P)
         self._linear(cat, 64, w["e3Q"], False, Q)
-        wp.launch(self.k.edge_one_layer, (n, 64), inputs=[P, Q, nbr, cat, 128], device=dev)
+        wp.launch(self.k.edge_one_layer, (n, 64), inputs=[P, Q, n3, cat, 128], device=dev)
         # codeword: max over points of pw_embedding([f1, f2, f3])
-        E = emp(320)
+        E = buf("E", 320)
         self._linear(cat, 0, w["pw"], True, E)
-        cw = wp.empty((1, 320), dtype=T, device=dev)
+        cw = self._buf(sc, "cw", (1, 320), T)
         wp.launch(self.k.column_max, 320, inputs=[E, cw], device=dev)
         # mlp.0 on [codeword, f]: the codeword part is the same for every point -> a per-cloud bias
-        bias = wp.empty((1, 128), dtype=T, device=dev)
+        bias = self._buf(sc, "bias", (1, 128), T)
         self._linear(cw, 0, w["mlp0cw"], False, bias)
-        H = emp(128)
+        H = buf("H", 128)
         self._linear(cat, 0, (w["mlp0f"], bias.reshape((128,))), True, H)
-        F = emp(128)
+        F = buf("F", 128)
         self._linear(H, 0, w["mlp1"], True, F)
-        G = emp(128)
+        G = buf("G", 128)
         self._linear(F, 0, w["fuseF"], False, G)
         grid, radius = None, 0.0
         if self.use_grid:
-            grid, radius = self._grid(V)
-        return Encoded(X, F, G, grid, radius, nbrs, V)
+            grid, radius = self._grid(V, into.grid if into is not None else None)
+        if into is not None:
+            into.cloud, into.feats, into.fused, into.grid, into.radius = X, F, G, grid, radius
+            into.neighbours, into.points32 = [n1, n2, n3], V
+            return into
+        return Encoded(X, F, G, grid, radius, [n1, n2, n3], V, sc)
 
-    def _columns(self, x: wp.array, off: int, width: int) -> wp.array:
-        """A contiguous copy of columns [off, off + width) of x (the kNN kernel reads whole rows)."""
-        n = x.shape[0]
-        y = wp.empty((n, width), dtype=x.dtype, device=self.device)
-        eye = self._eye(width)
-        wp.launch(self.k.linear, (n, width), inputs=[x, off, eye, self._zeros(width), 0, y, 0], device=self.device)
-        return y
-
-    def _eye(self, n):
-        key = ("eye", n)
-        if key not in self.w:
-            self.w[key] = self._arr(np.eye(n))
-        return self.w[key]
-
-    def _zeros(self, n):
-        key = ("zeros", n)
-        if key not in self.w:
-            self.w[key] = self._arr(np.zeros(n))
-        return self.w[key]
-
-    def _grid(self, pts: wp.array):
+    def _grid(self, pts: wp.array, grid: wp.HashGrid | None = None):
         """A hash grid over the cloud for the nearest-point lookup of queries.
 
         radius: 4 / sqrt(N) in the unit frame (about twice the typical spacing of N points on a surface of area
@@ -181,7 +175,8 @@ class WarpGenNet:
         n = pts.shape[0]
         radius = float(4.0 / np.sqrt(n))
         dim = int(max(8, min(128, np.ceil(2.0 / radius))))
-        grid = wp.HashGrid(dim, dim, dim, device=self.device)
+        if grid is None:
+            grid = wp.HashGrid(dim, dim, dim, device=self.device)
         grid.build(pts, radius)  # the grid refers to pts: Encoded keeps them alive
         return grid, radius
 
