@@ -14,7 +14,8 @@ What it does, on one device and arithmetic mode (default: fp32 on CUDA, fp64 on 
    when capture works (measured last); median of --repeats runs, each CUDA-synchronized;
 4. pairs: 1M (--pairs) random pairs of points near the surface, distances in user units
    (``WarpGenNet.distances``, nearest-cloud-point lookup included), median wall of --repeats synchronized runs and
-   the kernel time from Warp's CUDA activity timers (``wp.timing_begin``);
+   the kernel time from Warp's CUDA activity timers (``wp.timing_begin``); then the same through the tiled query
+   (``distances_tiled``: tile GEMMs, cuBLASDx on CUDA) with fp32 and fp16 (tensor-core) operands;
 and prints a table (and writes --json). Targets from issue 23: conditioning <= 1 ms, 1M pairs <= 1 ms (GPU).
 """
 from __future__ import annotations
@@ -81,11 +82,14 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=50)
     ap.add_argument("--knn-chunks", type=int, default=None)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--quick", action="store_true", help="CPU smoke run: 20K pairs, 2 repeats (1 for the slower variants)")
+    ap.add_argument("--block-pairs", type=int, default=32, help="pairs per block of the tiled query")
+    ap.add_argument("--no-tiled", action="store_true", help="skip the tiled query (its first CUDA compile with "
+                    "cuBLASDx takes about a minute)")
+    ap.add_argument("--quick", action="store_true", help="CPU smoke run: 20K pairs, 1 repeat")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     if a.quick:
-        a.pairs, a.repeats = min(a.pairs, 20_000), min(a.repeats, 2)
+        a.pairs, a.repeats = min(a.pairs, 20_000), 1
     few = 1 if a.quick else max(3, a.repeats // 5)  # repeats of the slower conditioning variants
 
     import torch
@@ -168,6 +172,36 @@ def main(argv=None):
     want_d = np.maximum(w, 1.0) * np.linalg.norm(P[sel] - Q[sel], axis=1)
     pair_check = float((np.abs(d[sel] - want_d) / want_d).max())
 
+    # 4b. the tiled (tile-GEMM) query: operand fp32 and fp16 (tensor cores on CUDA); compile timed apart
+    tiled = {}
+    if mode in ("fp32", "fp64") and not a.no_tiled:
+        for op in (["fp32", "fp16"] if mode == "fp32" else ["fp64"]):
+            bp = a.block_pairs if dev.is_cuda else min(a.block_pairs, 16)
+            if dev.is_cpu and op == "fp64":
+                continue  # the fp64 tiles exceed the CPU tile arena
+            try:
+                t0 = time.perf_counter()
+                wn.distances_tiled(enc, Pd[:bp], Qd[:bp], center, scale, block_pairs=bp, operand=op)
+                sync()
+                comp_s = time.perf_counter() - t0
+                sc_ = {}
+                out_t = wp.empty(a.pairs, dtype=wp.float32, device=dev)
+                runt = (lambda: wn.distances_tiled(enc, Pd, Qd, center, scale, out=out_t, block_pairs=bp,
+                                                   operand=op, scratch=sc_))
+                runt()
+                ms, mn = median_ms(runt, a.repeats, sync)
+                kms = None
+                if dev.is_cuda:
+                    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+                    runt()
+                    kms = float(sum(r.elapsed for r in wp.timing_end()))
+                dt = out_t.numpy()
+                tiled[op] = {"block_pairs": bp, "compile_s": comp_s, "ms_median": ms, "ms_min": mn,
+                             "kernels_ms_sum": kms, "max_rel_vs_torch_fp64":
+                             float((np.abs(dt[sel] - want_d) / want_d).max())}
+            except Exception as e:  # noqa: BLE001
+                tiled[op] = {"error": f"{type(e).__name__}: {str(e)[:200]}"}
+
     # 5. conditioning under a CUDA graph (last: a failed capture must not disturb the other measurements)
     graph_ms = graph_note = None
     if dev.is_cuda:
@@ -186,7 +220,7 @@ def main(argv=None):
         "encode_ms_median": enc_ms, "encode_ms_min": enc_min, "encode_new_buffers_ms_median": enc_new_ms, "encode_graph_ms_median": graph_ms,
         "encode_graph_note": graph_note, "encode_kernels_ms_sum": enc_kernel_ms, "condition_numpy_ms_median": cond_ms,
         "pairs_ms_median": pair_ms, "pairs_ms_min": pair_min, "pairs_kernel_ms_median": pair_kernel_ms,
-        "pairs_per_s": a.pairs / (pair_ms / 1e3), "pairs_max_rel_vs_torch_fp64": pair_check,
+        "pairs_per_s": a.pairs / (pair_ms / 1e3), "pairs_max_rel_vs_torch_fp64": pair_check, "tiled": tiled,
     }
     f = (lambda v: "-" if v is None else f"{v:.3f}")
     rows = [
@@ -204,6 +238,13 @@ def main(argv=None):
         (f"{a.pairs:,} pairs (Warp kernel timer)", f"{f(pair_kernel_ms)} ms"),
         ("pair distances vs float64 torch", f"max rel {pair_check:.2e}"),
     ]
+    for op, r in tiled.items():
+        if "error" in r:
+            rows.append((f"tiled query ({op} operands)", r["error"]))
+        else:
+            rows.append((f"tiled query ({op}, B={r['block_pairs']})", f"{f(r['ms_median'])} ms median, "
+                         f"kernels {f(r['kernels_ms_sum'])} ms, compile {r['compile_s']:.1f} s, "
+                         f"max rel {r['max_rel_vs_torch_fp64']:.1e}"))
     wd = max(len(r[0]) for r in rows)
     print(f"generalizable NeuroGF, Warp inference ({result['date_utc']})")
     for k, v in rows:

@@ -191,3 +191,26 @@ def test_encode_into_reuses_buffers(random_net):
     again = wn.encode(b, into=st)
     assert again is st and st.grid is grid and {k: v.ptr for k, v in st.scratch.items()} == ids
     np.testing.assert_array_equal(st.fused.numpy(), fresh)
+
+
+@pytest.mark.parametrize("operand,tol", [("fp32", 1e-5), ("fp16", 5e-3)])
+def test_tiled_query_matches_simt(released, operand, tol):
+    """The tile-GEMM query path (tensor cores on CUDA) against the SIMT path on random pairs, fp32 mode; the
+    fp16-operand variant within its documented ~1e-3 relative error; 0 for equal points, inf across labels."""
+    rng = np.random.default_rng(2)
+    wn = WarpGenNet(released, "cpu", mode="fp32")
+    enc = wn.encode(rng.uniform(-1, 1, (64, 3)))
+    s = rng.uniform(-1, 1, (50, 3)) * 3 + 1
+    t = rng.uniform(-1, 1, (50, 3)) * 3 + 1
+    t[7] = s[7]
+    S, T = wn._arr(s), wn._arr(t)
+    comp = np.zeros(50, np.int32)
+    comp[3] = 1
+    sc = wp.array(comp, dtype=wp.int32, device="cpu")
+    tc = wp.zeros(50, dtype=wp.int32, device="cpu")
+    want = wn.distances(enc, S, T, (1, 1, 1), 1 / 3, False, s_comp=sc, t_comp=tc).numpy()
+    got = wn.distances_tiled(enc, S, T, (1, 1, 1), 1 / 3, s_comp=sc, t_comp=tc, block_pairs=16,
+                             operand=operand).numpy()  # 50 pairs: the last block is partial
+    assert got[7] == 0 and np.isinf(got[3]) and np.isinf(want[3])
+    ok = np.isfinite(want) & (want > 0)
+    assert (np.abs(got[ok] - want[ok]) / want[ok]).max() <= tol
