@@ -75,3 +75,31 @@ def test_bad_folder(tmp_path, capsys):
         mesh_files(tmp_path)
     assert main([str(tmp_path / "missing"), "-o", str(tmp_path / "m.pt")]) == 2
     assert "not a folder" in capsys.readouterr().err
+
+
+def test_per_mesh_folder_records_each_mesh(collection, tmp_path, monkeypatch):
+    """per_mesh.train_folder (one rank): every mesh goes to ngf.train with its own output file, a failing mesh is
+    recorded without stopping the others, the summary is written. (ngf.train itself is tested elsewhere; the
+    two-rank gloo run of this entry point is in the report.)"""
+    import neurogf_warp as ngf
+    from neurogf_warp.generalizable.per_mesh import main as per_mesh_main
+
+    calls = []
+
+    def fake_train(mesh, out, **kw):
+        calls.append((os.path.basename(mesh), os.path.relpath(out, tmp_path), kw["budget_seconds"], kw["epochs"]))
+        if mesh.endswith("s2.obj"):
+            raise ValueError("bad mesh")
+        open(out, "w").close()
+
+    monkeypatch.setattr(ngf, "train", fake_train, raising=False)
+    rc = per_mesh_main([str(collection), "-o", str(tmp_path / "out"), "--device", "cpu", "--budget-seconds", "7",
+                        "--set", "epochs=2"])
+    assert rc == 1  # one mesh failed
+    assert [c[0] for c in calls] == ["s5.obj", "s0.obj", "s1.obj", "s2.obj", "s3.obj", "s4.obj"]
+    assert calls[0][1:] == (os.path.join("out", "test", "s5.ngf"), 7.0, 2)
+    import json
+    s = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert s["world_size"] == 1 and s["failed"] == 1 and len(s["meshes"]) == 6
+    bad = [r for r in s["meshes"] if "error" in r]
+    assert bad[0]["mesh"] == os.path.join("train", "s2.obj") and "bad mesh" in bad[0]["error"]
