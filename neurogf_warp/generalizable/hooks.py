@@ -41,3 +41,13 @@ def cli_shapes(argv) -> int:
     a = ap.parse_args(argv)
     write_collection(a.folder, a.n, a.seed, a.test_every, a.shared_meshes)
     return 0
+
+
+def cli_per_mesh(argv) -> int:
+    """``neurogf-warp gen-per-mesh FOLDER -o OUTDIR ...``: one per-mesh model per mesh, spread over ranks."""
+    from .per_mesh import main
+
+    return main(argv)
+
+
+CLI_COMMANDS = {"gen-train": cli_train, "gen-shapes": cli_shapes, "gen-per-mesh": cli_per_mesh}
