@@ -142,13 +142,17 @@ def _build(mode: str) -> SimpleNamespace:
         y[i, y_off + o] = T(wp.max(A(p[i, o]) + m, A(0.0)))
 
     @wp.kernel(**opts)
-    def column_max(x: wp.array2d(dtype=T), y: wp.array2d(dtype=T)):
-        """Thread c: y[0, c] = max_i x[i, c] (the global max pooling)."""
-        c = wp.tid()
-        m = x[0, c]
-        for i in range(1, x.shape[0]):
+    def column_max(x: wp.array2d(dtype=T), rows_per: int, y: wp.array2d(dtype=T)):
+        """Thread (p, c): y[p, c] = max of x[i, c] over rows i in [p rows_per, (p+1) rows_per) (the global max
+        pooling in two passes: partial maxima of row chunks, then the maximum of those, so that a GPU runs
+        chunks x channels threads instead of one long loop per channel)."""
+        p, c = wp.tid()
+        i0 = p * rows_per
+        i1 = wp.min(i0 + rows_per, x.shape[0])
+        m = x[i0, c]
+        for i in range(i0 + 1, i1):
             m = wp.max(m, x[i, c])
-        y[0, c] = m
+        y[p, c] = m
 
     @wp.func
     def nearest_brute(cloud: wp.array2d(dtype=T), x: A, y: A, z: A):

@@ -148,7 +148,12 @@ class WarpGenNet:
         E = buf("E", 320)
         self._linear(cat, 0, w["pw"], True, E)
         cw = self._buf(sc, "cw", (1, 320), T)
-        wp.launch(self.k.column_max, 320, inputs=[E, cw], device=dev)
+        chunks = max(1, min(32, n // 64)) if not dev.is_cpu else 1
+        per = (n + chunks - 1) // chunks
+        chunks = (n + per - 1) // per  # every chunk non-empty
+        part = self._buf(sc, "cw_part", (chunks, 320), T)
+        wp.launch(self.k.column_max, (chunks, 320), inputs=[E, per, part], device=dev)
+        wp.launch(self.k.column_max, (1, 320), inputs=[part, chunks, cw], device=dev)
         # mlp.0 on [codeword, f]: the codeword part is the same for every point -> a per-cloud bias
         bias = self._buf(sc, "bias", (1, 128), T)
         self._linear(cw, 0, w["mlp0cw"], False, bias)
