@@ -112,3 +112,10 @@ def test_bad_input_is_refused(model, cloud_cond):
         c.ssad([1, 2])
     with pytest.raises(ValueError, match="one source"):
         c.ssad([1, 2, 3])
+
+
+def test_load_errors(tmp_path):
+    with pytest.raises(ValueError, match="no such file"):
+        load(tmp_path / "missing.pth")
+    with pytest.raises(ValueError, match="does not match"):
+        load(shared_path("checkpoints", "official", "NeuroGF_Pretrainer__bunny_final.pth"))

@@ -24,7 +24,7 @@ import numpy as np
 import warp as wp
 
 from .encoder import WarpGenNet, default_mode
-from .network import GenNeuroGF, load_network, load_state_dict_file
+from .network import GenNeuroGF, load_network
 
 DEFAULT_POINTS = 2048
 DEFAULT_SEED = 2024
@@ -276,14 +276,20 @@ class Conditioned:
         return best
 
 
-def load(path, map_location=None) -> GeneralizableModel:
-    """Load the released ``GenNeuroGF.pth`` (a plain state_dict) or a file written by ``generalizable.train``."""
+def load(path) -> GeneralizableModel:
+    """Load the released ``GenNeuroGF.pth`` (a plain state_dict) or a file written by ``generalizable.train``
+    (the state_dict plus what it was trained on, kept in ``model.meta``). Raises ValueError for a missing file or
+    one that does not hold this network."""
     import torch
 
-    obj = torch.load(os.fspath(path), map_location="cpu", weights_only=True) if os.path.exists(path) else None
-    if obj is None:
-        load_state_dict_file(path)  # raises the clear error
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise ValueError(f"no such file: {path!r}; pass the path of GenNeuroGF.pth or a trained model file")
+    obj = torch.load(path, map_location="cpu", weights_only=True)
     meta = {}
-    if isinstance(obj, dict) and "state_dict" in obj:
-        meta = {k: v for k, v in obj.items() if k not in ("state_dict", "optimizer", "rng")}
-    return GeneralizableModel(load_network(load_state_dict_file(path)), meta, os.fspath(path))
+    if isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict):
+        meta = {k: v for k, v in obj.items() if k not in ("state_dict", "optimizer")}
+        obj = obj["state_dict"]
+    if not isinstance(obj, dict):
+        raise ValueError(f"{path!r} does not hold a state_dict (found {type(obj).__name__})")
+    return GeneralizableModel(load_network(obj), meta, path)
