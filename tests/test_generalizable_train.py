@@ -65,7 +65,9 @@ def test_two_gloo_ranks_train_write_and_resume(collection, tmp_path):
     # the file loads as a generalizable model and answers queries on the held-out shape
     m = load(out)
     assert m.meta["trained_on"]["n_train"] == 5
-    c = m.condition(collection / "test" / "s5.obj", n_points=64)
+    assert m.cloud_points == 64
+    c = m.condition(collection / "test" / "s5.obj")  # samples as many points as in training
+    assert c.points.shape == (64, 3)
     row = c.ssad(0)
     assert row[0] == 0 and np.isfinite(row).all() and (row[1:] > 0).all()
 

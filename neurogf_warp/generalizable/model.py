@@ -88,13 +88,19 @@ class GeneralizableModel:
             self._warp[key] = WarpGenNet(self.net, dev, mode)
         return self._warp[key]
 
-    def condition(self, shape, n_points: int = DEFAULT_POINTS, seed: int = DEFAULT_SEED, device=None,
+    @property
+    def cloud_points(self) -> int:
+        """Points per cloud the network was trained with (2,048 for the released one; a trained file's config)."""
+        return int((self.meta.get("config") or {}).get("cloud_points", DEFAULT_POINTS))
+
+    def condition(self, shape, n_points: int | None = None, seed: int = DEFAULT_SEED, device=None,
                   mode: str | None = None) -> "Conditioned":
         """Encode a shape once; the result answers distance queries on it.
 
         shape: an (N, 3) point cloud in your units (N >= 40; the released network was trained on 2,048-point
-        clouds), or a mesh (path, ``ngf.Mesh``, trimesh, (V, F) pair): ``n_points`` points are sampled on it
-        with ``seed`` (see the module docstring), and results are per mesh vertex with +inf across connected
+        clouds), or a mesh (path, ``ngf.Mesh``, trimesh, (V, F) pair): ``n_points`` points (default: as many as
+        the network was trained with, :attr:`cloud_points`) are sampled on it with ``seed`` (see the module
+        docstring), and results are per mesh vertex with +inf across connected
         components. device: "cpu" / "cuda:N" (default: Warp's). mode: "fp64" / "fp32" / "mixed" (default
         fp64 on the CPU, fp32 on CUDA).
         """
@@ -110,6 +116,7 @@ class GeneralizableModel:
                                  f"{wn.kk} (the neighbour count), ideally ~2,048 as in training")
             center, scale = normalization(pts)
             return Conditioned(self, wn, pts, center, scale, None, None)
+        n_points = self.cloud_points if n_points is None else n_points
         if int(n_points) < wn.kk:
             raise ValueError(f"n_points={n_points} is too small; use at least {wn.kk} (2,048 as in training)")
         pts, face = sample_surface(mesh, int(n_points), seed)
