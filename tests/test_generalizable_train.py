@@ -28,6 +28,12 @@ def collection(tmp_path_factory):
     return root
 
 
+@pytest.fixture(scope="module")
+def gt_cache(tmp_path_factory):
+    """One ground-truth cache for the module's runs (same files and settings: computed once)."""
+    return tmp_path_factory.mktemp("gt")
+
+
 def _cli_args(cfg: dict):
     out = []
     for k, v in cfg.items():
@@ -35,12 +41,12 @@ def _cli_args(cfg: dict):
     return out
 
 
-def test_two_gloo_ranks_train_write_and_resume(collection, tmp_path):
+def test_two_gloo_ranks_train_write_and_resume(collection, tmp_path, gt_cache):
     out = tmp_path / "model.pt"
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
            str(29400 + os.getpid() % 500), "-m", "neurogf_warp.generalizable.train", str(collection), "-o", str(out),
-           "--device", "cpu", "--steps", "40", *_cli_args(TINY)]
+           "--device", "cpu", "--steps", "40", "--cache", str(gt_cache), *_cli_args(TINY)]
     r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert "world size 2" in r.stdout
@@ -50,14 +56,14 @@ def test_two_gloo_ranks_train_write_and_resume(collection, tmp_path):
     losses = [l for _, l in ck["loss_history"]]
     assert losses[-1] < 0.5 * losses[0], losses
     assert ck["val_history"] and np.isfinite(ck["val_mre"])
-    gt = sorted(p.name for p in (tmp_path / "model.pt.gt").iterdir())
+    gt = sorted(p.name for p in gt_cache.iterdir())
     assert len(gt) == 6 and not any(".tmp" in n for n in gt + [p.name for p in tmp_path.iterdir()])
     # both ranks computed ground truth (file i on rank i mod 2)
     assert "[rank 1] ground truth" in r.stdout
 
     # resume with another world size (1, in this process): continues the step count and the history
     ck2 = train_generalizable(collection, out, GenTrainConfig(steps=50, **TINY), resume=True, device="cpu",
-                              log=lambda s: None)
+                              log=lambda s: None, cache=gt_cache)
     assert ck2["step"] == 50 and ck2["world_size"] == 1
     assert ck2["loss_history"][:len(ck["loss_history"])] == ck["loss_history"]
     assert ck2["elapsed_s"] > ck["elapsed_s"]
@@ -105,3 +111,22 @@ def test_per_mesh_folder_records_each_mesh(collection, tmp_path, monkeypatch):
     assert s["world_size"] == 1 and s["failed"] == 1 and len(s["meshes"]) == 6
     bad = [r for r in s["meshes"] if "error" in r]
     assert bad[0]["mesh"] == os.path.join("train", "s2.obj") and "bad mesh" in bad[0]["error"]
+
+
+def test_interrupt_writes_checkpoint_and_resumes(collection, tmp_path, gt_cache):
+    """KeyboardInterrupt (Ctrl-C, here from the step callback) writes the finished steps; --resume continues."""
+    out = tmp_path / "m.pt"
+    cfg = GenTrainConfig(steps=8, **TINY)
+
+    def stop_at_5(step, loss):
+        if step == 5:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train_generalizable(collection, out, cfg, device="cpu", log=lambda s: None, callback=stop_at_5,
+                            cache=gt_cache)
+    assert torch.load(out, map_location="cpu", weights_only=True)["step"] == 5
+    seen = []
+    ck = train_generalizable(collection, out, cfg, resume=True, device="cpu", log=lambda s: None,
+                             callback=lambda s, l: seen.append(s), cache=gt_cache)
+    assert seen == [6, 7, 8] and ck["step"] == 8

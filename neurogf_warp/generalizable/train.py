@@ -261,8 +261,11 @@ def validation_mre(net: GenNeuroGF, data: ShapeData, cfg: GenTrainConfig, device
 # ---- training ------------------------------------------------------------------------------------------------
 
 def train_generalizable(folder, output, config: GenTrainConfig | None = None, resume: bool = False,
-                        cache=None, device=None, gt_device=None, log=None) -> dict:
+                        cache=None, device=None, gt_device=None, log=None, callback=None) -> dict:
     """Train (or resume) on a folder of meshes; returns the final checkpoint dict (see the module docstring).
+
+    ``callback(step, loss)`` runs after every step (raise KeyboardInterrupt there to stop like Ctrl-C: the
+    checkpoint is written, then the KeyboardInterrupt propagates).
 
     Works alone or under torchrun (one process per GPU or several on the CPU).
     """
@@ -329,49 +332,57 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
     t_ck = time.perf_counter()
     budget = cfg.budget_seconds
     run_loss, run_n = 0.0, 0
-    ck = None
-    while True:
-        step = state["step"]
-        elapsed = time.perf_counter() - t_start
-        stop = step >= cfg.steps or (budget is not None and elapsed >= budget)
-        if distributed:  # every rank stops at the same step (rank 0's clock decides)
-            flag = torch.tensor([1.0 if stop else 0.0], device=dev)
-            dist.broadcast(flag, 0)
-            stop = bool(flag.item())
-        if stop:
-            break
-        rng = np.random.default_rng([cfg.seed, step, rank])
-        idx = rng.choice(shard, cfg.shapes_per_step, replace=len(shard) < cfg.shapes_per_step)
-        C, S, T, R, _ = train_data.batch(idx, cfg.step_sources, cfg.step_targets, rng)
-        C, S, T, R = (torch.from_numpy(x).to(dev) for x in (C, S, T, R))
-        for g in opt.param_groups:
-            g["lr"] = lr_at(step)
-        loss = (model(C, S, T) - R).abs().mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        state["step"] = step + 1
-        run_loss += float(loss.detach())
-        run_n += 1
-        if state["step"] % cfg.log_every == 0 or state["step"] == 1:
-            mean = run_loss / run_n
-            if distributed:
-                t = torch.tensor([mean], device=dev)
-                dist.all_reduce(t)
-                mean = float(t.item()) / world
-            state["loss_history"].append([state["step"], mean])
-            say(f"step {state['step']}/{cfg.steps}  loss {mean:.4f}  lr {lr_at(step):.2e}  "
-                f"{time.perf_counter() - t_start:.1f} s")
-            run_loss, run_n = 0.0, 0
-        if cfg.val_every and state["step"] % cfg.val_every == 0 and rank == 0 and len(val_data):
-            mre = validation_mre(net, val_data, cfg, dev)
-            state["val_history"].append([state["step"], mre])
-            say(f"step {state['step']}  validation MRE {100 * mre:.2f}% ({min(cfg.val_shapes, len(val_data))} "
-                f"held-out shapes)")
+    try:
+        while True:
+            step = state["step"]
+            elapsed = time.perf_counter() - t_start
+            stop = step >= cfg.steps or (budget is not None and elapsed >= budget)
+            if distributed:  # every rank stops at the same step (rank 0's clock decides)
+                flag = torch.tensor([1.0 if stop else 0.0], device=dev)
+                dist.broadcast(flag, 0)
+                stop = bool(flag.item())
+            if stop:
+                break
+            rng = np.random.default_rng([cfg.seed, step, rank])
+            idx = rng.choice(shard, cfg.shapes_per_step, replace=len(shard) < cfg.shapes_per_step)
+            C, S, T, R, _ = train_data.batch(idx, cfg.step_sources, cfg.step_targets, rng)
+            C, S, T, R = (torch.from_numpy(x).to(dev) for x in (C, S, T, R))
+            for g in opt.param_groups:
+                g["lr"] = lr_at(step)
+            loss = (model(C, S, T) - R).abs().mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            state["step"] = step + 1
+            if callback is not None:
+                callback(state["step"], float(loss.detach()))
+            run_loss += float(loss.detach())
+            run_n += 1
+            if state["step"] % cfg.log_every == 0 or state["step"] == 1:
+                mean = run_loss / run_n
+                if distributed:
+                    t = torch.tensor([mean], device=dev)
+                    dist.all_reduce(t)
+                    mean = float(t.item()) / world
+                state["loss_history"].append([state["step"], mean])
+                say(f"step {state['step']}/{cfg.steps}  loss {mean:.4f}  lr {lr_at(step):.2e}  "
+                    f"{time.perf_counter() - t_start:.1f} s")
+                run_loss, run_n = 0.0, 0
+            if cfg.val_every and state["step"] % cfg.val_every == 0 and rank == 0 and len(val_data):
+                mre = validation_mre(net, val_data, cfg, dev)
+                state["val_history"].append([state["step"], mre])
+                say(f"step {state['step']}  validation MRE {100 * mre:.2f}% ({min(cfg.val_shapes, len(val_data))} "
+                    f"held-out shapes)")
+            state["elapsed_s"] = time.perf_counter() - t_start
+            if time.perf_counter() - t_ck >= cfg.checkpoint_seconds:
+                checkpoint()
+                t_ck = time.perf_counter()
+    except KeyboardInterrupt:
+        # Ctrl-C (or a callback raising KeyboardInterrupt): keep the finished steps, as per-mesh training does
         state["elapsed_s"] = time.perf_counter() - t_start
-        if time.perf_counter() - t_ck >= cfg.checkpoint_seconds:
-            checkpoint()
-            t_ck = time.perf_counter()
+        checkpoint()
+        say(f"interrupted at step {state['step']}: {output} written; --resume continues it")
+        raise
     state["elapsed_s"] = time.perf_counter() - t_start
     if rank == 0 and len(val_data) and (not state["val_history"] or state["val_history"][-1][0] != state["step"]):
         mre = validation_mre(net, val_data, cfg, dev)
@@ -422,6 +433,8 @@ def main(argv=None):
                       f"(world size {world})", flush=True)
             return 0
         train_generalizable(a.folder, a.output, cfg, resume=a.resume, cache=a.cache, device=a.device)
+    except KeyboardInterrupt:
+        return 130
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
