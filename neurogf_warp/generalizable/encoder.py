@@ -39,7 +39,8 @@ class WarpGenNet:
     """The released (or a trained) :class:`GenNeuroGF` as Warp arrays on ``device``.
 
     mode: ``"fp64"``, ``"fp32"`` or ``"mixed"`` (see ``kernels/generalizable``); default: :func:`default_mode`.
-    knn_chunks: candidate chunks per point of the neighbour search (parallelism on a GPU; 1 on the CPU).
+    knn_chunks: candidate chunks per point of the neighbour search (parallelism on a GPU, default 16; 1 on the
+    CPU); sweep it with the benchmark's --knn-chunks.
     """
 
     def __init__(self, net: GenNeuroGF, device=None, mode: str | None = None, knn_chunks: int | None = None,
@@ -48,7 +49,7 @@ class WarpGenNet:
         self.mode = mode or default_mode(self.device)
         self.k = kernels(self.mode)
         self.np_dtype = np.float64 if self.mode == "fp64" else np.float32
-        self.knn_chunks = knn_chunks or (1 if self.device.is_cpu else 8)
+        self.knn_chunks = knn_chunks or (1 if self.device.is_cpu else 16)
         self.use_grid = use_grid
         self.kk = net.backbone.econv_1.k
         L = folded_layers(net)
