@@ -186,8 +186,9 @@ def main(argv=None):
                 comp_s = time.perf_counter() - t0
                 sc_ = {}
                 out_t = wp.empty(a.pairs, dtype=wp.float32, device=dev)
-                runt = (lambda: wn.distances_tiled(enc, Pd, Qd, center, scale, out=out_t, block_pairs=bp,
-                                                   operand=op, scratch=sc_))
+                def runt(out_t=out_t, bp=bp, op=op, sc_=sc_):
+                    return wn.distances_tiled(enc, Pd, Qd, center, scale, out=out_t, block_pairs=bp, operand=op,
+                                              scratch=sc_)
                 runt()
                 ms, mn = median_ms(runt, a.repeats, sync)
                 kms = None
@@ -227,8 +228,8 @@ def main(argv=None):
         ("device / mode", f"{dev} ({dev.name}) / {mode}"),
         ("weights", weights),
         ("compile + first call", f"{compile_s:.2f} s"),
-        ("check vs float64 torch", f"mean {check['mean_rel']:.2e}, max {check['max_rel']:.2e} "
-                                   f"({'ok' if check['ok'] else 'FAIL'})"),
+        ("check vs float64 torch", (f"mean {check['mean_rel']:.2e}, max {check['max_rel']:.2e} "
+                                    f"({'ok' if check['ok'] else 'FAIL'})")),
         (f"encode {a.points} pts (device input)", f"{f(enc_ms)} ms median, {f(enc_min)} min (reused buffers)"),
         ("encode, new buffers each call", f"{f(enc_new_ms)} ms median"),
         ("encode under a CUDA graph", f"{f(graph_ms)} ms" + (f" ({graph_note})" if graph_note else "")),
@@ -242,9 +243,9 @@ def main(argv=None):
         if "error" in r:
             rows.append((f"tiled query ({op} operands)", r["error"]))
         else:
-            rows.append((f"tiled query ({op}, B={r['block_pairs']})", f"{f(r['ms_median'])} ms median, "
+            rows.append((f"tiled query ({op}, B={r['block_pairs']})", (f"{f(r['ms_median'])} ms median, "
                          f"kernels {f(r['kernels_ms_sum'])} ms, compile {r['compile_s']:.1f} s, "
-                         f"max rel {r['max_rel_vs_torch_fp64']:.1e}"))
+                         f"max rel {r['max_rel_vs_torch_fp64']:.1e}")))
     wd = max(len(r[0]) for r in rows)
     print(f"generalizable NeuroGF, Warp inference ({result['date_utc']})")
     for k, v in rows:

@@ -7,11 +7,17 @@ import numpy as np
 import pytest
 import torch
 import warp as wp
+from neurogf_warp.kernels.generalizable import kernels
 
 from neurogf_warp.generalizable.encoder import WarpGenNet
-from neurogf_warp.generalizable.network import (GenNeuroGF, folded_layers, is_generalizable_state_dict,
-                                                knn_indices, load_network, load_state_dict_file)
-from neurogf_warp.kernels.generalizable import kernels
+from neurogf_warp.generalizable.network import (
+    GenNeuroGF,
+    folded_layers,
+    is_generalizable_state_dict,
+    knn_indices,
+    load_network,
+    load_state_dict_file,
+)
 
 from .conftest import shared_path
 

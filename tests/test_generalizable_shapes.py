@@ -5,8 +5,14 @@ import numpy as np
 import pytest
 import trimesh
 
-from neurogf_warp.generalizable.shapes import FAMILIES, HELD_OUT_MESHES, DEFORM_SOURCES, is_test, make_shape, \
-    write_collection
+from neurogf_warp.generalizable.shapes import (
+    DEFORM_SOURCES,
+    FAMILIES,
+    HELD_OUT_MESHES,
+    is_test,
+    make_shape,
+    write_collection,
+)
 
 from .conftest import shared_path
 
@@ -50,7 +56,7 @@ def test_write_collection_and_split(tmp_path, meshes_dir):
     assert len(list((tmp_path / "train").glob("*.obj"))) == 10 and len(list((tmp_path / "test").glob("*.obj"))) == 2
     on_disk = json.loads((tmp_path / "manifest.json").read_text())
     assert on_disk["shapes"]["4"]["file"] == man["shapes"]["4"]["file"]
-    V, F, _ = make_shape(4, 1, meshes_dir)
+    V, _, _ = make_shape(4, 1, meshes_dir)
     tm = trimesh.load(tmp_path / man["shapes"]["4"]["file"], process=False, force="mesh")
     np.testing.assert_allclose(tm.vertices, V, atol=1e-6 * np.abs(V).max())
     with pytest.raises(ValueError, match="seed"):

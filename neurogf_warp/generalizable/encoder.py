@@ -13,7 +13,7 @@ import numpy as np
 import warp as wp
 
 from ..kernels.generalizable import kernels
-from .network import K_NEIGHBOURS, GenNeuroGF, folded_layers
+from .network import GenNeuroGF, folded_layers
 
 
 def default_mode(device) -> str:
@@ -123,7 +123,7 @@ class WarpGenNet:
         if n < self.kk:
             raise ValueError(f"the point cloud has {n} points; the encoder needs at least k={self.kk}")
         sc = into.scratch if into is not None else {}
-        buf = lambda name, c: self._buf(sc, name, (n, c), T)  # noqa: E731
+        buf = lambda name, c: self._buf(sc, name, (n, c), T)
         X = buf("X", 3)
         V = self._buf(sc, "V", (n,), wp.vec3)
         wp.launch(self.k.to_unit, n, inputs=[cloud, *(float(c) for c in center), float(scale), X, V], device=dev)

@@ -94,7 +94,7 @@ class GeneralizableModel:
         return int((self.meta.get("config") or {}).get("cloud_points", DEFAULT_POINTS))
 
     def condition(self, shape, n_points: int | None = None, seed: int = DEFAULT_SEED, device=None,
-                  mode: str | None = None) -> "Conditioned":
+                  mode: str | None = None) -> Conditioned:
         """Encode a shape once; the result answers distance queries on it.
 
         shape: an (N, 3) point cloud in your units (N >= 40; the released network was trained on 2,048-point
@@ -119,7 +119,7 @@ class GeneralizableModel:
         n_points = self.cloud_points if n_points is None else n_points
         if int(n_points) < wn.kk:
             raise ValueError(f"n_points={n_points} is too small; use at least {wn.kk} (2,048 as in training)")
-        pts, face = sample_surface(mesh, int(n_points), seed)
+        pts, _ = sample_surface(mesh, int(n_points), seed)
         fcomp = mesh.components[mesh.faces[:, 0]].astype(np.int32)
         return Conditioned(self, wn, pts, np.asarray(mesh.center, np.float64), float(mesh.scale), mesh, fcomp)
 

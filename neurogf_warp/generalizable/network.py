@@ -60,7 +60,7 @@ def knn_indices(x: torch.Tensor, k: int, exact: bool | None = None) -> torch.Ten
     which loses digits and can swap near ties); otherwise by the faster matrix-product form (training, float32).
     Ties are broken by the smaller index (a stable sort), the rule the Warp kernel follows too.
     """
-    b, n, _ = x.shape
+    _, n, _ = x.shape
     if n < k:
         raise ValueError(f"a point cloud needs at least k={k} points for the neighbour graph, got {n}")
     if exact is None:
@@ -163,7 +163,7 @@ class GenNeuroGF(nn.Module):
         return self.ratio_from_fused(ff[:, :m], ff[:, m:])
 
 
-def load_state_dict_file(path) -> "OrderedDict[str, torch.Tensor]":
+def load_state_dict_file(path) -> OrderedDict[str, torch.Tensor]:
     """Read a plain state_dict (``torch.load(weights_only=True)``, mapped to the CPU)."""
     path = os.fspath(path)
     if not os.path.exists(path):
@@ -203,7 +203,7 @@ def _fold(layer: PointLayer):
     return w, torch.zeros(w.shape[0], dtype=torch.float64)
 
 
-def folded_layers(net: GenNeuroGF) -> "OrderedDict[str, tuple]":
+def folded_layers(net: GenNeuroGF) -> OrderedDict[str, tuple]:
     """Eval-mode BatchNorm folded into each linear map, float64: name -> (W (out, in), b (out,)).
 
     Names: ``e1a e1b e2a e2b e3 pw mlp0 mlp1 fuse head0 head1 head2``; ``e1a``'s input is the edge feature

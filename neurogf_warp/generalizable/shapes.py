@@ -166,7 +166,7 @@ def marching_tetrahedra(f: np.ndarray, origin, h: float):
     edges, shared between neighbouring tetrahedra (so the surface is closed where it does not leave the grid),
     triangles oriented outward (towards increasing f)."""
     f = np.where(f == 0, 1e-12, f)  # no vertex exactly on the level set: every crossing is strictly inside an edge
-    nx, ny, nz = f.shape
+    _, ny, nz = f.shape
     idx = np.arange(f.size).reshape(f.shape)
     base = idx[:-1, :-1, :-1].reshape(-1)
     offs = np.array([c[0] * ny * nz + c[1] * nz + c[2] for c in _CORNERS])
@@ -176,7 +176,7 @@ def marching_tetrahedra(f: np.ndarray, origin, h: float):
     cnt = inside.sum(1)
     keep = (cnt > 0) & (cnt < 4)
     tets, fv, inside, cnt = tets[keep], fv[keep], inside[keep], cnt[keep]
-    pos = lambda i: np.asarray(origin) + h * np.stack(np.unravel_index(i, f.shape), -1)  # noqa: E731
+    pos = lambda i: np.asarray(origin) + h * np.stack(np.unravel_index(i, f.shape), -1)
     tris, outdir = [], []
 
     def edge_keys(t, a, b):
@@ -254,7 +254,7 @@ def make_shape(i: int, seed: int = 0, shared_meshes=None):
         V, F = {"blob": _blob, "torus": _torus, "vase": _vase, "rounded_box": _rounded_box,
                 "capsules": _capsules}[fam](rng)
     V = np.asarray(V, np.float64) @ _random_rotation(rng).T
-    info["vertices"], info["faces"] = int(len(V)), int(len(F))
+    info["vertices"], info["faces"] = len(V), len(F)
     return V, np.asarray(F, np.int64), info
 
 

@@ -79,7 +79,7 @@ def mesh_files(folder) -> tuple[list[Path], list[Path]]:
     folder = Path(folder)
     if not folder.is_dir():
         raise ValueError(f"{folder} is not a folder; give a folder of mesh files ({', '.join(MESH_EXTENSIONS)})")
-    find = lambda d: sorted(p for p in d.rglob("*") if p.suffix.lower() in MESH_EXTENSIONS  # noqa: E731
+    find = lambda d: sorted(p for p in d.rglob("*") if p.suffix.lower() in MESH_EXTENSIONS
                             and ".tmp" not in p.name)
     if (folder / "train").is_dir() and (folder / "test").is_dir():
         train, val = find(folder / "train"), find(folder / "test")
@@ -305,8 +305,7 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
             raise ValueError(f"{output} is not a generalizable training file; cannot resume from it")
         net.load_state_dict(ck["state_dict"])
         opt.load_state_dict(ck["optimizer"])
-        for k in state:
-            state[k] = ck.get(k, state[k])
+        state = {k: ck.get(k, v) for k, v in state.items()}
         say(f"resumed {output} at step {state['step']} (written with world size {ck.get('world_size')})")
     elif output.exists() and rank == 0:
         say(f"note: {output} exists and will be overwritten (use --resume to continue it)")
