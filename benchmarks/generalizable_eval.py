@@ -11,7 +11,9 @@ Shape groups:
 Methods on the same pairs (MRE = mean |d - d_gt| / d_gt, the source vertex itself excluded):
 - ``trained``: --model (a file from ``generalizable.train``), conditioned on the mesh (2,048 points, seed 2024);
 - ``released``: GenNeuroGF.pth, likewise;
-- ``heat``: potpourri3d's heat method (defaults) on the mesh.
+- ``heat``: potpourri3d's heat method (defaults) on the mesh;
+- ``per_mesh``: with --per-mesh-seconds S, a per-mesh NeuroGF trained for about S seconds on each shape
+  (``ngf.train(mesh, out, budget_seconds=S)``, default preset for the device), queried with ``ngf.distance``.
 Times: conditioning (median over the shapes) and the pair query, per method, on --device.
 """
 from __future__ import annotations
@@ -51,6 +53,9 @@ def main(argv=None):
     ap.add_argument("--targets", type=int, default=512)
     ap.add_argument("--max-shapes", type=int, default=30)
     ap.add_argument("--no-heat", action="store_true")
+    ap.add_argument("--per-mesh-seconds", type=float, default=None,
+                    help="also train a per-mesh model for each shape with this budget (the issue: 60)")
+    ap.add_argument("--work", default=None, help="folder for the per-mesh models (default: a temporary one)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
 
@@ -120,10 +125,20 @@ def main(argv=None):
             hd = np.concatenate([solver.compute_distance(int(s))[t] for s, t, _ in prs])
             row["heat"] = float(np.mean(np.abs(hd[ok] - gt[ok]) / gt[ok]))
             row["heat_ms"] = (time.perf_counter() - t0) * 1e3
+        if a.per_mesh_seconds:
+            import tempfile
+
+            work = Path(a.work or tempfile.mkdtemp(prefix="gen_eval_"))
+            out = work / (Path(name).stem + ".ngf")
+            t0 = time.perf_counter()
+            pm = ngf.train(mesh, out, device=str(dev), budget_seconds=a.per_mesh_seconds, progress=False)
+            row["per_mesh_train_s"] = time.perf_counter() - t0
+            d = np.asarray(ngf.distance(pm, S, T), np.float64)
+            row["per_mesh"] = float(np.mean(np.abs(d[ok] - gt[ok]) / gt[ok]))
         rows.append(row)
         print(json.dumps(row), flush=True)
 
-    cols = list(methods) + ([] if a.no_heat else ["heat"])
+    cols = list(methods) + ([] if a.no_heat else ["heat"]) + (["per_mesh"] if a.per_mesh_seconds else [])
     groups = sorted({r["group"] for r in rows}, key=lambda g: (g == "shared", g))
     print(f"\nMRE on the same pairs ({datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC, device {dev})")
     print(f"{'group':<24}{'shapes':>7}" + "".join(f"{c:>12}" for c in cols))
