@@ -21,7 +21,7 @@ __version__ = "0.1.0"
 _EXPORTS = {
     "Mesh": "mesh.mesh", "load_mesh": "mesh.mesh",
     "Model": "model.model",
-    "load": "model.files", "load_querier": "model.files", "save": "model.files",
+    "load_querier": "model.files", "save": "model.files",
     "MeshMismatchWarning": "model.checkpoint_match",
     **{name: "inference.queries" for name in ("ssad", "msad", "distance_matrix", "distance", "sdf", "path", "project",
                                               "embed", "warmup", "warp_weights", "bind", "unbind")},
@@ -32,7 +32,29 @@ _EXPORTS = {
     "render": "pictures.render", "write_ply": "pictures.render",
 }
 
-__all__ = list(_EXPORTS) + ["__version__"]
+__all__ = list(_EXPORTS) + ["__version__", "load"]
+
+
+def load(path, mesh=None, **kwargs):
+    """Load a model file: a per-mesh model (``.ngf``, or a released ``*_final.pth`` with ``mesh``), or a
+    generalizable network (the released ``GenNeuroGF.pth`` or a file of ``neurogf-warp gen-train``).
+
+    A per-mesh file gives a ``Model`` (see ``neurogf_warp.model.files.load`` for ``querier`` and ``check_mesh``). A
+    generalizable file gives a ``GeneralizableModel``, or with ``mesh`` (a mesh, a mesh file or a point cloud) the
+    network already conditioned on it, which answers ``distance``, ``ssad``, ``msad`` and ``distance_matrix``.
+    """
+    # the dispatch lives at the package's top, above every stage: the model stage may not import the
+    # generalizable one (tests/test_layers.py)
+    from neurogf_warp.generalizable.hooks import load_if_generalizable
+
+    gen = load_if_generalizable(path, mesh)
+    if gen is not None:
+        if kwargs:
+            raise TypeError(f"a generalizable network takes no {', '.join(sorted(kwargs))}")
+        return gen
+    from neurogf_warp.model.files import load as load_model
+
+    return load_model(path, mesh=mesh, **kwargs)
 
 
 def __getattr__(name: str):
@@ -68,7 +90,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time the names load lazi
     )
     from neurogf_warp.mesh.mesh import Mesh, load_mesh
     from neurogf_warp.model.checkpoint_match import MeshMismatchWarning
-    from neurogf_warp.model.files import load, load_querier, save
+    from neurogf_warp.model.files import load_querier, save
     from neurogf_warp.model.model import Model
     from neurogf_warp.pictures.render import render, write_ply
     from neurogf_warp.training import TrainConfig, TrainingInterrupted, preset, train

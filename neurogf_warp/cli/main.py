@@ -853,6 +853,12 @@ def _quiet_stdout_exit():
 
 def main(argv=None) -> int:
     """Run ``neurogf-warp`` with ``argv`` (default: sys.argv[1:]); returns the exit code."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0].startswith("gen-"):  # generalizable NeuroGF: gen-train, gen-shapes, gen-per-mesh
+        from neurogf_warp.generalizable.hooks import CLI_COMMANDS
+
+        if argv[0] in CLI_COMMANDS:
+            return CLI_COMMANDS[argv[0]](argv[1:])
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:

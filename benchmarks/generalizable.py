@@ -1,0 +1,259 @@
+"""Benchmark of the generalizable network's Warp inference: conditioning time and pair-query time.
+
+    python benchmarks/generalizable.py --device cuda:0 --json out.json
+    python benchmarks/generalizable.py --device cpu --quick          # < 60 s on a 2-core CPU
+
+What it does, on one device and arithmetic mode (default: fp32 on CUDA, fp64 on the CPU):
+1. compile: the first conditioning + query (kernel compilation or cache load), timed apart;
+2. check: a fresh random shape (a noise-displaced ellipsoid, 2,048 points, seeded by --seed) and random pairs
+   near it: the Warp ratio against the float64 torch network (mean / max relative difference; fails the run
+   with exit status 1 above 1e-5 mean or 1e-3 max);
+3. conditioning a 2,048-point cloud: (a) ``WarpGenNet.encode(X, into=state)`` of a device-resident cloud into
+   reused buffers (steady state, no allocation), (b) ``encode`` allocating new buffers, (c) the user call
+   ``model.condition(numpy points)`` (host normalization and upload included), (d) (a) replayed as a CUDA graph
+   when capture works (measured last); median of --repeats runs, each CUDA-synchronized;
+4. pairs: 1M (--pairs) random pairs of points near the surface, distances in user units
+   (``WarpGenNet.distances``, nearest-cloud-point lookup included), median wall of --repeats synchronized runs and
+   the kernel time from Warp's CUDA activity timers (``wp.timing_begin``); then the same through the tiled query
+   (``distances_tiled``: tile GEMMs, cuBLASDx on CUDA) with fp32 and fp16 (tensor-core) operands;
+and prints a table (and writes --json). Targets from issue 23: conditioning <= 1 ms, 1M pairs <= 1 ms (GPU).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def find_weights(arg):
+    if arg:
+        return Path(arg)
+    shared = Path(os.environ.get("NEUROGF_SHARED", ROOT.parent / "shared"))
+    for base in (shared, ROOT / "shared", ROOT / ".bench", ROOT / ".bench2"):
+        p = base / "checkpoints" / "official" / "GenNeuroGF.pth"
+        if p.exists():
+            return p
+    return None
+
+
+def random_shape(n, seed):
+    """n points on a noise-displaced ellipsoid, in arbitrary user units (scaled 5x, shifted)."""
+    rng = np.random.default_rng(seed)
+    g = rng.standard_normal((n, 3))
+    u = g / np.linalg.norm(g, axis=1, keepdims=True)
+    k = rng.standard_normal((6, 3))
+    bump = 0.15 * np.sin(u @ k.T).sum(axis=1, keepdims=True) / 3
+    return (u * (1 + bump)) * np.array([1.0, 0.7, 0.5]) * 5.0 + np.array([2.0, -1.0, 3.0])
+
+
+def near_surface(cloud, m, rng, noise=0.01):
+    i = rng.integers(0, len(cloud), m)
+    span = np.ptp(cloud, axis=0).max()
+    return cloud[i] + rng.standard_normal((m, 3)) * noise * span
+
+
+def median_ms(fn, repeats, sync):
+    ts = []
+    for _ in range(repeats):
+        sync()
+        t0 = time.perf_counter()
+        fn()
+        sync()
+        ts.append((time.perf_counter() - t0) * 1e3)
+    return float(np.median(ts)), float(np.min(ts))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--mode", default=None, choices=[None, "fp64", "fp32", "mixed"])
+    ap.add_argument("--weights", default=None, help="GenNeuroGF.pth (default: ../shared/checkpoints/official)")
+    ap.add_argument("--points", type=int, default=2048)
+    ap.add_argument("--pairs", type=int, default=1 << 20)
+    ap.add_argument("--repeats", type=int, default=50)
+    ap.add_argument("--knn-chunks", type=int, default=None)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--block-pairs", type=int, default=32, help="pairs per block of the tiled query")
+    ap.add_argument("--no-tiled", action="store_true", help="skip the tiled query (its first CUDA compile with "
+                    "cuBLASDx takes about a minute)")
+    ap.add_argument("--quick", action="store_true", help="CPU smoke run: 20K pairs, 1 repeat")
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args(argv)
+    if a.quick:
+        a.pairs, a.repeats = min(a.pairs, 20_000), 1
+    few = 1 if a.quick else max(3, a.repeats // 5)  # repeats of the slower conditioning variants
+
+    import torch
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING
+    sys.path.insert(0, str(ROOT))
+    from neurogf_warp.generalizable.encoder import WarpGenNet, default_mode
+    from neurogf_warp.generalizable.model import GeneralizableModel, normalization
+    from neurogf_warp.generalizable.network import GenNeuroGF, load_network
+
+    dev = wp.get_device(a.device)
+    mode = a.mode or default_mode(dev)
+    sync = (lambda: wp.synchronize_device(dev))
+    wpath = find_weights(a.weights)
+    if wpath is not None:
+        net = load_network(wpath)
+        weights = str(wpath)
+    else:
+        torch.manual_seed(0)
+        net = GenNeuroGF().double().eval()
+        weights = "random (GenNeuroGF.pth not found)"
+    model = GeneralizableModel(net)
+    rng = np.random.default_rng(a.seed)
+    cloud = random_shape(a.points, a.seed)
+    center, scale = normalization(cloud)
+    unit = (cloud - center) * scale
+
+    # 1. compile / first call
+    t0 = time.perf_counter()
+    wn = WarpGenNet(net, dev, mode, knn_chunks=a.knn_chunks)
+    enc = wn.encode(unit)
+    wn.ratio(enc, unit[:4], unit[4:8]).numpy()
+    compile_s = time.perf_counter() - t0
+
+    # 2. check against float64 torch on fresh random inputs
+    m_chk = 4096 if not a.quick else 1024
+    S = (near_surface(cloud, m_chk, rng) - center) * scale
+    T = (near_surface(cloud, m_chk, rng) - center) * scale
+    got = wn.ratio(enc, S, T).numpy().astype(np.float64)
+    with torch.no_grad():
+        want = net(*(torch.tensor(x, dtype=torch.float64)[None] for x in (unit, S, T)))[0].numpy()
+    rel = np.abs(got - want) / np.abs(want)
+    check = {"pairs": m_chk, "mean_rel": float(rel.mean()), "max_rel": float(rel.max())}
+    check["ok"] = bool(check["mean_rel"] <= 1e-5 and check["max_rel"] <= 1e-3)
+
+    # 3. conditioning
+    X = wn._arr(unit)  # device-resident input, storage dtype
+    enc_new_ms, _ = median_ms(lambda: wn.encode(X), few, sync)  # allocates every call
+    state = wn.encode(X)
+    enc_ms, enc_min = median_ms(lambda: wn.encode(X, into=state), a.repeats, sync)  # steady state: no allocation
+    cond_ms, _ = median_ms(lambda: model.condition(cloud, device=dev, mode=mode), few, sync)
+    enc_kernel_ms = None
+    if dev.is_cuda:
+        wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+        wn.encode(X, into=state)
+        res = wp.timing_end()
+        enc_kernel_ms = float(sum(r.elapsed for r in res))
+
+    # 4. pairs
+    P = near_surface(cloud, a.pairs, rng)
+    Q = near_surface(cloud, a.pairs, rng)
+    Pd, Qd = wn._arr(P), wn._arr(Q)
+    out = wp.empty(a.pairs, dtype=wp.float32, device=dev)
+    run = (lambda: wn.distances(enc, Pd, Qd, center, scale, False, out=out))
+    run()
+    pair_ms, pair_min = median_ms(run, a.repeats, sync)
+    pair_kernel_ms = None
+    if dev.is_cuda:
+        wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+        for _ in range(5):
+            run()
+        res = wp.timing_end()
+        pair_kernel_ms = float(np.median([r.elapsed for r in res]))
+    d = out.numpy()
+    sel = rng.integers(0, a.pairs, 512)
+    with torch.no_grad():
+        w = net(torch.tensor(unit)[None], torch.tensor((P[sel] - center) * scale)[None],
+                torch.tensor((Q[sel] - center) * scale)[None])[0].numpy()
+    want_d = np.maximum(w, 1.0) * np.linalg.norm(P[sel] - Q[sel], axis=1)
+    pair_check = float((np.abs(d[sel] - want_d) / want_d).max())
+
+    # 4b. the tiled (tile-GEMM) query: operand fp32 and fp16 (tensor cores on CUDA); compile timed apart
+    tiled = {}
+    if mode in ("fp32", "fp64") and not a.no_tiled:
+        for op in (["fp32", "fp16"] if mode == "fp32" else ["fp64"]):
+            bp = a.block_pairs if dev.is_cuda else min(a.block_pairs, 16)
+            if dev.is_cpu and op == "fp64":
+                continue  # the fp64 tiles exceed the CPU tile arena
+            try:
+                t0 = time.perf_counter()
+                wn.distances_tiled(enc, Pd[:bp], Qd[:bp], center, scale, block_pairs=bp, operand=op)
+                sync()
+                comp_s = time.perf_counter() - t0
+                sc_ = {}
+                out_t = wp.empty(a.pairs, dtype=wp.float32, device=dev)
+                def runt(out_t=out_t, bp=bp, op=op, sc_=sc_):
+                    return wn.distances_tiled(enc, Pd, Qd, center, scale, out=out_t, block_pairs=bp, operand=op,
+                                              scratch=sc_)
+                runt()
+                ms, mn = median_ms(runt, a.repeats, sync)
+                kms = None
+                if dev.is_cuda:
+                    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+                    runt()
+                    kms = float(sum(r.elapsed for r in wp.timing_end()))
+                dt = out_t.numpy()
+                tiled[op] = {"block_pairs": bp, "compile_s": comp_s, "ms_median": ms, "ms_min": mn,
+                             "kernels_ms_sum": kms, "max_rel_vs_torch_fp64":
+                             float((np.abs(dt[sel] - want_d) / want_d).max())}
+            except Exception as e:  # noqa: BLE001
+                tiled[op] = {"error": f"{type(e).__name__}: {str(e)[:200]}"}
+
+    # 5. conditioning under a CUDA graph (last: a failed capture must not disturb the other measurements)
+    graph_ms = graph_note = None
+    if dev.is_cuda:
+        try:
+            with wp.ScopedCapture(dev) as cap:
+                wn.encode(X, into=state)
+            graph_ms, _ = median_ms(lambda: wp.capture_launch(cap.graph), a.repeats, sync)
+        except Exception as e:  # noqa: BLE001  (report, do not fail the benchmark)
+            graph_note = f"capture failed: {type(e).__name__}: {str(e)[:120]}"
+
+    result = {
+        "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"), "device": str(dev),
+        "device_name": dev.name, "host": platform.node(), "mode": mode, "weights": weights,
+        "points": a.points, "pairs": a.pairs, "repeats": a.repeats, "knn_chunks": wn.knn_chunks,
+        "compile_first_call_s": compile_s, "check_vs_torch_fp64": check,
+        "encode_ms_median": enc_ms, "encode_ms_min": enc_min, "encode_new_buffers_ms_median": enc_new_ms, "encode_graph_ms_median": graph_ms,
+        "encode_graph_note": graph_note, "encode_kernels_ms_sum": enc_kernel_ms, "condition_numpy_ms_median": cond_ms,
+        "pairs_ms_median": pair_ms, "pairs_ms_min": pair_min, "pairs_kernel_ms_median": pair_kernel_ms,
+        "pairs_per_s": a.pairs / (pair_ms / 1e3), "pairs_max_rel_vs_torch_fp64": pair_check, "tiled": tiled,
+    }
+    f = (lambda v: "-" if v is None else f"{v:.3f}")
+    rows = [
+        ("device / mode", f"{dev} ({dev.name}) / {mode}"),
+        ("weights", weights),
+        ("compile + first call", f"{compile_s:.2f} s"),
+        ("check vs float64 torch", (f"mean {check['mean_rel']:.2e}, max {check['max_rel']:.2e} "
+                                    f"({'ok' if check['ok'] else 'FAIL'})")),
+        (f"encode {a.points} pts (device input)", f"{f(enc_ms)} ms median, {f(enc_min)} min (reused buffers)"),
+        ("encode, new buffers each call", f"{f(enc_new_ms)} ms median"),
+        ("encode under a CUDA graph", f"{f(graph_ms)} ms" + (f" ({graph_note})" if graph_note else "")),
+        ("encode kernels (Warp timers, sum)", f"{f(enc_kernel_ms)} ms"),
+        ("model.condition(numpy)", f"{f(cond_ms)} ms median"),
+        (f"{a.pairs:,} pairs (wall, sync)", f"{f(pair_ms)} ms median, {f(pair_min)} min"),
+        (f"{a.pairs:,} pairs (Warp kernel timer)", f"{f(pair_kernel_ms)} ms"),
+        ("pair distances vs float64 torch", f"max rel {pair_check:.2e}"),
+    ]
+    for op, r in tiled.items():
+        if "error" in r:
+            rows.append((f"tiled query ({op} operands)", r["error"]))
+        else:
+            rows.append((f"tiled query ({op}, B={r['block_pairs']})", (f"{f(r['ms_median'])} ms median, "
+                         f"kernels {f(r['kernels_ms_sum'])} ms, compile {r['compile_s']:.1f} s, "
+                         f"max rel {r['max_rel_vs_torch_fp64']:.1e}")))
+    wd = max(len(r[0]) for r in rows)
+    print(f"generalizable NeuroGF, Warp inference ({result['date_utc']})")
+    for k, v in rows:
+        print(f"  {k:<{wd}}  {v}")
+    if a.json:
+        Path(a.json).write_text(json.dumps(result, indent=1))
+    return 0 if check["ok"] and pair_check <= 1e-3 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,163 @@
+"""Accuracy of generalizable models on unseen shapes: trained model, released network, heat method, same pairs.
+
+    python benchmarks/generalizable_eval.py --collection coll/ --model model.pt --device cuda:0 --json acc.json
+
+Shape groups:
+- the collection's held-out shapes (``test/`` of ``shapes.write_collection``; --max-shapes of them, by family):
+  ground truth from the project's solver (``ngf.geodesic_distances``) for --sources random sources; the
+  pairs are each source x --targets random vertices;
+- the shared meshes stanford-bunny, fandisk and spot (never in the collection): the exact MMP distances of
+  ``shared/reference/exact/<mesh>.npz`` (8 sources x --targets random vertices).
+Methods on the same pairs (MRE = mean |d - d_gt| / d_gt, the source vertex itself excluded):
+- ``trained``: --model (a file from ``generalizable.train``), conditioned on the mesh (2,048 points, seed 2024);
+- ``released``: GenNeuroGF.pth, likewise;
+- ``heat``: potpourri3d's heat method (defaults) on the mesh;
+- ``per_mesh``: with --per-mesh-seconds S, a per-mesh NeuroGF trained for about S seconds on each shape
+  (``ngf.train(mesh, out, budget_seconds=S)``, default preset for the device), queried with ``ngf.distance``.
+Times: conditioning (median over the shapes) and the pair query, per method, on --device.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+SHARED_EVAL = ("stanford-bunny.obj", "fandisk.obj", "spot.obj")
+
+
+def find_shared():
+    for base in (ROOT.parent / "shared", ROOT / "shared", ROOT / ".bench"):
+        if (base / "meshes").is_dir():
+            return base
+    return None
+
+
+def pairs_for(nv, sources, targets, rng):
+    return [(s, rng.choice(np.setdiff1d(np.arange(nv), [s]), targets, replace=False)) for s in sources]
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--collection", default=None)
+    ap.add_argument("--model", default=None)
+    ap.add_argument("--released", default=None)
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--sources", type=int, default=8)
+    ap.add_argument("--targets", type=int, default=512)
+    ap.add_argument("--max-shapes", type=int, default=30)
+    ap.add_argument("--no-heat", action="store_true")
+    ap.add_argument("--per-mesh-seconds", type=float, default=None,
+                    help="also train a per-mesh model for each shape with this budget (the issue: 60)")
+    ap.add_argument("--work", default=None, help="folder for the per-mesh models (default: a temporary one)")
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args(argv)
+
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING
+    import neurogf_warp as ngf
+    from neurogf_warp.generalizable.model import load
+
+    shared = find_shared()
+    methods = {}
+    if a.model:
+        methods["trained"] = load(a.model)
+    rel = a.released or (shared / "checkpoints" / "official" / "GenNeuroGF.pth" if shared else None)
+    if rel and Path(rel).exists():
+        methods["released"] = load(rel)
+    dev = wp.get_device(a.device)
+    rng = np.random.default_rng(0)
+
+    cases = []  # (group, name, mesh, [(src, tgt idx, gt dist)])
+    if a.collection:
+        coll = Path(a.collection)
+        man = json.loads((coll / "manifest.json").read_text()) if (coll / "manifest.json").exists() else None
+        files = sorted((coll / "test").glob("*.obj")) if (coll / "test").is_dir() else sorted(coll.glob("*.obj"))
+        files = files[: a.max_shapes]
+        for f in files:
+            mesh = ngf.load_mesh(str(f))
+            nv = len(mesh.vertices)
+            src = rng.choice(nv, a.sources, replace=False)
+            d = ngf.geodesic_distances(mesh, mesh.index[src], device=dev)[:, mesh.index]
+            fam = f.stem.split("_", 2)[-1] if man else "collection"
+            cases.append(("unseen:" + fam, f.name, mesh,
+                          [(s, t, d[i, t]) for i, (s, t) in enumerate(pairs_for(nv, src, a.targets, rng))]))
+    if shared:
+        for name in SHARED_EVAL:
+            z = np.load(shared / "reference" / "exact" / name.replace(".obj", ".npz"))
+            mesh = ngf.load_mesh(str(shared / "meshes" / name))
+            assert np.abs(mesh.vertices - z["positions"]).max() < 1e-5 * np.abs(z["positions"]).max()
+            nv = len(mesh.vertices)
+            cases.append(("shared", name, mesh, [(s, t, z["dist"][i, t]) for i, (s, t) in
+                                                 enumerate(pairs_for(nv, z["sources"], a.targets, rng))]))
+
+    rows = []
+    for group, name, mesh, prs in cases:
+        V = np.asarray(mesh.vertices)
+        S = np.concatenate([np.repeat(V[s][None], len(t), 0) for s, t, _ in prs])
+        T = np.concatenate([V[t] for _, t, _ in prs])
+        gt = np.concatenate([g for _, _, g in prs]).astype(np.float64)
+        ok = np.isfinite(gt) & (gt > 0)
+        row = {"group": group, "shape": name, "vertices": len(V), "pairs": int(ok.sum())}
+        for mname, model in methods.items():
+            wp.synchronize_device(dev)
+            t0 = time.perf_counter()
+            cond = model.condition(mesh, device=dev)
+            wp.synchronize_device(dev)
+            t1 = time.perf_counter()
+            d = cond.distance(S, T)
+            t2 = time.perf_counter()
+            row[mname] = float(np.mean(np.abs(d[ok] - gt[ok]) / gt[ok]))
+            row[mname + "_condition_ms"] = (t1 - t0) * 1e3
+            row[mname + "_query_ms"] = (t2 - t1) * 1e3
+        if not a.no_heat:
+            import potpourri3d as pp3d
+
+            t0 = time.perf_counter()
+            solver = pp3d.MeshHeatMethodDistanceSolver(V, np.asarray(mesh.faces))
+            hd = np.concatenate([solver.compute_distance(int(s))[t] for s, t, _ in prs])
+            row["heat"] = float(np.mean(np.abs(hd[ok] - gt[ok]) / gt[ok]))
+            row["heat_ms"] = (time.perf_counter() - t0) * 1e3
+        if a.per_mesh_seconds:
+            import tempfile
+
+            work = Path(a.work or tempfile.mkdtemp(prefix="gen_eval_"))
+            out = work / (Path(name).stem + ".ngf")
+            t0 = time.perf_counter()
+            pm = ngf.train(mesh, out, device=str(dev), budget_seconds=a.per_mesh_seconds, progress=False)
+            row["per_mesh_train_s"] = time.perf_counter() - t0
+            d = np.asarray(ngf.distance(pm, S, T), np.float64)
+            row["per_mesh"] = float(np.mean(np.abs(d[ok] - gt[ok]) / gt[ok]))
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+
+    cols = list(methods) + ([] if a.no_heat else ["heat"]) + (["per_mesh"] if a.per_mesh_seconds else [])
+    groups = sorted({r["group"] for r in rows}, key=lambda g: (g == "shared", g))
+    print(f"\nMRE on the same pairs ({datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC, device {dev})")
+    print(f"{'group':<24}{'shapes':>7}" + "".join(f"{c:>12}" for c in cols))
+    summary = {}
+    for g in groups + ["all unseen"]:
+        rs = [r for r in rows if (r["group"] == g if not g.startswith("all") else r["group"].startswith("unseen"))]
+        if not rs:
+            continue
+        vals = {c: float(np.mean([r[c] for r in rs])) for c in cols}
+        summary[g] = vals
+        print(f"{g:<24}{len(rs):>7}" + "".join(f"{100 * vals[c]:>11.2f}%" for c in cols))
+    for r in rows:
+        if r["group"] == "shared":
+            print(f"{'  ' + r['shape']:<24}{1:>7}" + "".join(f"{100 * r[c]:>11.2f}%" for c in cols))
+    if a.json:
+        Path(a.json).write_text(json.dumps({"rows": rows, "summary": summary, "device": str(dev),
+                                            "args": vars(a)}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

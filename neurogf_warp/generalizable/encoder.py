@@ -1,0 +1,287 @@
+"""Warp inference of the generalizable network: encoder (conditioning) and query network (pairs).
+
+:class:`WarpGenNet` holds the folded weights on one device in one arithmetic mode; :meth:`WarpGenNet.encode`
+turns a point cloud (unit-sphere frame) into a :class:`Encoded` state (per-point features F, the precomputed
+``G = W_F F + b`` of ``fuse``, a hash grid for the nearest-point lookup) and :meth:`WarpGenNet.ratio` evaluates
+pairs against it. Everything stays on the device; nothing synchronizes with the host except the hash-grid build.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from neurogf_warp.kernels.generalizable import kernels
+from neurogf_warp.generalizable.network import GenNeuroGF, folded_layers
+
+
+def default_mode(device) -> str:
+    """float64 on the CPU (exact parity, cheap there), float32 on CUDA (speed; 1e-5-level agreement)."""
+    return "fp64" if wp.get_device(device).is_cpu else "fp32"
+
+
+@dataclass
+class Encoded:
+    """A conditioned point cloud on the device (unit-sphere frame)."""
+
+    cloud: wp.array  # (N, 3) storage dtype
+    feats: wp.array  # (N, 128) per-point features F
+    fused: wp.array  # (N, 128) G = W_F F + b_fuse (fuse before the coordinate term and ReLU)
+    grid: wp.HashGrid | None
+    radius: float  # hash-grid query radius (unit frame); the lookup is exact regardless (brute-force fallback)
+    neighbours: list  # the three (N, k) kNN index arrays (for tests)
+    points32: wp.array | None = None  # (N,) vec3 float32 copy of ``cloud`` (the hash grid's points)
+    scratch: dict = field(default_factory=dict)  # every device array of the encoder, reused by encode(into=)
+
+
+class WarpGenNet:
+    """The released (or a trained) :class:`GenNeuroGF` as Warp arrays on ``device``.
+
+    mode: ``"fp64"``, ``"fp32"`` or ``"mixed"`` (see ``kernels/generalizable``); default: :func:`default_mode`.
+    knn_chunks: candidate chunks per point of the neighbour search (parallelism on a GPU, default 16; 1 on the
+    CPU); sweep it with the benchmark's --knn-chunks.
+    """
+
+    def __init__(self, net: GenNeuroGF, device=None, mode: str | None = None, knn_chunks: int | None = None,
+                 use_grid: bool = True):
+        self.device = wp.get_device(device)
+        self.mode = mode or default_mode(self.device)
+        self.k = kernels(self.mode)
+        self.np_dtype = np.float64 if self.mode == "fp64" else np.float32
+        self.knn_chunks = knn_chunks or (1 if self.device.is_cpu else 16)
+        self.use_grid = use_grid
+        self.kk = net.backbone.econv_1.k
+        L = folded_layers(net)
+        a = self._arr
+        w = {}
+        for name, split in (("e1a", 3), ("e2a", 64), ("e3", 64)):  # edge layers on [f_i, f_j - f_i]
+            W, b = L[name]
+            Wa, Wb = W[:, :split], W[:, split:]
+            w[name + "P"] = (a(Wa - Wb), a(b))
+            w[name + "Q"] = (a(Wb), a(np.zeros(W.shape[0])))
+        for name in ("e1b", "e2b", "pw", "mlp1", "head0", "head1"):
+            W, b = L[name]
+            w[name] = (a(W), a(b))
+        W, b = L["mlp0"]
+        w["mlp0cw"] = (a(W[:, :320]), a(b))
+        w["mlp0f"] = a(W[:, 320:])
+        W, b = L["fuse"]
+        w["fuseF"] = (a(W[:, :128]), a(b))
+        w["fuseX"] = a(W[:, 128:])
+        w["head2"] = a(L["head2"][0])
+        self.w = w
+
+    def _arr(self, x):
+        x = np.ascontiguousarray(np.asarray(x, dtype=np.float64).astype(self.np_dtype))
+        return wp.array(x, dtype=self.k.dtype, device=self.device)
+
+    # ---- encoder -------------------------------------------------------------------------------------------
+    def _buf(self, scratch: dict, name: str, shape, dtype):
+        """A device array from ``scratch`` (reused when its shape and dtype fit), else a new one stored there:
+        re-encoding into an earlier state allocates nothing (and can be captured in a CUDA graph)."""
+        a = scratch.get(name)
+        if a is None or a.shape != tuple(shape) or a.dtype != dtype:
+            a = scratch[name] = wp.empty(shape, dtype=dtype, device=self.device)
+        return a
+
+    def knn(self, f: wp.array, c_off: int = 0, nc: int | None = None, kk: int | None = None,
+            scratch: dict | None = None, tag: str = "") -> wp.array:
+        """Exact kk nearest neighbours of each row of f[:, c_off:c_off + nc] among the rows, closest first, self
+        included, ties -> smaller index. Returns (N, kk) int32."""
+        kk = kk or self.kk
+        nc = f.shape[1] - c_off if nc is None else nc
+        scratch = {} if scratch is None else scratch
+        n = f.shape[0]
+        g = max(1, min(self.knn_chunks, n // kk))
+        n_per = (n + g - 1) // g
+        pd = self._buf(scratch, "knn_d", (n, g, kk), self.k.acc)
+        pi = self._buf(scratch, "knn_i", (n, g, kk), wp.int32)
+        nbr = self._buf(scratch, "nbr" + tag, (n, kk), wp.int32)
+        wp.launch(self.k.knn_partial, (n, g), inputs=[f, c_off, nc, n_per, kk, pd, pi], device=self.device)
+        wp.launch(self.k.knn_merge, (n, g, kk), inputs=[pd, pi, nbr], device=self.device)
+        return nbr
+
+    def _linear(self, x, x_off, wb, relu, y, y_off=0):
+        W, b = wb
+        wp.launch(self.k.linear, (x.shape[0], W.shape[0]), inputs=[x, x_off, W, b, int(relu), y, y_off],
+                  device=self.device)
+
+    def encode(self, cloud, center=(0.0, 0.0, 0.0), scale: float = 1.0, into: Encoded | None = None) -> Encoded:
+        """Condition the network on a point cloud.
+
+        cloud: (N, 3), N >= k = 40: numpy (any float dtype) or a wp.array2d of the storage dtype on this device
+        (then nothing is copied from the host). ``(cloud - center) * scale`` must be the cloud in the network's
+        unit-sphere frame (defaults: the cloud is in that frame already). ``into``: an earlier result whose
+        arrays (and hash grid) are overwritten and returned (no allocation when N is unchanged; that earlier
+        state is then gone). Returns :class:`Encoded`.
+        """
+        dev, T = self.device, self.k.dtype
+        if not (isinstance(cloud, wp.array) and cloud.dtype == T and cloud.ndim == 2 and cloud.device == dev):
+            cloud = self._arr(np.asarray(cloud.numpy() if isinstance(cloud, wp.array) else cloud))
+        n = cloud.shape[0]
+        if n < self.kk:
+            raise ValueError(f"the point cloud has {n} points; the encoder needs at least k={self.kk}")
+        sc = into.scratch if into is not None else {}
+        buf = lambda name, c: self._buf(sc, name, (n, c), T)
+        X = buf("X", 3)
+        V = self._buf(sc, "V", (n,), wp.vec3)
+        wp.launch(self.k.to_unit, n, inputs=[cloud, *(float(c) for c in center), float(scale), X, V], device=dev)
+        cat = buf("cat", 192)  # [f1, f2, f3]
+        P, Q = buf("P", 64), buf("Q", 64)
+        w = self.w
+        # block 1: neighbours in xyz space
+        n1 = self.knn(X, scratch=sc, tag="1")
+        self._linear(X, 0, w["e1aP"], False, P)
+        self._linear(X, 0, w["e1aQ"], False, Q)
+        wp.launch(self.k.edge_two_layers, (n, 64), inputs=[P, Q, n1, *w["e1b"], cat, 0], device=dev)
+        # block 2: neighbours in f1 space
+        n2 = self.knn(cat, 0, 64, scratch=sc, tag="2")
+        self._linear(cat, 0, w["e2aP"], False, P)
+        self._linear(cat, 0, w["e2aQ"], False, Q)
+        wp.launch(self.k.edge_two_layers, (n, 64), inputs=[P, Q, n2, *w["e2b"], cat, 64], device=dev)
+        # block 3: neighbours in f2 space, one layer: no per-edge matrix (see the kernels' docstring)
+        n3 = self.knn(cat, 64, 64, scratch=sc, tag="3")
+        self._linear(cat, 64, w["e3P"], False, P)
+        self._linear(cat, 64, w["e3Q"], False, Q)
+        wp.launch(self.k.edge_one_layer, (n, 64), inputs=[P, Q, n3, cat, 128], device=dev)
+        # codeword: max over points of pw_embedding([f1, f2, f3])
+        E = buf("E", 320)
+        self._linear(cat, 0, w["pw"], True, E)
+        cw = self._buf(sc, "cw", (1, 320), T)
+        chunks = max(1, min(32, n // 64)) if not dev.is_cpu else 1
+        per = (n + chunks - 1) // chunks
+        chunks = (n + per - 1) // per  # every chunk non-empty
+        part = self._buf(sc, "cw_part", (chunks, 320), T)
+        wp.launch(self.k.column_max, (chunks, 320), inputs=[E, per, part], device=dev)
+        wp.launch(self.k.column_max, (1, 320), inputs=[part, chunks, cw], device=dev)
+        # mlp.0 on [codeword, f]: the codeword part is the same for every point -> a per-cloud bias
+        bias = self._buf(sc, "bias", (1, 128), T)
+        self._linear(cw, 0, w["mlp0cw"], False, bias)
+        H = buf("H", 128)
+        self._linear(cat, 0, (w["mlp0f"], bias.reshape((128,))), True, H)
+        F = buf("F", 128)
+        self._linear(H, 0, w["mlp1"], True, F)
+        G = buf("G", 128)
+        self._linear(F, 0, w["fuseF"], False, G)
+        grid, radius = None, 0.0
+        if self.use_grid:
+            grid, radius = self._grid(V, into.grid if into is not None else None)
+        if into is not None:
+            into.cloud, into.feats, into.fused, into.grid, into.radius = X, F, G, grid, radius
+            into.neighbours, into.points32 = [n1, n2, n3], V
+            return into
+        return Encoded(X, F, G, grid, radius, [n1, n2, n3], V, sc)
+
+    def _grid(self, pts: wp.array, grid: wp.HashGrid | None = None):
+        """A hash grid over the cloud for the nearest-point lookup of queries.
+
+        radius: 4 / sqrt(N) in the unit frame (about twice the typical spacing of N points on a surface of area
+        ~4 pi r^2 / 2); queries farther than that from every point fall back to a brute-force scan (exact)."""
+        n = pts.shape[0]
+        radius = float(4.0 / np.sqrt(n))
+        dim = int(max(8, min(128, np.ceil(2.0 / radius))))
+        if grid is None:
+            grid = wp.HashGrid(dim, dim, dim, device=self.device)
+        grid.build(pts, radius)  # the grid refers to pts: Encoded keeps them alive
+        return grid, radius
+
+    # ---- queries -------------------------------------------------------------------------------------------
+    def ratio(self, enc: Encoded, s, t) -> wp.array:
+        """The network's raw ratio for pairs s[m], t[m] ((M, 3), unit frame) -> (M,) storage dtype."""
+        S, Tt = self._arr(np.asarray(s)), self._arr(np.asarray(t))
+        m = S.shape[0]
+        out = wp.empty(m, dtype=self.k.dtype, device=self.device)
+        w = self.w
+        grid_id = enc.grid.id if enc.grid is not None else wp.uint64(0)
+        wp.launch(self.k.pair_ratio, m,
+                  inputs=[enc.cloud, grid_id, enc.radius, int(enc.grid is not None), enc.fused, w["fuseX"],
+                          *w["head0"], *w["head1"], w["head2"], S, Tt, out], device=self.device)
+        return out
+
+    def nearest(self, enc: Encoded, pts: wp.array) -> wp.array:
+        """Nearest cloud point of each row of pts (M, 3) (storage dtype, unit frame) -> (M,) int32."""
+        out = wp.empty(pts.shape[0], dtype=wp.int32, device=self.device)
+        grid_id = enc.grid.id if enc.grid is not None else wp.uint64(0)
+        wp.launch(self.k.nearest, pts.shape[0],
+                  inputs=[enc.cloud, grid_id, enc.radius, int(enc.grid is not None), pts, out], device=self.device)
+        return out
+
+    def distances(self, enc: Encoded, S: wp.array, T: wp.array, center, scale: float, matrix: bool,
+                  s_nn=None, t_nn=None, s_comp=None, t_comp=None, out=None) -> wp.array:
+        """Distances in user units (float32): pairs (S[m], T[m]) or, with ``matrix``, all S x T (row-major).
+
+        S, T: (., 3) storage dtype, user units, ``(x - center) * scale`` = unit frame; s_nn/t_nn: optional
+        precomputed nearest cloud points (int32); s_comp/t_comp: optional component labels (int32), +inf across.
+        """
+        n_t = T.shape[0] if matrix else 0
+        m = S.shape[0] * T.shape[0] if matrix else S.shape[0]
+        if out is None:
+            out = wp.empty(m, dtype=wp.float32, device=self.device)
+        if m == 0:
+            return out
+        e = wp.empty(0, dtype=wp.int32, device=self.device)
+        w = self.w
+        grid_id = enc.grid.id if enc.grid is not None else wp.uint64(0)
+        wp.launch(self.k.pair_distance, m,
+                  inputs=[enc.cloud, grid_id, enc.radius, int(enc.grid is not None), enc.fused, w["fuseX"],
+                          *w["head0"], *w["head1"], w["head2"],
+                          S, s_nn if s_nn is not None else e, s_comp if s_comp is not None else e,
+                          T, t_nn if t_nn is not None else e, t_comp if t_comp is not None else e,
+                          *(float(c) for c in center), float(scale), n_t, out], device=self.device)
+        return out
+
+    # ---- tiled query (tensor cores on CUDA) ------------------------------------------------------------------
+    def tiled_weights(self, operand: str):
+        """Transposed head weights for the tiled kernel: (WxT (3,128), W0T, b0 (1,128), W1T, b1 (1,64), w2T)."""
+        key = ("tiled", operand)
+        if key not in self.w:
+            O = wp.float16 if operand == "fp16" else self.k.dtype
+            npo = np.float16 if operand == "fp16" else self.np_dtype
+            arr = (lambda x, dt, npd: wp.array(np.ascontiguousarray(np.asarray(x, np.float64).astype(npd)),
+                                               dtype=dt, device=self.device))
+            A, npa = self.k.acc, self.np_dtype
+            w = self.w
+            self.w[key] = (arr(_T(w["fuseX"]), A, npa), arr(_T(w["head0"][0]), O, npo),
+                           arr(w["head0"][1].numpy()[None], A, npa), arr(_T(w["head1"][0]), O, npo),
+                           arr(w["head1"][1].numpy()[None], A, npa), arr(_T(w["head2"]), O, npo))
+        return self.w[key]
+
+    def distances_tiled(self, enc: Encoded, S: wp.array, T: wp.array, center, scale: float, s_comp=None,
+                        t_comp=None, out=None, block_pairs: int = 32, operand: str | None = None,
+                        mathdx: bool = True, scratch: dict | None = None) -> wp.array:
+        """As :meth:`distances` for pairs (S[m], T[m]), with the head as block-wide tile GEMMs (see
+        ``kernels/generalizable/tiled.py``). operand "fp16" uses tensor cores on CUDA (~1e-3 relative error);
+        default: the mode's own type. block_pairs B: pairs per block (CPU: B <= 16 keeps the tile arena small).
+        """
+        from ..kernels.generalizable.tiled import tiled_kernels
+
+        operand = operand or ("fp64" if self.mode == "fp64" else "fp32")
+        tk = tiled_kernels(self.mode, block_pairs, operand, mathdx)
+        m = S.shape[0]
+        dev, A = self.device, tk.acc
+        sc = {} if scratch is None else scratch
+        su = self._buf(sc, "su", (m, 3), A)
+        tu = self._buf(sc, "tu", (m, 3), A)
+        si = self._buf(sc, "si", (m,), wp.int32)
+        ti = self._buf(sc, "ti", (m,), wp.int32)
+        r = self._buf(sc, "r", (m, 1), A)
+        if out is None:
+            out = wp.empty(m, dtype=wp.float32, device=dev)
+        if m == 0:
+            return out
+        grid_id = enc.grid.id if enc.grid is not None else wp.uint64(0)
+        fr = [*(float(c) for c in center), float(scale)]
+        wp.launch(tk.pair_prep, m, inputs=[enc.cloud, grid_id, enc.radius, int(enc.grid is not None), S, T, *fr,
+                                           su, tu, si, ti], device=dev)
+        nblocks = (m + block_pairs - 1) // block_pairs
+        wp.launch_tiled(tk.pair_head, dim=[nblocks], inputs=[enc.fused, si, ti, su, tu, *self.tiled_weights(operand), r],
+                        block_dim=64 if dev.is_cuda else 1, device=dev)
+        e = wp.empty(0, dtype=wp.int32, device=dev)
+        wp.launch(tk.pair_finish, m, inputs=[S, T, r, s_comp if s_comp is not None else e,
+                                             t_comp if t_comp is not None else e, out], device=dev)
+        return out
+
+
+def _T(a: wp.array) -> np.ndarray:
+    return np.ascontiguousarray(np.asarray(a.numpy(), np.float64).T)

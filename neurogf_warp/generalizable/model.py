@@ -1,0 +1,302 @@
+"""The generalizable model and the object it returns once conditioned on a shape.
+
+    import neurogf_warp.generalizable as gen
+    model = gen.load("GenNeuroGF.pth")                  # the released network, or a file from gen.train
+    cond = model.condition("bunny.obj")                   # or an (N, 3) point cloud in your units
+    d = cond.distance(p, q)                               # (M, 3), (M, 3) -> (M,), your units
+    row = cond.ssad(0)                                    # vertex 0 to every vertex (a cloud: every point)
+    D = cond.distance_matrix([0, 5, 9])                   # (3, n_vertices)
+
+Normalization (the network's frame, as the authors' data): the points are moved so that the centre of their
+axis-aligned bounding box is at the origin and scaled so that the largest distance from it is 1. For a mesh the
+frame is the mesh's (``ngf.load_mesh(...).center/.scale``: its used vertices' bounding-box centre, largest
+vertex norm 1); for a cloud, the cloud's own. Distances come back in the input's units (divided by the scale).
+
+Point sampling on a mesh: ``trimesh.sample.sample_surface(mesh, n_points, seed=seed)`` (area-weighted uniform
+sampling, default seed 2024, n_points 2048), the sampler and seed of the authors' reference inputs, so
+``condition(mesh)`` of a shared mesh reproduces ``reference/generalizable/<mesh>.npz``'s ``points``.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import warp as wp
+
+from neurogf_warp.generalizable.encoder import WarpGenNet, default_mode
+from neurogf_warp.generalizable.network import GenNeuroGF, load_network
+
+DEFAULT_POINTS = 2048
+DEFAULT_SEED = 2024
+
+
+def _finite_points(x, name: str, allow_single: bool = False) -> tuple[np.ndarray, bool]:
+    """x as an (M, 3) float64 array (and whether it was a single (3,) point); clear errors otherwise."""
+    if hasattr(x, "detach"):
+        x = x.detach().cpu().numpy()
+    elif isinstance(x, wp.array):
+        x = x.numpy()
+    try:
+        a = np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be an array of 3-D points, got {type(x).__name__}") from None
+    single = a.shape == (3,)
+    if single and allow_single:
+        a = a[None]
+    if a.ndim != 2 or a.shape[1] != 3:
+        want = "(M, 3) or (3,)" if allow_single else "(N, 3)"
+        raise ValueError(f"{name} must have shape {want} (x, y, z per row), got shape {a.shape}")
+    if not np.isfinite(a).all():
+        bad = int(np.argwhere(~np.isfinite(a).all(axis=1))[0, 0])
+        raise ValueError(f"{name} holds a non-finite coordinate (NaN or inf), first at row {bad}; remove or fix "
+                         f"those points")
+    return a, single
+
+
+def normalization(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """(center, scale) of the unit-sphere frame: bounding-box centre, 1 / largest distance from it."""
+    c = (points.min(axis=0) + points.max(axis=0)) / 2
+    r = float(np.sqrt(((points - c) ** 2).sum(axis=1)).max())
+    if not r > 0:
+        raise ValueError("all points coincide: a shape needs points spread in space to be normalized")
+    return c, 1.0 / r
+
+
+class GeneralizableModel:
+    """A generalizable NeuroGF network (released or trained); :meth:`condition` returns a :class:`Conditioned`.
+
+    ``meta``: what a trained file says about its training (collection, steps, validation MRE); empty for the
+    released network.
+    """
+
+    def __init__(self, net: GenNeuroGF, meta: dict | None = None, path: str | None = None):
+        self.net = net.double().eval()
+        self.meta = dict(meta or {})
+        self.path = path
+        self._warp: dict = {}
+
+    def __repr__(self):
+        what = self.meta.get("trained_on", {}).get("folder") if self.meta else None
+        return f"GeneralizableModel(path={self.path!r}, trained_on={what!r})"
+
+    def warp_net(self, device=None, mode: str | None = None) -> WarpGenNet:
+        """The Warp weights on ``device`` in ``mode`` (cached)."""
+        dev = wp.get_device(device)
+        mode = mode or default_mode(dev)
+        key = (str(dev), mode)
+        if key not in self._warp:
+            self._warp[key] = WarpGenNet(self.net, dev, mode)
+        return self._warp[key]
+
+    @property
+    def cloud_points(self) -> int:
+        """Points per cloud the network was trained with (2,048 for the released one; a trained file's config)."""
+        return int((self.meta.get("config") or {}).get("cloud_points", DEFAULT_POINTS))
+
+    def condition(self, shape, n_points: int | None = None, seed: int = DEFAULT_SEED, device=None,
+                  mode: str | None = None) -> Conditioned:
+        """Encode a shape once; the result answers distance queries on it.
+
+        shape: an (N, 3) point cloud in your units (N >= 40; the released network was trained on 2,048-point
+        clouds), or a mesh (path, ``ngf.Mesh``, trimesh, (V, F) pair): ``n_points`` points (default: as many as
+        the network was trained with, :attr:`cloud_points`) are sampled on it with ``seed`` (see the module
+        docstring), and results are per mesh vertex with +inf across connected
+        components. device: "cpu" / "cuda:N" (default: Warp's). mode: "fp64" / "fp32" / "mixed" (default
+        fp64 on the CPU, fp32 on CUDA).
+        """
+        mesh = None
+        if isinstance(shape, (str, os.PathLike)) or hasattr(shape, "faces") or (
+                isinstance(shape, (tuple, list)) and len(shape) == 2 and np.ndim(shape[1]) == 2):
+            mesh = _load_mesh(shape)
+        wn = self.warp_net(device, mode)
+        if mesh is None:
+            pts, _ = _finite_points(shape, "points")
+            if len(pts) < wn.kk:
+                raise ValueError(f"the point cloud has {len(pts)} points; conditioning needs at least "
+                                 f"{wn.kk} (the neighbour count), ideally ~2,048 as in training")
+            center, scale = normalization(pts)
+            return Conditioned(self, wn, pts, center, scale, None, None)
+        n_points = self.cloud_points if n_points is None else n_points
+        if int(n_points) < wn.kk:
+            raise ValueError(f"n_points={n_points} is too small; use at least {wn.kk} (2,048 as in training)")
+        pts, _ = sample_surface(mesh, int(n_points), seed)
+        fcomp = mesh.components[mesh.faces[:, 0]].astype(np.int32)
+        return Conditioned(self, wn, pts, np.asarray(mesh.center, np.float64), float(mesh.scale), mesh, fcomp)
+
+
+def _load_mesh(shape):
+    import neurogf_warp as ngf
+
+    return ngf.load_mesh(shape)
+
+
+def sample_surface(mesh, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """n points on the mesh surface (area-weighted, trimesh's sampler, ``seed``) -> (points (n, 3), face (n,))."""
+    import trimesh
+
+    tm = trimesh.Trimesh(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces), process=False)
+    pts, face = trimesh.sample.sample_surface(tm, n, seed=seed)
+    return np.asarray(pts, np.float64), np.asarray(face, np.int64)
+
+
+class Conditioned:
+    """A generalizable model conditioned on one shape: queries in the shape's own units.
+
+    Attributes: ``points`` (N, 3) the cloud in user units; ``center``, ``scale`` (unit frame =
+    (x - center) * scale); ``mesh`` (an ``ngf.Mesh`` or None). Distances are float32 numpy arrays in user units,
+    symmetric in (p, q) up to rounding, exactly 0 for p == q, never negative (the ratio is floored at 1: a
+    geodesic is never shorter than the straight segment), +inf between points on different connected
+    components of the mesh (a point takes the component of the mesh triangle closest to it).
+    """
+
+    def __init__(self, model, wn: WarpGenNet, points, center, scale, mesh, face_comp):
+        self.model, self.wn, self.device = model, wn, wn.device
+        self.points = points
+        self.center = np.asarray(center, np.float64)
+        self.scale = float(scale)
+        self.mesh = mesh
+        self.enc = wn.encode(points, self.center, self.scale)
+        self._wpmesh = None
+        self._multi = mesh is not None and mesh.n_components > 1
+        if self._multi:
+            v = ((np.asarray(mesh.vertices) - self.center) * self.scale).astype(np.float32)
+            self._wpmesh = wp.Mesh(wp.array(v, dtype=wp.vec3, device=self.device),
+                                   wp.array(np.asarray(mesh.faces, np.int32).ravel(), dtype=wp.int32,
+                                            device=self.device))
+            self._face_comp = wp.array(face_comp, dtype=wp.int32, device=self.device)
+        self._targets = None
+
+    @property
+    def frame(self):
+        return (*self.center.tolist(), self.scale)
+
+    # ---- inputs --------------------------------------------------------------------------------------------
+    def _points(self, x, name, single_ok=True, allow_index=True):
+        """(user-unit points (M, 3) float64, components (M,) or None, single?) from indices or points."""
+        arr = x.detach().cpu().numpy() if hasattr(x, "detach") else x
+        a = np.asarray(arr)
+        if allow_index and a.dtype.kind in "iu" and a.ndim <= 1:  # indices; an (M, 3) int array is points
+            single = a.ndim == 0
+            idx = a.reshape(-1).astype(np.int64)
+            if self.mesh is not None:
+                j = self.mesh.vertex(idx)  # input numbering -> internal (clear IndexError otherwise)
+                comp = self.mesh.components[j].astype(np.int32) if self._multi else None
+                return self.mesh.vertices[j], comp, single
+            if idx.size and (idx.min() < 0 or idx.max() >= len(self.points)):
+                raise IndexError(f"{name}: point index out of range 0 .. {len(self.points) - 1}")
+            return self.points[idx], None, single
+        if allow_index and a.dtype.kind == "f" and a.ndim <= 1 and a.shape != (3,):
+            raise ValueError(f"{name}: give integer indices or (M, 3) points, got a float array of shape {a.shape}")
+        pts, single = _finite_points(arr, name, allow_single=single_ok)
+        comp = self._components_of(pts) if self._multi else None
+        return pts, comp, single
+
+    def _components_of(self, pts):
+        X = self._dev(pts)
+        out = wp.empty(len(pts), dtype=wp.int32, device=self.device)
+        if len(pts):
+            wp.launch(self.wn.k.point_component, len(pts),
+                      inputs=[self._wpmesh.id, X, *self.frame, self._face_comp, out], device=self.device)
+        return out.numpy()
+
+    def _dev(self, pts):
+        return wp.array(np.ascontiguousarray(pts, dtype=self.wn.np_dtype), dtype=self.wn.k.dtype, device=self.device)
+
+    def _target_set(self):
+        """Every mesh vertex (internal numbering) or every cloud point, on the device, with nearest cloud points
+        and components precomputed once (reused by every ssad/msad/distance_matrix call)."""
+        if self._targets is None:
+            if self.mesh is not None:
+                pts = np.asarray(self.mesh.vertices, np.float64)
+                comp = self.mesh.components.astype(np.int32) if self._multi else None
+            else:
+                pts, comp = self.points, None
+            T = self._dev(pts)
+            unit = wp.empty((len(pts), 3), dtype=self.wn.k.dtype, device=self.device)
+            v = wp.empty(len(pts), dtype=wp.vec3, device=self.device)
+            wp.launch(self.wn.k.to_unit, len(pts), inputs=[T, *self.frame, unit, v], device=self.device)
+            nn = self.wn.nearest(self.enc, unit)
+            c = wp.array(comp, dtype=wp.int32, device=self.device) if comp is not None else None
+            self._targets = (T, nn, c)
+        return self._targets
+
+    def _out(self, values: np.ndarray) -> np.ndarray:
+        """Per-target values in the input numbering (mesh: NaN for vertices no face uses)."""
+        return self.mesh.to_input(values) if self.mesh is not None else values
+
+    # ---- queries -------------------------------------------------------------------------------------------
+    def distance(self, p, q):
+        """Geodesic distance of each pair: p, q (M, 3) points (or integer vertex/point indices) -> (M,) float32;
+        (3,), (3,) -> a float."""
+        P, pc, sp = self._points(p, "p")
+        Q, qc, sq = self._points(q, "q")
+        if len(P) != len(Q):
+            raise ValueError(f"p and q must hold the same number of points, got {len(P)} and {len(Q)}")
+        out = self.wn.distances(self.enc, self._dev(P), self._dev(Q), self.center, self.scale, False,
+                                s_comp=None if pc is None else wp.array(pc, dtype=wp.int32, device=self.device),
+                                t_comp=None if qc is None else wp.array(qc, dtype=wp.int32, device=self.device))
+        r = out.numpy()
+        return float(r[0]) if (sp and sq) else r
+
+    def distance_matrix(self, sources, targets=None):
+        """(S, n) distances from each source to every target: every mesh vertex (input numbering, NaN columns
+        for unused vertices) or every cloud point when ``targets`` is None, else (S, T) to the given targets.
+        sources/targets: integer indices (mesh vertices in the input numbering, or cloud points) or points."""
+        S, sc, _ = self._points(sources, "sources")
+        if len(S) == 0:
+            raise ValueError("sources is empty: give at least one source")
+        dev = self.device
+        s_comp = None if sc is None else wp.array(sc, dtype=wp.int32, device=dev)
+        if targets is None:
+            T, t_nn, t_comp = self._target_set()
+            if s_comp is None and t_comp is not None:  # points given for a multi-component mesh
+                s_comp = wp.array(self._components_of(S), dtype=wp.int32, device=dev)
+            out = self.wn.distances(self.enc, self._dev(S), T, self.center, self.scale, True, t_nn=t_nn,
+                                    s_comp=s_comp, t_comp=t_comp)
+            return self._out(out.numpy().reshape(len(S), T.shape[0]))
+        Tp, tc, _ = self._points(targets, "targets")
+        out = self.wn.distances(self.enc, self._dev(S), self._dev(Tp), self.center, self.scale, True,
+                                s_comp=s_comp, t_comp=None if tc is None else wp.array(tc, dtype=wp.int32, device=dev))
+        return out.numpy().reshape(len(S), len(Tp))
+
+    def ssad(self, source):
+        """Single source, all destinations: one index or one (3,) point -> (n,) float32 (see distance_matrix)."""
+        a = np.asarray(source.detach().cpu().numpy() if hasattr(source, "detach") else source)
+        if not (a.ndim == 0 or (a.shape == (3,) and a.dtype.kind == "f")):
+            raise ValueError(f"ssad takes one source (an integer index or a (3,) float point), got {a.dtype} "
+                             f"shape {a.shape}; "
+                             f"use msad or distance_matrix for several")
+        return self.distance_matrix(a.reshape(1, 3) if a.ndim == 1 else a.reshape(1))[0]
+
+    def msad(self, sources, chunk: int = 64):
+        """Multiple sources, all destinations: the distance from every target to its nearest source -> (n,)."""
+        a = np.asarray(sources.detach().cpu().numpy() if hasattr(sources, "detach") else sources)
+        if a.size == 0:
+            raise ValueError("sources is empty: give at least one source")
+        if a.dtype.kind not in "iuf":
+            raise ValueError(f"sources must be integer indices or (S, 3) float points, got dtype {a.dtype}")
+        a = a.reshape(-1, 3) if a.dtype.kind == "f" else a.reshape(-1)
+        best = None
+        for i in range(0, len(a), chunk):
+            m = self.distance_matrix(a[i:i + chunk]).min(axis=0)
+            best = m if best is None else np.fmin(best, m)
+        return best
+
+
+def load(path) -> GeneralizableModel:
+    """Load the released ``GenNeuroGF.pth`` (a plain state_dict) or a file written by ``generalizable.train``
+    (the state_dict plus what it was trained on, kept in ``model.meta``). Raises ValueError for a missing file or
+    one that does not hold this network."""
+    import torch
+
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise ValueError(f"no such file: {path!r}; pass the path of GenNeuroGF.pth or a trained model file")
+    obj = torch.load(path, map_location="cpu", weights_only=True)
+    meta = {}
+    if isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict):
+        meta = {k: v for k, v in obj.items() if k not in ("state_dict", "optimizer")}
+        obj = obj["state_dict"]
+    if not isinstance(obj, dict):
+        raise ValueError(f"{path!r} does not hold a state_dict (found {type(obj).__name__})")
+    return GeneralizableModel(load_network(obj), meta, path)

@@ -1,0 +1,444 @@
+"""Train a generalizable NeuroGF network on a folder of meshes, on one CPU/GPU or many ranks (torch.distributed).
+
+    python -m neurogf_warp.generalizable.train FOLDER -o model.pt --budget-seconds 600
+    torchrun --nproc_per_node 2 -m neurogf_warp.generalizable.train FOLDER -o model.pt --budget-seconds 600
+
+Data, as the authors' (issue 23): per shape, ``sources`` (256) source vertices x ``targets`` (512) target vertices
+with ground-truth geodesic distances from the project's solver (``ngf.geodesic_distances``), plus a
+``cloud_points`` (2,048) point cloud sampled on the surface, all in the shape's unit-sphere frame (bounding-box
+centre, largest vertex norm 1). A training step draws ``shapes_per_step`` shapes and, per shape,
+``step_sources`` x ``step_targets`` of its pairs; the loss is the L1 error of the predicted ratio
+geodesic / Euclidean (the authors' target). AdamW, lr 1e-2 cosine to 1e-4 over ``steps``, weight decay 1e-8.
+
+Split: if FOLDER has ``train/`` and ``test/`` subfolders (as ``shapes.write_collection`` writes), those;
+otherwise every 10th mesh file (sorted by path) is held out for validation. Validation MRE = mean over held-out
+pairs of |d - d_gt| / d_gt with d = max(ratio, 1) |s - t| (what ``Conditioned.distance`` returns), eval mode.
+
+Ground truth is cached per shape under ``--cache`` (default ``<output>.gt/``), keyed by the file's content and
+the data settings, written atomically: an interrupted run recomputes only what is missing. Under torchrun the
+shapes are sharded over the ranks (shape i on rank i mod world) both for ground truth and for training
+(data-parallel DDP: each rank draws its batch from its own shard; gradients are averaged). Rank 0 writes the
+checkpoint (atomically: a temporary file, then a rename) every ``checkpoint_seconds`` and at the end; ``--resume``
+continues from it with any world size (the model and optimizer state are global; the shard is recomputed).
+
+The output file (``torch.load(..., weights_only=True)``-safe dict) holds ``state_dict`` plus what it was trained
+on (``trained_on``: folder, files, counts, families if a shapes manifest is present, ground-truth settings), the
+config, step, elapsed time, loss and validation history; ``generalizable.load`` reads it.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from neurogf_warp.generalizable.network import GenNeuroGF
+
+MESH_EXTENSIONS = (".obj", ".ply", ".stl", ".off")
+FORMAT = "neurogf-generalizable"
+
+
+@dataclass
+class GenTrainConfig:
+    """Settings of :func:`train_generalizable` (defaults: the authors' data sizes, a smaller batch)."""
+
+    sources: int = 256  # ground truth: source vertices per shape
+    targets: int = 512  # ground truth: target vertices per source
+    cloud_points: int = 2048  # points sampled on each shape (the encoder's input)
+    shapes_per_step: int = 16  # shapes per step and rank (the authors used 64 on one GPU)
+    step_sources: int = 32  # sources per shape and step
+    step_targets: int = 64  # targets per source and step
+    steps: int = 20000  # cosine schedule length (and the last step)
+    lr: float = 1e-2
+    lr_min: float = 1e-4
+    weight_decay: float = 1e-8
+    budget_seconds: float | None = None  # stop after this much training time (ground truth not counted)
+    checkpoint_seconds: float = 120.0
+    val_every: int = 200  # steps between validations
+    val_shapes: int = 32  # held-out shapes used per validation (the first ones)
+    val_sources: int = 16
+    val_targets: int = 64
+    seed: int = 0
+    log_every: int = 20
+
+
+# ---- files and split ------------------------------------------------------------------------------------------
+
+def mesh_files(folder) -> tuple[list[Path], list[Path]]:
+    """(training files, validation files) of a collection folder (see the module docstring for the split)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ValueError(f"{folder} is not a folder; give a folder of mesh files ({', '.join(MESH_EXTENSIONS)})")
+    find = lambda d: sorted(p for p in d.rglob("*") if p.suffix.lower() in MESH_EXTENSIONS
+                            and ".tmp" not in p.name)
+    if (folder / "train").is_dir() and (folder / "test").is_dir():
+        train, val = find(folder / "train"), find(folder / "test")
+    else:
+        allf = find(folder)
+        val = allf[9::10]
+        train = [p for p in allf if p not in set(val)]
+    if not train:
+        raise ValueError(f"no mesh files ({', '.join(MESH_EXTENSIONS)}) for training under {folder}")
+    return train, val
+
+
+def _file_key(path: Path, cfg: GenTrainConfig) -> str:
+    h = hashlib.sha256(path.read_bytes())
+    h.update(json.dumps([cfg.sources, cfg.targets, cfg.cloud_points, cfg.seed]).encode())
+    return h.hexdigest()[:16]
+
+
+def shape_ground_truth(path, cfg: GenTrainConfig, device=None) -> dict:
+    """Ground truth of one mesh file (unit-sphere frame): ``cloud`` (P, 3) f32, ``verts`` (V, 3) f32 (internal
+    vertices), ``src`` (S,) i32, ``tgt`` (S, T) i32 vertex indices, ``dist`` (S, T) f32 geodesic distances.
+
+    Sources: ``cfg.sources`` distinct vertices (all if fewer), random with a seed from (cfg.seed, file name);
+    targets: per source, ``cfg.targets`` vertices of finite, non-zero distance (without replacement when enough).
+    """
+    import neurogf_warp as ngf
+
+    from neurogf_warp.generalizable.model import sample_surface
+
+    path = Path(path)
+    mesh = ngf.load_mesh(str(path))
+    nv = len(mesh.vertices)
+    rng = np.random.default_rng([cfg.seed, int(hashlib.sha256(path.name.encode()).hexdigest()[:8], 16)])
+    src = np.sort(rng.choice(nv, min(cfg.sources, nv), replace=False))
+    d = ngf.geodesic_distances(mesh, mesh.index[src], device=device)[:, mesh.index] * np.float32(mesh.scale)
+    tgt = np.zeros((len(src), cfg.targets), np.int32)
+    keep = np.ones(len(src), bool)
+    for r in range(len(src)):
+        ok = np.flatnonzero(np.isfinite(d[r]) & (d[r] > 0))
+        if len(ok) == 0:
+            keep[r] = False
+            continue
+        tgt[r] = rng.choice(ok, cfg.targets, replace=len(ok) < cfg.targets)
+    src, tgt = src[keep], tgt[keep]
+    dist = np.take_along_axis(d[keep], tgt, axis=1).astype(np.float32)
+    cloud, _ = sample_surface(mesh, cfg.cloud_points, cfg.seed)
+    return {"cloud": ((cloud - mesh.center) * mesh.scale).astype(np.float32),
+            "verts": mesh.normalized_vertices.astype(np.float32), "src": src.astype(np.int32), "tgt": tgt,
+            "dist": dist}
+
+
+def _atomic_savez(path: Path, **arrays):
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    with open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+    os.replace(tmp, path)
+
+
+def ground_truth_cache(files, cache: Path, cfg: GenTrainConfig, rank: int = 0, world: int = 1, device=None,
+                       log=print) -> list[Path]:
+    """Compute (rank's shard: file i with i % world == rank) and cache the ground truth of ``files``; returns the
+    cache path of every file (all ranks), whether or not it is computed yet (a barrier follows under DDP)."""
+    cache.mkdir(parents=True, exist_ok=True)
+    out = [cache / f"{p.stem}_{_file_key(p, cfg)}.npz" for p in files]
+    mine = [i for i in range(len(files)) if i % world == rank and not out[i].exists()]
+    t0 = time.perf_counter()
+    for n, i in enumerate(mine):
+        _atomic_savez(out[i], **shape_ground_truth(files[i], cfg, device))
+        if (n + 1) % 10 == 0 or n + 1 == len(mine):
+            log(f"[rank {rank}] ground truth {n + 1}/{len(mine)} shapes, {time.perf_counter() - t0:.1f} s")
+    return out
+
+
+class ShapeData:
+    """Cached ground truth of a list of shapes, loaded on first use (each rank touches only its shard)."""
+
+    def __init__(self, paths):
+        self.paths = list(paths)
+        self._data: dict = {}
+
+    def __len__(self):
+        return len(self.paths)
+
+    def __getitem__(self, i):
+        if i not in self._data:
+            with np.load(self.paths[i]) as z:
+                self._data[i] = {k: z[k] for k in z.files}
+        return self._data[i]
+
+    def batch(self, idx, n_src, n_tgt, rng):
+        """(cloud (B, P, 3), s (B, M, 3), t (B, M, 3), ratio (B, M), dist (B, M)) float32, M = n_src n_tgt."""
+        C, S, T, D = [], [], [], []
+        for i in idx:
+            z = self[i]
+            rs = rng.choice(len(z["src"]), n_src, replace=len(z["src"]) < n_src)
+            ct = rng.integers(0, z["tgt"].shape[1], (n_src, n_tgt))
+            tv = z["tgt"][rs[:, None], ct]
+            S.append(np.repeat(z["verts"][z["src"][rs]], n_tgt, axis=0))
+            T.append(z["verts"][tv.reshape(-1)])
+            D.append(z["dist"][rs[:, None], ct].reshape(-1))
+            C.append(z["cloud"])
+        C, S, T, D = (np.stack(x) for x in (C, S, T, D))
+        eu = np.linalg.norm(S - T, axis=-1)
+        ratio = D / np.maximum(eu, 1e-12)
+        return C, S, T, ratio.astype(np.float32), D
+
+
+# ---- distributed ---------------------------------------------------------------------------------------------
+
+def _dist_setup(device_arg):
+    """(rank, world, device, is_distributed): from torchrun's environment; gloo on CPU, NCCL on CUDA."""
+    import torch.distributed as dist
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    local = int(os.environ.get("LOCAL_RANK", "0"))
+    if device_arg in (None, "auto"):
+        device = torch.device(f"cuda:{local}" if torch.cuda.is_available() else "cpu")
+    else:
+        device = torch.device(device_arg)
+        if device.type == "cuda" and device.index is None:
+            device = torch.device(f"cuda:{local}")
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo", timeout=timedelta(hours=6))
+    return rank, world, device, world > 1
+
+
+# ---- checkpoints ---------------------------------------------------------------------------------------------
+
+def atomic_torch_save(obj, path: Path):
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def _trained_on(folder, train, val, cfg):
+    info = {"folder": str(Path(folder).resolve()), "n_train": len(train), "n_val": len(val),
+            "train_files": [str(Path(p).relative_to(folder)) for p in train],
+            "val_files": [str(Path(p).relative_to(folder)) for p in val],
+            "ground_truth": f"ngf.geodesic_distances, {cfg.sources} sources x {cfg.targets} targets per shape, "
+                            f"{cfg.cloud_points}-point cloud (trimesh sample_surface, seed {cfg.seed}), "
+                            f"unit-sphere frame"}
+    man = Path(folder) / "manifest.json"
+    if man.exists():
+        try:
+            m = json.loads(man.read_text())
+            fams: dict = {}
+            for s in m.get("shapes", {}).values():
+                fams[s["family"]] = fams.get(s["family"], 0) + 1
+            info["collection"] = {"seed": m.get("seed"), "families": fams}
+        except (ValueError, KeyError):
+            pass
+    return info
+
+
+# ---- validation ----------------------------------------------------------------------------------------------
+
+@torch.no_grad()
+def validation_mre(net: GenNeuroGF, data: ShapeData, cfg: GenTrainConfig, device) -> float:
+    """Mean relative error of max(ratio, 1) |s - t| on held-out shapes (fixed pairs: seed 12345), eval mode."""
+    if len(data) == 0:
+        return float("nan")
+    was = net.training
+    net.eval()
+    rng = np.random.default_rng(12345)
+    errs = []
+    for i in range(min(cfg.val_shapes, len(data))):
+        C, S, T, _, D = data.batch([i], cfg.val_sources, cfg.val_targets, rng)
+        args = (torch.from_numpy(x).to(device) for x in (C, S, T))
+        r = net(*args).clamp_min(1.0).cpu().numpy()
+        pred = r * np.linalg.norm(S - T, axis=-1)
+        errs.append((np.abs(pred - D) / D).ravel())
+    net.train(was)
+    return float(np.concatenate(errs).mean())
+
+
+# ---- training ------------------------------------------------------------------------------------------------
+
+def train_generalizable(folder, output, config: GenTrainConfig | None = None, resume: bool = False,
+                        cache=None, device=None, gt_device=None, log=None, callback=None) -> dict:
+    """Train (or resume) on a folder of meshes; returns the final checkpoint dict (see the module docstring).
+
+    ``callback(step, loss)`` runs after every step (raise KeyboardInterrupt there to stop like Ctrl-C: the
+    checkpoint is written, then the KeyboardInterrupt propagates).
+
+    Works alone or under torchrun (one process per GPU or several on the CPU).
+    """
+    import torch.distributed as dist
+    from torch.nn.parallel import DistributedDataParallel as DDP
+
+    cfg = config or GenTrainConfig()
+    rank, world, dev, distributed = _dist_setup(device)
+    log = log or (lambda s: print(s, flush=True))
+    say = (lambda s: log(s)) if rank == 0 else (lambda s: None)
+    output = Path(output)
+    cache = Path(cache) if cache else output.with_name(output.name + ".gt")
+    if dev.type == "cpu" and distributed:
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
+    train_files, val_files = mesh_files(folder)
+    say(f"{len(train_files)} training shapes, {len(val_files)} held out; world size {world}, device {dev}")
+
+    # ground truth, sharded over ranks
+    t_gt = time.perf_counter()
+    gtd = gt_device or (str(dev) if dev.type == "cuda" else "cpu")
+    tr_cache = ground_truth_cache(train_files, cache, cfg, rank, world, gtd, log)
+    va_cache = ground_truth_cache(val_files, cache, cfg, rank, world, gtd, log)
+    if distributed:
+        dist.barrier()
+    gt_seconds = time.perf_counter() - t_gt
+    say(f"ground truth ready in {gt_seconds:.1f} s ({cache})")
+    train_data, val_data = ShapeData(tr_cache), ShapeData(va_cache)
+    shard = [i for i in range(len(train_data)) if i % world == rank] or list(range(len(train_data)))
+
+    torch.manual_seed(cfg.seed)
+    net = GenNeuroGF().to(dev)
+    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    state = {"step": 0, "elapsed_s": 0.0, "loss_history": [], "val_history": [], "gt_seconds": 0.0}
+    if resume and output.exists():
+        ck = torch.load(output, map_location="cpu", weights_only=True)
+        if ck.get("format") != FORMAT:
+            raise ValueError(f"{output} is not a generalizable training file; cannot resume from it")
+        net.load_state_dict(ck["state_dict"])
+        opt.load_state_dict(ck["optimizer"])
+        state = {k: ck.get(k, v) for k, v in state.items()}
+        say(f"resumed {output} at step {state['step']} (written with world size {ck.get('world_size')})")
+    elif output.exists() and rank == 0:
+        say(f"note: {output} exists and will be overwritten (use --resume to continue it)")
+    state["gt_seconds"] += gt_seconds
+    model = DDP(net, device_ids=[dev.index] if dev.type == "cuda" else None) if distributed else net
+    model.train()
+
+    def lr_at(step):
+        return cfg.lr_min + 0.5 * (cfg.lr - cfg.lr_min) * (1 + math.cos(math.pi * min(step, cfg.steps) / cfg.steps))
+
+    def checkpoint():
+        if rank != 0:
+            return None
+        ck = {"format": FORMAT, "version": 1, "state_dict": {k: v.detach().cpu() for k, v in net.state_dict().items()},
+              "optimizer": opt.state_dict(), "config": dataclasses.asdict(cfg),
+              "trained_on": _trained_on(folder, train_files, val_files, cfg), "world_size": world,
+              "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"), "torch": str(torch.__version__),
+              "val_mre": state["val_history"][-1][1] if state["val_history"] else None, **state}
+        atomic_torch_save(ck, output)
+        return ck
+
+    t_start = time.perf_counter() - state["elapsed_s"]
+    t_ck = time.perf_counter()
+    budget = cfg.budget_seconds
+    run_loss, run_n = 0.0, 0
+    try:
+        while True:
+            step = state["step"]
+            elapsed = time.perf_counter() - t_start
+            stop = step >= cfg.steps or (budget is not None and elapsed >= budget)
+            if distributed:  # every rank stops at the same step (rank 0's clock decides)
+                flag = torch.tensor([1.0 if stop else 0.0], device=dev)
+                dist.broadcast(flag, 0)
+                stop = bool(flag.item())
+            if stop:
+                break
+            rng = np.random.default_rng([cfg.seed, step, rank])
+            idx = rng.choice(shard, cfg.shapes_per_step, replace=len(shard) < cfg.shapes_per_step)
+            C, S, T, R, _ = train_data.batch(idx, cfg.step_sources, cfg.step_targets, rng)
+            C, S, T, R = (torch.from_numpy(x).to(dev) for x in (C, S, T, R))
+            for g in opt.param_groups:
+                g["lr"] = lr_at(step)
+            loss = (model(C, S, T) - R).abs().mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            state["step"] = step + 1
+            if callback is not None:
+                callback(state["step"], float(loss.detach()))
+            run_loss += float(loss.detach())
+            run_n += 1
+            if state["step"] % cfg.log_every == 0 or state["step"] == 1:
+                mean = run_loss / run_n
+                if distributed:
+                    t = torch.tensor([mean], device=dev)
+                    dist.all_reduce(t)
+                    mean = float(t.item()) / world
+                state["loss_history"].append([state["step"], mean])
+                say(f"step {state['step']}/{cfg.steps}  loss {mean:.4f}  lr {lr_at(step):.2e}  "
+                    f"{time.perf_counter() - t_start:.1f} s")
+                run_loss, run_n = 0.0, 0
+            if cfg.val_every and state["step"] % cfg.val_every == 0 and rank == 0 and len(val_data):
+                mre = validation_mre(net, val_data, cfg, dev)
+                state["val_history"].append([state["step"], mre])
+                say(f"step {state['step']}  validation MRE {100 * mre:.2f}% ({min(cfg.val_shapes, len(val_data))} "
+                    f"held-out shapes)")
+            state["elapsed_s"] = time.perf_counter() - t_start
+            if time.perf_counter() - t_ck >= cfg.checkpoint_seconds:
+                checkpoint()
+                t_ck = time.perf_counter()
+    except KeyboardInterrupt:
+        # Ctrl-C (or a callback raising KeyboardInterrupt): keep the finished steps, as per-mesh training does
+        state["elapsed_s"] = time.perf_counter() - t_start
+        checkpoint()
+        say(f"interrupted at step {state['step']}: {output} written; --resume continues it")
+        raise
+    state["elapsed_s"] = time.perf_counter() - t_start
+    if rank == 0 and len(val_data) and (not state["val_history"] or state["val_history"][-1][0] != state["step"]):
+        mre = validation_mre(net, val_data, cfg, dev)
+        state["val_history"].append([state["step"], mre])
+        say(f"final validation MRE {100 * mre:.2f}%")
+    ck = checkpoint()
+    say(f"wrote {output}: step {state['step']}, {state['elapsed_s']:.1f} s of training")
+    if distributed:
+        dist.barrier()
+        dist.destroy_process_group()
+    return ck
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m neurogf_warp.generalizable.train",
+                                 description="Train a generalizable NeuroGF network on a folder of meshes "
+                                             "(also under torchrun).")
+    ap.add_argument("folder", help="meshes (train/ and test/ subfolders, or every 10th file held out)")
+    ap.add_argument("-o", "--output", required=True, help="model file to write (and resume from)")
+    ap.add_argument("--budget-seconds", type=float, default=None, help="training time limit")
+    ap.add_argument("--resume", action="store_true", help="continue the output file's training")
+    ap.add_argument("--cache", default=None, help="ground-truth cache folder (default: <output>.gt)")
+    ap.add_argument("--device", default=None, help="cpu, cuda (this rank's GPU) or cuda:N (default: auto)")
+    ap.add_argument("--gt-only", action="store_true", help="compute the ground truth and stop")
+    for f in dataclasses.fields(GenTrainConfig):
+        if f.name == "budget_seconds":
+            continue
+        ap.add_argument("--" + f.name.replace("_", "-"), type=type(f.default), default=None)
+    a = ap.parse_args(argv)
+    cfg = GenTrainConfig(**{f.name: getattr(a, f.name) for f in dataclasses.fields(GenTrainConfig)
+                            if f.name != "budget_seconds" and getattr(a, f.name) is not None},
+                         budget_seconds=a.budget_seconds)
+    try:
+        if a.gt_only:
+            rank, world, dev, distributed = _dist_setup(a.device)
+            train, val = mesh_files(a.folder)
+            out = Path(a.output)
+            cache = Path(a.cache) if a.cache else out.with_name(out.name + ".gt")
+            gtd = str(dev) if dev.type == "cuda" else "cpu"
+            t0 = time.perf_counter()
+            ground_truth_cache(train + val, cache, cfg, rank, world, gtd)
+            if distributed:
+                import torch.distributed as dist
+                dist.barrier()
+                dist.destroy_process_group()
+            if rank == 0:
+                print(f"ground truth of {len(train) + len(val)} shapes in {time.perf_counter() - t0:.1f} s "
+                      f"(world size {world})", flush=True)
+            return 0
+        train_generalizable(a.folder, a.output, cfg, resume=a.resume, cache=a.cache, device=a.device)
+    except KeyboardInterrupt:
+        return 130
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
