@@ -139,6 +139,8 @@ def main(argv=None) -> int:
     ap.add_argument("--subdivisions", type=int, default=3, help="bunny midpoint subdivisions: 0..N (3: 2.2M)")
     ap.add_argument("--max-sources", type=int, default=64, help="sources in the timed batch (at most one batch)")
     ap.add_argument("--public-sources", type=int, default=256)
+    ap.add_argument("--bench-vertices", type=int, default=436_000, help="the QSlim benchmark mesh's vertices")
+    ap.add_argument("--rows-sources", type=int, default=512, help="rows stage: at most this many rows")
     ap.add_argument("--skip", default="", help="comma list of stages to skip: scaling,public,rows,classes,shared")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
@@ -172,16 +174,17 @@ def main(argv=None) -> int:
             stage(f"scaling-{s}", lambda s=s: rate(f"bunny x{s} subdivided", *bunny(s), dev,
                                                    4 if a.small else a.max_sources, out))
         if not a.small:
-            V436, F436 = common.subdivided_bunny(436_000)
-            stage("scaling-436K", rate, "benchmark bunny 436K (QSlim)", V436, F436, dev, a.max_sources, out)
+            V436, F436 = common.subdivided_bunny(a.bench_vertices)
+            stage("scaling-436K", rate, f"benchmark bunny {a.bench_vertices // 1000}K (QSlim)", V436, F436, dev,
+                  a.max_sources, out)
             if "public" not in skip:
                 stage("public", public_call, V436, F436, dev, a.public_sources, out)
         if not a.small and "rows" not in skip:
             # does a batch of more rows cost more per source? (latency-bound iterations: no; throughput-bound: yes)
-            V2, F2 = bunny(2)
+            V2, F2 = bunny(min(2, a.subdivisions))
             for frac in (0.125, 0.5):
-                stage(f"rows-{frac}", rate, f"bunny x2, memory {frac:.0%}", V2, F2, dev, 512, out, frac, "rows",
-                      False)
+                stage(f"rows-{frac}", rate, f"bunny x{min(2, a.subdivisions)}, memory {frac:.1%}", V2, F2, dev,
+                      a.rows_sources, out, frac, "rows", False)
             del V2, F2
         pts = [(r["vertices"], r["sources_per_s"]) for r in out.get("scaling", []) if "subdivided" in r["mesh"]
                and r["vertices"] > 100_000]
