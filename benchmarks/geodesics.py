@@ -11,6 +11,8 @@ CPU smoke run (here):
    sources (distances to every vertex, copied to the host): sources/s, iterations, nodes, batch rows. The cost
    exponent is fitted (log-log) from 139K to 2.2M. On the 436K mesh also the public call
    `ngf.geodesic_distances(mesh, 256 sources)` end to end (solver set-up included: the figure a user gets).
+   Also the regular bumpy torus of 660 x 660 = 435,600 vertices that README / RESULTS.md's "1,024 sources in
+   60 s" was measured on (the issue's 11.1 sources/s came from the QSlim bunny through the public call).
    Rows: the 556K mesh with the solver's memory budget at 12.5% and 50% of the free memory (the default is 25%):
    whether a batch of more source rows costs more per source tells if the iterations are latency-bound.
 2. Accuracy: every mesh class of `tests/geodesic_meshes.mesh_classes` (stretched, needles, slivers, duplicated
@@ -179,6 +181,11 @@ def main(argv=None) -> int:
                   a.max_sources, out)
             if "public" not in skip:
                 stage("public", public_call, V436, F436, dev, a.public_sources, out)
+            del V436, F436
+            # the mesh of README / RESULTS.md's "1,024 sources in 60 s" (a regular torus, no slivers), for comparison
+            n = int(round(np.sqrt(a.bench_vertices)))
+            stage("scaling-torus", lambda: rate(f"bumpy torus {n}x{n} (RESULTS.md)", *common.bumpy_torus(n), dev,
+                                                a.max_sources, out))
         if not a.small and "rows" not in skip:
             # does a batch of more rows cost more per source? (latency-bound iterations: no; throughput-bound: yes)
             V2, F2 = bunny(min(2, a.subdivisions))
