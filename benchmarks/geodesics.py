@@ -5,6 +5,7 @@ GPU (lead's machine, under 8 minutes on an H200):
 CPU smoke run (here):
     python benchmarks/geodesics.py --device cpu --small --json out.json
 
+Accuracy runs first (it is quick), then the scaling stages from the smallest mesh up.
 1. Scaling: the shared bunny (34,834 vertices) midpoint-subdivided 0..3 times (139K, 556K, 2.2M vertices; the
    surface is unchanged) and the 436K-vertex benchmark mesh (`common.subdivided_bunny`: subdivided, then QSlim).
    Per mesh: one `GeodesicSolver` at the defaults, a warm-up batch (graph capture), then one timed batch of
@@ -144,6 +145,8 @@ def main(argv=None) -> int:
     ap.add_argument("--bench-vertices", type=int, default=436_000, help="the QSlim benchmark mesh's vertices")
     ap.add_argument("--rows-sources", type=int, default=512, help="rows stage: at most this many rows")
     ap.add_argument("--skip", default="", help="comma list of stages to skip: scaling,public,rows,classes,shared")
+    ap.add_argument("--time-limit", type=float, default=420.0,
+                    help="stages that would start after this many seconds are skipped (listed in the JSON)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     if a.shared:
@@ -162,13 +165,41 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     G.load_kernels(dev)
     out["compile_s"] = time.perf_counter() - t0
+    print(f"kernels loaded in {out['compile_s']:.1f} s", flush=True)
+
+    t_start = time.perf_counter()
 
     def stage(key, fn, *args):
+        if time.perf_counter() - t_start > a.time_limit:
+            out.setdefault("skipped", []).append(key)  # keeps the whole run inside the lead's time slot
+            print(f"skipped {key}: past --time-limit {a.time_limit:.0f} s", flush=True)
+            return
         try:
             fn(*args)
         except Exception as e:  # noqa: BLE001 - report and go on
             out["errors"][key] = repr(e)
             traceback.print_exc()
+
+    if "classes" not in skip:
+        print("== accuracy per mesh class (exact: tvb-gdist, float64, CPU)", flush=True)
+        from tests import geodesic_meshes as M
+        from tests.reference_geodesics import gdist_distances
+
+        for name, (V, F, R) in M.mesh_classes().items():
+            def one(name=name, V=V, F=F, R=R):
+                src = np.random.default_rng(0).choice(len(V), 6, replace=False)
+                accuracy(name, V, F, src, gdist_distances(V, R, src), dev, out)
+            stage(f"class-{name}", one)
+
+    if "shared" not in skip:
+        print("== accuracy on the shared meshes (exact references)", flush=True)
+        names = ["fandisk", "spot", "cow"] if a.small else ["fandisk", "spot", "cow", "homer", "rocker-arm",
+                                                            "cheburashka", "alligator", "stanford-bunny", "igea"]
+        for name in names:
+            def one(name=name):
+                V, F, src, ex = shared_reference(name)
+                accuracy(name, V, F, src, ex, dev, out)
+            stage(f"shared-{name}", one)
 
     if "scaling" not in skip:
         print("== scaling (subdivided bunny; 436K benchmark mesh)", flush=True)
@@ -200,27 +231,7 @@ def main(argv=None) -> int:
             out["cost_exponent_139K_up"] = float(np.polyfit(x, y, 1)[0])
             print(f"cost per source grows like V^{out['cost_exponent_139K_up']:.2f} above 100K vertices", flush=True)
 
-    if "classes" not in skip:
-        print("== accuracy per mesh class (exact: tvb-gdist, float64, CPU)", flush=True)
-        from tests import geodesic_meshes as M
-        from tests.reference_geodesics import gdist_distances
-
-        for name, (V, F, R) in M.mesh_classes().items():
-            def one(name=name, V=V, F=F, R=R):
-                src = np.random.default_rng(0).choice(len(V), 6, replace=False)
-                accuracy(name, V, F, src, gdist_distances(V, R, src), dev, out)
-            stage(f"class-{name}", one)
-
-    if "shared" not in skip:
-        print("== accuracy on the shared meshes (exact references)", flush=True)
-        names = ["fandisk", "spot", "cow"] if a.small else ["fandisk", "spot", "cow", "homer", "rocker-arm",
-                                                            "cheburashka", "alligator", "stanford-bunny", "igea"]
-        for name in names:
-            def one(name=name):
-                V, F, src, ex = shared_reference(name)
-                accuracy(name, V, F, src, ex, dev, out)
-            stage(f"shared-{name}", one)
-
+    out["total_s"] = time.perf_counter() - t_start
     if out["errors"]:
         print("errors:", json.dumps(out["errors"], indent=1))
     path = a.json or str(common.ROOT / "benchmarks" / f"geodesics_{'small' if a.small else 'full'}_"
