@@ -5,12 +5,15 @@ GPU (lead's machine, under 8 minutes on an H200):
 CPU smoke run (here):
     python benchmarks/geodesics.py --device cpu --small --json out.json
 
+Accuracy runs first (it is quick), then the scaling stages from the smallest mesh up.
 1. Scaling: the shared bunny (34,834 vertices) midpoint-subdivided 0..3 times (139K, 556K, 2.2M vertices; the
    surface is unchanged) and the 436K-vertex benchmark mesh (`common.subdivided_bunny`: subdivided, then QSlim).
    Per mesh: one `GeodesicSolver` at the defaults, a warm-up batch (graph capture), then one timed batch of
    sources (distances to every vertex, copied to the host): sources/s, iterations, nodes, batch rows. The cost
    exponent is fitted (log-log) from 139K to 2.2M. On the 436K mesh also the public call
    `ngf.geodesic_distances(mesh, 256 sources)` end to end (solver set-up included: the figure a user gets).
+   Also the regular bumpy torus of 660 x 660 = 435,600 vertices that README / RESULTS.md's "1,024 sources in
+   60 s" was measured on (the issue's 11.1 sources/s came from the QSlim bunny through the public call).
    Rows: the 556K mesh with the solver's memory budget at 12.5% and 50% of the free memory (the default is 25%):
    whether a batch of more source rows costs more per source tells if the iterations are latency-bound.
 2. Accuracy: every mesh class of `tests/geodesic_meshes.mesh_classes` (stretched, needles, slivers, duplicated
@@ -139,7 +142,11 @@ def main(argv=None) -> int:
     ap.add_argument("--subdivisions", type=int, default=3, help="bunny midpoint subdivisions: 0..N (3: 2.2M)")
     ap.add_argument("--max-sources", type=int, default=64, help="sources in the timed batch (at most one batch)")
     ap.add_argument("--public-sources", type=int, default=256)
+    ap.add_argument("--bench-vertices", type=int, default=436_000, help="the QSlim benchmark mesh's vertices")
+    ap.add_argument("--rows-sources", type=int, default=512, help="rows stage: at most this many rows")
     ap.add_argument("--skip", default="", help="comma list of stages to skip: scaling,public,rows,classes,shared")
+    ap.add_argument("--time-limit", type=float, default=420.0,
+                    help="stages that would start after this many seconds are skipped (listed in the JSON)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     if a.shared:
@@ -158,37 +165,20 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     G.load_kernels(dev)
     out["compile_s"] = time.perf_counter() - t0
+    print(f"kernels loaded in {out['compile_s']:.1f} s", flush=True)
+
+    t_start = time.perf_counter()
 
     def stage(key, fn, *args):
+        if time.perf_counter() - t_start > a.time_limit:
+            out.setdefault("skipped", []).append(key)  # keeps the whole run inside the lead's time slot
+            print(f"skipped {key}: past --time-limit {a.time_limit:.0f} s", flush=True)
+            return
         try:
             fn(*args)
         except Exception as e:  # noqa: BLE001 - report and go on
             out["errors"][key] = repr(e)
             traceback.print_exc()
-
-    if "scaling" not in skip:
-        print("== scaling (subdivided bunny; 436K benchmark mesh)", flush=True)
-        for s in range((0 if a.small else a.subdivisions) + 1):
-            stage(f"scaling-{s}", lambda s=s: rate(f"bunny x{s} subdivided", *bunny(s), dev,
-                                                   4 if a.small else a.max_sources, out))
-        if not a.small:
-            V436, F436 = common.subdivided_bunny(436_000)
-            stage("scaling-436K", rate, "benchmark bunny 436K (QSlim)", V436, F436, dev, a.max_sources, out)
-            if "public" not in skip:
-                stage("public", public_call, V436, F436, dev, a.public_sources, out)
-        if not a.small and "rows" not in skip:
-            # does a batch of more rows cost more per source? (latency-bound iterations: no; throughput-bound: yes)
-            V2, F2 = bunny(2)
-            for frac in (0.125, 0.5):
-                stage(f"rows-{frac}", rate, f"bunny x2, memory {frac:.0%}", V2, F2, dev, 512, out, frac, "rows",
-                      False)
-            del V2, F2
-        pts = [(r["vertices"], r["sources_per_s"]) for r in out.get("scaling", []) if "subdivided" in r["mesh"]
-               and r["vertices"] > 100_000]
-        if len(pts) >= 2:
-            x, y = np.log([p[0] for p in pts]), np.log([1.0 / p[1] for p in pts])
-            out["cost_exponent_139K_up"] = float(np.polyfit(x, y, 1)[0])
-            print(f"cost per source grows like V^{out['cost_exponent_139K_up']:.2f} above 100K vertices", flush=True)
 
     if "classes" not in skip:
         print("== accuracy per mesh class (exact: tvb-gdist, float64, CPU)", flush=True)
@@ -211,6 +201,37 @@ def main(argv=None) -> int:
                 accuracy(name, V, F, src, ex, dev, out)
             stage(f"shared-{name}", one)
 
+    if "scaling" not in skip:
+        print("== scaling (subdivided bunny; 436K benchmark mesh)", flush=True)
+        for s in range((0 if a.small else a.subdivisions) + 1):
+            stage(f"scaling-{s}", lambda s=s: rate(f"bunny x{s} subdivided", *bunny(s), dev,
+                                                   4 if a.small else a.max_sources, out))
+        if not a.small:
+            V436, F436 = common.subdivided_bunny(a.bench_vertices)
+            stage("scaling-436K", rate, f"benchmark bunny {a.bench_vertices // 1000}K (QSlim)", V436, F436, dev,
+                  a.max_sources, out)
+            if "public" not in skip:
+                stage("public", public_call, V436, F436, dev, a.public_sources, out)
+            del V436, F436
+            # the mesh of README / RESULTS.md's "1,024 sources in 60 s" (a regular torus, no slivers), for comparison
+            n = int(round(np.sqrt(a.bench_vertices)))
+            stage("scaling-torus", lambda: rate(f"bumpy torus {n}x{n} (RESULTS.md)", *common.bumpy_torus(n), dev,
+                                                a.max_sources, out))
+        if not a.small and "rows" not in skip:
+            # does a batch of more rows cost more per source? (latency-bound iterations: no; throughput-bound: yes)
+            V2, F2 = bunny(min(2, a.subdivisions))
+            for frac in (0.125, 0.5):
+                stage(f"rows-{frac}", rate, f"bunny x{min(2, a.subdivisions)}, memory {frac:.1%}", V2, F2, dev,
+                      a.rows_sources, out, frac, "rows", False)
+            del V2, F2
+        pts = [(r["vertices"], r["sources_per_s"]) for r in out.get("scaling", []) if "subdivided" in r["mesh"]
+               and r["vertices"] > 100_000]
+        if len(pts) >= 2:
+            x, y = np.log([p[0] for p in pts]), np.log([1.0 / p[1] for p in pts])
+            out["cost_exponent_139K_up"] = float(np.polyfit(x, y, 1)[0])
+            print(f"cost per source grows like V^{out['cost_exponent_139K_up']:.2f} above 100K vertices", flush=True)
+
+    out["total_s"] = time.perf_counter() - t_start
     if out["errors"]:
         print("errors:", json.dumps(out["errors"], indent=1))
     path = a.json or str(common.ROOT / "benchmarks" / f"geodesics_{'small' if a.small else 'full'}_"

@@ -53,3 +53,19 @@ def test_thin_faces_get_more_steiner_points():
         topo = Topology(V, F)
         c = steiner_counts(V, topo.faces, topo.face_edges, len(topo.edges), 3, topo.face_ok)
         assert c.min() == 3 and (c.max() > 3) == expect_more
+
+
+def test_solver_numbering_is_invisible(monkeypatch):
+    # the solver numbers vertices along a Morton curve; sources, rows and paths stay in the mesh's numbering.
+    # With windows off (the plain Steiner graph: no order-dependence) both numberings give the same distances.
+    from neurogf_warp.ground_truth import solver as S
+
+    V, F = M.icosphere(2, (1.0, 0.8, 0.6))
+    order = S.spatial_order(V)
+    assert np.array_equal(np.sort(order), np.arange(len(V))) and not np.array_equal(order, np.arange(len(V)))
+    src = [0, 5, 100]
+    on = G.geodesic_distances((V, F), src, device="cpu", windows=False)
+    monkeypatch.setattr(S, "REORDER", False)
+    off = G.geodesic_distances((V, F), src, device="cpu", windows=False)
+    np.testing.assert_allclose(on, off, rtol=1e-6)
+    assert np.all(on[np.arange(3), src] == 0)

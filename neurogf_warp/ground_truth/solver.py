@@ -27,7 +27,24 @@ BYTES_PER_NODE = 109  # solver state per (source row, node): see GeodesicSolver.
 PATH_TOLERANCE = 1e-3  # a traced path longer than its distance by more than this (relative) is not returned
 PATH_ABS_TOLERANCE = 1e-6  # and by more than this (normalized units: float32 rounding of short paths)
 MAX_BATCH = 512
+REORDER = True  # number the solver's vertices along a Morton curve (memory locality; results in mesh order)
 CPU_CHUNK_SECONDS = 0.25  # one CPU launch of the relaxation loop; Ctrl-C is seen between launches
+
+
+def spatial_order(points: np.ndarray, bits: int = 16) -> np.ndarray:
+    """(n,) int64: the points sorted along a Morton (Z-order) curve of 2^bits cells per axis, ties in input
+    order. Nearby points get nearby ranks, so per-node state of neighbouring nodes shares cache lines."""
+    p = np.asarray(points, dtype=np.float64)
+    if len(p) == 0:
+        return np.zeros(0, dtype=np.int64)
+    lo = p.min(axis=0)
+    span = float((p.max(axis=0) - lo).max())
+    q = np.floor((p - lo) / (span if span > 0 else 1.0) * (2**bits - 1)).astype(np.uint64)
+    code = np.zeros(len(p), dtype=np.uint64)
+    for b in range(bits):
+        for axis in range(3):
+            code |= ((q[:, axis] >> np.uint64(b)) & np.uint64(1)) << np.uint64(3 * b + axis)
+    return np.argsort(code, kind="stable")
 
 
 def _count(name: str, value) -> int:
@@ -82,12 +99,25 @@ class GeodesicSolver:
                 or not np.isfinite(delta) or delta < 0:
             raise ValueError(f"delta must be a finite number >= 0 (0: plain Bellman-Ford), got {delta!r}")
         t0 = time.perf_counter()
-        # window-face test on the float32 normalized positions the kernels use (see window_faces)
-        self.topo = Topology(self.mesh.normalized_vertices.astype(np.float32), self.mesh.faces)
+        # The solver numbers vertices along a Morton curve (and faces by their lowest vertex), so that a node's
+        # neighbours sit close in memory (Steiner nodes follow their edges, edges their vertices); the mesh's own
+        # numbering is restored at run / vertex_distances / trace. Bunny subdivided once (139K vertices), one
+        # source on the CPU: 5.4-5.8 s against 6.6-8.2 s in file order, same results up to the order-dependence of
+        # the windows.
         self.nv = len(self.mesh.vertices)
+        x32 = self.mesh.normalized_vertices.astype(np.float32)
+        self._order = spatial_order(x32) if REORDER else np.arange(self.nv)  # solver id -> mesh id
+        self._solver_id = np.empty(self.nv, dtype=np.int64)  # mesh id -> solver id
+        self._solver_id[self._order] = np.arange(self.nv)
+        faces = self._solver_id[np.asarray(self.mesh.faces, dtype=np.int64)]
+        if REORDER:
+            faces = faces[np.argsort(faces.min(axis=1), kind="stable")]
+        self._positions = x32[self._order]
+        # window-face test on the float32 normalized positions the kernels use (see window_faces)
+        self.topo = Topology(self._positions, faces)
         # delta-stepping bucket width, in mean edge lengths (normalized frame)
         e = self.topo.edges
-        nvx = self.mesh.normalized_vertices
+        nvx = self.mesh.normalized_vertices[self._order]
         mean_len = float(np.linalg.norm(nvx[e[:, 0]] - nvx[e[:, 1]], axis=1).mean()) if len(e) else 1.0
         self.delta = float(delta) * mean_len if delta > 0 else float("inf")
         # Steiner points: k per edge, more on long edges of thin faces (steiner_graph.steiner_counts)
@@ -139,8 +169,7 @@ class GeodesicSolver:
     def _alloc(self):
         kg = _kernels()
         d, b, n = self.device, self.batch, self.n_nodes
-        self.graph = self.topo.to_warp(self.mesh.normalized_vertices.astype(np.float32), self.k, self.windows, d,
-                                       self.nodes)
+        self.graph = self.topo.to_warp(self._positions, self.k, self.windows, d, self.nodes)
         z = lambda dt: wp.zeros((b, n), dtype=dt, device=d)  # noqa: E731
 
         def windows():
@@ -272,8 +301,8 @@ class GeodesicSolver:
             raise ValueError(f"run() takes 1..{self.batch} sources, got {len(src)}")
         if src.min() < 0 or src.max() >= self.nv:
             raise IndexError("internal source id out of range")
-        padded = np.full(self.batch, src[-1], dtype=np.int32)
-        padded[: len(src)] = src
+        padded = np.full(self.batch, self._solver_id[src[-1]], dtype=np.int32)
+        padded[: len(src)] = self._solver_id[src]
         t0 = time.perf_counter()
         self.src_w.assign(padded)
         self._run_program()
@@ -295,7 +324,7 @@ class GeodesicSolver:
 
     def vertex_distances(self) -> np.ndarray:
         """(rows, V) float32 distances of the last run, normalized units (inf = unreachable)."""
-        return self.state.dist.numpy()[: len(self.rows), : self.nv].copy()
+        return self.state.dist.numpy()[: len(self.rows), : self.nv][:, self._solver_id]
 
     def solve(self, sources: np.ndarray) -> np.ndarray:
         """(S, V) normalized distances for any number of internal source ids."""
@@ -329,7 +358,7 @@ class GeodesicSolver:
         """
         kg = _kernels()
         rows = np.asarray(rows, dtype=np.int32).reshape(-1)
-        targets = np.asarray(targets, dtype=np.int32).reshape(-1)
+        targets = self._solver_id[np.asarray(targets, dtype=np.int64).reshape(-1)].astype(np.int32)
         T = len(targets)
         if T == 0:
             return np.zeros((0, 3), np.float32), np.zeros(1, np.int64), np.zeros(0, np.int32)
