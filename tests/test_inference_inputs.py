@@ -209,3 +209,21 @@ def test_distances_are_never_below_the_chord(precision):
     assert np.all(row >= c.astype(np.float32) * (1 - 1e-6)) and row[src] == 0.0
     M = ngf.distance_matrix(model, [src, int(j[0])], **kw)
     assert np.all(M[0] >= c.astype(np.float32) * (1 - 1e-6))
+
+
+@pytest.mark.parametrize("precision", ["fp32", "fp16"])
+def test_iterated_points_do_not_depend_on_the_input_kind_far_away(precision):
+    """Refined paths and projections iterate points; from float32 torch input 3e3 from the origin they equal those
+    from the same values as float64 numpy (both iterate relative to the mesh centre: in float32 mesh coordinates
+    the steps would be quantized at 2.4e-4, a tenth of the finite-difference step)."""
+    model = small_model(seed=5, offset=3e3, fourier=2, euclid=True, path_residual=True, path_window=True)
+    V = model.mesh.vertices.astype(np.float32)
+    p, q = V[:5], V[20:25]
+    kw = dict(device=DEV, precision=precision)
+    for extra in (dict(refine=2), dict(project="sdf"), {}):
+        a = ngf.path(model, p.astype(np.float64), q.astype(np.float64), m=8, **extra, **kw)
+        b = ngf.path(model, torch.from_numpy(p), torch.from_numpy(q), m=8, **extra, **kw).numpy()
+        np.testing.assert_array_equal(a, b, err_msg=str(extra))
+    x = V[:6] + np.float32(0.05)
+    np.testing.assert_array_equal(ngf.project(model, x.astype(np.float64), device=DEV),
+                                  ngf.project(model, torch.from_numpy(x), device=DEV).numpy())

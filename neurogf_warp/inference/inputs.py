@@ -100,7 +100,7 @@ def sources_in(model: Model, src, name: str, dev, one: bool = False):
         i = int(src)
         if 0 <= i < m.n_input and m.input_to_internal[i] >= 0:
             j = int(m.input_to_internal[i])
-            return (to_relative(st, m.vertices[j:j + 1]), np.array([j]),
+            return (st.mesh(name).rel64[j:j + 1], np.array([j]),
                     (m.components[j:j + 1] if m.n_components > 1 else None))
     if isinstance(src, wp.array):
         src = src.numpy()

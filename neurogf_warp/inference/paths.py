@@ -10,7 +10,7 @@ import numpy as np
 import warp as wp
 
 from neurogf_warp.common.arrays import Output, resolve_device
-from neurogf_warp.inference.inputs import pair_components, pair_inputs, points_in
+from neurogf_warp.inference.inputs import pair_components, pair_inputs, points_in, relative_points
 from neurogf_warp.inference.backends import backend_of
 from neurogf_warp.inference.state import query_state
 from neurogf_warp.kernels.inference import finish, mlp
@@ -56,6 +56,10 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None 
     n, m = P.shape[0], int(m)
     out = Output(kind, dev)
     res = out.empty((n, m), dtype=wp.vec3)
+    if n and (refine or project == "sdf") and frame is not st.frame:
+        # iterated points (refinement, Newton steps) live relative to the mesh centre, where float32 resolves the
+        # mesh's own scale; device input is moved there once (float64 arithmetic) and the result moved back below
+        P, Q, frame = relative_points(model, P, frame), relative_points(model, Q, frame), st.frame
     if n and not refine:
         be.paths(P, Q, res, frame)
     elif n:
@@ -145,6 +149,7 @@ def project(model: Model, x, steps: int = PROJECT_STEPS, device=None):
     res = out.empty(X.shape[0], dtype=wp.vec3)
     if X.shape[0]:
         st = query_state(model, dev)
+        X, frame = relative_points(model, X, frame), st.frame  # Newton steps relative to the mesh centre
         wp.launch(mlp.project_points, X.shape[0], inputs=[st.weights, X, frame, int(steps)], outputs=[res],
                   device=dev)
         if frame is st.frame and st.model.in_mesh_frame:  # host input ran relative to the mesh centre

@@ -42,6 +42,7 @@ class MeshOnDevice:
         self.identity = self.n_input == self.V and bool(np.array_equal(inv, np.arange(self.V)))
         self.inv = None if self.identity else wp.array(inv.astype(np.int32), dtype=wp.int32, device=dev)
         self.dev = dev
+        self.rel64 = rel  # (V, 3) float64 relative vertices: vertex sources without arithmetic per query
         self.lifted = None  # fp16 rows of the vertices embedded inside the kernels (no kept embeddings)
         self._wp_mesh = self._face_comp = None
         if self.multi:  # closest-point queries give a point's component (in these relative coordinates)
@@ -184,6 +185,10 @@ def to_relative(state: "QueryState", x: np.ndarray) -> np.ndarray:
 
 def query_state(model: Model, device=None) -> QueryState:
     """The model's ``QueryState`` on ``device`` (made on first use; Warp's preferred device when None)."""
+    if isinstance(device, wp.Device):  # the queries' own calls: no device resolution on the hot path
+        st = model._states.get(str(device))
+        if st is not None:
+            return st
     dev = resolve_device(device)
     key = str(dev)
     st = model._states.get(key)
