@@ -37,7 +37,7 @@ def small_model(D=64, seed=0, offset=0.0, **options):
     return ngf.Model(net=NeuroGFNet(D, **options).eval(), mesh=mesh, center=mesh.center, scale=mesh.scale)
 
 
-# ---- item 1: far from the origin ----------------------------------------------------------------------------------------
+# ---- item 1: far from the origin ------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("shift", [1e3, -3.7e5, 1e6, np.array([1e8, -2e7, 5e7])], ids=str)
 def test_moved_mesh_gives_the_same_answers(fandisk, shift):

@@ -29,8 +29,8 @@ finish_distance = wp.func_native(tc._frame_cpp("frame") + """
     const float sp[3] = {s[0], s[1], s[2]};
     return ngf::finish_distance(head, F, xp, sp, euclid, other_part, raw);
 """)(_finish_distance)
-finish_distance.__doc__ = """User-unit distance from a head value (network frame): ``ngf::finish_distance`` of the native header,
-the one definition of the rule for both backends."""
+finish_distance.__doc__ = """User-unit distance from a head value (network frame): ``ngf::finish_distance`` of the native
+header, the one definition of the rule for both backends."""
 
 
 @wp.kernel(enable_backward=False)

@@ -107,7 +107,7 @@ class Engine:
         return r
 
     def sources(self, emb: wp.array, pos: wp.array, comp: wp.array | None) -> tc.Sources:
-        """Tables of source rows: packed embeddings, user-frame points, component labels (or None)."""
+        """Tables of source rows: packed embeddings, points (frame coordinates), component labels (or None)."""
         s = tc.Sources()
         s.emb, s.pos = emb, pos
         s.comp = comp if comp is not None else self._none

@@ -69,9 +69,9 @@ class QueryState:
     the identity. Both are ``mlp.Frame``s with the domain limit.
 
     Attributes made on first use: ``weights`` (``mlp.NeuroGFWeights``, folded float32), ``head_weights`` (the
-    same with the |x - s| term off), ``shape`` (``folded.NetShape``), ``engine``
-    (``engine.Engine``, fp16 only), ``mesh(what)`` (``MeshOnDevice``), ``backends``, ``bound`` ({precision: kept embeddings}),
-    ``tables`` (the fp16 rows and sources made from the fp16 binding).
+    same with the |x - s| term off), ``shape`` (``folded.NetShape``), ``engine`` (``engine.Engine``, fp16 only),
+    ``mesh(what)`` (``MeshOnDevice``), ``backends``, ``bound`` ({precision: kept embeddings}), ``tables`` (the
+    fp16 rows and sources made from the fp16 binding).
     """
 
     def __init__(self, model: Model, dev, tuning: tc.Tuning = tc.Tuning()):

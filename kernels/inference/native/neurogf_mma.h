@@ -666,13 +666,13 @@ struct DistanceOut
     int raw;              // 1: the network's own value (no clamping at 0, no exact 0 at the source)
 };
 
-// Sources are rows of three tables (packed embeddings, user-frame points, component labels): rows ids[s], or
-// row0 + s without ids. A bound model's vertex sources are rows of its kept tables; point sources are rows of
-// tables computed for the call.
+// Sources are rows of three tables (packed embeddings, points in the Frame's coordinates, component labels):
+// rows ids[s], or row0 + s without ids. A bound model's vertex sources are rows of its kept tables; point sources
+// are rows of tables computed for the call.
 struct Sources
 {
     const u32x4* emb;    // (R, D/8) packed fp16 embeddings
-    const float* pos;    // (R, 3) user frame
+    const float* pos;    // (R, 3) in the Frame's coordinates (to_net maps them)
     const int* comp;     // (R,) component labels (null: one component)
     const int* ids;      // (S,) rows (null: row0 + s)
     int row0;
@@ -1056,7 +1056,8 @@ NGF_FN void path_pre_rows(const PathWeights& W, const u32x4* ep, const u32x4* eq
     }
 }
 
-// m points for each of N paths: out[i, j] (user frame), straight line p_i -> q_i through the point-wise head.
+// m points for each of N paths: out[i, j] (from_net: the Frame's coordinates), straight line p_i -> q_i through the
+// point-wise head.
 template <int P1, int P2, int P3>
 NGF_FN void path_point_rows(const PathWeights& W, const Frame& f, const float* ps, const float* qs, const float* pre,
                             int n_paths, int m, float* out, int warp, int n_warps)
