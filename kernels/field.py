@@ -2,7 +2,10 @@
 
 Every function takes the model's folded weights, ``mlp.NeuroGFWeights`` (``warp_structs.weights(model, device)``), and
 points in the network's normalized frame (``mlp.to_net(frame, x)`` with ``neurogf_warp.inference.warp_structs.frame``;
-multiply distances by ``frame.dscale`` for mesh units). One thread, one query; no tiles, no shared memory.
+multiply distances by ``frame.dscale`` for mesh units). The frame's centre is float64 and ``to_net`` / ``from_net``
+subtract / add it in float64, so float32 mesh coordinates far from the origin lose nothing beyond their own
+rounding; ``frame.limit`` is the domain (|to_net(x)| <= limit per axis; the functions themselves do not check it).
+One thread, one query; no tiles, no shared memory.
 
     geodesic_distance(net, p, q) -> float                    predicted geodesic distance
     distance_and_gradient(net, p, q) -> (float, vec3)        ... and d/dp (the geodesic leaves p along -d/dp)

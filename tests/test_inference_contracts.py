@@ -62,12 +62,14 @@ def test_finishing_rule_is_the_native_one():
     assert finish.finish_distance.native_snippet is not None
     assert "ngf::finish_distance" in finish.finish_distance.native_snippet
     f = mlp.Frame()
-    f.center, f.xscale, f.dscale = wp.vec3(1.0, 2.0, 3.0), 0.5, 2.0
+    f.center, f.xscale, f.dscale, f.limit = wp.vec3d(1.0, 2.0, 3.0), 0.5, 2.0, 1.5
     rng = np.random.default_rng(0)
     head = rng.normal(size=(1, 6)).astype(np.float32)
-    rows = rng.normal(size=(6, 3)).astype(np.float32)
+    rows = (src_c := np.array([1.0, 2.0, 3.0])) + rng.uniform(-1, 1, size=(6, 3)).astype(np.float32)
+    rows = rows.astype(np.float32)
+    rows[5] = [9.0, 2.0, 3.0]  # (9 - 1) * 0.5 = 4 > 1.5: outside the domain
     rows[2] = [1.0, 2.0, 3.0]  # the source itself
-    src = np.array([[1.0, 2.0, 3.0]], np.float32)
+    src = src_c[None].astype(np.float32)
     none = wp.empty(0, dtype=wp.int32, device="cpu")
     out = wp.empty((1, 6), dtype=float, device="cpu")
     wp.launch(finish.finish_rows, (1, 6), inputs=[wp.array(head, dtype=float, device="cpu"),
@@ -75,6 +77,7 @@ def test_finishing_rule_is_the_native_one():
                                                   wp.array(src, dtype=wp.vec3, device="cpu"), none, f, 1.0, 0],
               outputs=[out], device="cpu")
     chord = np.linalg.norm(rows - src, axis=1) * 0.5
-    want = np.maximum((head[0] + chord) * 2.0, 0.0)
+    want = np.maximum((head[0] + chord) * 2.0, chord * 2.0)  # never below the straight line
     want[2] = 0.0
+    want[5] = np.nan
     np.testing.assert_allclose(out.numpy()[0], want, rtol=1e-6, atol=1e-7)

@@ -1,5 +1,5 @@
-"""Every public query answers fixed inputs bit for bit as it did before the inference core was restructured
-(tests/data/query_snapshot.npz, made by tests/query_snapshot.py at faff3ec on Warp's CPU device)."""
+"""Every public query answers fixed inputs bit for bit as the stored snapshot (tests/data/query_snapshot.npz, made by
+tests/query_snapshot.py on Warp's CPU device; its docstring says at which commits)."""
 from pathlib import Path
 
 import numpy as np

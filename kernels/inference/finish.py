@@ -1,8 +1,10 @@
 """Small kernels shared by every query: finishing raw distances, per-component answers, numbering, input checks.
 
-A distance is finished the same way on every path: the network's head value plus the |x - s| term of
-``euclid`` networks, scaled to user units, never negative, exactly 0 where the query point is the source
-itself, and +inf between points of different connected components (no surface path joins them).
+A distance is finished the same way on every path (``ngf::finish_distance`` of the native header, called here
+too): the network's head value plus the |x - s| term of ``euclid`` networks, scaled to user units, never below
+the straight line |x - s|, exactly 0 where the query point is the source itself, +inf between points of
+different connected components (no surface path joins them), and NaN where a point is outside the domain or
+not finite.
 """
 import warp as wp
 
@@ -27,8 +29,8 @@ finish_distance = wp.func_native(tc._frame_cpp("frame") + """
     const float sp[3] = {s[0], s[1], s[2]};
     return ngf::finish_distance(head, F, xp, sp, euclid, other_part, raw);
 """)(_finish_distance)
-finish_distance.__doc__ = """User-unit distance from a head value (network frame): ``ngf::finish_distance`` of the native header,
-the one definition of the rule for both backends."""
+finish_distance.__doc__ = """User-unit distance from a head value (network frame): ``ngf::finish_distance`` of the native
+header, the one definition of the rule for both backends."""
 
 
 @wp.kernel(enable_backward=False)
@@ -44,22 +46,21 @@ def finish_rows(head: wp.array2d(dtype=wp.float32), rows: wp.array(dtype=wp.vec3
 
 
 @wp.kernel(enable_backward=False)
-def clamp_pairs(ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3), d: wp.array(dtype=wp.float32)):
-    """Pair distances from the per-thread kernels: never negative, exactly 0 for a point and itself."""
+def finish_pairs(net: mlp.NeuroGFWeights, ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3), frame: mlp.Frame,
+                 euclid: float, raw: int, out: wp.array(dtype=wp.float32)):
+    """Pair distances from the per-thread network: ``net`` with euclid = 0 gives the head value, finished here."""
     i = wp.tid()
     p = ps[i]
     q = qs[i]
-    if p[0] == q[0] and p[1] == q[1] and p[2] == q[2]:
-        d[i] = 0.0
-    else:
-        d[i] = wp.max(d[i], 0.0)
+    head = mlp.geodesic_distance(net, mlp.to_net(frame, p), mlp.to_net(frame, q))
+    out[i] = finish_distance(head, p, q, frame, euclid, False, raw)
 
 
 @wp.kernel(enable_backward=False)
 def split_pairs(comp_p: wp.array(dtype=wp.int32), comp_q: wp.array(dtype=wp.int32), d: wp.array(dtype=wp.float32)):
     """+inf where the two points of a pair lie on different connected components."""
     i = wp.tid()
-    if comp_p[i] != comp_q[i]:
+    if comp_p[i] != comp_q[i] and not wp.isnan(d[i]):  # a point without an answer stays NaN
         d[i] = INF
 
 
@@ -94,10 +95,14 @@ def to_input(internal: wp.array2d(dtype=wp.float32), inv: wp.array(dtype=wp.int3
 @wp.kernel(enable_backward=False)
 def point_components(mesh: wp.uint64, pts: wp.array(dtype=wp.vec3), face_comp: wp.array(dtype=wp.int32),
                      out: wp.array(dtype=wp.int32)):
-    """Component of the surface point closest to each point."""
+    """Component of the surface point closest to each point (points and mesh in the same frame); -1 for none."""
     i = wp.tid()
-    q = wp.mesh_query_point_no_sign(mesh, pts[i], 1.0e30)
-    out[i] = face_comp[q.face]
+    p = pts[i]
+    out[i] = -1  # a non-finite point belongs to no component (its answers are NaN)
+    if wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2]):
+        q = wp.mesh_query_point_no_sign(mesh, p, 1.0e30)
+        if q.result:
+            out[i] = face_comp[q.face]
 
 
 @wp.func
@@ -107,6 +112,23 @@ def in_domain(p: wp.vec3, frame: mlp.Frame, limit: float) -> bool:
     if ok:
         ok = wp.abs(x[0]) <= limit and wp.abs(x[1]) <= limit and wp.abs(x[2]) <= limit
     return ok
+
+
+@wp.kernel(enable_backward=False)
+def nan_paths(ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3), frame: mlp.Frame, x: wp.array2d(dtype=wp.vec3)):
+    """NaN rows for paths whose ends are outside the domain or not finite (their points have no meaning)."""
+    i, j = wp.tid()
+    if not (mlp.in_domain(frame, mlp.to_net(frame, ps[i])) and mlp.in_domain(frame, mlp.to_net(frame, qs[i]))):
+        x[i, j] = wp.vec3(NAN, NAN, NAN)
+
+
+@wp.kernel(enable_backward=False)
+def shift_points(x: wp.array(dtype=wp.vec3), center: wp.vec3d, out: wp.array(dtype=wp.vec3)):
+    """out = x + center in float64: points relative to the mesh centre back to mesh coordinates."""
+    i = wp.tid()
+    p = x[i]
+    out[i] = wp.vec3(wp.float32(wp.float64(p[0]) + center[0]), wp.float32(wp.float64(p[1]) + center[1]),
+                     wp.float32(wp.float64(p[2]) + center[2]))
 
 
 @wp.kernel(enable_backward=False)

@@ -19,6 +19,7 @@ from typing import Any
 import warp as wp
 
 MAX_D = 512
+NAN = wp.constant(float("nan"))
 vec_d = wp.types.vector(length=MAX_D, dtype=wp.float32)  # an embedding
 vec_h = wp.types.vector(length=MAX_D // 2, dtype=wp.float32)  # hidden layers (at most D/2 wide)
 vec_acc = wp.types.vector(length=MAX_D // 4, dtype=wp.float64)  # head accumulators (D/4 wide)
@@ -332,21 +333,36 @@ def project_to_surface(net: NeuroGFWeights, x: wp.vec3, steps: int) -> wp.vec3:
 
 @wp.struct
 class Frame:
-    """User frame -> network frame: x_net = (x - center) * xscale; distances back with * dscale."""
+    """User frame -> network frame: x_net = (x - center) * xscale, computed in float64 (the centre is float64, so a
+    float32 point far from the origin keeps its own resolution); distances back to user units with * dscale.
+    ``limit``: the domain, |x_net| <= limit on every axis (queries give NaN outside it)."""
 
-    center: wp.vec3
+    center: wp.vec3d
     xscale: wp.float32
     dscale: wp.float32
+    limit: wp.float32
 
 
 @wp.func
 def to_net(frame: Frame, x: wp.vec3) -> wp.vec3:
-    return (x - frame.center) * frame.xscale
+    c = frame.center
+    s = wp.float64(frame.xscale)
+    return wp.vec3(wp.float32((wp.float64(x[0]) - c[0]) * s), wp.float32((wp.float64(x[1]) - c[1]) * s),
+                   wp.float32((wp.float64(x[2]) - c[2]) * s))
 
 
 @wp.func
 def from_net(frame: Frame, y: wp.vec3) -> wp.vec3:
-    return y * frame.dscale + frame.center
+    c = frame.center
+    u = y * frame.dscale
+    return wp.vec3(wp.float32(wp.float64(u[0]) + c[0]), wp.float32(wp.float64(u[1]) + c[1]),
+                   wp.float32(wp.float64(u[2]) + c[2]))
+
+
+@wp.func
+def in_domain(frame: Frame, y: wp.vec3) -> bool:
+    """Whether y (network frame) lies in the domain cube; False for NaN and inf."""
+    return wp.abs(y[0]) <= frame.limit and wp.abs(y[1]) <= frame.limit and wp.abs(y[2]) <= frame.limit
 
 
 @wp.kernel(enable_backward=False)
@@ -366,8 +382,13 @@ def distance_pairs(net: NeuroGFWeights, ps: wp.array(dtype=wp.vec3), qs: wp.arra
 
 @wp.kernel(enable_backward=False)
 def signed_distances(net: NeuroGFWeights, xs: wp.array(dtype=wp.vec3), frame: Frame, out: wp.array(dtype=wp.float32)):
+    """SDF values in user units; NaN for points outside the domain (as the tensor-core kernel)."""
     i = wp.tid()
-    out[i] = signed_distance(net, to_net(frame, xs[i])) * frame.dscale
+    y = to_net(frame, xs[i])
+    if in_domain(frame, y):
+        out[i] = signed_distance(net, y) * frame.dscale
+    else:
+        out[i] = NAN
 
 
 @wp.kernel(enable_backward=False)

@@ -83,8 +83,8 @@ class Head:
 
 @wp.struct
 class Rows:
-    """The rows of a distance query: user-frame points, their kept packed embeddings (empty: computed in the
-    kernel), component labels (empty: one component)."""
+    """The rows of a distance query: points (in the frame the kernel is given), their kept packed embeddings
+    (empty: computed in the kernel), component labels (empty: one component)."""
 
     pts: wp.array(dtype=wp.vec3)
     cached: wp.array(dtype=wp.uint32)
@@ -94,7 +94,7 @@ class Rows:
 
 @wp.struct
 class Sources:
-    """Tables the sources of a distance query are rows of: packed fp16 embeddings (R * D/2 uint32), user-frame
+    """Tables the sources of a distance query are rows of: packed fp16 embeddings (R * D/2 uint32), frame-coordinate
     points (R,), component labels (R,) or empty. A call names its rows (``src_ids``, or ``src_row`` + s)."""
 
     emb: wp.array(dtype=wp.uint32)
@@ -299,7 +299,7 @@ def native_init(native: str, name: str, values: dict) -> str:
 def _frame_cpp(name: str) -> str:
     """ngf::Frame F from an ``mlp.Frame`` argument."""
     return native_init("Frame", "F", {"cx": f"{name}.center[0]", "cy": f"{name}.center[1]", "cz": f"{name}.center[2]",
-                                      "xscale": f"{name}.xscale", "dscale": f"{name}.dscale"})
+                                      "xscale": f"{name}.xscale", "dscale": f"{name}.dscale", "limit": f"{name}.limit"})
 
 
 _STRUCTS_CPP = native_initializer(Lifting, "Lifting", "lift", "L") + native_initializer(Head, "Head", "head", "H")
@@ -454,7 +454,7 @@ def path_pre_kernel(D: int, P1: int):
 
 @functools.lru_cache(maxsize=None)
 def path_points_kernel(P1: int, P2: int, P3: int):
-    """m points of each of N paths (N, m, 3), user frame."""
+    """m points of each of N paths (N, m, 3), mapped back by the frame (from_net)."""
     snippet = _PATH_CPP + _frame_cpp("frame") + f"""
     ngf::path_point_rows<{P1}, {P2}, {P3}>(W, F, (const float*)ps.data, (const float*)qs.data, (const float*)pre.data,
                                             n, m, (float*)out.data, tid >> 5, n_warps);

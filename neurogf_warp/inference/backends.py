@@ -8,13 +8,14 @@ and never look at the precision:
     bind()                                             keep every vertex's embedding; bytes kept
     vertex_distances(md, pts, ids, comp, out, reduce_min, raw)   sources -> every mesh vertex (internal order)
     target_distances(src, tgt, src_comp, tgt_comp, out, raw)     sources -> given targets, (S, T)
-    pairs(p, q, out, raw)                              distances of point pairs
-    sdf(x, out)                                        the SDF head
-    paths(p, q, out)                                   the path head's points, out (N, m) vec3
-    settle(x, starts, ends, steps, scratch)            path refinement: ends pinned, inner points onto the surface
-    sweep(x, starts, ends, scratch)                    one shortening sweep (midpoints, one Newton step)
+    pairs(p, q, out, raw, frame)                       distances of point pairs
+    sdf(x, out, frame)                                 the SDF head
+    paths(p, q, out, frame)                            the path head's points, out (N, m) vec3
+    settle(x, starts, ends, steps, scratch, frame)     path refinement: ends pinned, inner points onto the surface
+    sweep(x, starts, ends, scratch, frame)             one shortening sweep (midpoints, one Newton step)
 
-Every array is a ``wp.array`` on the state's device; points are in the user frame, distances in user units.
+Every array is a ``wp.array`` on the state's device; vertex queries take points relative to the mesh centre
+(``state.frame``), point queries points in the ``frame`` they pass; distances come back in user units.
 """
 from __future__ import annotations
 
@@ -165,25 +166,25 @@ class TensorCores(_Backend):
                                                                                    src_comp),
                       out.reshape(-1), out.shape[1], count=out.shape[0], raw=raw)
 
-    def pairs(self, p, q, out, raw: bool):
-        self.eng.pairs(p, q, out, raw)
+    def pairs(self, p, q, out, raw: bool, frame):
+        self.eng.pairs(p, q, out, raw, frame)
 
-    def sdf(self, x, out):
-        self.eng.sdf(x, out)
+    def sdf(self, x, out, frame):
+        self.eng.sdf(x, out, frame)
 
-    def paths(self, p, q, out):
-        self.eng.paths(p, q, out)
+    def paths(self, p, q, out, frame):
+        self.eng.paths(p, q, out, frame)
 
     def _h(self) -> float:
         m = self.state.model
         return refine_kernels.FD_STEP / (m.scale if m.in_mesh_frame else 1.0)
 
-    def settle(self, x, starts, ends, steps: int, scratch: dict):
+    def settle(self, x, starts, ends, steps: int, scratch: dict, frame):
         # a copy: the result lives in the scratch buffers that the next steps reuse
-        return wp.clone(self.eng.newton_steps(x, starts, ends, steps, False, self._h(), scratch))
+        return wp.clone(self.eng.newton_steps(x, starts, ends, steps, False, self._h(), scratch, frame))
 
-    def sweep(self, x, starts, ends, scratch: dict):
-        return self.eng.newton_steps(x, starts, ends, 1, True, self._h(), scratch)
+    def sweep(self, x, starts, ends, scratch: dict, frame):
+        return self.eng.newton_steps(x, starts, ends, 1, True, self._h(), scratch, frame)
 
 
 class PerThread(_Backend):
@@ -192,12 +193,12 @@ class PerThread(_Backend):
     precision = "fp32"
     bytes_per_channel = 4
 
-    def embed(self, pts: wp.array) -> wp.array:
-        """Embeddings e(x) of (N,) vec3 points: (N, D) float32."""
+    def embed(self, pts: wp.array, frame=None) -> wp.array:
+        """Embeddings e(x) of (N,) vec3 points (in ``frame``, default ``state.frame``): (N, D) float32."""
         st = self.state
         out = wp.empty((pts.shape[0], st.shape.D), dtype=wp.float32, device=self.device)
         if pts.shape[0]:
-            wp.launch(mlp.embed_points, pts.shape[0], inputs=[st.weights, pts, st.frame], outputs=[out],
+            wp.launch(mlp.embed_points, pts.shape[0], inputs=[st.weights, pts, frame or st.frame], outputs=[out],
                       device=self.device)
         return out
 
@@ -254,22 +255,20 @@ class PerThread(_Backend):
                   inputs=[st.head_weights, es, src_pos, tgt_pos, st.frame])
         self._finish(head, tgt_pos, tgt_comp, src_pos, src_comp, out, raw)
 
-    def pairs(self, p, q, out, raw: bool):
+    def pairs(self, p, q, out, raw: bool, frame):
         st = self.state
-        wp.launch(mlp.distance_pairs, p.shape[0], inputs=[st.weights, p, q, st.frame], outputs=[out],
-                  device=self.device)
-        if not raw:
-            wp.launch(finish.clamp_pairs, p.shape[0], inputs=[p, q, out], device=self.device)
+        wp.launch(finish.finish_pairs, p.shape[0], inputs=[st.head_weights, p, q, frame,
+                                                           1.0 if st.options["euclid"] else 0.0, int(raw)],
+                  outputs=[out], device=self.device)
 
-    def sdf(self, x, out):
-        st = self.state
-        wp.launch(mlp.signed_distances, x.shape[0], inputs=[st.weights, x, st.frame], outputs=[out],
+    def sdf(self, x, out, frame):
+        wp.launch(mlp.signed_distances, x.shape[0], inputs=[self.state.weights, x, frame], outputs=[out],
                   device=self.device)
 
-    def paths(self, p, q, out):
+    def paths(self, p, q, out, frame):
         st, dev = self.state, self.device
         n, D = p.shape[0], st.shape.D
-        w, frame = st.weights, st.frame
+        w = st.weights
         e = wp.empty((2 * n, D), dtype=wp.float32, device=dev)
         wp.launch(mlp.embed_points, n, inputs=[w, p, frame], outputs=[e[:n]], device=dev)
         wp.launch(mlp.embed_points, n, inputs=[w, q, frame], outputs=[e[n:]], device=dev)
@@ -279,17 +278,15 @@ class PerThread(_Backend):
         wp.launch(mlp.path_first_layer, pre.shape, inputs=[w, g], outputs=[pre], device=dev)
         wp.launch(mlp.path_points, out.shape, inputs=[w, p, q, pre, frame], outputs=[out], device=dev)
 
-    def settle(self, x, starts, ends, steps: int, scratch: dict):
-        st = self.state
-        wp.launch(mlp.pin_and_project, x.shape, inputs=[st.weights, starts, ends, st.frame, steps], outputs=[x],
+    def settle(self, x, starts, ends, steps: int, scratch: dict, frame):
+        wp.launch(mlp.pin_and_project, x.shape, inputs=[self.state.weights, starts, ends, frame, steps], outputs=[x],
                   device=self.device)
         return x
 
-    def sweep(self, x, starts, ends, scratch: dict):
-        st = self.state
+    def sweep(self, x, starts, ends, scratch: dict, frame):
         if scratch.get("shape") != x.shape:
             scratch.update(shape=x.shape, tmp=wp.empty_like(x))
         y = scratch["tmp"]
-        wp.launch(mlp.relax_paths, x.shape, inputs=[st.weights, x, st.frame, 1], outputs=[y], device=self.device)
+        wp.launch(mlp.relax_paths, x.shape, inputs=[self.state.weights, x, frame, 1], outputs=[y], device=self.device)
         scratch["tmp"] = x
         return y

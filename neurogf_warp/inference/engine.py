@@ -1,7 +1,8 @@
 """One model's networks packed for the tensor-core kernels on one device, and the launches that answer queries.
 
 The backends (``backends.py``) call these; everything here takes and returns ``wp.array``s on the engine's device.
-Rows are points in the user's frame (``frame`` maps them to the network's), distances come back in user units.
+Rows are points in a ``mlp.Frame``'s coordinates (the engine's ``frame``: relative to the mesh centre, unless a
+call passes another), distances come back in user units.
 """
 from __future__ import annotations
 
@@ -76,8 +77,9 @@ class Engine:
         return tc.launch(kernel, n_tiles, inputs, self.device, warps, t.cpu_warps, record=record)
 
     # -- queries ------------------------------------------------------------------------------------------------
-    def embed(self, pts: wp.array, out: wp.array | None = None) -> wp.array:
-        """Packed fp16 embeddings of N points: uint32 (N * D/2,) in the kernels' fragment order."""
+    def embed(self, pts: wp.array, out: wp.array | None = None, frame: mlp.Frame | None = None) -> wp.array:
+        """Packed fp16 embeddings of N points (in ``frame``, default the engine's): uint32 (N * D/2,) in the
+        kernels' fragment order."""
         n = pts.shape[0]
         if out is None:
             out = wp.empty(n * self.D // 2, dtype=wp.uint32, device=self.device)
@@ -92,7 +94,7 @@ class Engine:
                 cmd = self._launch(kernel, -(-n // 16), [self.lifting, self.dist_head, self.frame, pts, n, out],
                                    self.tuning.warps_other, record=True)
                 self._launches[key] = (None, cmd, tc.param_index(kernel))
-            self._replay(key, {"pts": pts, "out": out})
+            self._replay(key, {"pts": pts, "out": out, "frame": frame or self.frame})
         return out
 
     # -- distances from sources to rows ------------------------------------------------------------------------
@@ -105,7 +107,7 @@ class Engine:
         return r
 
     def sources(self, emb: wp.array, pos: wp.array, comp: wp.array | None) -> tc.Sources:
-        """Tables of source rows: packed embeddings, user-frame points, component labels (or None)."""
+        """Tables of source rows: packed embeddings, points (frame coordinates), component labels (or None)."""
         s = tc.Sources()
         s.emb, s.pos = emb, pos
         s.comp = comp if comp is not None else self._none
@@ -177,8 +179,8 @@ class Engine:
             return
         D, P1 = self.D, self.path_widths[0]
         ends = wp.empty(2 * n * D // 2, dtype=wp.uint32, device=self.device)
-        self.embed(p, ends[: n * D // 2])
-        self.embed(q, ends[n * D // 2:])
+        self.embed(p, ends[: n * D // 2], frame)
+        self.embed(q, ends[n * D // 2:], frame)
         pre = wp.empty(n * P1, dtype=wp.float32, device=self.device)
         self._launch(tc.path_pre_kernel(D, P1), -(-n // 16), [self.path_head, ends[: n * D // 2], ends[n * D // 2:],
                                                                n, pre], self.tuning.warps_other)
@@ -187,7 +189,7 @@ class Engine:
 
     # -- path shortening on the SDF surface ----------------------------------------------------------------------
     def newton_steps(self, x: wp.array, starts: wp.array, ends: wp.array, steps: int, midpoints: bool, h: float,
-                     scratch: dict) -> wp.array:
+                     scratch: dict, frame: mlp.Frame | None = None) -> wp.array:
         """``steps`` Newton steps onto the SDF surface for the inner points of paths x (N, m) (ends pinned to
         starts/ends), each from the midpoint of its neighbours when ``midpoints`` (a shortening sweep); every
         SDF value in one batched launch per step. Returns the result (x itself is left unchanged)."""
@@ -202,7 +204,7 @@ class Engine:
             y = ys[k % 2] if ys[k % 2] is not cur else ys[(k + 1) % 2]
             wp.launch(refine.stencil, (n, m), inputs=[cur, int(midpoints and k == 0), h], outputs=[pts],
                       device=self.device)
-            self.sdf(pts, s)
+            self.sdf(pts, s, frame)
             wp.launch(refine.newton, (n, m), inputs=[pts, s, h, starts, ends], outputs=[y], device=self.device)
             cur = y
         return cur

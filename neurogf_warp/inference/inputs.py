@@ -4,6 +4,11 @@ points, point pairs; the model's domain.
 A point must be finite and inside the cube ``[-DOMAIN, DOMAIN]^3`` of the network's normalized frame, i.e. within
 1.5 bounding radii of the mesh's bounding-box centre along each axis (the networks were trained on points within
 [-1.01, 1.01]^3 and extrapolate without meaning beyond it). Refusals are ValueErrors that name the offending row.
+
+Coordinates: numpy arrays and lists (host input) are made relative to the mesh centre in float64 before they
+become float32 (``QueryState.frame``), so a mesh far from the origin loses nothing; torch tensors and
+``wp.array``s are used as float32 mesh coordinates (``QueryState.user_frame``), the kernels subtracting the
+float64 centre, so they are exact to their own float32 resolution.
 """
 from __future__ import annotations
 
@@ -11,19 +16,22 @@ import numpy as np
 import torch
 import warp as wp
 
-from neurogf_warp.common.arrays import as_points, resolve_device
-from neurogf_warp.inference.state import query_state
+from neurogf_warp.common.arrays import _is_torch, as_points, resolve_device
+from neurogf_warp.inference.state import DOMAIN, query_state, to_relative
 from neurogf_warp.kernels.inference import finish
 from neurogf_warp.model.model import Model
 
-DOMAIN = 1.5
+__all__ = ["DOMAIN", "check_domain", "points_in", "sources_in", "pair_inputs", "pair_components", "single_answer"]
 
 _NO_BAD = 2**31 - 1
+_OUTSIDE = "outside the model's domain (the cube of half-side 1.5 bounding radii around the mesh's bounding-box centre)"
 
 
-def check_domain(model: Model, pts: wp.array, name: str, other: wp.array | None = None, other_name: str = ""):
-    """Refuse non-finite points and points outside the domain cube: one device pass over one or two arrays and
-    one read-back of two integers (the only synchronization a checked query makes)."""
+def check_domain(model: Model, pts: wp.array, name: str, frame, other: wp.array | None = None,
+                 other_name: str = ""):
+    """Refuse non-finite points and points outside the domain cube (``frame``: the points' coordinates): one device
+    pass over one or two arrays and one read-back of two integers (the only synchronization a checked query
+    makes)."""
     n = pts.shape[0]
     if not n:
         return
@@ -31,7 +39,7 @@ def check_domain(model: Model, pts: wp.array, name: str, other: wp.array | None 
     st = query_state(model, dev)
     bad, host = st.check_buffers
     bad.fill_(_NO_BAD)
-    wp.launch(finish.check_points, n, inputs=[pts, other if other is not None else st.no_points, st.frame, DOMAIN,
+    wp.launch(finish.check_points, n, inputs=[pts, other if other is not None else st.no_points, frame, DOMAIN,
                                               bad], device=dev)
     wp.copy(host, bad)
     if dev.is_cuda:
@@ -40,19 +48,39 @@ def check_domain(model: Model, pts: wp.array, name: str, other: wp.array | None 
     for k, (arr, label) in enumerate(((pts, name), (other, other_name))):
         i = int(flags[k])
         if i != _NO_BAD:
-            x = arr[i - 1: i].numpy()[0]
-            where = ("outside the model's domain (the cube of half-side 1.5 bounding radii around the mesh's "
-                     "bounding-box centre)") if np.all(np.isfinite(x)) else "non-finite (NaN or inf)"
+            x = arr[i - 1: i].numpy()[0].astype(np.float64)
+            if frame is st.frame:  # relative to the centre: report mesh coordinates
+                x = x + st.center
+            where = _OUTSIDE if np.all(np.isfinite(x)) else "non-finite (NaN or inf)"
             raise ValueError(f"{label}[{i - 1}] = {x.tolist()} is {where}")
 
 
-def points_in(model: Model, x, name: str, dev, check: bool = True):
-    """(wp.array of vec3 on dev, kind, single) for (N, 3) or (3,) input."""
+def _on_host(x) -> bool:
+    return not isinstance(x, wp.array) and not _is_torch(x)
+
+
+def points_in(model: Model, x, name: str, dev, check: bool = True, host: bool | None = None):
+    """(wp.array of vec3 on dev, kind, single, frame) for (N, 3) or (3,) input: host input relative to the mesh
+    centre (made in float64) with ``state.frame``, device input as given with ``state.user_frame``. ``host``:
+    force the host route on (True) or off (False; host input then becomes float32 mesh coordinates)."""
+    st = query_state(model, dev)
     single = _is_single_point(x)
-    arr, kind = as_points(x, name, dev, check=False, single=True)
+    if host is None:
+        host = _on_host(x)
+    if host and _on_host(x):
+        a = np.asarray(x)
+        if np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer):
+            a = a.astype(np.float64)
+            if a.ndim >= 1 and a.shape[-1] == 3:
+                a = to_relative(st, a)
+        arr, kind = as_points(a, name, dev, check=False, single=True)
+        frame = st.frame
+    else:
+        arr, kind = as_points(x, name, dev, check=False, single=True)
+        frame = st.user_frame
     if check:
-        check_domain(model, arr, name)
-    return arr, kind, single
+        check_domain(model, arr, name, frame)
+    return arr, kind, single, frame
 
 
 def _is_single_point(x) -> bool:
@@ -63,13 +91,17 @@ def _is_single_point(x) -> bool:
 
 
 def sources_in(model: Model, src, name: str, dev, one: bool = False):
-    """Sources as (user-frame points (S, 3) float64, internal vertex ids or None, component labels or None)."""
+    """Sources as (points relative to the mesh centre (S, 3) float64, internal vertex ids or None, component labels
+    or None). Vertex indices are integers ((S,) or one int); points are floats of shape (S, 3), or (3,) for the one
+    source of ``ssad`` (``one``): a flat list of floats is never read as points or indices by its length."""
+    st = query_state(model, dev)
     if isinstance(src, (int, np.integer)) and not isinstance(src, (bool, np.bool_)) and model.mesh is not None:
         m = model.mesh  # the common single-vertex case without array machinery
         i = int(src)
         if 0 <= i < m.n_input and m.input_to_internal[i] >= 0:
             j = int(m.input_to_internal[i])
-            return m.vertices[j:j + 1], np.array([j]), (m.components[j:j + 1] if m.n_components > 1 else None)
+            return (st.mesh(name).rel64[j:j + 1], np.array([j]),
+                    (m.components[j:j + 1] if m.n_components > 1 else None))
     if isinstance(src, wp.array):
         src = src.numpy()
     elif isinstance(src, torch.Tensor):
@@ -93,50 +125,66 @@ def sources_in(model: Model, src, name: str, dev, one: bool = False):
                              f"{model.mesh.n_input - 1} in the mesh file's numbering")
         ids = model.mesh.vertex(flat)
         comp = model.mesh.components[ids] if model.mesh.n_components > 1 else None
-        return model.mesh.vertices[ids], ids, comp
+        return to_relative(st, model.mesh.vertices[ids]), ids, comp
     if not np.issubdtype(a.dtype, np.floating):
         raise TypeError(f"{name} must be vertex indices (integers) or points (floats), got dtype {a.dtype}")
-    if one and a.size != 3:
-        raise ValueError(f"ssad takes one source point of 3 coordinates, got shape {a.shape}")
-    a = a.reshape(1, 3) if a.shape == (3,) else a
-    if a.ndim != 2 or a.shape[1] != 3:
-        raise ValueError(f"{name} must be vertex indices or points of shape (S, 3), got shape {np.shape(src)}")
-    _check_domain_host(model, a, name, dev)
+    if one:
+        if a.shape not in ((3,), (1, 3)):
+            raise ValueError(f"ssad takes one source point of 3 coordinates, shape (3,), got shape {a.shape}; use "
+                             "msad or distance_matrix for several")
+        a = a.reshape(1, 3)
+    elif a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{name} given as floats must be points of shape (S, 3), got shape {a.shape}: for one point "
+                         "write [[x, y, z]]; vertex indices must be integers (e.g. [0, 10, 200] or an int array)")
+    rel = to_relative(st, a)
+    _check_domain_host(st, a, rel, name)
     comp = None
     if model.mesh is not None and model.mesh.n_components > 1:
-        pts = wp.array(a.astype(np.float32), dtype=wp.vec3, device=dev)
-        comp = query_state(model, dev).mesh(name).components_of(pts).numpy()
-    return a.astype(np.float64), None, comp
+        pts = wp.array(rel.astype(np.float32), dtype=wp.vec3, device=dev)
+        comp = st.mesh(name).components_of(pts).numpy()
+    return rel, None, comp
 
 
-def _check_domain_host(model: Model, a: np.ndarray, name: str, dev):
-    """check_domain for a few points already on the host (no device round trip)."""
-    f = query_state(model, dev).frame
-    x = (a.astype(np.float32) - np.array(f.center, dtype=np.float32)) * np.float32(f.xscale)
+def _check_domain_host(st, a: np.ndarray, rel: np.ndarray, name: str):
+    """check_domain for a few points already on the host (no device round trip), in float64."""
+    x = rel * float(st.frame.xscale)
     bad = ~np.all(np.isfinite(x) & (np.abs(x) <= DOMAIN), axis=1)
     if np.any(bad):
         i = int(np.argmax(bad))
-        where = ("outside the model's domain (the cube of half-side 1.5 bounding radii around the mesh's "
-                 "bounding-box centre)") if np.all(np.isfinite(a[i])) else "non-finite (NaN or inf)"
+        where = _OUTSIDE if np.all(np.isfinite(a[i])) else "non-finite (NaN or inf)"
         raise ValueError(f"{name}[{i}] = {a[i].tolist()} is {where}")
 
 
 def pair_inputs(model, p, q, device, check: bool = True):
+    """(dev, P, Q, kind, single, frame): both on the host route when both are host arrays, else both as float32
+    mesh coordinates (a host array paired with a device one is rounded to float32 first)."""
     dev = resolve_device(device, like=p)
-    P, kind, single_p = points_in(model, p, "p", dev, False)
-    Q, _, single_q = points_in(model, q, "q", dev, False)
+    host = _on_host(p) and _on_host(q)
+    P, kind, single_p, frame = points_in(model, p, "p", dev, False, host)
+    Q, _, single_q, _ = points_in(model, q, "q", dev, False, host)
     if P.shape != Q.shape:
         raise ValueError(f"p and q must have the same shape (N, 3), got {P.shape[0]} and {Q.shape[0]} points")
     if check:
-        check_domain(model, P, "p", Q, "q")
-    return dev, P, Q, kind, single_p and single_q
+        check_domain(model, P, "p", frame, Q, "q")
+    return dev, P, Q, kind, single_p and single_q, frame
 
 
-def pair_components(model: Model, P, Q, dev):
+def relative_points(model: Model, pts: wp.array, frame) -> wp.array:
+    """Points in ``frame`` as points relative to the mesh centre (``state.frame``): pts itself when they are."""
+    st = query_state(model, pts.device)
+    if frame is st.frame or pts.shape[0] == 0:
+        return pts
+    out = wp.empty_like(pts)
+    wp.launch(finish.shift_points, pts.shape[0], inputs=[pts, wp.vec3d(*(-st.center))], outputs=[out],
+              device=pts.device)
+    return out
+
+
+def pair_components(model: Model, P, Q, dev, frame):
     if model.mesh is None or model.mesh.n_components == 1:
         return None
     md = query_state(model, dev).mesh("distance")
-    return md.components_of(P), md.components_of(Q)
+    return md.components_of(relative_points(model, P, frame)), md.components_of(relative_points(model, Q, frame))
 
 
 def single_answer(res, kind: str, single: bool):

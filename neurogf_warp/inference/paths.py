@@ -10,7 +10,7 @@ import numpy as np
 import warp as wp
 
 from neurogf_warp.common.arrays import Output, resolve_device
-from neurogf_warp.inference.inputs import pair_components, pair_inputs, points_in
+from neurogf_warp.inference.inputs import pair_components, pair_inputs, points_in, relative_points
 from neurogf_warp.inference.backends import backend_of
 from neurogf_warp.inference.state import query_state
 from neurogf_warp.kernels.inference import finish, mlp
@@ -50,20 +50,32 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None 
         raise ValueError(f"m (points per path) must be an integer >= 2, got {m!r}")
     if not isinstance(refine, (int, np.integer)) or isinstance(refine, bool) or refine < 0:
         raise ValueError(f"refine (shortening sweeps) must be an integer >= 0, got {refine!r}")
-    dev, P, Q, kind, single = pair_inputs(model, p, q, device, check)
+    dev, P, Q, kind, single, frame = pair_inputs(model, p, q, device, check)
     st = query_state(model, dev)
     be = backend_of(st, precision)
     n, m = P.shape[0], int(m)
     out = Output(kind, dev)
     res = out.empty((n, m), dtype=wp.vec3)
+    if n and (refine or project == "sdf") and frame is not st.frame:
+        # iterated points (refinement, Newton steps) live relative to the mesh centre, where float32 resolves the
+        # mesh's own scale; device input is moved there once (float64 arithmetic) and the result moved back below
+        P, Q, frame = relative_points(model, P, frame), relative_points(model, Q, frame), st.frame
     if n and not refine:
-        be.paths(P, Q, res)
+        be.paths(P, Q, res, frame)
     elif n:
-        _refined_paths(be, P, Q, res, int(refine), dev)
+        _refined_paths(be, P, Q, res, int(refine), dev, frame)
     if n and project == "sdf":
         flat = res.reshape(-1)
-        wp.launch(mlp.project_points, flat.shape[0], inputs=[st.weights, flat, st.frame, 2 * PROJECT_STEPS],
+        wp.launch(mlp.project_points, flat.shape[0], inputs=[st.weights, flat, frame, 2 * PROJECT_STEPS],
                   outputs=[flat], device=dev)
+    if n:
+        # NaN rows for ends outside the domain (check=False); host input ran relative to the mesh centre:
+        # back to mesh coordinates (float64 sum) before anything below reads the points
+        wp.launch(finish.nan_paths, (n, m), inputs=[P, Q, frame], outputs=[res], device=dev)
+        if frame is st.frame and st.model.in_mesh_frame:
+            flat = res.reshape(-1)
+            wp.launch(finish.shift_points, flat.shape[0], inputs=[flat, wp.vec3d(*st.center)], outputs=[flat],
+                      device=dev)
     faces = None
     if n and project == "mesh":
         from neurogf_warp.mesh.surface import snap_to_mesh
@@ -71,7 +83,7 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None 
         snapped, faces, bary = snap_to_mesh(model, res, device=dev)
         wp.copy(res, snapped)
     if n:
-        comps = pair_components(model, P, Q, dev)
+        comps = pair_components(model, P, Q, dev, frame)
         if comps is not None:
             wp.launch(finish.split_paths, (n, m), inputs=[*comps, res], device=dev)
     if kind == "torch":
@@ -90,13 +102,13 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None 
     return r[0] if single else r
 
 
-def _refined_paths(be, P, Q, res, refine: int, dev):
+def _refined_paths(be, P, Q, res, refine: int, dev, frame):
     """The refinement schedule of ``path`` on backend ``be`` (its ``settle`` and ``sweep`` steps)."""
     n, m = res.shape
     levels = _levels(m)
     cand = wp.empty((3 * n, levels[0]), dtype=wp.vec3, device=dev)
-    be.paths(P, Q, cand[:n])
-    be.paths(Q, P, cand[n:2 * n])
+    be.paths(P, Q, cand[:n], frame)
+    be.paths(Q, P, cand[n:2 * n], frame)
     wp.launch(mlp.straight_paths, (n, levels[0]), inputs=[P, Q], outputs=[cand[2 * n:]], device=dev)
     starts, ends = wp.empty(3 * n, dtype=wp.vec3, device=dev), wp.empty(3 * n, dtype=wp.vec3, device=dev)
     for c, (a, b) in enumerate(((P, Q), (Q, P), (P, Q))):
@@ -108,12 +120,12 @@ def _refined_paths(be, P, Q, res, refine: int, dev):
             finer = wp.empty((3 * n, ml), dtype=wp.vec3, device=dev)
             wp.launch(mlp.resample_paths, finer.shape, inputs=[cand], outputs=[finer], device=dev)
             cand = finer
-        cand = be.settle(cand, starts, ends, PROJECT_STEPS, scratch)
+        cand = be.settle(cand, starts, ends, PROJECT_STEPS, scratch, frame)
         for _ in range(refine):
-            cand = be.sweep(cand, starts, ends, scratch)
+            cand = be.sweep(cand, starts, ends, scratch, frame)
     # a sweep takes one Newton step from the midpoint; at a crease the chord's midpoint lies deeper than
     # one step reaches, so the result gets a full projection
-    cand = be.settle(cand, starts, ends, 2 * PROJECT_STEPS, scratch)
+    cand = be.settle(cand, starts, ends, 2 * PROJECT_STEPS, scratch, frame)
     rev = wp.array([0, 1, 0], dtype=wp.int32, device=dev)
     wp.launch(mlp.pick_shortest, (n, m), inputs=[cand, 3, rev], outputs=[res], device=dev)
 
@@ -132,13 +144,17 @@ def project(model: Model, x, steps: int = PROJECT_STEPS, device=None):
     if not isinstance(steps, (int, np.integer)) or isinstance(steps, bool) or steps < 0:
         raise ValueError(f"steps must be an integer >= 0, got {steps!r}")
     dev = resolve_device(device, like=x)
-    X, kind, single = points_in(model, x, "x", dev)
+    X, kind, single, frame = points_in(model, x, "x", dev)
     out = Output(kind, dev)
     res = out.empty(X.shape[0], dtype=wp.vec3)
     if X.shape[0]:
         st = query_state(model, dev)
-        wp.launch(mlp.project_points, X.shape[0], inputs=[st.weights, X, st.frame, int(steps)], outputs=[res],
+        X, frame = relative_points(model, X, frame), st.frame  # Newton steps relative to the mesh centre
+        wp.launch(mlp.project_points, X.shape[0], inputs=[st.weights, X, frame, int(steps)], outputs=[res],
                   device=dev)
+        if frame is st.frame and st.model.in_mesh_frame:  # host input ran relative to the mesh centre
+            wp.launch(finish.shift_points, X.shape[0], inputs=[res, wp.vec3d(*st.center)], outputs=[res],
+                      device=dev)
     if kind == "torch":
         r = wp.to_torch(res).view(-1, 3)
     elif kind == "warp":

@@ -2,15 +2,24 @@
 
 Coordinates: with a mesh attached, points are in the mesh's own coordinates and distances in its units, and
 per-vertex results follow the mesh file's vertex numbering (NaN for vertices no face uses). Without a mesh,
-everything is in the normalized unit-sphere frame the network was trained in.
+everything is in the normalized unit-sphere frame the network was trained in. Answers do not depend on where the
+mesh sits: its vertices, sources and numpy/list query points are taken relative to the mesh's centre in float64
+before they become float32; torch tensors and wp.arrays are float32 mesh coordinates, and the kernels subtract
+the float64 centre, so they are exact to their own float32 resolution (at 1e6 from the origin that is 0.06 units:
+pass far-away points as float64 numpy arrays). Results are float32 (paths: float32 mesh coordinates).
 
-What the answers mean: a geodesic distance is never negative, is exactly 0 from a point to itself (and at an
-SSAD's source vertex), and is +inf between points of different connected components of the mesh (a point
-belongs to the component of the surface point closest to it). Points must lie in the model's domain: the cube
-``[-DOMAIN, DOMAIN]^3`` of the normalized frame, i.e. within 1.5 bounding radii of the mesh's bounding-box centre
-along each axis; farther points are refused with a ValueError (the networks were trained on points within
-[-1.01, 1.01]^3 and extrapolate without meaning beyond it). Distances are meaningful for points on or near the
-surface: the network was trained on surface points, and off-surface points get the value of an extrapolation.
+What the answers mean: a geodesic distance is never shorter than the straight line between its points (so never
+negative), is exactly 0 from a point to itself (and at an SSAD's source vertex), and is +inf between points of
+different connected components of the mesh (a point belongs to the component of the surface point closest to
+it). Points must lie in the model's domain: the cube ``[-DOMAIN, DOMAIN]^3`` of the normalized frame, i.e. within
+1.5 bounding radii of the mesh's bounding-box centre along each axis (the networks were trained on points within
+[-1.01, 1.01]^3 and extrapolate without meaning beyond it). With ``check=True`` (the default) a point outside it,
+or a NaN or infinite coordinate, is refused with a ValueError naming the row; with ``check=False`` (no check, no
+synchronization) such a row's answer is NaN (distance, sdf, every point of a path), never a number. Sources
+(ssad, msad, distance_matrix) are always checked. Distances are meaningful for points on or near the surface:
+the network was trained on surface points, and off-surface points inside the domain get the value of an
+extrapolation. ``raw=True`` returns the network's own values: not raised to the straight line, not exactly 0 at
+the source (NaN and +inf as above).
 
 precision:
   "fp16"  tensor-core kernels (kernels/tensorcore.py): fp16 weights and activations, fp32 sums, within about
@@ -34,7 +43,7 @@ import numpy as np
 import torch
 import warp as wp
 
-from neurogf_warp.common.arrays import Output, as_points, resolve_device
+from neurogf_warp.common.arrays import Output, resolve_device
 from neurogf_warp.inference.backends import PerThread, backend_of, bind
 from neurogf_warp.inference.inputs import DOMAIN, pair_components, pair_inputs, points_in, single_answer, sources_in
 from neurogf_warp.inference.paths import PROJECT_STEPS, path, project  # noqa: F401  (public through this module)
@@ -122,7 +131,8 @@ def ssad(model: Model, source, device=None, output: str = "numpy", precision: st
     cache : bool
         Keep every vertex's embedding on the device for later vertex queries (see the module docstring).
     raw : bool
-        The network's own values: no clamping at 0 and no exact 0 at the source (for parity checks).
+        The network's own values: not raised to the straight-line distance, no exact 0 at the source (for parity
+        checks).
 
     Returns
     -------
@@ -137,7 +147,8 @@ def msad(model: Model, sources, device=None, output: str = "numpy", precision: s
          raw: bool = False):
     """Multiple sources, all destinations: the distance from every mesh vertex to its nearest source.
 
-    sources: vertex indices (S,) in the file's numbering, or points (S, 3) in mesh coordinates.
+    sources: vertex indices (S,) in the file's numbering (integers), or points (S, 3) in mesh coordinates (floats;
+    one point is [[x, y, z]]: a flat list of floats is refused, never read as a point or as indices).
     Returns (n_input,) float32, as ``ssad``.
     """
     return _vertex_distances(model, sources, "sources", device, output, precision, cache, True, raw=raw)
@@ -150,7 +161,7 @@ def distance_matrix(model: Model, sources, targets=None, device=None, output: st
     Parameters
     ----------
     sources : (S,) int or (S, 3) float
-        Vertex indices (the file's numbering) or points in mesh coordinates.
+        Vertex indices (the file's numbering) or points in mesh coordinates (floats must have shape (S, 3)).
     targets : None, (T,) int or (T, 3) float
         None: every mesh vertex (rows in the file's numbering, NaN columns for unused vertices). Otherwise
         vertex indices or points; each target is embedded once and shared by all sources.
@@ -181,41 +192,43 @@ def distance_matrix(model: Model, sources, targets=None, device=None, output: st
 def distance(model: Model, p, q, device=None, precision: str = "auto", check: bool = True, raw: bool = False):
     """Geodesic distances between point pairs: (N, 3), (N, 3) -> (N,) float32, mesh units; (3,), (3,) -> ().
 
-    Symmetric, never negative, 0 for a point and itself, +inf across connected components. Arrays come back in
-    the kind they came in (numpy, torch or wp.array, on the input's device). ``check``: refuse non-finite and
-    out-of-domain points (one device-side pass and a synchronization; with False such rows give NaN instead).
-    ``raw``: the network's own values (no clamping at 0, no exact 0 for identical points).
+    Symmetric, never shorter than |p - q|, 0 for a point and itself, +inf across connected components. Arrays come
+    back in the kind they came in (numpy, torch or wp.array, on the input's device). ``check``: refuse non-finite
+    and out-of-domain points (one device-side pass and a synchronization); with False such rows give NaN.
+    ``raw``: the network's own values (not raised to |p - q|, no exact 0 for identical points).
     """
-    dev, P, Q, kind, single = pair_inputs(model, p, q, device, check)
+    dev, P, Q, kind, single, frame = pair_inputs(model, p, q, device, check)
     be = backend_of(query_state(model, dev), precision)
     out = Output(kind, dev)
     res = out.empty(P.shape[0])
     n = P.shape[0]
     if n:
-        be.pairs(P, Q, res, raw)
-        comps = pair_components(model, P, Q, dev)
+        be.pairs(P, Q, res, raw, frame)
+        comps = pair_components(model, P, Q, dev, frame)
         if comps is not None:
             wp.launch(finish.split_pairs, n, inputs=[*comps, res], device=dev)
     return single_answer(out.result(res), kind, single)
 
 
 def sdf(model: Model, x, device=None, precision: str = "auto", check: bool = True):
-    """Signed distance from the network's SDF head: (N, 3) -> (N,) float32 mesh units, negative inside; (3,) -> ()."""
+    """Signed distance from the network's SDF head: (N, 3) -> (N,) float32 mesh units, negative inside; (3,) -> ().
+
+    ``check``: refuse non-finite and out-of-domain points; with False their rows are NaN."""
     dev = resolve_device(device, like=x)
-    X, kind, single = points_in(model, x, "x", dev, check)
+    X, kind, single, frame = points_in(model, x, "x", dev, check)
     be = backend_of(query_state(model, dev), precision)
     out = Output(kind, dev)
     res = out.empty(X.shape[0])
     if X.shape[0]:
-        be.sdf(X, res)
+        be.sdf(X, res, frame)
     return single_answer(out.result(res), kind, single)
 
 
 def embed(model: Model, x, device=None) -> wp.array:
     """Point embeddings e(x) of the lifting network: (N, 3) -> (N, D) float32 wp.array on the device."""
     dev = resolve_device(device, like=x)
-    pts, _ = as_points(x, "x", dev, check=False, single=True)
-    return PerThread(query_state(model, dev)).embed(pts)
+    pts, _, _, frame = points_in(model, x, "x", dev, check=False)
+    return PerThread(query_state(model, dev)).embed(pts, frame)
 
 
 # ---- compilation --------------------------------------------------------------------------------------------------------

@@ -14,39 +14,45 @@ import numpy as np
 import warp as wp
 
 from neurogf_warp.common.arrays import resolve_device
+from neurogf_warp.common.checks import InputError
 from neurogf_warp.inference.engine import Engine
 from neurogf_warp.kernels.inference import finish, mlp
 from neurogf_warp.kernels.inference import tensorcore as tc
 from neurogf_warp.model.folded import folded_layers, net_shape
 from neurogf_warp.model.model import Model
 
-__all__ = ["PRECISIONS", "QueryState", "MeshOnDevice", "query_state", "unbind", "check_memory"]
+__all__ = ["PRECISIONS", "DOMAIN", "QueryState", "MeshOnDevice", "query_state", "to_relative", "unbind", "check_memory"]
 
 PRECISIONS = ("auto", "fp16", "fp32")
+DOMAIN = 1.5  # half-side of the domain cube, normalized frame (the networks were trained within [-1.01, 1.01]^3)
 
 
 class MeshOnDevice:
-    """The mesh's internal vertices (user frame, float32), component labels and numbering map on one device."""
+    """The mesh's internal vertices relative to its centre (``x - center`` in float64, then float32: the
+    ``QueryState.frame`` coordinates), component labels and numbering map on one device."""
 
     def __init__(self, model: Model, dev):
         m = model.mesh
         self.V, self.n_input = len(m.vertices), m.n_input
-        self.verts = wp.array(m.vertices.astype(np.float32), dtype=wp.vec3, device=dev)
+        rel = np.asarray(m.vertices, np.float64) - model.center
+        self.verts = wp.array(rel.astype(np.float32), dtype=wp.vec3, device=dev)
         self.multi = m.n_components > 1
         self.comp = wp.array(m.components.astype(np.int32), dtype=wp.int32, device=dev) if self.multi else None
         inv = m.input_to_internal
         self.identity = self.n_input == self.V and bool(np.array_equal(inv, np.arange(self.V)))
         self.inv = None if self.identity else wp.array(inv.astype(np.int32), dtype=wp.int32, device=dev)
         self.dev = dev
+        self.rel64 = rel  # (V, 3) float64 relative vertices: vertex sources without arithmetic per query
         self.lifted = None  # fp16 rows of the vertices embedded inside the kernels (no kept embeddings)
         self._wp_mesh = self._face_comp = None
-        if self.multi:  # closest-point queries give a point's component
+        if self.multi:  # closest-point queries give a point's component (in these relative coordinates)
             self._wp_mesh = wp.Mesh(points=self.verts, indices=wp.array(m.faces.reshape(-1).astype(np.int32),
                                                                          device=dev))
             self._face_comp = wp.array(m.components[m.faces[:, 0]].astype(np.int32), dtype=wp.int32, device=dev)
 
     def components_of(self, pts: wp.array) -> wp.array:
-        """Component label of each point (that of its closest surface point)."""
+        """Component label of each point, relative coordinates (that of its closest surface point; -1 for a
+        non-finite point)."""
         out = wp.empty(pts.shape[0], dtype=wp.int32, device=self.dev)
         if pts.shape[0]:
             wp.launch(finish.point_components, pts.shape[0], inputs=[self._wp_mesh.id, pts, self._face_comp],
@@ -57,10 +63,15 @@ class MeshOnDevice:
 class QueryState:
     """Everything one model keeps on one device for its queries (see the module docstring).
 
+    Coordinates: ``frame`` takes points relative to the mesh centre (``x - center``, made in float64 on the
+    host: the mesh's vertices, sources and host query points); ``user_frame`` takes points in mesh coordinates
+    (float32 arrays already on a device), subtracting the float64 centre in the kernels. Without a mesh both are
+    the identity. Both are ``mlp.Frame``s with the domain limit.
+
     Attributes made on first use: ``weights`` (``mlp.NeuroGFWeights``, folded float32), ``head_weights`` (the
-    same with the |x - s| term off), ``frame`` (``mlp.Frame``), ``shape`` (``folded.NetShape``), ``engine``
-    (``engine.Engine``, fp16 only), ``mesh(what)`` (``MeshOnDevice``), ``backends``, ``bound`` ({precision: kept embeddings}),
-    ``tables`` (the fp16 rows and sources made from the fp16 binding).
+    same with the |x - s| term off), ``shape`` (``folded.NetShape``), ``engine`` (``engine.Engine``, fp16 only),
+    ``mesh(what)`` (``MeshOnDevice``), ``backends``, ``bound`` ({precision: kept embeddings}), ``tables`` (the
+    fp16 rows and sources made from the fp16 binding).
     """
 
     def __init__(self, model: Model, dev, tuning: tc.Tuning = tc.Tuning()):
@@ -68,7 +79,15 @@ class QueryState:
         self.layers = folded_layers(model.net)  # float64, BatchNorm folded
         self.shape = net_shape(self.layers)
         self.options = dict(model.net.options)
-        self.frame = _make_frame(model)
+        self.center = np.asarray(model.center, np.float64) if model.in_mesh_frame else np.zeros(3)
+        scale = float(model.scale) if model.in_mesh_frame else 1.0
+        with np.errstate(over="ignore"):
+            s32, d32 = np.float32(scale), np.float32(1.0 / scale)
+        if not (np.isfinite(s32) and np.isfinite(d32) and s32 > 0 and d32 > 0 and np.all(np.isfinite(self.center))):
+            raise InputError(f"the mesh's size ({1.0 / scale:.3g} units per bounding radius) is beyond float32, "
+                             "the kernels' number type: rescale the mesh (and its units) into float32's range")
+        self.frame = _make_frame(np.zeros(3), scale)
+        self.user_frame = _make_frame(self.center, scale)
         self._weights = self._head_weights = self._engine = self._mesh = None
         self.backends = {}  # precision asked for -> backend (backends.backend_of)
         self.bound = {}
@@ -150,21 +169,26 @@ class QueryState:
         self.backends.clear()
 
 
-def _make_frame(model: Model) -> mlp.Frame:
+def _make_frame(center: np.ndarray, scale: float) -> mlp.Frame:
     f = mlp.Frame()
-    if model.in_mesh_frame:
-        f.center = wp.vec3(*model.center.astype(np.float32))
-        f.xscale = float(model.scale)
-        f.dscale = float(1.0 / model.scale)
-    else:
-        f.center = wp.vec3(0.0, 0.0, 0.0)
-        f.xscale = 1.0
-        f.dscale = 1.0
+    f.center = wp.vec3d(*np.asarray(center, np.float64))
+    f.xscale = float(scale)
+    f.dscale = float(1.0 / scale)
+    f.limit = DOMAIN
     return f
+
+
+def to_relative(state: "QueryState", x: np.ndarray) -> np.ndarray:
+    """Host points in mesh coordinates -> relative to the mesh centre, in float64 (``state.frame`` coordinates)."""
+    return np.asarray(x, np.float64) - state.center
 
 
 def query_state(model: Model, device=None) -> QueryState:
     """The model's ``QueryState`` on ``device`` (made on first use; Warp's preferred device when None)."""
+    if isinstance(device, wp.Device):  # the queries' own calls: no device resolution on the hot path
+        st = model._states.get(str(device))
+        if st is not None:
+            return st
     dev = resolve_device(device)
     key = str(dev)
     st = model._states.get(key)

@@ -31,9 +31,10 @@ def weights(model, device=None) -> mlp.NeuroGFWeights:
 
 
 def frame(model) -> mlp.Frame:
-    """Mesh coordinates -> network frame: ``mlp.to_net(f, x)``; network distances times ``f.dscale`` are in mesh
+    """Mesh coordinates -> network frame: ``mlp.to_net(f, x)`` (the centre is subtracted in float64, so float32
+    points far from the origin keep their own resolution); network distances times ``f.dscale`` are in mesh
     units; ``mlp.from_net(f, y)`` maps network points back. The identity for a model without a mesh."""
-    return query_state(model).frame
+    return query_state(model).user_frame
 
 
 def source_set(model, sources, device=None) -> field.SourceSet:
@@ -52,8 +53,8 @@ def source_set(model, sources, device=None) -> field.SourceSet:
     if len(pts) == 0:
         raise ValueError("sources is empty: give at least one vertex index or point")
     s = field.SourceSet()
-    s.emb = embed(model, pts, dev)
-    f = query_state(model, dev).frame
-    net_pts = (pts - np.asarray(f.center, dtype=np.float64)) * float(f.xscale)
+    st = query_state(model, dev)
+    net_pts = (np.asarray(pts, np.float64) - st.center) * float(st.frame.xscale)  # float64, then float32
     s.points = wp.array(net_pts.astype(np.float32), dtype=wp.vec3, device=dev)
+    s.emb = embed(model, pts, dev)
     return s

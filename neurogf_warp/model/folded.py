@@ -52,8 +52,8 @@ class NetShape:
         return self.lifting[-1]
 
     def __str__(self) -> str:
-        return (f"lifting {self.lifting}, distance head {self.distance}, SDF head {self.sdf}, guidance {self.guidance}, "
-                f"path head {self.path}")
+        return (f"lifting {self.lifting}, distance head {self.distance}, SDF head {self.sdf}, "
+                f"guidance {self.guidance}, path head {self.path}")
 
 
 def net_shape(layers: dict) -> NetShape:

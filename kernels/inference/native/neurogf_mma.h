@@ -570,9 +570,13 @@ NGF_FN void distance_heads(const Head& W, const u32 (&e)[1][D / 16][4], const u3
 
 // ---- per-row inputs and outputs -----------------------------------------------------------------------------------
 
+// User frame -> network frame: x_net = (x - c) * xscale with the centre in float64, so that points far from the
+// origin lose nothing beyond their own float32 rounding; distances * dscale are in user units. A point outside the
+// cube |x_net| <= limit (or not finite) has no answer: its results are NaN.
 struct Frame
 {
-    float cx, cy, cz, xscale, dscale;
+    double cx, cy, cz;
+    float xscale, dscale, limit;
 };
 
 // Rows this lane reads: g and g + 8 of m-tile (tile, m), clamped to the last row (their results are not written).
@@ -592,9 +596,15 @@ NGF_FN void tile_rows(int tile, int mt, int m, int n, int& r0, int& r1, bool& ok
 
 NGF_FN void to_net(const Frame& f, const float* p, float (&x)[3])
 {
-    x[0] = (p[0] - f.cx) * f.xscale;
-    x[1] = (p[1] - f.cy) * f.xscale;
-    x[2] = (p[2] - f.cz) * f.xscale;
+    x[0] = (float)(((double)p[0] - f.cx) * (double)f.xscale);
+    x[1] = (float)(((double)p[1] - f.cy) * (double)f.xscale);
+    x[2] = (float)(((double)p[2] - f.cz) * (double)f.xscale);
+}
+
+// Whether a point (network frame) is inside the domain: false for NaN and inf too.
+NGF_FN bool in_domain(const Frame& f, const float (&x)[3])
+{
+    return fabsf(x[0]) <= f.limit && fabsf(x[1]) <= f.limit && fabsf(x[2]) <= f.limit;
 }
 
 // The rows of m-tiles (tile, 0 .. MT-1) this lane reads, and their points in the network frame.
@@ -656,13 +666,13 @@ struct DistanceOut
     int raw;              // 1: the network's own value (no clamping at 0, no exact 0 at the source)
 };
 
-// Sources are rows of three tables (packed embeddings, user-frame points, component labels): rows ids[s], or
-// row0 + s without ids. A bound model's vertex sources are rows of its kept tables; point sources are rows of
-// tables computed for the call.
+// Sources are rows of three tables (packed embeddings, points in the Frame's coordinates, component labels):
+// rows ids[s], or row0 + s without ids. A bound model's vertex sources are rows of its kept tables; point sources
+// are rows of tables computed for the call.
 struct Sources
 {
     const u32x4* emb;    // (R, D/8) packed fp16 embeddings
-    const float* pos;    // (R, 3) user frame
+    const float* pos;    // (R, 3) in the Frame's coordinates (to_net maps them)
     const int* comp;     // (R,) component labels (null: one component)
     const int* ids;      // (S,) rows (null: row0 + s)
     int row0;
@@ -671,19 +681,30 @@ struct Sources
     NGF_FN int row(int s) const { return ids ? ids[s] : row0 + s; }
 };
 
-// d = (head + euclid |x - s|) scaled to user units; exactly 0 where the row is the source point itself, never
-// negative, +inf across components (raw: the network's value as it is, +inf across components).
+// The one finishing rule of a distance (the per-thread kernels call it too, kernels/inference/finish.py):
+// NaN where either point is outside the domain or not finite; +inf across components; exactly 0 where the row is
+// the source point itself; d = (head + euclid |x - s|) in user units, never below the straight line |x - s|
+// (a geodesic is never shorter than the chord; NaN stays NaN). raw: the network's value (NaN and +inf as above).
 NGF_FN float finish_distance(float y, const Frame& f, const float* p, const float* sp, float euclid, bool other_part,
                              int raw)
 {
+    float xp[3], xs[3];
+    to_net(f, p, xp);
+    to_net(f, sp, xs);
+    if (!in_domain(f, xp) || !in_domain(f, xs))
+        return NAN;
     if (other_part)
         return INFINITY;
     if (!raw && p[0] == sp[0] && p[1] == sp[1] && p[2] == sp[2])
         return 0.0f;
-    // |x - s| from the user-frame difference, so that d(p, q) and d(q, p) round the same way
-    const float dx = p[0] - sp[0], dy = p[1] - sp[1], dz = p[2] - sp[2];
-    const float d = (y + euclid * (sqrtf(dx * dx + dy * dy + dz * dz) * f.xscale)) * f.dscale;
-    return raw ? d : relu(d);
+    // |x - s| from the input points' difference in float64: symmetric in x and s, and exact for far-away inputs
+    const double dx = (double)p[0] - (double)sp[0], dy = (double)p[1] - (double)sp[1], dz = (double)p[2] - (double)sp[2];
+    const float chord = (float)(sqrt(dx * dx + dy * dy + dz * dz) * (double)f.xscale);  // network frame
+    const float d = (y + euclid * chord) * f.dscale;
+    if (raw)
+        return d;
+    const float c = chord * f.dscale;
+    return d < c ? c : d;
 }
 
 // Finishes and writes one source's distances to the rows of MT m-tiles (lane t = 0 writes row g, t = 1 row g + 8).
@@ -962,7 +983,7 @@ NGF_FN void sdf_rows(const Lifting& L, const Head& H, const Frame& f, const floa
 #pragma unroll
             for (int i = 0; i < 2; ++i)
                 if (t == i && ok[m][i])
-                    out[r[m][i]] = y[m][i] * f.dscale;
+                    out[r[m][i]] = in_domain(f, x[m][i]) ? y[m][i] * f.dscale : NAN;
     }
 }
 
@@ -1035,7 +1056,8 @@ NGF_FN void path_pre_rows(const PathWeights& W, const u32x4* ep, const u32x4* eq
     }
 }
 
-// m points for each of N paths: out[i, j] (user frame), straight line p_i -> q_i through the point-wise head.
+// m points for each of N paths: out[i, j] (from_net: the Frame's coordinates), straight line p_i -> q_i through the
+// point-wise head.
 template <int P1, int P2, int P3>
 NGF_FN void path_point_rows(const PathWeights& W, const Frame& f, const float* ps, const float* qs, const float* pre,
                             int n_paths, int m, float* out, int warp, int n_warps)
@@ -1095,7 +1117,7 @@ NGF_FN void path_point_rows(const PathWeights& W, const Frame& f, const float* p
                 if (!ok[i])
                     continue;
                 const float w = W.window != 0.0f ? sinpi_(u[i]) : 1.0f;
-                const float ctr[3] = {f.cx, f.cy, f.cz};
+                const double ctr[3] = {f.cx, f.cy, f.cz};
 #pragma unroll
                 for (int j = 0; j < 2; ++j)
                 {
@@ -1103,7 +1125,7 @@ NGF_FN void path_point_rows(const PathWeights& W, const Frame& f, const float* p
                     if (col < 3)
                     {
                         const float v = y[0][0][2 * i + j] * w + W.residual * x[i][col];
-                        out[(size_t)r[i] * 3 + col] = v * f.dscale + ctr[col];
+                        out[(size_t)r[i] * 3 + col] = (float)((double)(v * f.dscale) + ctr[col]);
                     }
                 }
             }
