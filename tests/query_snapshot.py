@@ -2,7 +2,9 @@
 
 ``python tests/query_snapshot.py OUT.npz`` writes them; the stored ``tests/data/query_snapshot.npz`` was made at
 commit faff3ec (before the inference core and layout change) on Warp's CPU device. A refactoring must reproduce it
-bit for bit; a change that is meant to move answers regenerates it and says why in its commit.
+bit for bit; a change that is meant to move answers regenerates it and says why in its commit. path_refined_* were
+regenerated on branch path (refinement on the mesh and the choice among five candidates, issues 21 and 24), every
+other array kept as stored; path_* asks for the head's points (project=None), what the default was at faff3ec.
 """
 from __future__ import annotations
 
@@ -35,7 +37,7 @@ def answers(shared) -> dict:
         out[f"distance_{prec}"] = ngf.distance(model, p, q, **kw)
         out[f"distance_raw_{prec}"] = ngf.distance(model, p, q, raw=True, **kw)
         out[f"sdf_{prec}"] = ngf.sdf(model, p, **kw)
-        out[f"path_{prec}"] = ngf.path(model, p[:6], q[:6], m=16, **kw)
+        out[f"path_{prec}"] = ngf.path(model, p[:6], q[:6], m=16, project=None, **kw)  # the head, as before
         out[f"path_refined_{prec}"] = ngf.path(model, p[:3], q[:3], m=16, refine=3, **kw)
         model.unbind()
     out["project"] = ngf.project(model, p, device="cpu")
