@@ -106,22 +106,27 @@ def _follows(length, excess, m):
     return excess <= paths_mod.SURFACE_TOL * length / (m - 1)
 
 
-@pytest.mark.parametrize("which,sweeps", [("torus", 20), ("ellipsoid_model", 5)])
-def test_refined_never_worse_by_the_criterion(which, sweeps, request):
+@pytest.mark.parametrize("which,sweeps,precision", [("torus", 20, "fp32"), ("ellipsoid_model", 5, "fp32"),
+                                                     ("ellipsoid_model", 5, "fp16")])
+def test_refined_never_worse_by_the_criterion(which, sweeps, precision, request):
     """Per pair: the refined path follows the surface and is no longer along it than the head's path or the
-    straight line (both snapped), whichever of those follows the surface."""
+    straight line (both snapped), whichever of those follows the surface; and it neither zigzags nor loops (on
+    these smooth surfaces consecutive chords turn by less than 45 degrees)."""
     model = request.getfixturevalue(which)
     p, q = _pairs(model, 32, 2)
     m = 64
     with warnings.catch_warnings():
         warnings.simplefilter("error", PathWarning)
-        ref = ngf.path(model, p, q, m=m, refine=sweeps, device=DEV)
+        ref = ngf.path(model, p, q, m=m, refine=sweeps, device=DEV, precision=precision)
     lr, er = surface_fit(model, ref, device=DEV)
     assert np.all(_follows(lr, er, m))
     for other in _candidates(model, p, q, m):
         lo, eo = surface_fit(model, other, device=DEV)
         ok = _follows(lo, eo, m)
         assert np.all(lr[ok] <= lo[ok] * (1 + 1e-5)), (lr[ok] - lo[ok]).max()
+    d = np.diff(np.asarray(ref, np.float64), axis=1)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    assert np.all((d[:, 1:] * d[:, :-1]).sum(-1) > np.cos(np.radians(45)))
 
 
 @pytest.mark.parametrize("which", ["torus", "ellipsoid_model"])

@@ -1,8 +1,10 @@
-"""Shortest paths from the network's path head, their refinement on the SDF head's surface, and projection of
-points onto that surface.
+"""Shortest paths from the network's path head, their refinement on the surface, and projection of points onto
+the SDF head's surface.
 
-Paths are (N, m, 3) float32 points in mesh coordinates, ends included; see ``path`` for the refinement schedule
-and the projections ("sdf": Newton steps on the SDF head, mesh-free; "mesh": the exact closest mesh point).
+Paths are (N, m, 3) float32 points in mesh coordinates, ends included; see ``path`` for the refinement (on the
+mesh when the model has one, else on the SDF head's surface), the choice among candidate paths (``surface_fit``)
+and the projections ("mesh": the exact closest mesh point, the default with a mesh; "sdf": Newton steps on the
+SDF head, mesh-free).
 """
 from __future__ import annotations
 
