@@ -91,8 +91,10 @@ def main(argv=None):
                                                                             device=a.device)))
         if a.sdf_pairs:
             sub = np.unique(np.linspace(0, len(gt) - 1, min(a.sdf_pairs, len(gt))).round().astype(int))
-            bare = ngf.Model(net=model.net, center=mesh.center, scale=mesh.scale)  # mesh-free: the SDF surface
-            x, t = timed(lambda: ngf.path(bare, p[sub], q[sub], m=128, refine=a.refine, device=a.device))
+            bare = ngf.Model(net=model.net)  # mesh-free: refines on the SDF surface, in the normalized frame
+            pn, qn = mesh.normalize(p[sub]).astype(np.float32), mesh.normalize(q[sub]).astype(np.float32)
+            x, t = timed(lambda: ngf.path(bare, pn, qn, m=128, refine=a.refine, device=a.device))
+            x = mesh.denormalize(np.asarray(x, np.float64).reshape(-1, 3)).reshape(x.shape)
             variants[f"refine={a.refine} on SDF (no mesh)"] = (sub, x, t)
         head_cd = L.chamfer_l1(norm(variants["head (project=None)"][1]), gtn)
         rows = {}
