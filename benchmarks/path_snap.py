@@ -1,19 +1,25 @@
-"""Path Chamfer-L1 before and after projecting predicted paths onto the surface, released bunny and fandisk.
+"""Path Chamfer-L1 to the solver's paths: the path head, the default (snapped to the mesh), refinement on the mesh
+and on the SDF head's surface, with the time of each call.
 
-    python benchmarks/path_snap.py --device cpu --pairs 128 --refine-pairs 32     # this machine (slow part: refine)
+    python benchmarks/path_snap.py --device cpu --pairs 128 --sdf-pairs 16            # released bunny, fandisk
+    python benchmarks/path_snap.py --device cpu --models torus.ngf spot.ngf --meshes   # your own trained models
 
 For random vertex pairs (``--sources`` sources x targets, seed 0) our geodesic solver's paths (128 points,
-``neurogf_warp.geodesic_paths``) are the reference. Predicted paths, 128 points: the path head (raw), the same
-with the SDF projection (``ngf.project``, 2 Newton steps: ``path(..., project="sdf")``), with the exact closest
-mesh point (``surface.snap_to_mesh``: ``path(..., project="mesh")``), and ``refine=50`` (already on the SDF
-surface) before and after snapping. Chamfer-L1 as ``evaluate`` computes it (normalized unit-sphere frame).
-Path length / predicted distance and path length / solver path length show that lengths still match.
+``neurogf_warp.geodesic_paths``) are the reference. Variants, 128 points each: ``project=None`` (the path head's
+own points), the default (``project="auto"``: snapped to the mesh), ``refine=R`` (shortened on the mesh, the best
+of five candidates by ``surface_fit``), and on ``--sdf-pairs`` of the pairs ``refine=R`` on a copy of the model
+without its mesh (shortened on the SDF head's surface: the method the README's GPU figure times; slow on a CPU).
+Chamfer-L1 as ``evaluate`` computes it (normalized unit-sphere frame); "worse" counts pairs whose refined path has
+a Chamfer distance more than 10% above the same pair's head path; "off mesh" is the mean distance of the points
+from the mesh (normalized units); "len/solver" the median of the length along the surface (``surface_fit``) over
+the solver path's length.
 """
 from __future__ import annotations
 
 import argparse
 import datetime
 import json
+import platform
 import sys
 import time
 from pathlib import Path
@@ -28,14 +34,21 @@ def lengths(x):
     return np.linalg.norm(np.diff(x, axis=1), axis=2).sum(1)
 
 
+def timed(f):
+    t0 = time.perf_counter()
+    r = f()
+    return r, time.perf_counter() - t0
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--pairs", type=int, default=128)
     ap.add_argument("--sources", type=int, default=8)
-    ap.add_argument("--refine-pairs", type=int, default=32, help="pairs also refined (spread over all); 0: none")
     ap.add_argument("--refine", type=int, default=50)
-    ap.add_argument("--meshes", nargs="+", default=["bunny", "fandisk"])
+    ap.add_argument("--sdf-pairs", type=int, default=16, help="pairs also refined on the SDF surface; 0: none")
+    ap.add_argument("--meshes", nargs="*", default=["bunny", "fandisk"], help="released checkpoints to run")
+    ap.add_argument("--models", nargs="*", default=[], help="model files (.ngf with their mesh) to run")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     import warp as wp
@@ -43,18 +56,21 @@ def main(argv=None):
     wp.config.log_level = wp.LOG_WARNING
     import neurogf_warp as ngf
     from neurogf_warp.evaluation import metrics as L
+    from neurogf_warp.inference.paths import surface_fit
     from neurogf_warp.mesh.surface import snap_to_mesh
 
     files = {"bunny": ("stanford-bunny.obj", "bunny"), "fandisk": ("fandisk.obj", "fandisk")}
-    res = {"date": datetime.date.today().isoformat(), "device": a.device, "meshes": {}}
-    for name in a.meshes:
-        mesh_file, ck = files[name]
-        model = ngf.load(find_shared("checkpoints", "official", f"NeuroGF_Pretrainer__{ck}_final.pth"),
-                         mesh=find_shared("meshes", mesh_file))
+    runs = [(name, lambda name=name: ngf.load(
+        find_shared("checkpoints", "official", f"NeuroGF_Pretrainer__{files[name][1]}_final.pth"),
+        mesh=find_shared("meshes", files[name][0]))) for name in a.meshes]
+    runs += [(Path(f).stem, lambda f=f: ngf.load(f)) for f in a.models]
+    res = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="minutes"), "device": a.device,
+           "machine": platform.processor() or platform.machine(), "refine": a.refine, "models": {}}
+    for name, load in runs:
+        model = load()
         mesh = model.mesh
         rng = np.random.default_rng(0)
         per = -(-a.pairs // a.sources)
-        t0 = time.perf_counter()
         gts = []
         for s in rng.choice(len(mesh.vertices), a.sources, replace=False):
             tg = rng.choice(len(mesh.vertices), per + 1, replace=False)
@@ -62,47 +78,44 @@ def main(argv=None):
             g = ngf.geodesic_paths(mesh, mesh.index[s], mesh.index[tg], m=128, device=a.device)
             gts.append(g[np.isfinite(g).all(axis=(1, 2))])
         gt = np.concatenate(gts)[:a.pairs]
-        t_solver = time.perf_counter() - t0
         p, q = gt[:, 0], gt[:, -1]
-        norm = lambda x: mesh.normalize(x.reshape(-1, 3)).reshape(x.shape)
+        norm = lambda x: mesh.normalize(np.asarray(x, np.float64).reshape(-1, 3)).reshape(np.shape(x))
         gtn = norm(gt)
-        pred_d = ngf.distance(model, p, q, device=a.device) * mesh.scale  # normalized units
-        raw = ngf.path(model, p, q, m=128, device=a.device)
-        variants = {"raw": raw,
-                    "raw + sdf projection": ngf.project(model, raw.reshape(-1, 3), device=a.device).reshape(raw.shape),
-                    "raw + mesh snap": snap_to_mesh(mesh, raw, device=a.device)[0]}
-        # the refined subset: every (len / k)-th pair, so that it spans all sources
-        sub = np.unique(np.linspace(0, len(gt) - 1, min(a.refine_pairs, len(gt))).round().astype(int))
-        t_ref = None
-        if len(sub):
-            t0 = time.perf_counter()
-            ref = ngf.path(model, p[sub], q[sub], m=128, refine=a.refine, device=a.device)
-            t_ref = time.perf_counter() - t0
-            variants[f"refine={a.refine}"] = ref
-            variants[f"refine={a.refine} + mesh snap"] = snap_to_mesh(mesh, ref, device=a.device)[0]
+        ngf.path(model, p[:2], q[:2], m=128, refine=1, device=a.device)  # compile and build the BVH first
+        all_rows = np.arange(len(gt))
+        variants = {}
+        variants["head (project=None)"] = (all_rows, *timed(lambda: ngf.path(model, p, q, m=128, project=None,
+                                                                             device=a.device)))
+        variants["default (snapped)"] = (all_rows, *timed(lambda: ngf.path(model, p, q, m=128, device=a.device)))
+        variants[f"refine={a.refine}"] = (all_rows, *timed(lambda: ngf.path(model, p, q, m=128, refine=a.refine,
+                                                                            device=a.device)))
+        if a.sdf_pairs:
+            sub = np.unique(np.linspace(0, len(gt) - 1, min(a.sdf_pairs, len(gt))).round().astype(int))
+            bare = ngf.Model(net=model.net)  # mesh-free: refines on the SDF surface, in the normalized frame
+            pn, qn = mesh.normalize(p[sub]).astype(np.float32), mesh.normalize(q[sub]).astype(np.float32)
+            x, t = timed(lambda: ngf.path(bare, pn, qn, m=128, refine=a.refine, device=a.device))
+            x = mesh.denormalize(np.asarray(x, np.float64).reshape(-1, 3)).reshape(x.shape)
+            variants[f"refine={a.refine} on SDF (no mesh)"] = (sub, x, t)
+        head_cd = L.chamfer_l1(norm(variants["head (project=None)"][1]), gtn)
         rows = {}
-        print(f"\n{name}: {len(gt)} solver paths ({t_solver:.0f} s), refined: {len(sub)} of them ({t_ref or 0:.0f} s)")
-        print(f"{'variant':28s} {'pairs':>5s} {'Chamfer-L1':>11s} {'same pairs raw':>14s} {'len/pred d':>16s} "
-              f"{'len/solver len':>16s} {'off mesh':>9s}")
-        for v, x in variants.items():
-            x = np.asarray(x, dtype=np.float64)
-            n = len(x)
-            rows_ = sub if v.startswith("refine") else np.arange(len(gt))
-            xn = norm(x)
-            cd = L.chamfer_l1(xn, gtn[rows_])
-            cd_raw = L.chamfer_l1(norm(raw[rows_]), gtn[rows_])
-            lr = lengths(xn) / pred_d[rows_]
-            ls = lengths(xn) / lengths(gtn[rows_])
-            sp, _, _ = snap_to_mesh(mesh, x, device=a.device)
-            off = np.linalg.norm(norm(np.asarray(sp, dtype=np.float64)) - xn, axis=-1).mean()
-            rows[v] = {"pairs": n, "chamfer_l1": float(cd.mean()), "chamfer_l1_raw_same_pairs": float(cd_raw.mean()),
-                       "length_over_predicted_distance": {"mean": float(lr.mean()), "median": float(np.median(lr)),
-                                                          "p90": float(np.quantile(lr, 0.9))},
-                       "length_over_solver_length": {"mean": float(ls.mean()), "median": float(np.median(ls))},
-                       "mean_distance_to_mesh": float(off)}
-            print(f"{v:28s} {n:5d} {cd.mean():11.4e} {cd_raw.mean():14.4e} {lr.mean():7.4f} ({np.median(lr):.4f}) "
-                  f"{ls.mean():7.4f} ({np.median(ls):.4f}) {off:9.2e}")
-        res["meshes"][name] = {"solver_s": t_solver, "refine_s": t_ref, "variants": rows}
+        print(f"\n{name} ({len(mesh.vertices)} vertices): {len(gt)} solver paths, device {a.device}")
+        print(f"{'variant':30s} {'pairs':>5s} {'Chamfer-L1':>11s} {'head, same':>11s} {'worse':>5s} "
+              f"{'len/solver':>10s} {'off mesh':>9s} {'seconds':>8s} {'ms/pair':>8s}")
+        for v, (sel, x, t) in variants.items():
+            x = np.asarray(x, dtype=np.float32)
+            cd = L.chamfer_l1(norm(x), gtn[sel])
+            fit_len = np.asarray(surface_fit(model, x, device=a.device)[0], np.float64) * mesh.scale
+            ls = fit_len / lengths(gtn[sel])
+            sp = snap_to_mesh(mesh, x, device=a.device)[0]
+            off = np.linalg.norm(norm(sp) - norm(x), axis=-1).mean()
+            worse = int((cd > 1.1 * head_cd[sel]).sum())
+            rows[v] = {"pairs": len(sel), "chamfer_l1": float(cd.mean()), "chamfer_l1_head_same_pairs":
+                       float(head_cd[sel].mean()), "worse_than_head_by_10pct": worse,
+                       "surface_length_over_solver_length_median": float(np.median(ls)),
+                       "mean_distance_to_mesh": float(off), "seconds": t, "ms_per_pair": 1e3 * t / len(sel)}
+            print(f"{v:30s} {len(sel):5d} {cd.mean():11.4e} {head_cd[sel].mean():11.4e} {worse:5d} "
+                  f"{np.median(ls):10.4f} {off:9.2e} {t:8.2f} {1e3 * t / len(sel):8.1f}")
+        res["models"][name] = {"vertices": len(mesh.vertices), "variants": rows}
     if a.json:
         Path(a.json).write_text(json.dumps(res, indent=1))
     return res

@@ -134,7 +134,7 @@ def test_point_queries_match_float64(device, D, options):
     close_emu(s, emu_sdf(net, mesh, p), "sdf (fp16 emulation) " + msg)
     close(d, d_ref, "distance " + msg, 1e-2)  # float64: fp16 rounding of random networks' activations
     close(s, s_ref, "sdf " + msg, 1e-2)
-    close(ngf.path(model, p[:k], q[:k], m=16, device=device, precision="fp16"), path_ref, "path " + msg)
+    close(ngf.path(model, p[:k], q[:k], m=16, project=None, device=device, precision="fp16"), path_ref, "path " + msg)
     assert np.array_equal(ngf.distance(model, p, q, device=device, precision="fp16", raw=True),
                           ngf.distance(model, q, p, device=device, precision="fp16", raw=True)), msg
 

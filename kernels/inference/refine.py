@@ -50,3 +50,173 @@ def newton(pts: wp.array(dtype=wp.vec3), s: wp.array(dtype=wp.float32), h: float
     if n > 1.0e-12:
         p = p - (s0 / (n * wp.max(n, 0.5))) * g
     y[i, j] = p
+
+
+# -- paths on the mesh, and the choice among candidate paths (neurogf_warp.inference.paths) ----------------------
+#
+# With a mesh attached, paths are shortened on the mesh itself: each inner point goes to the closest mesh point of
+# its neighbours' midpoint (a BVH query, no network evaluation: far cheaper than a Newton step on the SDF head,
+# and on the exact surface). Then every candidate path of a pair is scored by what can be measured at query time:
+# its length, and how far its chords leave the surface (a chord whose midpoint lies far from the surface jumps
+# through the solid or across a gap instead of following the surface).
+
+REACH = 1.0e18  # search radius that always finds the closest point (its square stays finite in float32)
+
+
+@wp.func
+def finite3(x: wp.vec3) -> bool:
+    return wp.isfinite(x[0]) and wp.isfinite(x[1]) and wp.isfinite(x[2])
+
+
+@wp.func
+def closest_on_mesh(mesh: wp.uint64, x: wp.vec3, bound: float) -> wp.vec3:
+    """The closest mesh point of x, searched within ``bound`` first (a known upper bound of the distance prunes
+    the BVH), then everywhere; NaN for a non-finite x (a BVH walk on NaN is undefined)."""
+    if not finite3(x):
+        return wp.vec3(wp.nan, wp.nan, wp.nan)
+    q = wp.mesh_query_point_no_sign(mesh, x, bound)
+    if not q.result:
+        q = wp.mesh_query_point_no_sign(mesh, x, REACH)
+    return wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+
+
+@wp.kernel(enable_backward=False)
+def snap_inner(mesh: wp.uint64, starts: wp.array(dtype=wp.vec3), ends: wp.array(dtype=wp.vec3),
+               x: wp.array2d(dtype=wp.vec3)):
+    """In place: path i's ends := starts[i], ends[i]; its inner points := their closest mesh points."""
+    i, j = wp.tid()
+    m = x.shape[1]
+    if j == 0:
+        x[i, j] = starts[i]
+    elif j == m - 1:
+        x[i, j] = ends[i]
+    else:
+        x[i, j] = closest_on_mesh(mesh, x[i, j], REACH)
+
+
+@wp.kernel(enable_backward=False)
+def relax_on_mesh(mesh: wp.uint64, x: wp.array2d(dtype=wp.vec3), y: wp.array2d(dtype=wp.vec3)):
+    """One Jacobi shortening sweep on the mesh: each inner point to the closest mesh point of its neighbours'
+    midpoint (ends kept). x's inner points lie on the mesh, so the midpoint's closest point is no farther than
+    x[i, j] is from it: that distance bounds the search."""
+    i, j = wp.tid()
+    m = x.shape[1]
+    if j == 0 or j == m - 1:
+        y[i, j] = x[i, j]
+    else:
+        mid = 0.5 * (x[i, j - 1] + x[i, j + 1])
+        y[i, j] = closest_on_mesh(mesh, mid, 1.001 * wp.length(mid - x[i, j]) + 1.0e-30)
+
+
+@wp.kernel(enable_backward=False)
+def gaps_on_mesh(mesh: wp.uint64, x: wp.array2d(dtype=wp.vec3), off: wp.array2d(dtype=wp.float32),
+                 gap: wp.array2d(dtype=wp.float32)):
+    """Per point x[i, j]: off[i, j], its distance from the mesh; per chord (x[i, j], x[i, j + 1]), j < m - 1:
+    gap[i, j], its midpoint's distance from the mesh (mesh units). off and gap have x's shape (N, m); gap's last
+    column is not written."""
+    i, j = wp.tid()
+    m = x.shape[1]
+    a = x[i, j]
+    ca = closest_on_mesh(mesh, a, REACH)
+    off[i, j] = wp.length(a - ca)
+    if j < m - 1:
+        mid = 0.5 * (a + x[i, j + 1])
+        # the midpoint's closest point is no farther than a's closest point
+        c = closest_on_mesh(mesh, mid, 1.001 * wp.length(mid - ca) + 1.0e-30)
+        gap[i, j] = wp.length(mid - c)
+
+
+@wp.kernel(enable_backward=False)
+def midpoints(x: wp.array2d(dtype=wp.vec3), out: wp.array2d(dtype=wp.vec3)):
+    """out[i, j] = the midpoint of chord j of path i (j < m - 1); out[i, m - 1] = the path's last point, so that
+    out has x's shape (N, m)."""
+    i, j = wp.tid()
+    k = wp.min(j + 1, x.shape[1] - 1)
+    out[i, j] = 0.5 * (x[i, j] + x[i, k])
+
+
+@wp.kernel(enable_backward=False)
+def score_paths(x: wp.array2d(dtype=wp.vec3), off: wp.array2d(dtype=wp.float32), gap: wp.array2d(dtype=wp.float32),
+                length: wp.array(dtype=wp.float32), excess: wp.array(dtype=wp.float32)):
+    """Per path: its length along the surface, and its chords' largest excess distance from the surface.
+
+    A chord's excess e is its midpoint's distance from the surface less the mean of its ends' distances (ends
+    given off the surface do not count). The chord of length s stands for a path on the surface through the
+    point e below (or above) its midpoint: 2 sqrt((s / 2)^2 + e^2) long. So a chord that cuts a convex crease
+    or a bump counts the detour the surface makes, and a path zigzagging along a crease is not mistaken for a
+    short one. off/gap may hold signed SDF values: their magnitudes are used."""
+    i = wp.tid()
+    m = x.shape[1]
+    total = float(0.0)
+    worst = float(0.0)
+    for j in range(m - 1):
+        e = wp.abs(gap[i, j]) - 0.5 * (wp.abs(off[i, j]) + wp.abs(off[i, j + 1]))
+        half = 0.5 * wp.length(x[i, j + 1] - x[i, j])
+        ep = wp.max(e, 0.0)
+        total += 2.0 * wp.sqrt(half * half + ep * ep)
+        if not (e <= worst):  # NaN counts as the worst
+            worst = e
+    length[i] = total
+    excess[i] = worst
+
+
+@wp.kernel(enable_backward=False)
+def pick_best(length: wp.array(dtype=wp.float32), excess: wp.array(dtype=wp.float32), n_cand: int, m: int,
+              tol: float, best: wp.array(dtype=wp.int32), best_excess: wp.array(dtype=wp.float32)):
+    """Candidates of path i are rows i, i + N, i + 2N, ... (N = best.shape[0]). A candidate stays on the surface
+    when its chords' excess is at most ``tol`` times its mean point spacing; keep the shortest of those, else
+    (none stays on) the one that leaves the least. best_excess[i]: 0 when a candidate stayed on, else the chosen
+    one's excess (mesh units). Ties keep the lower candidate index."""
+    i = wp.tid()
+    N = best.shape[0]
+    b = int(-1)
+    bl = float(0.0)
+    for c in range(n_cand):
+        r = c * N + i
+        if excess[r] <= tol * length[r] / float(m - 1) and (b < 0 or length[r] < bl):
+            b = c
+            bl = length[r]
+    best_excess[i] = 0.0
+    if b < 0:
+        be = float(0.0)
+        for c in range(n_cand):
+            r = c * N + i
+            if b < 0 or excess[r] < be:
+                b = c
+                be = excess[r]
+        if b < 0:
+            b = 0
+        best_excess[i] = excess[b * N + i]
+    best[i] = b
+
+
+@wp.kernel(enable_backward=False)
+def take_best(x: wp.array2d(dtype=wp.vec3), best: wp.array(dtype=wp.int32), reversed_mask: wp.array(dtype=wp.int32),
+              out: wp.array2d(dtype=wp.vec3)):
+    """out[i] := candidate best[i] of path i (rows i + c N of x), turned around where reversed_mask[c]."""
+    i, j = wp.tid()
+    N = out.shape[0]
+    m = out.shape[1]
+    c = best[i]
+    k = j
+    if reversed_mask[c] != 0:
+        k = m - 1 - j
+    out[i, j] = x[c * N + i, k]
+
+
+@wp.kernel(enable_backward=False)
+def collapse_same_ends(ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3), x: wp.array2d(dtype=wp.vec3)):
+    """A path from a point to itself is that point: rows with p == q become p repeated."""
+    i, j = wp.tid()
+    if ps[i] == qs[i]:
+        x[i, j] = ps[i]
+
+
+@wp.kernel(enable_backward=False)
+def end_offsets(s_start: wp.array(dtype=wp.float32), s_end: wp.array(dtype=wp.float32),
+                off: wp.array2d(dtype=wp.float32)):
+    """off[i, 0] := s_start[i], off[i, m - 1] := s_end[i] (the path ends' SDF values; inner points lie on the
+    SDF surface after projection and keep the zeros they were given)."""
+    i = wp.tid()
+    off[i, 0] = s_start[i]
+    off[i, off.shape[1] - 1] = s_end[i]

@@ -1,46 +1,76 @@
-"""Shortest paths from the network's path head, their refinement on the SDF head's surface, and projection of
-points onto that surface.
+"""Shortest paths from the network's path head, their refinement on the surface, and projection of points onto
+the SDF head's surface.
 
-Paths are (N, m, 3) float32 points in mesh coordinates, ends included; see ``path`` for the refinement schedule
-and the projections ("sdf": Newton steps on the SDF head, mesh-free; "mesh": the exact closest mesh point).
+Paths are (N, m, 3) float32 points in mesh coordinates, ends included; see ``path`` for the refinement (on the
+mesh when the model has one, else on the SDF head's surface), the choice among candidate paths (``surface_fit``)
+and the projections ("mesh": the exact closest mesh point, the default with a mesh; "sdf": Newton steps on the
+SDF head, mesh-free).
 """
 from __future__ import annotations
+
+import warnings
 
 import numpy as np
 import warp as wp
 
 from neurogf_warp.common.arrays import Output, resolve_device
-from neurogf_warp.inference.inputs import pair_components, pair_inputs, points_in, relative_points
 from neurogf_warp.inference.backends import backend_of
-from neurogf_warp.inference.state import query_state
+from neurogf_warp.inference.inputs import pair_components, pair_inputs, points_in, relative_points
+from neurogf_warp.inference.state import QueryState, query_state
 from neurogf_warp.kernels.inference import finish, mlp
+from neurogf_warp.kernels.inference import refine as refine_kernels
+from neurogf_warp.mesh.surface import _flat_points, snap_to_mesh, warp_mesh
 from neurogf_warp.model.model import Model
 
 PROJECT_STEPS = 2  # Newton steps from a point near the surface; |sdf| falls ~10x per step (a trained SDF head)
+SURFACE_TOL = 1.0  # a path follows the surface when no chord's midpoint is farther from it than one mean point
+# spacing (beyond its ends' own distance): a legitimate chord across a crease leaves by at most half its length;
+# a chord that jumps through the solid or across a gap leaves by about half the gap, far more than a spacing
+PROJECTIONS = ("auto", None, "sdf", "mesh")
 
 
-def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None = None, return_faces: bool = False,
+class PathWarning(UserWarning):
+    """Some returned paths leave the surface: every candidate path of those pairs did."""
+
+
+def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None = "auto", return_faces: bool = False,
          device=None, precision: str = "auto", check: bool = True):
     """Shortest paths as m points each (ends included): (N, 3), (N, 3) -> (N, m, 3) float32 mesh coordinates.
 
-    Straight-line samples between p and q go through the network's path head, which moves them onto the
-    surface. With a windowed path head (``path_window``) the ends are exactly p and q, else the network's.
-    Paths between different connected components are NaN rows. A single pair (3,), (3,) gives (m, 3).
+    Straight-line samples between p and q go through the network's path head, which moves them toward the
+    surface (not onto it: a head path can cut through the solid or float beside the surface). With a windowed
+    path head (``path_window``) the ends are exactly p and q, else the network's. A path from a point to itself
+    (rows with p == q) is that point repeated. Paths between different connected components are NaN rows. A
+    single pair (3,), (3,) gives (m, 3).
 
-    refine > 0 shortens the paths on the SDF head's surface: that many sweeps (each inner point to the
-    projected midpoint of its neighbours, ends pinned to p and q) at m/4, then m/2, then m points, from
-    three starts: the head's path p -> q, its path q -> p, and the straight line; the shortest result that
-    does not jump between sheets is kept. 25-50 sweeps suffice for m=128 (benchmarks/RESULTS.md); a sweep
-    costs about as much as four SDF queries per point. With precision "fp16" the SDF values come from batched
-    tensor-core launches (points end within ~2e-4 of the SDF surface, normalized frame; fp32: ~2e-5).
+    project: where the returned points lie.
+      "auto" (default): "mesh" when the model has a mesh, else None. Without a mesh the head's points can lie
+        off the surface (and a refined path's points on the SDF head's surface); "sdf" puts every point there,
+        at the cost of about five SDF evaluations a point (on one CPU core that is 30x the head's own cost).
+      "mesh": every point, ends included, snapped to the exact closest point of the mesh (``surface.snap_to_mesh``).
+      "sdf": every point moved onto the SDF head's surface by Newton steps (mesh-free).
+      None: the points as computed (the head's points, or the refined path).
+    return_faces (with project "mesh", or "auto" with a mesh): also return, per point, the face it lies on
+    ((N, m) int32, rows of the mesh's face list as given) and its barycentric coordinates ((N, m, 3) float32):
+    (points, faces, bary).
 
-    project: None (the points as computed), "sdf" (every point moved onto the SDF head's surface by Newton steps:
-    mesh-free) or "mesh" (every point snapped to the exact closest point of the mesh, ``surface.snap_to_mesh``).
-    return_faces (with project="mesh"): also return, per point, the face it lies on ((N, m) int32, rows of the
-    mesh's face list as given) and its barycentric coordinates ((N, m, 3) float32): (points, faces, bary).
+    refine > 0 shortens the paths on the surface: on the mesh when the model has one (each inner point moved to
+    the closest mesh point of its neighbours' midpoint, no network evaluations), else on the SDF head's surface
+    (the midpoint moved by a Newton step, about four SDF evaluations a point). That many Jacobi sweeps at m/4,
+    then m/2, then m points (ends pinned to p and q), from three starts: the head's path p -> q, its path q -> p
+    and the straight line. Then, per pair, the result is the best of five candidates: the three refined paths,
+    the head's path and the straight line, both moved onto the same surface. The best is the shortest of those
+    that follow the surface (no chord's midpoint farther from the surface than the path's mean point spacing,
+    beyond what its ends are: a chord that leaves by more jumps through the solid or across a gap); so refining
+    never returns a longer path than the projected head path or the projected straight line, by that length.
+    Where no candidate of a pair follows the surface, the one that leaves it least is returned and a
+    ``PathWarning`` says how many pairs and how far (mesh units). With precision "fp16" the head paths and,
+    without a mesh, the SDF values come from batched tensor-core launches.
     """
-    if project not in (None, "sdf", "mesh"):
-        raise ValueError(f"project must be None, 'sdf' or 'mesh', got {project!r}")
+    if project not in PROJECTIONS:
+        raise ValueError(f"project must be 'auto', None, 'sdf' or 'mesh', got {project!r}")
+    if project == "auto":
+        project = "mesh" if model.mesh is not None else None
     if return_faces and project != "mesh":
         raise ValueError("return_faces=True needs project='mesh' (faces are those of the mesh)")
     if project == "mesh" and model.mesh is None:
@@ -60,10 +90,13 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None 
         # iterated points (refinement, Newton steps) live relative to the mesh centre, where float32 resolves the
         # mesh's own scale; device input is moved there once (float64 arithmetic) and the result moved back below
         P, Q, frame = relative_points(model, P, frame), relative_points(model, Q, frame), st.frame
+    left = None
     if n and not refine:
         be.paths(P, Q, res, frame)
     elif n:
-        _refined_paths(be, P, Q, res, int(refine), dev, frame)
+        left = _refined_paths(st, be, P, Q, res, int(refine), dev, frame)
+    if n:
+        wp.launch(refine_kernels.collapse_same_ends, (n, m), inputs=[P, Q, res], device=dev)
     if n and project == "sdf":
         flat = res.reshape(-1)
         wp.launch(mlp.project_points, flat.shape[0], inputs=[st.weights, flat, frame, 2 * PROJECT_STEPS],
@@ -78,14 +111,13 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None 
                       device=dev)
     faces = None
     if n and project == "mesh":
-        from neurogf_warp.mesh.surface import snap_to_mesh
-
         snapped, faces, bary = snap_to_mesh(model, res, device=dev)
         wp.copy(res, snapped)
-    if n:
-        comps = pair_components(model, P, Q, dev, frame)
-        if comps is not None:
-            wp.launch(finish.split_paths, (n, m), inputs=[*comps, res], device=dev)
+    comps = pair_components(model, P, Q, dev, frame) if n else None
+    if comps is not None:
+        wp.launch(finish.split_paths, (n, m), inputs=[*comps, res], device=dev)
+    if left is not None:
+        _warn_left(left, P, Q, comps)
     if kind == "torch":
         r = wp.to_torch(res).view(n, m, 3)
     elif kind == "warp":
@@ -102,22 +134,87 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None 
     return r[0] if single else r
 
 
-def _refined_paths(be, P, Q, res, refine: int, dev, frame):
-    """The refinement schedule of ``path`` on backend ``be`` (its ``settle`` and ``sweep`` steps)."""
+def _relative_mesh(st: QueryState) -> wp.Mesh:
+    """The mesh as a ``wp.Mesh`` in the state's frame (vertices relative to the mesh centre, the coordinates of
+    refinement), made once per state."""
+    md = st.mesh("refined paths")
+    if md._wp_mesh is None:  # a one-part mesh has none yet (components need no closest points there)
+        faces = st.model.mesh.faces.reshape(-1).astype(np.int32)
+        md._wp_mesh = wp.Mesh(points=md.verts, indices=wp.array(faces, dtype=wp.int32, device=st.device))
+    return md._wp_mesh
+
+
+def _refined_paths(st: QueryState, be, P, Q, res, refine: int, dev, frame):
+    """Refined paths into res (N, m) (see ``path``); returns, per pair, how far (mesh units) the chosen path's
+    chords leave the surface where no candidate followed it, else 0: (N,) float32."""
     n, m = res.shape
     levels = _levels(m)
-    cand = wp.empty((3 * n, levels[0]), dtype=wp.vec3, device=dev)
-    be.paths(P, Q, cand[:n], frame)
-    be.paths(Q, P, cand[n:2 * n], frame)
-    wp.launch(mlp.straight_paths, (n, levels[0]), inputs=[P, Q], outputs=[cand[2 * n:]], device=dev)
-    starts, ends = wp.empty(3 * n, dtype=wp.vec3, device=dev), wp.empty(3 * n, dtype=wp.vec3, device=dev)
-    for c, (a, b) in enumerate(((P, Q), (Q, P), (P, Q))):
+    on_mesh = st.model.mesh is not None
+    # candidates at m points, rows c * n + i: 0-2 refined from the head p -> q, the head q -> p and the straight
+    # line; 3 the head p -> q; 4 the straight line (3 and 4 moved onto the surface below)
+    full = wp.empty((5 * n, m), dtype=wp.vec3, device=dev)
+    be.paths(P, Q, full[3 * n:4 * n], frame)
+    wp.launch(mlp.straight_paths, (n, m), inputs=[P, Q], outputs=[full[4 * n:]], device=dev)
+    starts, ends = wp.empty(5 * n, dtype=wp.vec3, device=dev), wp.empty(5 * n, dtype=wp.vec3, device=dev)
+    for c, (a, b) in enumerate(((P, Q), (Q, P), (P, Q), (P, Q), (P, Q))):
         wp.copy(starts, a, dest_offset=c * n, count=n)
         wp.copy(ends, b, dest_offset=c * n, count=n)
+    cand = wp.empty((3 * n, levels[0]), dtype=wp.vec3, device=dev)
+    wp.launch(mlp.resample_paths, (n, levels[0]), inputs=[full[3 * n:4 * n]], outputs=[cand[:n]], device=dev)
+    be.paths(Q, P, cand[n:2 * n], frame)
+    wp.launch(mlp.straight_paths, (n, levels[0]), inputs=[P, Q], outputs=[cand[2 * n:]], device=dev)
+    # the points are in the state's frame (relative to the mesh centre): the mesh too
+    mesh_id = _relative_mesh(st).id if on_mesh else None
+    if on_mesh:
+        cand = _shorten_on_mesh(mesh_id, cand, starts, ends, levels, refine, dev)
+        wp.launch(refine_kernels.snap_inner, (2 * n, m), inputs=[mesh_id, starts[3 * n:], ends[3 * n:]],
+                  outputs=[full[3 * n:]], device=dev)
+    else:
+        cand = _shorten_on_sdf(be, cand, starts, ends, levels, refine, dev, frame, full[3 * n:])
+    wp.copy(full, cand, count=3 * n * m)
+    # score every candidate: its length along the surface, and how far its chords leave the surface
+    if on_mesh:
+        length, excess = _fit(be, full, dev, frame, mesh_id)
+    else:
+        s_start, s_end = wp.empty(5 * n, dtype=wp.float32, device=dev), wp.empty(5 * n, dtype=wp.float32, device=dev)
+        be.sdf(starts, s_start, frame)
+        be.sdf(ends, s_end, frame)
+        off = wp.zeros((5 * n, m), dtype=wp.float32, device=dev)  # inner points: on the SDF surface (projected)
+        wp.launch(refine_kernels.end_offsets, 5 * n, inputs=[s_start, s_end], outputs=[off], device=dev)
+        length, excess = _fit(be, full, dev, frame, None, off)
+    best, left = wp.empty(n, dtype=wp.int32, device=dev), wp.empty(n, dtype=wp.float32, device=dev)
+    wp.launch(refine_kernels.pick_best, n, inputs=[length, excess, 5, m, SURFACE_TOL], outputs=[best, left],
+              device=dev)
+    rev = wp.array([0, 1, 0, 0, 0], dtype=wp.int32, device=dev)
+    wp.launch(refine_kernels.take_best, (n, m), inputs=[full, best, rev], outputs=[res], device=dev)
+    return left
+
+
+def _shorten_on_mesh(mesh_id, cand, starts, ends, levels, refine: int, dev):
+    """Jacobi shortening sweeps on the mesh (``mesh_id``, in the points' frame) at each level's point count;
+    returns the (3N, m) result."""
+    for level, ml in enumerate(levels):
+        if level:
+            finer = wp.empty((cand.shape[0], ml), dtype=wp.vec3, device=dev)
+            wp.launch(mlp.resample_paths, finer.shape, inputs=[cand], outputs=[finer], device=dev)
+            cand = finer
+        wp.launch(refine_kernels.snap_inner, cand.shape, inputs=[mesh_id, starts, ends], outputs=[cand], device=dev)
+        tmp = wp.empty_like(cand)
+        for _ in range(refine):
+            wp.launch(refine_kernels.relax_on_mesh, cand.shape, inputs=[mesh_id, cand], outputs=[tmp], device=dev)
+            cand, tmp = tmp, cand
+    return cand
+
+
+def _shorten_on_sdf(be, cand, starts, ends, levels, refine: int, dev, frame, others):
+    """Shortening sweeps on the SDF head's surface at each level's point count (the (3N, m) result), and
+    ``others`` (2N, m) (the head's and the straight paths) projected onto that surface in place; the backend's
+    ``settle`` (Newton steps, ends pinned) and ``sweep`` (each inner point to its neighbours' projected midpoint)."""
+    n3 = cand.shape[0]
     scratch = {}
     for level, ml in enumerate(levels):
         if level:
-            finer = wp.empty((3 * n, ml), dtype=wp.vec3, device=dev)
+            finer = wp.empty((n3, ml), dtype=wp.vec3, device=dev)
             wp.launch(mlp.resample_paths, finer.shape, inputs=[cand], outputs=[finer], device=dev)
             cand = finer
         cand = be.settle(cand, starts, ends, PROJECT_STEPS, scratch, frame)
@@ -126,8 +223,71 @@ def _refined_paths(be, P, Q, res, refine: int, dev, frame):
     # a sweep takes one Newton step from the midpoint; at a crease the chord's midpoint lies deeper than
     # one step reaches, so the result gets a full projection
     cand = be.settle(cand, starts, ends, 2 * PROJECT_STEPS, scratch, frame)
-    rev = wp.array([0, 1, 0], dtype=wp.int32, device=dev)
-    wp.launch(mlp.pick_shortest, (n, m), inputs=[cand, 3, rev], outputs=[res], device=dev)
+    wp.copy(others, be.settle(others, starts[n3:], ends[n3:], 2 * PROJECT_STEPS, {}, frame))
+    return cand
+
+
+def surface_fit(model: Model, paths, device=None, precision: str = "auto"):
+    """How well polylines follow the surface: (N, m, 3) mesh coordinates -> (length, excess), each (N,) float32,
+    mesh units; the criterion by which ``path(..., refine=...)`` picks its paths, usable on any paths.
+
+    The surface is the mesh when the model has one, else the SDF head's zero level set. excess: the largest,
+    over the path's chords, of the chord midpoint's distance from the surface less the mean of its two ends'
+    distances (0 or less: the chords hug the surface; a chord through the solid or across a gap leaves it by
+    about half the gap). length: the length along the surface, each chord of length s counted as
+    2 sqrt((s / 2)^2 + max(excess_j, 0)^2) (the chord bent to pass its own excess off its midpoint), so that
+    cutting a crease or zigzagging across one does not look short. A path "follows the surface" in ``path``'s
+    sense when excess <= SURFACE_TOL * length / (m - 1). NaN points give NaN.
+    """
+    dev = resolve_device(device, like=paths)
+    x, kind, lead = _flat_points(paths, "paths", dev)
+    if len(lead) != 2 or lead[1] < 2:
+        raise ValueError(f"paths must have shape (N, m, 3) with m >= 2, got {lead + (3,)}")
+    out = Output(kind, dev)
+    n = lead[0]
+    if not n:
+        return out.result(out.empty(0)), out.result(out.empty(0))
+    st = query_state(model, dev)
+    mesh_id = warp_mesh(model.mesh, dev).id if model.mesh is not None else None  # mesh coordinates, as the paths
+    length, excess = _fit(backend_of(st, precision), x.reshape(lead), dev, st.user_frame, mesh_id)
+    return out.result(length), out.result(excess)
+
+
+def _fit(be, x, dev, frame, mesh_id, off=None):
+    """(length along the surface, excess) of paths x (N, m) (see ``surface_fit``): on the mesh ``mesh_id`` (in the
+    paths' coordinates) when given, else on the SDF head's surface (backend ``be``, points in ``frame``); ``off``:
+    the points' SDF values when known, else computed."""
+    n, m = x.shape
+    gap = wp.zeros((n, m), dtype=wp.float32, device=dev)
+    if mesh_id is not None:
+        off = wp.zeros((n, m), dtype=wp.float32, device=dev)
+        wp.launch(refine_kernels.gaps_on_mesh, x.shape, inputs=[mesh_id, x], outputs=[off, gap], device=dev)
+    else:
+        mids = wp.empty_like(x)
+        wp.launch(refine_kernels.midpoints, x.shape, inputs=[x], outputs=[mids], device=dev)
+        be.sdf(mids.reshape(-1), gap.reshape(-1), frame)
+        if off is None:
+            off = wp.empty((n, m), dtype=wp.float32, device=dev)
+            be.sdf(x.contiguous().reshape(-1), off.reshape(-1), frame)
+    length, excess = wp.empty(n, dtype=wp.float32, device=dev), wp.empty(n, dtype=wp.float32, device=dev)
+    wp.launch(refine_kernels.score_paths, n, inputs=[x, off, gap], outputs=[length, excess], device=dev)
+    return length, excess
+
+
+def _warn_left(left, P, Q, comps):
+    """A PathWarning for the pairs (of one component, p != q) whose every candidate path left the surface."""
+    ex = left.numpy()
+    if not np.any(ex > 0):
+        return
+    keep = np.any(P.numpy() != Q.numpy(), axis=1)
+    if comps is not None:
+        keep &= comps[0].numpy() == comps[1].numpy()
+    bad = (ex > 0) & keep
+    if bad.any():
+        warnings.warn(f"{int(bad.sum())} of {len(ex)} refined paths leave the surface: no candidate path of those "
+                      f"pairs followed it (chord midpoints up to {float(ex[bad].max()):.3g} mesh units farther from "
+                      f"the surface than their ends); they come back as the candidate that left it least",
+                      PathWarning, stacklevel=3)
 
 
 def _levels(m: int) -> list:
