@@ -21,7 +21,15 @@ def closest_point(mesh: wp.uint64, x: wp.vec3, max_dist: float):
 def snap_points(mesh: wp.uint64, xs: wp.array(dtype=wp.vec3), max_dist: float, points: wp.array(dtype=wp.vec3),
                 face: wp.array(dtype=wp.int32), bary: wp.array(dtype=wp.vec3)):
     i = wp.tid()
-    p, f, b = closest_point(mesh, xs[i], max_dist)
+    x = xs[i]
+    if not (wp.isfinite(x[0]) and wp.isfinite(x[1]) and wp.isfinite(x[2])):
+        # a NaN row of a path (across components, or a point refused with check=False) stays NaN, on no face
+        nan = wp.nan
+        points[i] = wp.vec3(nan, nan, nan)
+        face[i] = -1
+        bary[i] = wp.vec3(nan, nan, nan)
+        return
+    p, f, b = closest_point(mesh, x, max_dist)
     points[i] = p
     face[i] = f
     bary[i] = b

@@ -111,7 +111,7 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None 
                       device=dev)
     faces = None
     if n and project == "mesh":
-        snapped, faces, bary = snap_to_mesh(model, res, device=dev)
+        snapped, faces, bary = snap_to_mesh(model, res, device=dev, check=False)  # NaN rows stay NaN
         wp.copy(res, snapped)
     comps = pair_components(model, P, Q, dev, frame) if n else None
     if comps is not None:

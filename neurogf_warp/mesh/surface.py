@@ -69,7 +69,7 @@ def warp_mesh(mesh, device=None) -> wp.Mesh:
     return per_device[key]
 
 
-def _flat_points(x, name: str, dev):
+def _flat_points(x, name: str, dev, check: bool = True):
     """(N, 3) or (N, m, 3) points of any kind -> (wp.array of vec3 (K,), kind, leading shape)."""
     if isinstance(x, wp.array):
         if x.dtype == wp.vec3:
@@ -92,11 +92,11 @@ def _flat_points(x, name: str, dev):
         lead, flat = a.shape[:-1], a.reshape(-1, 3)
     if len(lead) > 2:
         raise ValueError(f"{name} must have shape (N, 3) or (N, m, 3), got {lead + (3,)}")
-    pts, kind = as_points(flat, name, dev)
+    pts, kind = as_points(flat, name, dev, check=check)
     return pts, kind, tuple(lead)
 
 
-def snap_to_mesh(mesh, points, device=None):
+def snap_to_mesh(mesh, points, device=None, check: bool = True):
     """Closest points on the mesh, with the face each lies on and its barycentric coordinates.
 
     Parameters
@@ -105,6 +105,8 @@ def snap_to_mesh(mesh, points, device=None):
     points : (N, 3) or (N, m, 3) float, mesh units (e.g. paths from ``neurogf_warp.path``); numpy, torch or
         wp.array
     device : Warp device (default: the points' device, else Warp's preferred one)
+    check : refuse non-finite points (True); with False a non-finite point gives a NaN point, face -1 and NaN
+        weights
 
     Returns
     -------
@@ -118,7 +120,7 @@ def snap_to_mesh(mesh, points, device=None):
     """
     m = as_mesh(mesh)
     dev = resolve_device(device, like=points)
-    pts, kind, lead = _flat_points(points, "points", dev)
+    pts, kind, lead = _flat_points(points, "points", dev, check)
     n = pts.shape[0]
     out = Output(kind, dev)
     res_p, res_f, res_b = out.empty(n, dtype=wp.vec3), out.empty(n, dtype=wp.int32), out.empty(n, dtype=wp.vec3)
