@@ -669,8 +669,12 @@ def _cmd_path(args) -> int:
 
     model = _load_model(args, needs_mesh=args.project == "mesh")
     project = args.project or ("mesh" if model.mesh is not None else "sdf")
-    raw = np.asarray(ngf.path(model, p, q, m=args.m, refine=args.refine, device=args.device))
-    paths = _put_on_surface(model, raw, project, args.device)
+    paths = np.asarray(ngf.path(model, p, q, m=args.m, refine=args.refine, device=args.device,
+                                project=None if project == "none" else project))
+    # the network's own points, for the note on how far they were from the surface (a second head evaluation,
+    # cheap; skipped after refinement, whose points are not the network's)
+    raw = None if project == "none" or args.refine else \
+        np.asarray(ngf.path(model, p, q, m=args.m, device=args.device, project=None))
     n, m = paths.shape[:2]
     rows = np.column_stack([np.repeat(np.arange(n), m), np.tile(np.arange(m), n), paths.reshape(-1, 3)])
     fmt = ["%d", "%d", "%.9g", "%.9g", "%.9g"]
@@ -688,40 +692,20 @@ def _cmd_path(args) -> int:
     return 0
 
 
-def _put_on_surface(model, raw, project: str, device):
-    """The path points ``raw`` (N, m, 3) as ``path(..., project=project)`` gives them (the same steps on the same
-    points), keeping ``raw`` to report how far off they were. NaN rows (pairs across components) stay NaN."""
-    import numpy as np
-
-    import neurogf_warp as ngf
-    from neurogf_warp.inference.paths import PROJECT_STEPS
-    from neurogf_warp.mesh.surface import snap_to_mesh
-
-    if project == "none":
-        return raw
-    ok = np.isfinite(raw).all(-1)
-    centre = np.asarray(model.center if model.in_mesh_frame else np.zeros(3), dtype=np.float32)  # inside the domain
-    flat = np.where(ok[..., None], raw, centre).reshape(-1, 3)
-    if project == "mesh":
-        out = np.asarray(snap_to_mesh(model, flat, device=device)[0])
-    else:
-        out = np.asarray(ngf.project(model, flat, steps=2 * PROJECT_STEPS, device=device))
-    out = out.reshape(raw.shape).astype(raw.dtype)
-    out[~ok] = np.nan
-    return out
-
-
 def _offset_note(model, raw, paths, project: str) -> str:
-    """How far the network's own path points were from where they were put (mesh units)."""
+    """How far the network's own path points ``raw`` (None after refinement) were from where they were put (mesh
+    units)."""
     import numpy as np
 
     if project == "none":
         return " (the network's points as they come, not projected onto the surface: --project mesh or sdf puts them on it)"
+    where = "the mesh" if project == "mesh" else "the network's SDF surface"
+    if raw is None:  # refined paths: their points are not the network's
+        return f", every point on {where}"
     ok = np.isfinite(raw).all(-1) & np.isfinite(paths).all(-1)
     if not ok.any():
         return ""
     off = np.linalg.norm((raw - paths)[ok], axis=-1)
-    where = "the mesh" if project == "mesh" else "the network's SDF surface"
     return (f", every point on {where} (the network's points were up to {off.max():.3g} mesh units off it, median "
             f"{np.median(off):.3g})")
 
