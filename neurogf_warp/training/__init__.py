@@ -17,6 +17,8 @@ from neurogf_warp.training.config import (
 )
 from neurogf_warp.training.loop import TrainingInterrupted
 from neurogf_warp.training.presets import PRESETS, choose_preset, preset
+from neurogf_warp.training.quality import ModelQualityWarning
 
 __all__ = ["train", "TrainConfig", "NetworkConfig", "ScheduleConfig", "BatchConfig", "RuntimeConfig",
-           "DatasetSettings", "STAGES", "PRESETS", "preset", "choose_preset", "TrainingInterrupted", "RunFiles"]
+           "DatasetSettings", "STAGES", "PRESETS", "preset", "choose_preset", "TrainingInterrupted", "RunFiles",
+           "ModelQualityWarning"]

@@ -263,7 +263,8 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
         say(progress, f"continuing the run in {files.folder}: stage {STAGES[stage_i]}, step {step}")
         if deadline is not None:  # re-plan the steps left from the budget left
             per = history.get("per_step") or calibrate(trainer, n=3)
-            budget = Budget(trainer.cfg, deadline, per)
+            cap = history["planned_steps"]["joint"] if "planned_steps" in history else None
+            budget = Budget(trainer.cfg, deadline, per, cap=cap)
             say(progress, f"{budget_seconds - spent_before:.0f} s of the {budget_seconds:.0f} s budget left")
     else:
         stage_i, step, elapsed = 0, 0, 0.0
@@ -280,10 +281,17 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
                     set_tf32(tf32)
             timings["calibrate_s"] = time.perf_counter() - t0
             left = deadline - time.perf_counter()
-            cfg = fit_budget(cfg, per, max(left, 0.0))
+            fitted = fit_budget(cfg, per, max(left, 0.0))
+            cap = None
+            if not cfg.runtime.fill_budget:  # the preset's own steps, the budget only a cap
+                cap = cfg.joint_steps
+                history["planned_steps"] = cfg.stage_steps()
+                if fitted.joint_steps >= cfg.joint_steps:
+                    fitted = cfg
+            cfg = fitted
             trainer.cfg = cfg
             trainer.steps = cfg.stage_steps()
-            budget = Budget(cfg, deadline, per)
+            budget = Budget(cfg, deadline, per, cap=cap)
             history["budget_warning"] = budget_verdict(cfg.joint_steps, max(left, 0.0) / budget_seconds,
                                                        len(ds.gd_src), cfg.data.n_sources, progress)
     history["heat_mre"] = heat_mre
@@ -309,6 +317,12 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
         say(progress, "torch threads (timed fastest on the first steps): "
             + ", ".join(f"{k} {v}" for k, v in chooser.chosen.items()))
     quality = final_verdict(trainer.validate(), heat_mre, progress)
+    if "planned_steps" in history:  # fill_budget=False: did the budget cut the preset's steps?
+        planned = history["planned_steps"]
+        quality["budget_bound"] = any(trainer.steps[s] < planned[s] for s in STAGES)
+        if quality["budget_bound"]:
+            say(progress, f"note: the budget bound: {sum(trainer.steps.values()):,} of the preset's "
+                          f"{sum(planned.values()):,} steps ran (the machine was slower than the budget allows)")
     history["quality"] = quality
     info = dict(trainer.cfg.to_dict(), steps=trainer.steps, train_seconds=round(elapsed, 2), **quality,
                 budget_warning=history.get("budget_warning"))

@@ -140,12 +140,13 @@ class Budget:
 
     deadline : ``time.perf_counter()`` value by which the last step should be done
     estimate : calibrated seconds per step of each stage (measured times replace them as the run goes)
+    cap : the most joint steps any plan may hold (``fill_budget=False``: the preset's own), or None
     """
 
     MIN_MEASURED = 5  # steps of a stage before its own measured time is trusted
 
-    def __init__(self, cfg: TrainConfig, deadline: float, estimate: dict):
-        self.cfg, self.deadline = cfg, deadline
+    def __init__(self, cfg: TrainConfig, deadline: float, estimate: dict, cap: int | None = None):
+        self.cfg, self.deadline, self.cap = cfg, deadline, cap
         self.estimate = dict(estimate)
         self.spent = {s: 0.0 for s in STAGES}  # loop seconds and steps per stage
         self.done = {s: 0 for s in STAGES}
@@ -179,9 +180,11 @@ class Budget:
 
         def plan_for(x):
             if stage_i <= STAGES.index("joint"):
+                x = x if self.cap is None else min(x, self.cap)
                 plan = dict(steps, **{s: n for s, n in self.cfg.stage_steps(joint=int(x)).items()
                                       if STAGES.index(s) >= stage_i})
             else:
+                x = x if self.cap is None else min(x, 1.0)  # capped: never more than planned
                 plan = dict(steps)
                 for s in STAGES[stage_i:]:
                     plan[s] = max(1 if steps[s] > 0 else 0, int(round(x * steps[s])))
@@ -191,11 +194,11 @@ class Budget:
         if stage_i <= STAGES.index("joint"):
             lo = max(step, 1) if cur == "joint" else 1
             hi = max(lo, 1)
-            while cost(plan_for(hi)) <= left and hi < 10**9:
+            while cost(plan_for(hi)) <= left and hi < (10**9 if self.cap is None else self.cap):
                 hi *= 2
         else:
             lo, hi = 0.0, 1.0
-            while cost(plan_for(hi)) <= left and hi < 1e6:
+            while cost(plan_for(hi)) <= left and hi < (1e6 if self.cap is None else 1.0):
                 hi *= 2
         if cost(plan_for(lo)) > left:  # the floor, and of the later stages' planned steps as many as still fit
             plan = self.floor(steps, stage_i, step)
