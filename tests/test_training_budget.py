@@ -265,7 +265,7 @@ def test_a_capped_plan_never_grows_past_the_presets_steps():
     assert slow["joint"] < 200  # and a late plan still shrinks
 
 
-@pytest.mark.parametrize("epochs,budget,bound", [(1, 60, False), (100, 8, True)])
+@pytest.mark.parametrize("epochs,budget,bound", [(1, 120, False), (100, 8, True)])
 def test_fill_budget_false_runs_the_presets_steps_capped(tmp_path, ellipsoid, tiny_dataset, capsys, epochs, budget,
                                                          bound):
     cfg = SMALL.set(epochs=epochs, iters_per_epoch=100, fill_budget=False)
@@ -278,4 +278,5 @@ def test_fill_budget_false_runs_the_presets_steps_capped(tmp_path, ellipsoid, ti
     assert model.config["budget_bound"] is bound
     assert (model.config["steps"] == cfg.stage_steps()) is not bound
     assert ("the budget bound" in capsys.readouterr().err) is bound
-    assert took <= budget + max(0.02 * budget, 1.0) and (bound or took < budget / 2), took
+    # unbound: the preset's steps, not a budget filled (which ends at about 0.95 x budget); 34 s measured here
+    assert took <= budget + max(0.02 * budget, 1.0) and (bound or took < 0.8 * budget), took
