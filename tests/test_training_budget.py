@@ -205,6 +205,15 @@ def test_a_finished_run_answers_at_once_without_reading_the_mesh(tmp_path, monke
         took = time.perf_counter() - t
     assert took < 2.0, took
     assert all(torch.equal(a, b) for a, b in zip(first.net.state_dict().values(), again.net.state_dict().values()))
+    # what the command line can ask before it imports torch: the same answer, and the run's verdict (a TrainConfig
+    # is keyed by its dict: the subprocess passes an object with the same to_dict)
+    check = (f"import sys\nfrom neurogf_warp.training.run_folder import already_trained\n"
+             f"class C:\n    def to_dict(self):\n        return {cfg.to_dict()!r}\n"
+             f"q = already_trained({mesh!r}, {str(out)!r}, config=C(), device='cpu')\n"
+             "print(q is not None and q.get('worse_than_heat') is not None, 'torch' in sys.modules, "
+             "'warp' in sys.modules)\n")
+    res = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True)
+    assert res.stdout.split() == ["True", "False", "False"], (res.stdout, res.stderr)
     os.utime(mesh, ns=(time.time_ns(), time.time_ns() + 10**9))  # the mesh file changed: the full check runs
     with pytest.raises(pytest.fail.Exception, match="read again"):
         train(mesh, out, config=cfg, device="cpu", progress=False)

@@ -28,6 +28,7 @@ from neurogf_warp.training.config import STAGES, TrainConfig
 from neurogf_warp.training.data import TrainingData, make_sdf_pool, obtain_dataset
 from neurogf_warp.training.loop import Runner
 from neurogf_warp.training.presets import choose_preset, preset
+from neurogf_warp.training.run_folder import call_key, finished_log
 from neurogf_warp.training.quality import ModelQualityWarning, budget_verdict, final_verdict, heat_validation_mre
 
 if TYPE_CHECKING:
@@ -119,7 +120,7 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
     created = not os.path.isdir(files.folder)
     lock = files.lock()
     try:
-        key = None if force else _call_key(mesh, config, device, dataset, budget_seconds, settings)
+        key = None if force else call_key(mesh, config, device, dataset, budget_seconds, settings)
         model = _quick_finished(files, key, progress)
         if model is not None:
             return model
@@ -163,42 +164,10 @@ def _train_locked(mesh, files, config, device, dataset, resume, force, budget_se
         torch.set_num_threads(threads)
 
 
-def _call_key(mesh, config, device, dataset, budget_seconds, settings) -> dict | None:
-    """What identifies a call cheaply, without loading torch or the mesh: the mesh file's path, size and time, and
-    the arguments as given; None when an argument is an object (a repeat must then take the full path)."""
-    from neurogf_warp.training.config import TrainConfig
-
-    if not isinstance(mesh, (str, os.PathLike)) or not os.path.isfile(mesh):
-        return None
-    if dataset is not None and not isinstance(dataset, (str, os.PathLike)):
-        return None
-    if config is not None and not isinstance(config, (str, TrainConfig)):
-        return None
-    if device is not None and not isinstance(device, str):
-        return None
-    st = os.stat(mesh)
-    key = {"mesh": [os.path.abspath(mesh), st.st_size, st.st_mtime_ns],
-           "config": config.to_dict() if isinstance(config, TrainConfig) else config, "device": device,
-           "dataset": None if dataset is None else os.path.abspath(dataset), "budget_seconds": budget_seconds,
-           "settings": settings}
-    try:
-        return json.loads(json.dumps(key))
-    except (TypeError, ValueError):  # a setting that is not plain data
-        return None
-
-
 def _quick_finished(files: RunFiles, key: dict | None, progress: bool):
     """The finished model when the run folder's log says that this same call already finished it (the model file
     and the checkpoint still there), else None; costs a JSON read and the model file's load."""
-    if key is None or not (os.path.isfile(files.model) and os.path.isfile(files.checkpoint)
-                           and os.path.isfile(files.log)):
-        return None
-    try:
-        with open(files.log) as f:
-            log = json.load(f)
-    except (OSError, ValueError):
-        return None
-    if log.get("call") != key or not log.get("finished"):
+    if finished_log(files, key) is None:
         return None
     from neurogf_warp.model.files import load
 
