@@ -296,6 +296,13 @@ def test_threads_0_keeps_the_count_timed_fastest_on_the_first_steps(monkeypatch,
             ch.step_done(1e-3 if counts and counts[-1] == fast else 3e-3)
     assert ch.chosen == {"joint": fast, "refine_dist": fast}
     assert counts == [1, 2, fast, 1, 2, fast, fast]  # both timed in each timed stage; later stages keep it
+    # other jobs come and go: after retry_s seconds of the stage the trial runs again
+    counts.clear()
+    again = ThreadChooser(warm=1, timed=2, retry_s=0.05)
+    again.begin("joint", 1000)
+    for _ in range(6 + 5 + 6):
+        again.step_done(0.01 if counts and counts[-1] == fast else 0.03)
+    assert counts == [1, 2, fast, 1, 2, fast]
 
 
 def test_threads_0_run_records_the_counts_and_restores_torchs(tmp_path, ellipsoid, tiny_dataset):
