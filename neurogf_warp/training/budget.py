@@ -84,10 +84,9 @@ class ThreadChooser:
             self.chosen[stage] = self.candidates[0]
         if self._timed_stage is not None:
             self._trial()
-        else:
+        else:  # other stages: the count chosen last, else one thread (never a count left over from a cut trial)
             self._stage = None
-            if self.chosen:  # other stages: the count chosen last
-                self._set(list(self.chosen.values())[-1])
+            self._set(list(self.chosen.values())[-1] if self.chosen else self.candidates[0])
 
     def _trial(self) -> None:
         self._stage, self._i, self._since = self._timed_stage, 0, 0.0
