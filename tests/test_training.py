@@ -295,7 +295,22 @@ def test_threads_0_keeps_the_count_timed_fastest_on_the_first_steps(monkeypatch,
         for _ in range(20):
             ch.step_done(1e-3 if counts and counts[-1] == fast else 3e-3)
     assert ch.chosen == {"joint": fast, "refine_dist": fast}
-    assert counts == [1, 2, fast, 1, 2, fast, fast]  # both timed in each timed stage; later stages keep it
+    assert counts == [1, 1, 2, fast, 1, 2, fast, fast]  # one thread first; both timed in each timed stage
+    # other jobs come and go: after retry_s seconds of the stage the trial runs again
+    counts.clear()
+    again = ThreadChooser(warm=1, timed=2, retry_s=0.05)
+    again.begin("joint", 1000)
+    for _ in range(6 + 5 + 6):
+        again.step_done(0.01 if counts and counts[-1] == fast else 0.03)
+    assert counts == [1, 2, fast, 1, 2, fast]
+    # a trial cut short by the end of its stage (the budget) leaves no untried count behind: one thread
+    counts.clear()
+    cut = ThreadChooser(warm=1, timed=2)
+    cut.begin("joint", 1000)
+    for _ in range(4):  # into the second count's turn
+        cut.step_done(0.01)
+    cut.begin("refine_dist", 10)  # too short to time
+    assert counts == [1, 2, 1] and cut.chosen == {}
 
 
 def test_threads_0_run_records_the_counts_and_restores_torchs(tmp_path, ellipsoid, tiny_dataset):

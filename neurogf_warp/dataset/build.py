@@ -396,10 +396,10 @@ class _Targets:
         self.local = order[np.isfinite(d[order]) & (order != s)][:nball]
 
 
-# Seconds a path source costs per second of a distance source (path solve with its finer delta, then tracing and
-# resampling): 1.15 on the 642-vertex ellipsoid with `cpu_small` (``timings``: paths_s per path source against
-# distances_s per source); the time limit reserves 1.6, headroom for meshes where tracing weighs more
-PATH_COST = 1.6
+# Under a time limit the paths get its last PATH_SHARE: the distance sources stop when their next batch would end
+# past the rest, and the path sources stop at the limit. (Estimating the paths' cost from the distance batches was
+# tried first: on a loaded 2-core machine the first batch's start-up made it stop spot's distances after 8 sources)
+PATH_SHARE = 0.25
 
 
 class _Clock:
@@ -442,7 +442,7 @@ def _sample(m: Mesh, st: DatasetSettings, rng) -> _Plan:
 
 def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _Clock, bar) -> tuple:
     """Phase 2: the test sources' full rows, then distance sources in order, as many as the time limit allows
-    while keeping room for the paths still to come (at least one batch).
+    while keeping its last ``PATH_SHARE`` for the paths (at least one batch).
 
     Returns (kept source ids, {"global"|"local1"|"local2": [(n, 7) rows per kept source]}, sources solved,
     (T, V) test distances, worker batches).
@@ -454,18 +454,24 @@ def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _C
     batches = tests + sources
     kept, rows = [], {"global": [], "local1": [], "local2": []}
     test_dist = np.zeros((len(plan.test_src), len(m.vertices)), np.float32)
-    solved, t0 = [0], time.perf_counter()
+    solved, marks, started = [0], [], []  # marks: (time, sources back) per batch back; started: batch start times
     with DistanceRows(solver, st.workers) as rows_of:
         def more(i):  # asked before batch i > 0 starts: tests and one distance batch always, then by the clock
+            now = time.perf_counter()
             if i <= len(tests) or clock.limit is None:
+                started.append(now)
                 return True
-            done = solved[0] + len(plan.test_src)
-            # wall seconds a source takes on one process (batches run side by side on ``workers`` of them)
-            latency = (time.perf_counter() - t0) / max(done, 1) * rows_of.workers
-            paths_to_come = min(plan.n_path_sources, solved[0] + step) * latency * PATH_COST
-            return clock.left() >= step * latency + paths_to_come
+            if len(marks) >= 2:  # wall seconds per source since the first batch, which carries the solver's set-up
+                per = (now - marks[0][0]) / max(marks[-1][1] - marks[0][1], 1)
+            else:  # asked (by a worker's feeder) before the second batch came back: since that batch started
+                per = (now - started[-1]) / step
+            if clock.left() - PATH_SHARE * clock.limit < step * per:
+                return False
+            started.append(now)
+            return True
 
         for b, D in rows_of.rows(batches, more):
+            marks.append((time.perf_counter(), (marks[-1][1] if marks else 0) + len(D)))
             if b < len(tests):
                 test_dist[b * step: b * step + len(D)] = D
                 bar.update(len(D))
@@ -555,8 +561,8 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
         processes, one per core by default; the result does not depend on how many: ``ground_truth/workers.py``)
     progress : a progress bar on stderr
     time_limit_s : seconds (from the start of the call) that the whole build may take: distance sources stop
-        between solver batches when the next batch and the paths still to come would not fit (at least one batch
-        is solved), and the path sources stop between batches (at least one). The dataset then has fewer than
+        between solver batches when the next batch would end in the last ``PATH_SHARE`` of it (at least one batch
+        is solved), and the path sources stop between batches at the limit (at least one). The dataset then has fewer than
         ``n_sources`` distance sources or fewer path sources, and its meta says ``"complete": False``. The test
         sources are always solved (first). None (default) solves them all.
 

@@ -28,6 +28,7 @@ from neurogf_warp.training.config import STAGES, TrainConfig
 from neurogf_warp.training.data import TrainingData, make_sdf_pool, obtain_dataset
 from neurogf_warp.training.loop import Runner
 from neurogf_warp.training.presets import choose_preset, preset
+from neurogf_warp.training.run_folder import call_key, finished_log
 from neurogf_warp.training.quality import ModelQualityWarning, budget_verdict, final_verdict, heat_validation_mre
 
 if TYPE_CHECKING:
@@ -119,7 +120,7 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
     created = not os.path.isdir(files.folder)
     lock = files.lock()
     try:
-        key = None if force else _call_key(mesh, config, device, dataset, budget_seconds, settings)
+        key = None if force else call_key(mesh, config, device, dataset, budget_seconds, settings)
         model = _quick_finished(files, key, progress)
         if model is not None:
             return model
@@ -163,42 +164,10 @@ def _train_locked(mesh, files, config, device, dataset, resume, force, budget_se
         torch.set_num_threads(threads)
 
 
-def _call_key(mesh, config, device, dataset, budget_seconds, settings) -> dict | None:
-    """What identifies a call cheaply, without loading torch or the mesh: the mesh file's path, size and time, and
-    the arguments as given; None when an argument is an object (a repeat must then take the full path)."""
-    from neurogf_warp.training.config import TrainConfig
-
-    if not isinstance(mesh, (str, os.PathLike)) or not os.path.isfile(mesh):
-        return None
-    if dataset is not None and not isinstance(dataset, (str, os.PathLike)):
-        return None
-    if config is not None and not isinstance(config, (str, TrainConfig)):
-        return None
-    if device is not None and not isinstance(device, str):
-        return None
-    st = os.stat(mesh)
-    key = {"mesh": [os.path.abspath(mesh), st.st_size, st.st_mtime_ns],
-           "config": config.to_dict() if isinstance(config, TrainConfig) else config, "device": device,
-           "dataset": None if dataset is None else os.path.abspath(dataset), "budget_seconds": budget_seconds,
-           "settings": settings}
-    try:
-        return json.loads(json.dumps(key))
-    except (TypeError, ValueError):  # a setting that is not plain data
-        return None
-
-
 def _quick_finished(files: RunFiles, key: dict | None, progress: bool):
     """The finished model when the run folder's log says that this same call already finished it (the model file
     and the checkpoint still there), else None; costs a JSON read and the model file's load."""
-    if key is None or not (os.path.isfile(files.model) and os.path.isfile(files.checkpoint)
-                           and os.path.isfile(files.log)):
-        return None
-    try:
-        with open(files.log) as f:
-            log = json.load(f)
-    except (OSError, ValueError):
-        return None
-    if log.get("call") != key or not log.get("finished"):
+    if finished_log(files, key) is None:
         return None
     from neurogf_warp.model.files import load
 
@@ -263,7 +232,8 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
         say(progress, f"continuing the run in {files.folder}: stage {STAGES[stage_i]}, step {step}")
         if deadline is not None:  # re-plan the steps left from the budget left
             per = history.get("per_step") or calibrate(trainer, n=3)
-            budget = Budget(trainer.cfg, deadline, per)
+            cap = history["planned_steps"]["joint"] if "planned_steps" in history else None
+            budget = Budget(trainer.cfg, deadline, per, cap=cap)
             say(progress, f"{budget_seconds - spent_before:.0f} s of the {budget_seconds:.0f} s budget left")
     else:
         stage_i, step, elapsed = 0, 0, 0.0
@@ -280,10 +250,17 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
                     set_tf32(tf32)
             timings["calibrate_s"] = time.perf_counter() - t0
             left = deadline - time.perf_counter()
-            cfg = fit_budget(cfg, per, max(left, 0.0))
+            fitted = fit_budget(cfg, per, max(left, 0.0))
+            cap = None
+            if not cfg.runtime.fill_budget:  # the preset's own steps, the budget only a cap
+                cap = cfg.joint_steps
+                history["planned_steps"] = cfg.stage_steps()
+                if fitted.joint_steps >= cfg.joint_steps:
+                    fitted = cfg
+            cfg = fitted
             trainer.cfg = cfg
             trainer.steps = cfg.stage_steps()
-            budget = Budget(cfg, deadline, per)
+            budget = Budget(cfg, deadline, per, cap=cap)
             history["budget_warning"] = budget_verdict(cfg.joint_steps, max(left, 0.0) / budget_seconds,
                                                        len(ds.gd_src), cfg.data.n_sources, progress)
     history["heat_mre"] = heat_mre
@@ -309,6 +286,12 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
         say(progress, "torch threads (timed fastest on the first steps): "
             + ", ".join(f"{k} {v}" for k, v in chooser.chosen.items()))
     quality = final_verdict(trainer.validate(), heat_mre, progress)
+    if "planned_steps" in history:  # fill_budget=False: did the budget cut the preset's steps?
+        planned = history["planned_steps"]
+        quality["budget_bound"] = any(trainer.steps[s] < planned[s] for s in STAGES)
+        if quality["budget_bound"]:
+            say(progress, f"note: the budget bound: {sum(trainer.steps.values()):,} of the preset's "
+                          f"{sum(planned.values()):,} steps ran (the machine was slower than the budget allows)")
     history["quality"] = quality
     info = dict(trainer.cfg.to_dict(), steps=trainer.steps, train_seconds=round(elapsed, 2), **quality,
                 budget_warning=history.get("budget_warning"))

@@ -56,48 +56,58 @@ class ThreadChooser:
     """Chooses the torch thread count of a CPU run on the run's own steps (``threads=0``), at no extra cost.
 
     At the start of each stage in ``STAGES_TIMED`` every candidate count (1, min(4, n) and torch's own n) runs
-    ``warm`` + ``timed`` real training steps, and the count whose timed steps were fastest is kept for the rest of
-    the stage. On a busy machine several threads can be 3-10x slower than one (OpenMP threads wait on each other);
-    on an idle one two threads were 1.6x faster (benchmarks/RESULTS.md). Timing the candidates on extra steps
-    before the run took 14-40 s of a 20 s budget on this 2-core machine; here a step is never wasted.
+    ``warm`` + ``timed`` real training steps, and the count whose timed steps have the lowest median is kept; every
+    ``retry_s`` seconds of the stage the trial runs again, since other jobs come and go. On a busy machine several
+    threads can be 3-10x slower than one (OpenMP threads wait on each other); on an idle one two threads were 1.6x
+    faster (benchmarks/RESULTS.md). Timing the candidates on extra steps before the run took 14-40 s of a 20 s budget
+    on this 2-core machine; here a step is never wasted.
     """
 
     STAGES_TIMED = ("joint", "refine_dist")  # the stages whose steps fill a CPU run (1 and 10 per joint step)
     MIN_STEPS = 100  # shorter stages stay at the count in use (one thread at first)
 
-    def __init__(self, warm: int = 1, timed: int = 4):
+    def __init__(self, warm: int = 1, timed: int = 5, retry_s: float = 30.0):
         import torch
 
         n = torch.get_num_threads()
         self.candidates = sorted({1, min(4, n), n})
-        self.warm, self.timed = warm, timed
-        self.chosen = {}  # stage -> count
-        self._stage, self._i, self._times = None, 0, {}
+        self.warm, self.timed, self.retry_s = warm, timed, retry_s
+        self.chosen = {}  # stage -> count (the latest choice)
+        self._stage, self._timed_stage, self._i, self._times, self._since = None, None, 0, {}, 0.0
 
     def begin(self, stage: str, planned: int | None = None) -> None:
         """A stage starts (``planned`` steps): time the candidates on its first steps if it is one of
         ``STAGES_TIMED`` and long enough (``MIN_STEPS``; in a short stage the trial would be most of it)."""
         long_enough = planned is None or planned >= self.MIN_STEPS
-        self._stage = stage if stage in self.STAGES_TIMED and len(self.candidates) > 1 and long_enough else None
-        self._i, self._times = 0, {c: 0.0 for c in self.candidates}
+        self._timed_stage = stage if stage in self.STAGES_TIMED and len(self.candidates) > 1 and long_enough else None
         if stage in self.STAGES_TIMED and len(self.candidates) == 1:
             self.chosen[stage] = self.candidates[0]
-        if self._stage is not None:
-            self._set(self.candidates[0])
-        elif self.chosen:  # other stages: the count chosen last
-            self._set(list(self.chosen.values())[-1])
+        if self._timed_stage is not None:
+            self._trial()
+        else:  # other stages: the count chosen last, else one thread (never a count left over from a cut trial)
+            self._stage = None
+            self._set(list(self.chosen.values())[-1] if self.chosen else self.candidates[0])
+
+    def _trial(self) -> None:
+        self._stage, self._i, self._since = self._timed_stage, 0, 0.0
+        self._times = {c: [] for c in self.candidates}
+        self._set(self.candidates[0])
 
     def step_done(self, seconds: float) -> None:
         """After a step of the current stage that took ``seconds``."""
         if self._stage is None:
+            if self._timed_stage is not None:
+                self._since += seconds
+                if self._since >= self.retry_s:
+                    self._trial()
             return
         per = self.warm + self.timed
         c = self.candidates[self._i // per]
         if self._i % per >= self.warm:
-            self._times[c] += seconds
+            self._times[c].append(seconds)
         self._i += 1
         if self._i == per * len(self.candidates):
-            best = min(self.candidates, key=lambda k: self._times[k])
+            best = min(self.candidates, key=lambda k: sorted(self._times[k])[len(self._times[k]) // 2])
             self.chosen[self._stage] = best
             self._set(best)
             self._stage = None
@@ -140,12 +150,13 @@ class Budget:
 
     deadline : ``time.perf_counter()`` value by which the last step should be done
     estimate : calibrated seconds per step of each stage (measured times replace them as the run goes)
+    cap : the most joint steps any plan may hold (``fill_budget=False``: the preset's own), or None
     """
 
     MIN_MEASURED = 5  # steps of a stage before its own measured time is trusted
 
-    def __init__(self, cfg: TrainConfig, deadline: float, estimate: dict):
-        self.cfg, self.deadline = cfg, deadline
+    def __init__(self, cfg: TrainConfig, deadline: float, estimate: dict, cap: int | None = None):
+        self.cfg, self.deadline, self.cap = cfg, deadline, cap
         self.estimate = dict(estimate)
         self.spent = {s: 0.0 for s in STAGES}  # loop seconds and steps per stage
         self.done = {s: 0 for s in STAGES}
@@ -179,9 +190,11 @@ class Budget:
 
         def plan_for(x):
             if stage_i <= STAGES.index("joint"):
+                x = x if self.cap is None else min(x, self.cap)
                 plan = dict(steps, **{s: n for s, n in self.cfg.stage_steps(joint=int(x)).items()
                                       if STAGES.index(s) >= stage_i})
             else:
+                x = x if self.cap is None else min(x, 1.0)  # capped: never more than planned
                 plan = dict(steps)
                 for s in STAGES[stage_i:]:
                     plan[s] = max(1 if steps[s] > 0 else 0, int(round(x * steps[s])))
@@ -191,11 +204,11 @@ class Budget:
         if stage_i <= STAGES.index("joint"):
             lo = max(step, 1) if cur == "joint" else 1
             hi = max(lo, 1)
-            while cost(plan_for(hi)) <= left and hi < 10**9:
+            while cost(plan_for(hi)) <= left and hi < (10**9 if self.cap is None else self.cap):
                 hi *= 2
         else:
             lo, hi = 0.0, 1.0
-            while cost(plan_for(hi)) <= left and hi < 1e6:
+            while cost(plan_for(hi)) <= left and hi < (1e6 if self.cap is None else 1.0):
                 hi *= 2
         if cost(plan_for(lo)) > left:  # the floor, and of the later stages' planned steps as many as still fit
             plan = self.floor(steps, stage_i, step)

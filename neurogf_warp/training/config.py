@@ -141,6 +141,10 @@ class RuntimeConfig:
     val_every: int = 500       # joint / refine_dist steps between validation MREs (0: at stage ends only)
     log_every: int = 50        # steps between logged loss rows
     ckpt_every_s: float = 120.0  # seconds between checkpoints (also written at stage ends and on Ctrl-C)
+    # with a budget: True fits the step counts to fill it; False runs the preset's own step counts and uses the
+    # budget only as a cap (the model then depends less on the machine's load; the log and the model's metadata
+    # say ``budget_bound`` when the cap cut steps)
+    fill_budget: bool = True
     # torch CPU threads during the run (None: torch's own choice; 0: whichever of 1, 4 and torch's own count
     # runs this run's steps fastest, timed at its start: on a busy machine one thread can beat several)
     threads: int | None = None

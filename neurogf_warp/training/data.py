@@ -60,7 +60,7 @@ def obtain_dataset(mesh: Mesh, dataset, cache: str | None, settings, seed: int, 
 
     dataset : a Dataset, a dataset file, or None: the ``cache`` file when it was built for this mesh with these
         ``settings`` and ``seed``, else a fresh build with them (written to ``cache``).
-    time_limit_s : a fresh build stops adding distance sources after this many seconds (``build_dataset``)
+    time_limit_s : seconds a fresh build may take in all (``build_dataset``: fewer sources and paths then)
     partial_ok : reuse a cached dataset that a time limit cut short (a run being continued trains on the data it
         started with); otherwise such a cache is rebuilt, since this call may have more time for it
     """

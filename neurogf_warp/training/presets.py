@@ -34,8 +34,8 @@ PRESETS = {
     # refinement, most of such a run, at lr 5e-3 (chosen on the bunny, benchmarks/RESULTS.md); it moves the shared
     # lifting features further, so the SDF head gets 10x the refinement steps to follow them (2 ms each)
     "cpu_large": {},  # filled in below from "cpu"
-    # a smoke run: 2 x 100 joint steps (the defaults' 100 x 200 would be 52,000 steps, minutes per thousand here)
-    "cpu_small": dict(_SMALL_BATCHES, D=64, val_every=100, log_every=20, threads=1, epochs=2, iters_per_epoch=100,
+    # a smoke run: 100 joint steps, 265 in all (the defaults' 100 x 200 joint steps made 52,000 in all)
+    "cpu_small": dict(_SMALL_BATCHES, D=64, val_every=100, log_every=20, threads=1, epochs=1, iters_per_epoch=100,
                       n_sources=64, n_global=256,
                       n_local1=8, n_local2=32, n_path_sources=16, n_path_global=16, n_path_local=16, n_test=2,
                       n_surface=30000, n_spread=2000),
