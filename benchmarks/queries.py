@@ -592,8 +592,11 @@ def run(a) -> dict:
 
         with torch.no_grad():
             ref_path = path_build(net64, torch.float64)(Pn, Qn).cpu().numpy()
-        v7 = {"warp path": lambda: ngf.path(model, Pt, Qt, m=m, device=device),
-              "warp path, check=False": lambda: ngf.path(model, Pt, Qt, m=m, device=device, check=False)}
+        # the path head's own points (project=None), what the PyTorch variants compute (the default also snaps
+        # every point onto the mesh: RESULTS.md, issue 21 section)
+        v7 = {"warp path": lambda: ngf.path(model, Pt, Qt, m=m, device=device, project=None),
+              "warp path, check=False": lambda: ngf.path(model, Pt, Qt, m=m, device=device, check=False,
+                                                        project=None)}
         v7.update(torch_forms.variants("path", path_build, {"p": Pn, "q": Qn}))
         add(f"path {N} pairs x {m} points", v7, ref_path, 2 * (M["per_path"] + m * M["point"]) * N, (24 + 12 * m) * N)
 

@@ -27,7 +27,7 @@ _EXPORTS = {
                                               "embed", "warmup", "warp_weights", "bind", "unbind")},
     "geodesic_distances": "ground_truth.geodesics", "geodesic_paths": "ground_truth.geodesics",
     **{name: "dataset.build" for name in ("Dataset", "DatasetSettings", "build_dataset", "load_dataset", "sdf_truth")},
-    "train": "training", "TrainConfig": "training", "preset": "training", "TrainingInterrupted": "training",
+    "train": "training", "ModelQualityWarning": "training", "TrainConfig": "training", "preset": "training", "TrainingInterrupted": "training",
     "evaluate": "evaluation.evaluate",
     "render": "pictures.render", "write_ply": "pictures.render",
 }
@@ -93,4 +93,4 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time the names load lazi
     from neurogf_warp.model.files import load_querier, save
     from neurogf_warp.model.model import Model
     from neurogf_warp.pictures.render import render, write_ply
-    from neurogf_warp.training import TrainConfig, TrainingInterrupted, preset, train
+    from neurogf_warp.training import ModelQualityWarning, TrainConfig, TrainingInterrupted, preset, train

@@ -527,15 +527,41 @@ def _cmd_train(args) -> int:
         changes["compile"] = False
     if args.dataset is not None and not os.path.isfile(args.dataset):
         raise InputError(f"--dataset {args.dataset}: no such file")
+    from neurogf_warp.training.run_folder import already_trained
+
+    config = "paper" if args.paper else args.preset
+    done = None if args.force or args.resume else already_trained(
+        args.mesh, args.output, config=config, device=args.device, dataset=args.dataset,
+        budget_seconds=args.budget_seconds, **changes)
+    if done is not None:  # answered from the run's log, before torch is imported
+        _say(args, f"{args.output} is already trained (--force trains again)")
+        print(_quality_line(done), file=sys.stderr)
+        return 0
     import neurogf_warp as ngf
 
     try:
-        ngf.train(args.mesh, args.output, config="paper" if args.paper else args.preset, device=args.device,
-                  dataset=args.dataset, resume=args.resume, force=args.force, budget_seconds=args.budget_seconds,
-                  progress=not args.quiet, **changes)
+        model = ngf.train(args.mesh, args.output, config=config, device=args.device, dataset=args.dataset,
+                          resume=args.resume, force=args.force, budget_seconds=args.budget_seconds,
+                          progress=not args.quiet, **changes)
     except ValueError as e:
         raise InputError(_in_cli_terms(str(e))) from None
+    print(_quality_line(model.config), file=sys.stderr)  # also with -q: the one line that says how good it is
     return 0
+
+
+def _quality_line(q: dict) -> str:
+    """The final accuracy line of ``train``: validation MRE against the heat method on the same held-out pairs."""
+    v, h = q.get("validation_mre"), q.get("heat_mre")
+    if v is None:
+        return "accuracy: not measured (a run that predates validation)"
+    line = f"accuracy: validation MRE {100 * v:.3f}% on held-out sources"
+    if h is not None:
+        line += f" (heat method {100 * h:.3f}% on the same pairs)"
+        if q.get("worse_than_heat"):
+            line += ": WORSE than the heat method, train longer (--budget-seconds) or use the heat method"
+    else:
+        line += " (heat method not compared: pip install potpourri3d)"
+    return line
 
 
 # The training stage's messages name its Python arguments; on the command line they are flags.
