@@ -12,8 +12,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from neurogf_warp.kernels.generalizable import kernels
+from neurogf_warp.common.warp_setup import init_warp
 from neurogf_warp.generalizable.network import GenNeuroGF, folded_layers
+from neurogf_warp.kernels.generalizable import kernels
+
+init_warp()  # quietly: library calls print nothing unless asked (NEUROGF_WARP_VERBOSE=1)
 
 
 def default_mode(device) -> str:
