@@ -12,8 +12,9 @@ torch and Warp load with the first function that needs them.
 """
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
+
+from neurogf_warp.common.lazy import lazy_exports
 
 __version__ = "0.1.0"
 
@@ -57,17 +58,7 @@ def load(path, mesh=None, **kwargs):
     return load_model(path, mesh=mesh, **kwargs)
 
 
-def __getattr__(name: str):
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'neurogf_warp' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f".{module}", __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_EXPORTS))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
 
 
 if TYPE_CHECKING:  # for type checkers and IDEs; at run time the names load lazily above

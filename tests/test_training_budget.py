@@ -147,7 +147,7 @@ def test_budget_verdict_names_each_reason():
 
 # ---- never silently bad ----------------------------------------------------------------------------------------
 def test_a_model_worse_than_the_heat_method_says_so_everywhere(tmp_path, ellipsoid, tiny_dataset):
-    pytest.importorskip("potpourri3d")
+    pytest.importorskip("potpourri3d")  # the optional [heat] extra; [test] installs it (CI)
     from neurogf_warp.cli.main import model_summary
     from neurogf_warp.model.files import load
 
@@ -166,7 +166,7 @@ def test_a_model_worse_than_the_heat_method_says_so_everywhere(tmp_path, ellipso
 
 
 def test_a_model_better_than_the_heat_method_gives_no_warning(tmp_path):
-    pytest.importorskip("potpourri3d")
+    pytest.importorskip("potpourri3d")  # the optional [heat] extra; [test] installs it (CI)
     out = tmp_path / "m.ngf"
     with warnings.catch_warnings():
         warnings.simplefilter("error", ModelQualityWarning)

@@ -11,7 +11,7 @@ torch.distributed). Names load lazily (torch and Warp are imported by the first 
 """
 from __future__ import annotations
 
-import importlib
+from neurogf_warp.common.lazy import lazy_exports
 
 _EXPORTS = {
     "load": "model", "GeneralizableModel": "model", "Conditioned": "model",
@@ -24,14 +24,4 @@ _EXPORTS = {
 __all__ = list(_EXPORTS)
 
 
-def __getattr__(name):
-    mod = _EXPORTS.get(name)
-    if mod is None:
-        raise AttributeError(f"module 'neurogf_warp.generalizable' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f".{mod}", __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_EXPORTS))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())

@@ -9,8 +9,9 @@ check) works without importing torch.
 """
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
+
+from neurogf_warp.common.lazy import lazy_exports
 
 # public name -> module of this package that defines it
 _EXPORTS = {"train": "api", "RunFiles": "run_folder", "TrainingInterrupted": "loop", "ModelQualityWarning": "quality",
@@ -23,17 +24,7 @@ __all__ = ["train", "TrainConfig", "NetworkConfig", "ScheduleConfig", "BatchConf
            "ModelQualityWarning"]
 
 
-def __getattr__(name: str):
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals(), __all__)
 
 
 if TYPE_CHECKING:
