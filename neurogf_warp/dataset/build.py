@@ -401,6 +401,30 @@ class _Targets:
 # tried first: on a loaded 2-core machine the first batch's start-up made it stop spot's distances after 8 sources)
 PATH_SHARE = 0.25
 
+# Under a time limit on a GPU, one solver batch must fit well inside its share of the limit: the solver's own batch
+# (a memory budget: 512 sources on the bunny) took ~4 s for distances and ~12 s for paths on an H100, a 20 s
+# budget's whole dataset share and more. The first distance batch is sized from an estimate (seconds per source
+# on an H100 for the 34,834-vertex bunny, scaled like the solver's cost, ~V^1.3); the path batch from the
+# distance sources' measured rate, a path source costing ~PATH_COST distance sources (tracing). A batch smaller
+# than the GPU can hold costs little per source on meshes of 30K+ vertices (each row is one mesh-sized sweep).
+DISTANCE_BATCH_SHARE = 0.12  # of the limit, per distance batch
+PATH_COST = 3.0
+GPU_S_PER_SOURCE = 8.5e-3  # H100, bunny (benchmarks/RESULTS.md, 2026-11-24)
+GPU_REF_VERTICES = 34_834
+MIN_LIMITED_BATCH = 16
+
+
+def gpu_seconds_per_source(n_vertices: int) -> float:
+    """Estimated GPU seconds per distance source on a mesh of ``n_vertices`` (an H100's rate, scaled)."""
+    return GPU_S_PER_SOURCE * (max(n_vertices, 1) / GPU_REF_VERTICES) ** 1.3
+
+
+def limited_batch(seconds: float, per_source: float) -> int:
+    """The largest power of two of sources solved in ``seconds`` at ``per_source`` seconds each (at least
+    ``MIN_LIMITED_BATCH``)."""
+    n = max(seconds, 0.0) / max(per_source, 1e-9)
+    return max(MIN_LIMITED_BATCH, 1 << max(0, int(np.floor(np.log2(max(n, 1.0))))))
+
 
 class _Clock:
     """The dataset's time limit: seconds since the call started, and what is left of ``limit`` (None: no limit)."""
@@ -497,7 +521,7 @@ def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _C
 
 
 def _paths(m: Mesh, st: DatasetSettings, plan: _Plan, path_src: np.ndarray, rng, batch, device, clock: _Clock,
-           bar) -> tuple:
+           bar, max_rows: int) -> tuple:
     """Phase 3: ground-truth paths from ``path_src`` (near-Dijkstra order, so every traced polyline is as long as
     its distance), batch by batch while the time limit allows (at least one batch).
 
@@ -508,7 +532,7 @@ def _paths(m: Mesh, st: DatasetSettings, plan: _Plan, path_src: np.ndarray, rng,
     path_of = {"global": [], "local": []}
     stale, iterations, done = 0, [], 0
     if len(path_src):
-        ps = GeodesicSolver(m, k=st.k, device=device, batch=batch, delta=PATH_DELTA, max_rows=len(path_src))
+        ps = GeodesicSolver(m, k=st.k, device=device, batch=batch, delta=PATH_DELTA, max_rows=max_rows)
         for i in range(0, len(path_src), ps.batch):
             t_batch = time.perf_counter()
             src = path_src[i: i + ps.batch]
@@ -591,8 +615,11 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     timings["sampling_s"] = time.perf_counter() - t0
 
     batch = solver_batch(st.batch, device)
-    solver = GeodesicSolver(m, k=st.k, device=device, batch=batch,
-                            max_rows=max(len(plan.gd_src), len(plan.test_src), 1))
+    rows_cap = max(len(plan.gd_src), len(plan.test_src), 1)
+    if batch is None and time_limit_s is not None:  # a GPU under a time limit: batches that fit inside it
+        per = gpu_seconds_per_source(len(m.vertices))
+        rows_cap = min(rows_cap, limited_batch(DISTANCE_BATCH_SHARE * time_limit_s, per))
+    solver = GeodesicSolver(m, k=st.k, device=device, batch=batch, max_rows=rows_cap)
     bar = tqdm(total=len(plan.gd_src) + len(plan.test_src) + plan.n_path_sources, desc="ground truth",
                disable=not progress, unit="source", dynamic_ncols=True)
     t0 = time.perf_counter()
@@ -607,8 +634,12 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     t0 = time.perf_counter()
     gd_src = plan.gd_src[:solved]
     path_src = gd_src[:min(plan.n_path_sources, len(gd_src))]
+    path_rows = len(path_src)
+    if batch is None and time_limit_s is not None and solved:  # from the distance sources' measured rate
+        per = timings["distances_s"] / (solved + len(plan.test_src))
+        path_rows = min(path_rows, limited_batch(PATH_SHARE * time_limit_s / 2, PATH_COST * per))
     out_paths, stale, dropped, timings["path_iterations"], n_path_done = _paths(m, st, plan, path_src, rng, batch,
-                                                                                 device, clock, bar)
+                                                                                 device, clock, bar, path_rows)
     bar.close()
     timings["paths_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start

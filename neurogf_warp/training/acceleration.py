@@ -6,11 +6,16 @@ learning rate (a device tensor) are set outside the graph, so replayed steps equ
 """
 from __future__ import annotations
 
+import dataclasses
+import json
+import os
 import sys
+import tempfile
 
 import torch
 
-__all__ = ["set_tf32", "sync", "CompiledLosses", "GraphedStep", "GRAPH_WARMUP"]
+__all__ = ["set_tf32", "sync", "CompiledLosses", "GraphedStep", "GRAPH_WARMUP", "compile_key", "compile_pays",
+           "record_compile"]
 
 GRAPH_WARMUP = 3  # eager steps per stage before its CUDA graph is captured
 
@@ -56,6 +61,75 @@ class CompiledLosses:
 
             return first_call
         return self._fns[stage]
+
+
+# torch.compile under a budget. Compiling the five stages' losses took 62 s on a fresh H100 (cold inductor and
+# Triton caches: querier 18.6 s with the compiler's own start-up, joint 26.4, refine_dist 4.9, refine_sdf 3.6,
+# refine_path 8.7) and makes the steps 1.2-1.6x faster (joint 9.0 -> 6.25 ms on the bunny; benchmarks/RESULTS.md).
+# It pays off only when the training time left is over COMPILE_PAYOFF x the compile time; a budget too short for
+# that runs eagerly (under CUDA graphs). A run that compiled records how long it took in the inductor cache's own
+# folder, so a later run of the same configuration on the same machine plans with its (cached, shorter) time.
+COLD_COMPILE_S = 65.0
+COMPILE_PAYOFF = 3.3  # 1.45 / (1.45 - 1): the joint step's speed-up
+_RECORD = "neurogf_warp_compile.json"
+
+
+def _inductor_cache() -> str:
+    try:
+        from torch._inductor.runtime.cache_dir_utils import cache_dir
+
+        return cache_dir()
+    except Exception:  # noqa: BLE001 - another torch layout: the default place
+        return os.environ.get("TORCHINDUCTOR_CACHE_DIR",
+                              os.path.join(tempfile.gettempdir(), f"torchinductor_{os.environ.get('USER', 'user')}"))
+
+
+def compile_key(cfg, device) -> str:
+    """What a compilation depends on: torch, the GPU, the network and batch shapes, the precision settings."""
+    name = torch.cuda.get_device_name(device) if torch.device(device).type == "cuda" else "cpu"
+    rt = cfg.runtime
+    return json.dumps([torch.__version__, name, dataclasses.asdict(cfg.network), dataclasses.asdict(cfg.batches),
+                       rt.amp, rt.tf32, rt.cuda_graph], sort_keys=True)
+
+
+def compile_estimate(key: str) -> float:
+    """Seconds the compilation of a run with ``key`` is expected to take here: what the last such run took, while
+    the inductor cache it filled is still there, else a fresh machine's time."""
+    folder = _inductor_cache()
+    try:
+        with open(os.path.join(folder, _RECORD)) as f:
+            seen = json.load(f).get(key)
+        if seen is not None and any(os.scandir(os.path.join(folder, "fxgraph"))):
+            return float(seen)
+    except (OSError, ValueError, TypeError, AttributeError):
+        pass
+    return COLD_COMPILE_S
+
+
+def compile_pays(key: str, seconds_left: float) -> tuple:
+    """(compile?, expected compile seconds) for a budgeted run with ``seconds_left`` for set-up and steps."""
+    est = compile_estimate(key)
+    return seconds_left > COMPILE_PAYOFF * est, est
+
+
+def record_compile(key: str, seconds: float) -> None:
+    """Keep how long this run's compilation took, next to the inductor cache (best effort, atomic)."""
+    folder = _inductor_cache()
+    path = os.path.join(folder, _RECORD)
+    try:
+        try:
+            with open(path) as f:
+                seen = json.load(f)
+        except (OSError, ValueError):
+            seen = {}
+        seen[key] = round(float(seconds), 2)
+        os.makedirs(folder, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=".neurogf_compile")
+        with os.fdopen(fd, "w") as f:
+            json.dump(seen, f)
+        os.replace(tmp, path)
+    except OSError:
+        pass
 
 
 class GraphedStep:

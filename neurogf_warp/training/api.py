@@ -226,6 +226,16 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     if dev.type == "cpu" and cfg.runtime.threads == 0:
         chooser = ThreadChooser()  # the thread count is chosen on the first steps of the main stages
         torch.set_num_threads(1)  # calibrated at one thread; the budget re-plans from the measured steps
+    compile_key = None
+    if deadline is not None and dev.type == "cuda" and cfg.runtime.compile:
+        from neurogf_warp.training.acceleration import compile_key as key_of, compile_pays
+
+        compile_key = key_of(cfg, dev)
+        use, expected = compile_pays(compile_key, deadline - time.perf_counter())
+        trainer.compile_losses(use)  # a budget too short to win back the compile time runs eagerly
+        timings["compile"] = {"used": use, "expected_s": round(expected, 1)}
+        if not use:
+            compile_key = None
     if ck is not None:
         trainer.load_state(ck)
         stage_i, step, history, elapsed = ck["stage"], ck["step"], ck["history"], ck["elapsed"]
@@ -249,6 +259,10 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
                 if tf32 is not None:
                     set_tf32(tf32)
             timings["calibrate_s"] = time.perf_counter() - t0
+            if compile_key is not None:  # calibration compiled every stage: the time a later run here plans with
+                from neurogf_warp.training.acceleration import record_compile
+
+                record_compile(compile_key, timings["calibrate_s"])
             left = deadline - time.perf_counter()
             fitted = fit_budget(cfg, per, max(left, 0.0))
             cap = None

@@ -96,6 +96,10 @@ class Trainer:
         self._compiled = CompiledLosses(cfg.runtime.compile and cuda)
         self.weights = {**L.WEIGHTS, **cfg.schedule.loss_weights}
 
+    def compile_losses(self, on: bool) -> None:
+        """Whether the losses are compiled (CUDA; before the first step): a short budget runs them eagerly."""
+        self._compiled.enabled = bool(on) and self.device.type == "cuda" and self.cfg.runtime.compile
+
     # -- sampling (all on the device, no host sync). A step draws index vectors (``draw``), then gathers
     # its batch from the device arrays (``gather``); with CUDA graphs only the draw runs outside the graph.
     def _idx(self, n, k):
