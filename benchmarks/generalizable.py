@@ -85,6 +85,8 @@ def main(argv=None):
     ap.add_argument("--block-pairs", type=int, default=32, help="pairs per block of the tiled query")
     ap.add_argument("--no-tiled", action="store_true", help="skip the tiled query (its first CUDA compile with "
                     "cuBLASDx takes about a minute)")
+    ap.add_argument("--generic", action="store_true", help="time the generic SIMT kernels instead of the fast "
+                    "float32 ones (kernels/generalizable/fast.py, the fp32 default)")
     ap.add_argument("--quick", action="store_true", help="CPU smoke run: 20K pairs, 1 repeat")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
@@ -120,7 +122,7 @@ def main(argv=None):
 
     # 1. compile / first call
     t0 = time.perf_counter()
-    wn = WarpGenNet(net, dev, mode, knn_chunks=a.knn_chunks)
+    wn = WarpGenNet(net, dev, mode, knn_chunks=a.knn_chunks, fast=not a.generic)
     enc = wn.encode(unit)
     wn.ratio(enc, unit[:4], unit[4:8]).numpy()
     compile_s = time.perf_counter() - t0
@@ -143,11 +145,14 @@ def main(argv=None):
     enc_ms, enc_min = median_ms(lambda: wn.encode(X, into=state), a.repeats, sync)  # steady state: no allocation
     cond_ms, _ = median_ms(lambda: model.condition(cloud, device=dev, mode=mode), few, sync)
     enc_kernel_ms = None
+    enc_kernels = []
     if dev.is_cuda:
         wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
         wn.encode(X, into=state)
         res = wp.timing_end()
         enc_kernel_ms = float(sum(r.elapsed for r in res))
+        enc_kernels = [(r.name.split("_cuda_kernel")[0].replace("_build__locals__", ""), float(r.elapsed))
+                       for r in res]
 
     # 4. pairs
     P = near_surface(cloud, a.pairs, rng)
@@ -158,12 +163,17 @@ def main(argv=None):
     run()
     pair_ms, pair_min = median_ms(run, a.repeats, sync)
     pair_kernel_ms = None
+    pair_kernels = {}
     if dev.is_cuda:
         wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
         for _ in range(5):
             run()
         res = wp.timing_end()
-        pair_kernel_ms = float(np.median([r.elapsed for r in res]))
+        pair_kernels = {}
+        for r in res:
+            pair_kernels.setdefault(r.name.split("_cuda_kernel")[0].replace("_build__locals__", ""), []).append(
+                float(r.elapsed))
+        pair_kernel_ms = float(sum(np.median(v) for v in pair_kernels.values()))
     d = out.numpy()
     sel = rng.integers(0, a.pairs, 512)
     with torch.no_grad():
@@ -219,13 +229,15 @@ def main(argv=None):
         "points": a.points, "pairs": a.pairs, "repeats": a.repeats, "knn_chunks": wn.knn_chunks,
         "compile_first_call_s": compile_s, "check_vs_torch_fp64": check,
         "encode_ms_median": enc_ms, "encode_ms_min": enc_min, "encode_new_buffers_ms_median": enc_new_ms, "encode_graph_ms_median": graph_ms,
+        "kernels": "generic" if not wn.fast else "fast", "encode_kernels": enc_kernels,
+        "pair_kernels_ms_median": {k: float(np.median(v)) for k, v in pair_kernels.items()},
         "encode_graph_note": graph_note, "encode_kernels_ms_sum": enc_kernel_ms, "condition_numpy_ms_median": cond_ms,
         "pairs_ms_median": pair_ms, "pairs_ms_min": pair_min, "pairs_kernel_ms_median": pair_kernel_ms,
         "pairs_per_s": a.pairs / (pair_ms / 1e3), "pairs_max_rel_vs_torch_fp64": pair_check, "tiled": tiled,
     }
     f = (lambda v: "-" if v is None else f"{v:.3f}")
     rows = [
-        ("device / mode", f"{dev} ({dev.name}) / {mode}"),
+        ("device / mode", f"{dev} ({dev.name}) / {mode}, {'fast' if wn.fast else 'generic'} kernels"),
         ("weights", weights),
         ("compile + first call", f"{compile_s:.2f} s"),
         ("check vs float64 torch", (f"mean {check['mean_rel']:.2e}, max {check['max_rel']:.2e} "
@@ -236,7 +248,8 @@ def main(argv=None):
         ("encode kernels (Warp timers, sum)", f"{f(enc_kernel_ms)} ms"),
         ("model.condition(numpy)", f"{f(cond_ms)} ms median"),
         (f"{a.pairs:,} pairs (wall, sync)", f"{f(pair_ms)} ms median, {f(pair_min)} min"),
-        (f"{a.pairs:,} pairs (Warp kernel timer)", f"{f(pair_kernel_ms)} ms"),
+        (f"{a.pairs:,} pairs (Warp kernel timer)", f"{f(pair_kernel_ms)} ms (" + ", ".join(
+            f"{k} {np.median(v):.3f}" for k, v in pair_kernels.items()) + ")"),
         ("pair distances vs float64 torch", f"max rel {pair_check:.2e}"),
     ]
     for op, r in tiled.items():
@@ -246,6 +259,8 @@ def main(argv=None):
             rows.append((f"tiled query ({op}, B={r['block_pairs']})", (f"{f(r['ms_median'])} ms median, "
                          f"kernels {f(r['kernels_ms_sum'])} ms, compile {r['compile_s']:.1f} s, "
                          f"max rel {r['max_rel_vs_torch_fp64']:.1e}")))
+    if enc_kernels:
+        rows.append(("encode kernels, one by one (ms)", ", ".join(f"{k} {v:.3f}" for k, v in enc_kernels)))
     wd = max(len(r[0]) for r in rows)
     print(f"generalizable NeuroGF, Warp inference ({result['date_utc']})")
     for k, v in rows:

@@ -202,6 +202,17 @@ def _build(mode: str) -> SimpleNamespace:
         m = wp.tid()
         out[m] = nearest_point(cloud, grid, radius, use_grid, A(pts[m, 0]), A(pts[m, 1]), A(pts[m, 2]))
 
+    @wp.kernel(**opts)
+    def nearest_user(cloud: wp.array2d(dtype=T), grid: wp.uint64, radius: float, use_grid: int,
+                     pts: wp.array2d(dtype=T), cx: wp.float64, cy: wp.float64, cz: wp.float64, scale: wp.float64,
+                     out: wp.array(dtype=wp.int32)):
+        """Thread m: the nearest cloud point of pts[m] given in user units; the unit-frame coordinates are
+        rounded exactly as ``pair_distance`` rounds them, so both paths pick the same point."""
+        m = wp.tid()
+        sc_ = A(scale)
+        out[m] = nearest_point(cloud, grid, radius, use_grid, (A(pts[m, 0]) - A(cx)) * sc_,
+                               (A(pts[m, 1]) - A(cy)) * sc_, (A(pts[m, 2]) - A(cz)) * sc_)
+
     @wp.func
     def fuse_diff(g: wp.array2d(dtype=T), wx: wp.array2d(dtype=T), i_s: int, i_t: int,
                   sx: A, sy: A, sz: A, tx: A, ty: A, tz: A):
@@ -341,6 +352,6 @@ def _build(mode: str) -> SimpleNamespace:
 
     return SimpleNamespace(mode=mode, dtype=T, acc=A, module=module, knn_partial=knn_partial, knn_merge=knn_merge,
                            linear=linear, edge_two_layers=edge_two_layers, edge_one_layer=edge_one_layer,
-                           column_max=column_max, nearest=nearest, nearest_point_func=nearest_point, pair_ratio=pair_ratio,
+                           column_max=column_max, nearest=nearest, nearest_user=nearest_user, nearest_point_func=nearest_point, pair_ratio=pair_ratio,
                            pair_distance=pair_distance, to_unit=to_unit,
                            point_component=point_component)

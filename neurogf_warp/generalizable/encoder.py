@@ -47,7 +47,7 @@ class WarpGenNet:
     """
 
     def __init__(self, net: GenNeuroGF, device=None, mode: str | None = None, knn_chunks: int | None = None,
-                 use_grid: bool = True):
+                 use_grid: bool = True, fast: bool | None = None):
         self.device = wp.get_device(device)
         self.mode = mode or default_mode(self.device)
         self.k = kernels(self.mode)
@@ -74,6 +74,18 @@ class WarpGenNet:
         w["fuseX"] = a(W[:, 128:])
         w["head2"] = a(L["head2"][0])
         self.w = w
+        # the fast float32 kernels (kernels/generalizable/fast.py): fp32 mode only (their arithmetic is float32)
+        self.fast = (self.mode == "fp32") if fast is None else bool(fast and self.mode == "fp32")
+        self.fk = None
+        if self.fast:
+            from neurogf_warp.kernels.generalizable.fast import kernels as fast_kernels
+
+            self.fk = fast_kernels()
+            for name, split in (("e1a", 3), ("e2a", 64), ("e3", 64)):
+                # P and Q of an edge layer as one (128, C) map: one GEMM launch gives both
+                W, b = L[name]
+                Wa, Wb = W[:, :split], W[:, split:]
+                w[name + "PQ"] = (a(np.vstack([Wa - Wb, Wb])), a(np.concatenate([b, np.zeros(W.shape[0])])))
 
     def _arr(self, x):
         x = np.ascontiguousarray(np.asarray(x, dtype=np.float64).astype(self.np_dtype))
@@ -125,6 +137,8 @@ class WarpGenNet:
         n = cloud.shape[0]
         if n < self.kk:
             raise ValueError(f"the point cloud has {n} points; the encoder needs at least k={self.kk}")
+        if self._fast_encoder_fits(n):
+            return self._encode_fast(cloud, center, scale, into)
         sc = into.scratch if into is not None else {}
         buf = lambda name, c: self._buf(sc, name, (n, c), T)
         X = buf("X", 3)
@@ -176,6 +190,84 @@ class WarpGenNet:
             return into
         return Encoded(X, F, G, grid, radius, [n1, n2, n3], V, sc)
 
+    def _fast_encoder_fits(self, n: int) -> bool:
+        from neurogf_warp.kernels.generalizable.fast import EDGE_K_MAX, KNN_MAX_POINTS
+
+        return self.fast and n <= KNN_MAX_POINTS and self.kk <= EDGE_K_MAX
+
+    def _lin(self, x, x_off, wb, relu, y, y_off=0):
+        """y[:, y_off:] = act(x[:, x_off:] W^T + b) with the fast tiled kernel (32 rows x 64 outputs a block)."""
+        from neurogf_warp.kernels.generalizable.fast import LIN_OUTS, LIN_ROWS
+
+        W, b = wb
+        nob = (W.shape[0] + LIN_OUTS - 1) // LIN_OUTS
+        nblk = (x.shape[0] + LIN_ROWS - 1) // LIN_ROWS * nob
+        bd = 1 if self.device.is_cpu else 256
+        wp.launch(self.fk.linear, (nblk, bd), inputs=[x, x_off, W, b, int(relu), y, y_off, nob],
+                  block_dim=bd, device=self.device)
+
+    def _knn_fast(self, ft, c_off, nc, scratch, tag):
+        """kk nearest neighbours in rows [c_off, c_off + nc) of the channel-major ft (C, N) -> (N, kk) int32."""
+        n = ft.shape[1]
+        nbr = self._buf(scratch, "nbr" + tag, (n, self.kk), wp.int32)
+        if self.device.is_cpu:
+            wp.launch(self.fk.knn, (n, 1), inputs=[ft, c_off, nc, self.kk, nbr], block_dim=1, device=self.device)
+        else:
+            wp.launch(self.fk.knn, ((n + 3) // 4, 128), inputs=[ft, c_off, nc, self.kk, nbr], block_dim=128,
+                      device=self.device)
+        return nbr
+
+    def _encode_fast(self, cloud, center, scale, into):
+        """encode() with the fast float32 kernels: 16 launches, no host synchronisation (except the hash-grid
+        build), every buffer reused through ``into`` (so the whole encoder can be captured in a CUDA graph)."""
+        dev, fk, w = self.device, self.fk, self.w
+        n = cloud.shape[0]
+        f32 = wp.float32
+        sc = into.scratch if into is not None else {}
+        buf = lambda name, c: self._buf(sc, name, (n, c), f32)
+        X = buf("X", 3)
+        XT = self._buf(sc, "XT", (3, n), f32)
+        V = self._buf(sc, "V", (n,), wp.vec3)
+        wp.launch(fk.to_unit, n, inputs=[cloud, *(float(c) for c in center), float(scale), X, XT, V], device=dev)
+        cat = buf("cat", 192)  # [f1, f2, f3]
+        catT = self._buf(sc, "catT", (128, n), f32)  # f1, f2 channel-major (the kNN's coalesced reads)
+        PQ = buf("PQ", 128)
+        eb = 1 if dev.is_cpu else 64
+        n1 = self._knn_fast(XT, 0, 3, sc, "1")
+        self._lin(X, 0, w["e1aPQ"], False, PQ)
+        wp.launch(fk.edge2, (n, eb), inputs=[PQ, n1, *w["e1b"], cat, catT, 0], block_dim=eb, device=dev)
+        n2 = self._knn_fast(catT, 0, 64, sc, "2")
+        self._lin(cat, 0, w["e2aPQ"], False, PQ)
+        wp.launch(fk.edge2, (n, eb), inputs=[PQ, n2, *w["e2b"], cat, catT, 64], block_dim=eb, device=dev)
+        n3 = self._knn_fast(catT, 64, 64, sc, "3")
+        self._lin(cat, 64, w["e3PQ"], False, PQ)
+        wp.launch(fk.edge1, (n, 64), inputs=[PQ, n3, cat, 128], device=dev)
+        E = buf("E", 320)
+        self._lin(cat, 0, w["pw"], True, E)
+        cw = self._buf(sc, "cw", (1, 320), f32)
+        chunks = max(1, min(32, n // 64)) if not dev.is_cpu else 1
+        per = (n + chunks - 1) // chunks
+        chunks = (n + per - 1) // per
+        part = self._buf(sc, "cw_part", (chunks, 320), f32)
+        wp.launch(self.k.column_max, (chunks, 320), inputs=[E, per, part], device=dev)
+        wp.launch(self.k.column_max, (1, 320), inputs=[part, chunks, cw], device=dev)
+        bias = self._buf(sc, "bias", (1, 128), f32)
+        self._lin(cw, 0, w["mlp0cw"], False, bias)
+        H = buf("H", 128)
+        self._lin(cat, 0, (w["mlp0f"], bias.reshape((128,))), True, H)
+        F = buf("F", 128)
+        self._lin(H, 0, w["mlp1"], True, F)
+        G = buf("G", 128)
+        self._lin(F, 0, w["fuseF"], False, G)
+        grid, radius = None, 0.0
+        if self.use_grid:
+            grid, radius = self._grid(V, into.grid if into is not None else None)
+        if into is not None:
+            into.cloud, into.feats, into.fused, into.grid, into.radius = X, F, G, grid, radius
+            into.neighbours, into.points32 = [n1, n2, n3], V
+            return into
+        return Encoded(X, F, G, grid, radius, [n1, n2, n3], V, sc)
+
     def _grid(self, pts: wp.array, grid: wp.HashGrid | None = None):
         """A hash grid over the cloud for the nearest-point lookup of queries.
 
@@ -195,6 +287,10 @@ class WarpGenNet:
         S, Tt = self._arr(np.asarray(s)), self._arr(np.asarray(t))
         m = S.shape[0]
         out = wp.empty(m, dtype=self.k.dtype, device=self.device)
+        if self.fast:
+            if m:
+                self._pair_head(enc, S, Tt, None, None, None, None, (0.0, 0.0, 0.0), 1.0, 0, m, True, out)
+            return out
         w = self.w
         grid_id = enc.grid.id if enc.grid is not None else wp.uint64(0)
         wp.launch(self.k.pair_ratio, m,
@@ -223,6 +319,8 @@ class WarpGenNet:
             out = wp.empty(m, dtype=wp.float32, device=self.device)
         if m == 0:
             return out
+        if self.fast:
+            return self._pair_head(enc, S, T, s_nn, t_nn, s_comp, t_comp, center, scale, n_t, m, False, out)
         e = wp.empty(0, dtype=wp.int32, device=self.device)
         w = self.w
         grid_id = enc.grid.id if enc.grid is not None else wp.uint64(0)
@@ -232,6 +330,39 @@ class WarpGenNet:
                           S, s_nn if s_nn is not None else e, s_comp if s_comp is not None else e,
                           T, t_nn if t_nn is not None else e, t_comp if t_comp is not None else e,
                           *(float(c) for c in center), float(scale), n_t, out], device=self.device)
+        return out
+
+    def _nearest_user(self, enc: Encoded, pts: wp.array, center, scale) -> wp.array:
+        """Nearest cloud point of each row of pts (user units, rounded to the unit frame as the pair kernels do)."""
+        out = wp.empty(pts.shape[0], dtype=wp.int32, device=self.device)
+        if pts.shape[0]:
+            grid_id = enc.grid.id if enc.grid is not None else wp.uint64(0)
+            wp.launch(self.k.nearest_user, pts.shape[0],
+                      inputs=[enc.cloud, grid_id, enc.radius, int(enc.grid is not None), pts,
+                              *(float(c) for c in center), float(scale), out], device=self.device)
+        return out
+
+    def _pair_head(self, enc, S, T, s_nn, t_nn, s_comp, t_comp, center, scale, n_t, m, raw, out):
+        """The fast pair kernel: nearest cloud points once per S row and per T row (a separate, fully occupied
+        launch: in a matrix a row is shared by many pairs), then persistent blocks over tiles of pairs."""
+        from neurogf_warp.kernels.generalizable.fast import PAIRS, PAIR_THREADS
+
+        dev, w = self.device, self.w
+        if s_nn is None:
+            s_nn = self._nearest_user(enc, S, center, scale)
+        if t_nn is None:
+            t_nn = self._nearest_user(enc, T, center, scale)
+        e = wp.empty(0, dtype=wp.int32, device=dev)
+        ntiles = (m + PAIRS - 1) // PAIRS
+        if dev.is_cpu:
+            nblk, bd = 1, 1
+        else:
+            nblk, bd = max(1, min(ntiles, dev.sm_count)), PAIR_THREADS  # one 200 KiB block per SM
+        wp.launch(self.fk.pair_head, (nblk, bd),
+                  inputs=[enc.fused, w["fuseX"], *w["head0"], *w["head1"], w["head2"], S, s_nn,
+                          s_comp if s_comp is not None else e, T, t_nn, t_comp if t_comp is not None else e,
+                          *(float(c) for c in center), float(scale), int(n_t), int(m), int(raw), nblk, out],
+                  block_dim=bd, device=dev)
         return out
 
     # ---- tiled query (tensor cores on CUDA) ------------------------------------------------------------------
