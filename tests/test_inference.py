@@ -230,8 +230,7 @@ def test_projection_and_refinement_match_float64():
         x0 = torch.cat([p[:, None], _project_ref(net, net.path(p, q, 32)[:, 1:-1].reshape(-1, 3), 2).view(12, -1, 3),
                         q[:, None]], 1).float().double()
         ref = _sweep_ref(net, x0).numpy()
-    ident = mlp.Frame()  # unit scale, no shift: the kernel sees normalized coordinates as they are
-    ident.center, ident.xscale, ident.dscale = wp.vec3(0.0, 0.0, 0.0), 1.0, 1.0
+    ident = mlp.make_frame((0.0, 0.0, 0.0), 1.0)  # unit scale, no shift: normalized coordinates as they are
     got = wp.empty((12, 32), dtype=wp.vec3, device=DEV)
     wp.launch(mlp.relax_paths, got.shape, inputs=[ngf.warp_weights(model, DEV),
               wp.array(x0.numpy().astype(np.float32), dtype=wp.vec3, device=DEV), ident, 1], outputs=[got], device=DEV)

@@ -61,8 +61,7 @@ def test_finishing_rule_is_the_native_one():
     """finish.finish_distance is the header's ngf::finish_distance (one definition), used by the fp32 kernels."""
     assert finish.finish_distance.native_snippet is not None
     assert "ngf::finish_distance" in finish.finish_distance.native_snippet
-    f = mlp.Frame()
-    f.center, f.xscale, f.dscale, f.limit = wp.vec3d(1.0, 2.0, 3.0), 0.5, 2.0, 1.5
+    f = mlp.make_frame((1.0, 2.0, 3.0), 0.5, 2.0, limit=1.5)
     rng = np.random.default_rng(0)
     head = rng.normal(size=(1, 6)).astype(np.float32)
     rows = (src_c := np.array([1.0, 2.0, 3.0])) + rng.uniform(-1, 1, size=(6, 3)).astype(np.float32)

@@ -335,12 +335,34 @@ def project_to_surface(net: NeuroGFWeights, x: wp.vec3, steps: int) -> wp.vec3:
 class Frame:
     """User frame -> network frame: x_net = (x - center) * xscale, computed in float64 (the centre is float64, so a
     float32 point far from the origin keeps its own resolution); distances back to user units with * dscale.
-    ``limit``: the domain, |x_net| <= limit on every axis (queries give NaN outside it)."""
+    ``limit``: the domain, |x_net| <= limit on every axis (queries give NaN outside it). ``hi`` + ``lo``: the centre
+    as a float32 pair (hi = float32(centre), lo = float32(centre - hi)), for float32 domain tests of input points
+    (kernel parameters, so the tensor-core kernels read them without float64 work or registers)."""
 
     center: wp.vec3d
     xscale: wp.float32
     dscale: wp.float32
     limit: wp.float32
+    hi: wp.vec3
+    lo: wp.vec3
+
+
+def make_frame(center, xscale: float, dscale: float | None = None, limit: float = 1.0e30) -> Frame:
+    """A Frame from its centre (3 numbers, kept in float64), ``xscale`` and ``dscale`` (default 1 / xscale),
+    with the float32 pair ``hi`` + ``lo`` derived from the centre (build Frames here: a Frame whose pair does not
+    match its centre tests the domain at the wrong place)."""
+    import numpy as np
+
+    c = np.asarray(center, np.float64).reshape(3)
+    hi = c.astype(np.float32)
+    f = Frame()
+    f.center = wp.vec3d(*c)
+    f.xscale = float(xscale)
+    f.dscale = float(1.0 / xscale if dscale is None else dscale)
+    f.limit = float(limit)
+    f.hi = wp.vec3(*hi)
+    f.lo = wp.vec3(*(c - hi.astype(np.float64)).astype(np.float32))
+    return f
 
 
 @wp.func

@@ -299,7 +299,9 @@ def native_init(native: str, name: str, values: dict) -> str:
 def _frame_cpp(name: str) -> str:
     """ngf::Frame F from an ``mlp.Frame`` argument."""
     return native_init("Frame", "F", {"cx": f"{name}.center[0]", "cy": f"{name}.center[1]", "cz": f"{name}.center[2]",
-                                      "xscale": f"{name}.xscale", "dscale": f"{name}.dscale", "limit": f"{name}.limit"})
+                                      "xscale": f"{name}.xscale", "dscale": f"{name}.dscale", "limit": f"{name}.limit",
+                                      **{f"h{x}": f"{name}.hi[{i}]" for i, x in enumerate("xyz")},
+                                      **{f"l{x}": f"{name}.lo[{i}]" for i, x in enumerate("xyz")}})
 
 
 _STRUCTS_CPP = native_initializer(Lifting, "Lifting", "lift", "L") + native_initializer(Head, "Head", "head", "H")

@@ -170,12 +170,7 @@ class QueryState:
 
 
 def _make_frame(center: np.ndarray, scale: float) -> mlp.Frame:
-    f = mlp.Frame()
-    f.center = wp.vec3d(*np.asarray(center, np.float64))
-    f.xscale = float(scale)
-    f.dscale = float(1.0 / scale)
-    f.limit = DOMAIN
-    return f
+    return mlp.make_frame(center, scale, limit=DOMAIN)
 
 
 def to_relative(state: "QueryState", x: np.ndarray) -> np.ndarray:

@@ -577,6 +577,7 @@ struct Frame
 {
     double cx, cy, cz;
     float xscale, dscale, limit;
+    float hx, hy, hz, lx, ly, lz;  // the centre as float32 pairs hi + lo (point_in_domain)
 };
 
 // Rows this lane reads: g and g + 8 of m-tile (tile, m), clamped to the last row (their results are not written).
@@ -612,10 +613,8 @@ NGF_FN bool in_domain(const Frame& f, const float (&x)[3])
 // origin tests right to float32 resolution of its offset from the centre. false for NaN and inf too.
 NGF_FN bool point_in_domain(const Frame& f, const float* p)
 {
-    const float hx = (float)f.cx, hy = (float)f.cy, hz = (float)f.cz;
-    const float lx = (float)(f.cx - (double)hx), ly = (float)(f.cy - (double)hy), lz = (float)(f.cz - (double)hz);
-    return fabsf(((p[0] - hx) - lx) * f.xscale) <= f.limit && fabsf(((p[1] - hy) - ly) * f.xscale) <= f.limit &&
-           fabsf(((p[2] - hz) - lz) * f.xscale) <= f.limit;
+    return fabsf(((p[0] - f.hx) - f.lx) * f.xscale) <= f.limit && fabsf(((p[1] - f.hy) - f.ly) * f.xscale) <= f.limit &&
+           fabsf(((p[2] - f.hz) - f.lz) * f.xscale) <= f.limit;
 }
 
 // The rows of m-tiles (tile, 0 .. MT-1) this lane reads, and their points in the network frame.
