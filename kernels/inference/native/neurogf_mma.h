@@ -695,8 +695,10 @@ struct Sources
 // NaN where either point is outside the domain or not finite; +inf across components; exactly 0 where the row is
 // the source point itself; d = (head + euclid |x - s|) in user units, never below the straight line |x - s|
 // (a geodesic is never shorter than the chord; NaN stays NaN). raw: the network's value (NaN and +inf as above).
-// inside: both points passed point_in_domain (the multi-source loops test a row once per tile and a source once per
-// kernel rather than once per distance: repeated per distance, the tests cost a bound MSAD 50% on an H100).
+// inside: both points are in the domain. The vertex-query kernels below (distance_rows, ssad_rows, lift_ssad_rows)
+// pass true: their rows are mesh vertices or targets and their sources points that the host refused unless inside
+// (inference/inputs.py, sources_in); a test per distance there cost a bound MSAD 50%, and one per row and source
+// still 15%, on an H100 (benchmarks/RESULTS.md). The pair kernel tests its points (check=False gives NaN rows).
 NGF_FN float finish_inside(float y, const Frame& f, const float* p, const float* sp, float euclid, bool other_part,
                            int raw, bool inside)
 {
@@ -727,7 +729,7 @@ NGF_FN float finish_distance(float y, const Frame& f, const float* p, const floa
 // Finishes and writes one source's distances to the rows of MT m-tiles (lane t = 0 writes row g, t = 1 row g + 8).
 template <int MT>
 NGF_FN void store_distances(const DistanceOut& o, const Frame& f, const float* pts, const float (&y)[MT][2],
-                            const int (&r)[MT][2], const bool (&ok)[MT][2], const float* sp, int sc, bool s_in)
+                            const int (&r)[MT][2], const bool (&ok)[MT][2], const float* sp, int sc)
 {
     const int t = lane_id() & 3;
 #pragma unroll
@@ -736,9 +738,8 @@ NGF_FN void store_distances(const DistanceOut& o, const Frame& f, const float* p
         for (int i = 0; i < 2; ++i)
         {
             const int rc = o.row_comp ? o.row_comp[r[m][i]] : 0;
-            const float* p = pts + 3 * r[m][i];
-            const float d = finish_inside(y[m][i], f, p, sp, o.euclid, o.row_comp && sc != rc, o.raw,
-                                          s_in && point_in_domain(f, p));
+            const float d = finish_inside(y[m][i], f, pts + 3 * r[m][i], sp, o.euclid, o.row_comp && sc != rc, o.raw,
+                                          true);
             if (t == i && ok[m][i])
                 o.out[r[m][i]] = d;
         }
@@ -781,7 +782,6 @@ NGF_FN void distance_rows(const Lifting& L, const Head& H, const Frame& f, const
         const float* p1 = pts + 3 * r1;
         const int comp0 = o.row_comp ? o.row_comp[r0] : 0;
         const int comp1 = o.row_comp ? o.row_comp[r1] : 0;
-        const bool in0 = point_in_domain(f, p0), in1 = point_in_domain(f, p1);
         float best0 = INFINITY, best1 = INFINITY;
         for (int s = 0; s < S.count; s += SP)
         {
@@ -802,11 +802,8 @@ NGF_FN void distance_rows(const Lifting& L, const Head& H, const Frame& f, const
                     break;
                 const float* sp = S.pos + 3 * src[j];
                 const int sc = S.comp ? S.comp[src[j]] : 0;
-                const bool s_in = point_in_domain(f, sp);
-                const float d0 = finish_inside(y[j][0], f, p0, sp, o.euclid, o.row_comp && sc != comp0, o.raw,
-                                               in0 && s_in);
-                const float d1 = finish_inside(y[j][1], f, p1, sp, o.euclid, o.row_comp && sc != comp1, o.raw,
-                                               in1 && s_in);
+                const float d0 = finish_inside(y[j][0], f, p0, sp, o.euclid, o.row_comp && sc != comp0, o.raw, true);
+                const float d1 = finish_inside(y[j][1], f, p1, sp, o.euclid, o.row_comp && sc != comp1, o.raw, true);
                 if (o.reduce_min)
                 {
                     best0 = min2(best0, d0);
@@ -855,7 +852,7 @@ struct SsadTile
     }
 
     NGF_FN void finish(const Head& H, const Frame& f, const float* pts, const u32x4* s_row, const float* sp, int sc,
-                       bool s_in, const DistanceOut& o) const
+                       const DistanceOut& o) const
     {
         float y[MT][2];
         head_on_blocks<D, MT>(H, [&](int b, u32 (&d)[MT][2][4]) {
@@ -864,7 +861,7 @@ struct SsadTile
                 segments_to_a(seg[m][0][b], seg[m][1][b], d[m]);
             subtract_source<MT, 2>(d, s_row, 2 * b);
         }, y);
-        store_distances<MT>(o, f, pts, y, r, ok, sp, sc, s_in);
+        store_distances<MT>(o, f, pts, y, r, ok, sp, sc);
     }
 };
 
@@ -877,14 +874,13 @@ NGF_FN void ssad_rows(const Head& H, const Frame& f, const float* pts, const u32
     const u32x4* s_row = S.emb + (size_t)srow * (D / 8);
     const float* sp = S.pos + 3 * srow;
     const int sc = S.comp ? S.comp[srow] : 0;
-    const bool s_in = point_in_domain(f, sp);
     if (!PF)
     {
         for (int tile = warp; tile < n_tiles; tile += n_warps)
         {
             SsadTile<D, MT> a;
             a.load(cached, tile, n);
-            a.finish(H, f, pts, s_row, sp, sc, s_in, o);
+            a.finish(H, f, pts, s_row, sp, sc, o);
         }
         return;
     }
@@ -896,12 +892,12 @@ NGF_FN void ssad_rows(const Head& H, const Frame& f, const float* pts, const u32
         const int next = tile + n_warps;
         if (next < n_tiles)
             b.load(cached, next, n);
-        a.finish(H, f, pts, s_row, sp, sc, s_in, o);
+        a.finish(H, f, pts, s_row, sp, sc, o);
         if (next >= n_tiles)
             break;
         if (next + n_warps < n_tiles)
             a.load(cached, next + n_warps, n);
-        b.finish(H, f, pts, s_row, sp, sc, s_in, o);
+        b.finish(H, f, pts, s_row, sp, sc, o);
     }
 }
 
@@ -917,7 +913,6 @@ NGF_FN void lift_ssad_rows(const Lifting& L, const Head& H, const Frame& f, cons
     const u32x4* s_row = S.emb + (size_t)srow * (D / 8);
     const float* sp = S.pos + 3 * srow;
     const int sc = S.comp ? S.comp[srow] : 0;
-    const bool s_in = point_in_domain(f, sp);
     for (int tile = warp; tile < n_tiles; tile += n_warps)
     {
         int r[MT][2];
@@ -928,7 +923,7 @@ NGF_FN void lift_ssad_rows(const Lifting& L, const Head& H, const Frame& f, cons
         lifted_head<MT, D, KS0, NC>(L, H, x, [&](int q, u32 (&a)[MT][NC / 2][4]) {
             subtract_source_ksteps<MT, NC / 2>(a, s_row, NC / 2 * q);
         }, y);
-        store_distances<MT>(o, f, pts, y, r, ok, sp, sc, s_in);
+        store_distances<MT>(o, f, pts, y, r, ok, sp, sc);
     }
 }
 
@@ -967,6 +962,8 @@ NGF_FN void pair_rows(const Lifting& L, const Head& H, const Frame& f, const flo
         to_net(f, ps + 3 * r1, x[0][1]);
         to_net(f, qs + 3 * r0, x[1][0]);
         to_net(f, qs + 3 * r1, x[1][1]);
+        const bool in0 = in_domain(f, x[0][0]) && in_domain(f, x[1][0]);  // both ends of row g, of row g + 8
+        const bool in1 = in_domain(f, x[0][1]) && in_domain(f, x[1][1]);
         float c0[1][D / 32][4];
         zero<1, D / 32>(c0);
         lift_chunks<2, D, KS0, NC>(L, x, [&](int q, const u32 (&a)[2][NC / 2][4]) {
@@ -979,8 +976,8 @@ NGF_FN void pair_rows(const Lifting& L, const Head& H, const Frame& f, const flo
         });
         float y[1][2];
         head_tail<1, D / 32>(H, c0, y);
-        const float d0 = finish_distance(y[0][0], f, ps + 3 * r0, qs + 3 * r0, euclid, false, raw);
-        const float d1 = finish_distance(y[0][1], f, ps + 3 * r1, qs + 3 * r1, euclid, false, raw);
+        const float d0 = finish_inside(y[0][0], f, ps + 3 * r0, qs + 3 * r0, euclid, false, raw, in0);
+        const float d1 = finish_inside(y[0][1], f, ps + 3 * r1, qs + 3 * r1, euclid, false, raw, in1);
         if (t == 0 && ok0)
             out[r0] = d0;
         if (t == 1 && ok1)
