@@ -144,14 +144,20 @@ def _atomic_savez(path: Path, **arrays):
 
 
 def ground_truth_cache(files, cache: Path, cfg: GenTrainConfig, rank: int = 0, world: int = 1, device=None,
-                       log=print) -> list[Path]:
+                       log=print, deadline: float | None = None) -> list[Path]:
     """Compute (rank's shard: file i with i % world == rank) and cache the ground truth of ``files``; returns the
-    cache path of every file (all ranks), whether or not it is computed yet (a barrier follows under DDP)."""
+    cache path of every file (all ranks), whether or not it is computed yet (a barrier follows under DDP).
+    ``deadline`` (a ``time.perf_counter()`` value): start no shape after it (the files left have no cache file)."""
+    cache = Path(cache)
     cache.mkdir(parents=True, exist_ok=True)
     out = [cache / f"{p.stem}_{_file_key(p, cfg)}.npz" for p in files]
     mine = [i for i in range(len(files)) if i % world == rank and not out[i].exists()]
     t0 = time.perf_counter()
     for n, i in enumerate(mine):
+        if deadline is not None and time.perf_counter() >= deadline:
+            log(f"[rank {rank}] ground truth stopped at its deadline: {n}/{len(mine)} shapes, "
+                f"{time.perf_counter() - t0:.1f} s")
+            break
         _atomic_savez(out[i], **shape_ground_truth(files[i], cfg, device))
         if (n + 1) % 10 == 0 or n + 1 == len(mine):
             log(f"[rank {rank}] ground truth {n + 1}/{len(mine)} shapes, {time.perf_counter() - t0:.1f} s")
@@ -368,7 +374,7 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
     t_start = time.perf_counter() - state["elapsed_s"]
     t_ck = time.perf_counter()
     budget = cfg.budget_seconds
-    run_loss, run_n = 0.0, 0
+    run_loss, run_n = torch.zeros((), device=dev), 0  # summed on the device: no host sync per step
     try:
         while True:
             step = state["step"]
@@ -395,10 +401,10 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
             state["step"] = step + 1
             if callback is not None:
                 callback(state["step"], float(loss.detach()))
-            run_loss += float(loss.detach())
+            run_loss += loss.detach()
             run_n += 1
             if state["step"] % cfg.log_every == 0 or state["step"] == 1:
-                mean = run_loss / run_n
+                mean = float(run_loss) / run_n
                 if distributed:
                     t = torch.tensor([mean], device=dev)
                     dist.all_reduce(t)
@@ -406,7 +412,7 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
                 state["loss_history"].append([state["step"], mean])
                 say(f"step {state['step']}/{cfg.steps}  loss {mean:.4f}  lr {lr:.2e}  "
                     f"{time.perf_counter() - t_start:.1f} s")
-                run_loss, run_n = 0.0, 0
+                run_loss, run_n = torch.zeros((), device=dev), 0
             if cfg.val_every and state["step"] % cfg.val_every == 0 and rank == 0 and len(val_data):
                 mre = validation_mre(net, val_data, cfg, dev)
                 state["val_history"].append([state["step"], mre])

@@ -1,0 +1,379 @@
+"""Issue 23 items 2 and 4: a generalizable model trained on our own shape collection, and its accuracy table.
+
+Two calls on one GPU machine (each self-contained, each under 10 minutes), then a merge anywhere:
+
+    python benchmarks/generalizable_collection.py run      --out $OUT          # collection, ground truth, train, eval
+    python benchmarks/generalizable_collection.py per-mesh --out $OUT          # 60 s per-mesh models, 3 + 3 shapes
+    python benchmarks/generalizable_collection.py merge RUN/eval.json PM/eval_per_mesh.json -o merged   # CPU
+
+``run`` (default: --time-limit 540 s from its start, so that it ends inside a 600 s call):
+1. collection: 540 shapes (``shapes.write_collection``, seed 0, 6 families x 90), split by family instance:
+   486 train, 54 unseen test (9 of each family); made in --gen-workers processes.
+2. ground truth, as the authors' data: per shape 256 source vertices x 512 targets from the project's solver
+   (``ngf.geodesic_distances``, default accuracy) and a 2,048-point cloud, for the training shapes and the first
+   --val-shapes test shapes (validation curve); one process on the GPU (4 processes were no faster on an H100).
+   It stops at a deadline that keeps --min-train-seconds of training; the shapes it reached are used, and the
+   summary says how many.
+3. training (``generalizable.train``, in this process): the rest of the time limit less --eval-reserve seconds,
+   16 shapes x (64 x 128 pairs) per step, AdamW lr 1e-2 cosine to 1e-4 over the time budget, random rotations
+   (--rotate, on by default), validation every 500 steps.
+4. evaluation (``benchmarks/generalizable_eval.py``, a subprocess): --eval-shapes unseen test shapes (by name:
+   the first of every family in turn) + the shared bunny, fandisk and spot (exact references): our model, the
+   released GenNeuroGF.pth and the heat method on the same pairs (8 sources x 512 targets per shape).
+Writes to --out: run.log, model.pt (the trained model; resumable, loadable by ``generalizable.load``),
+eval.json, table.txt, summary.json (phase times, counts, validation curve).
+
+``per-mesh``: regenerates the same test shapes (same seed: the same files) and evaluates the released network,
+the heat method and a per-mesh NeuroGF trained for --per-mesh-seconds (60) on each of the first --eval-shapes
+(3) unseen shapes and the 3 shared meshes (6 x ~70 s), on the same pairs as ``run`` (pairs depend on the shape's
+name only). Writes eval_per_mesh.json, table_per_mesh.txt, per_mesh.log. ``merge`` joins the two JSONs by shape
+into one table (and checks that the heat-method MRE of a shape is identical in both: the same pairs).
+
+Estimated times on one H100 (from measurements on an H100 with this code's predecessor, 2026-11-24, and this
+2-core CPU; see the dry-run notes in the report):
+- start-up, imports: ~10 s; collection: ~10 s with 16 workers (60 shapes took 5.5 s in one process there);
+- solver kernels compile, cold cache: ~9 s; ground truth: ~0.29-0.31 s per shape (20 shapes in 5.7 s, one
+  process; 4 processes on the one GPU gave the same rate), so ~160 s for 486 + 32 shapes;
+- training: ~280 s (the rest); a step of 16 shapes took 210 ms before the nearest-point fix, of which 175 ms was
+  the exact elementwise cdist that the fix removes, so ~35-50 ms now: ~6,000-8,000 steps;
+- evaluation: ~30-45 s (30 unseen + 3 shared meshes; conditioning compile ~3 s, then ~20 ms a shape);
+- ``per-mesh`` call: ~7-8 min (6 x 60 s of per-mesh training plus its ground truth and compile).
+CPU dry run (this 2-core machine): ``run --shapes 24 --device cpu --time-limit 400 --val-shapes 4 ...`` (see
+the report): ground truth ~11-17 s per shape at 256 sources on one core, so use --sources 32 there.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+T0 = time.perf_counter()
+
+
+def _ensure_importable():
+    """Run from a plain checkout (PYTHONPATH=the checkout, as on the GPU machine): the package's kernels live in
+    ``kernels/`` at the top and are mapped to ``neurogf_warp.kernels`` only by an install; link them if needed."""
+    sys.path.insert(0, str(ROOT))
+    os.environ["PYTHONPATH"] = str(ROOT) + (os.pathsep + os.environ["PYTHONPATH"] if os.environ.get("PYTHONPATH")
+                                            else "")
+    try:
+        import neurogf_warp.kernels  # noqa: F401
+    except ImportError:
+        link = ROOT / "neurogf_warp" / "kernels"
+        if not link.exists() and (ROOT / "kernels").is_dir():
+            link.symlink_to(Path("..") / "kernels")
+            print(f"linked {link} -> ../kernels (not installed: running from the checkout)", flush=True)
+
+
+class Log:
+    """Print with the time since start, and append to a log file."""
+
+    def __init__(self, path: Path):
+        self.f = open(path, "a", buffering=1)  # noqa: SIM115 (open for the whole run)
+
+    def __call__(self, msg: str):
+        line = f"[{time.perf_counter() - T0:7.1f} s] {msg}"
+        print(line, flush=True)
+        self.f.write(line + "\n")
+
+
+def find_shared(arg=None) -> Path | None:
+    env = arg or os.environ.get("NEUROGF_SHARED")
+    for base in ([Path(env)] if env else []) + [ROOT.parent / "shared", ROOT / "shared", ROOT / ".bench"]:
+        if (base / "meshes").is_dir():
+            return base.resolve()
+    return None
+
+
+def make_collection(a, log, shared) -> dict:
+    from neurogf_warp.generalizable.shapes import (
+        deform_sources_present,
+        write_collection,
+    )
+
+    meshes = str(shared / "meshes") if shared else None
+    if not deform_sources_present(meshes):
+        log(f"WARNING: {meshes} lacks the 'deformed' family's source meshes (cow, homer, rocker-arm, cheburashka, "
+            f"alligator, igea): those shapes become 'blob'. Copy all 9 shared meshes there for the full collection.")
+    t = time.perf_counter()
+    man = write_collection(a.work / "coll", n=a.shapes, seed=a.seed, test_every=a.test_every, shared_meshes=meshes,
+                           progress=False, workers=a.gen_workers)
+    fams: dict = {}
+    for s in man["shapes"].values():
+        key = f"{s['family']}/{s['split']}"
+        fams[key] = fams.get(key, 0) + 1
+    log(f"collection: {len(man['shapes'])} shapes in {time.perf_counter() - t:.1f} s ({a.gen_workers} workers): "
+        + ", ".join(f"{k} {v}" for k, v in sorted(fams.items())))
+    return {"shapes": len(man["shapes"]), "by_family_split": fams, "seconds": time.perf_counter() - t}
+
+
+def eval_order(files):
+    """Test files in round-robin family order (first of each family, then the second, ...), so that the first N
+    cover every family."""
+    by: dict = {}
+    for f in sorted(files):
+        by.setdefault(f.stem.split("_", 2)[-1], []).append(f)
+    out, k = [], 0
+    while any(k < len(v) for v in by.values()):
+        out += [v[k] for v in by.values() if k < len(v)]
+        k += 1
+    return out
+
+
+def run_eval(a, log, files, extra, json_name, table_name, log_name, timeout):
+    """benchmarks/generalizable_eval.py on a folder of links to ``files`` (its --collection) in a subprocess."""
+    sel = a.work / f"eval_{json_name.split('.')[0]}" / "test"
+    sel.mkdir(parents=True, exist_ok=True)
+    for f in files:
+        dst = sel / f.name
+        if not dst.exists():
+            dst.symlink_to(f)
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "generalizable_eval.py"), "--collection", str(sel.parent),
+           "--max-shapes", str(len(files)), "--device", a.device, "--json", str(a.out / json_name),
+           "--table", str(a.out / table_name)] + extra
+    log("eval: " + " ".join(cmd[1:]))
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    shared = find_shared(a.shared)
+    if shared:
+        env["NEUROGF_SHARED"] = str(shared)
+    t = time.perf_counter()
+    with open(a.out / log_name, "w") as lf:
+        try:
+            p = subprocess.run(cmd, stdout=lf, stderr=subprocess.STDOUT, timeout=timeout, cwd=str(a.work), env=env,
+                               check=False)
+            rc = p.returncode
+        except subprocess.TimeoutExpired:
+            rc = "timeout"
+    log(f"eval finished (exit {rc}) in {time.perf_counter() - t:.1f} s")
+    table = a.out / table_name
+    if table.exists():
+        for line in table.read_text().splitlines():
+            log("  " + line)
+    else:
+        log("eval wrote no table; the end of its log:")
+        for line in (a.out / log_name).read_text().splitlines()[-25:]:
+            log("  " + line)
+    return rc, time.perf_counter() - t
+
+
+def cmd_run(a) -> int:
+    a.out.mkdir(parents=True, exist_ok=True)
+    a.work.mkdir(parents=True, exist_ok=True)
+    log = Log(a.out / "run.log")
+    deadline = T0 + a.time_limit
+    summary = {"args": {k: str(v) for k, v in vars(a).items()}, "phases": {}}
+
+    def save():
+        tmp = a.out / "summary.json.tmp"
+        tmp.write_text(json.dumps(summary, indent=1))
+        os.replace(tmp, a.out / "summary.json")
+
+    shared = find_shared(a.shared)
+    log(f"shared data: {shared}; device {a.device}; time limit {a.time_limit:.0f} s")
+    import numpy as np  # noqa: F401
+    import torch
+    import warp as wp
+
+    wp.config.quiet = True
+    from neurogf_warp.generalizable.train import (
+        GenTrainConfig,
+        ground_truth_cache,
+        mesh_files,
+        train_generalizable,
+    )
+
+    summary["phases"]["collection"] = make_collection(a, log, shared)
+    save()
+    coll = a.work / "coll"
+    train_files, test_files = mesh_files(coll)
+    test_files = eval_order(test_files)
+    cfg = GenTrainConfig(sources=a.sources, targets=a.targets, cloud_points=a.cloud_points,
+                         shapes_per_step=a.shapes_per_step, step_sources=a.step_sources, step_targets=a.step_targets,
+                         steps=a.steps, lr=a.lr, rotate=a.rotate, val_every=a.val_every, val_shapes=a.val_shapes,
+                         checkpoint_seconds=60.0, log_every=a.log_every)
+    val_files = test_files[: a.val_shapes]
+
+    # ground truth: validation shapes first (few), then training shapes until the deadline
+    cache = a.work / "gt"
+    gt_deadline = deadline - a.eval_reserve - a.min_train_seconds
+    t = time.perf_counter()
+    if a.device.startswith("cuda"):
+        from neurogf_warp.ground_truth.geodesics import load_kernels
+
+        load_kernels(a.device)
+        log(f"solver kernels ready in {time.perf_counter() - t:.1f} s")
+    ground_truth_cache(val_files, cache, cfg, device=a.device, log=log)
+    ground_truth_cache(train_files, cache, cfg, device=a.device, log=log, deadline=gt_deadline)
+    from neurogf_warp.generalizable.train import _file_key
+
+    have = lambda fs: [f for f in fs if (cache / f"{f.stem}_{_file_key(f, cfg)}.npz").exists()]
+    tr_ok = have(train_files)
+    gt_s = time.perf_counter() - t
+    summary["phases"]["ground_truth"] = {"seconds": gt_s, "train_shapes": len(tr_ok), "of": len(train_files),
+                                         "val_shapes": len(have(val_files)),
+                                         "per_shape_s": gt_s / max(1, len(tr_ok) + len(val_files)),
+                                         "settings": f"{cfg.sources} sources x {cfg.targets} targets, "
+                                                     f"{cfg.cloud_points}-point cloud, solver defaults"}
+    log(f"ground truth: {len(tr_ok)}/{len(train_files)} training + {len(val_files)} validation shapes in "
+        f"{gt_s:.1f} s ({summary['phases']['ground_truth']['per_shape_s']:.2f} s per shape)")
+    if len(tr_ok) < len(train_files):
+        log(f"NOTE: ground truth reached only {len(tr_ok)} of {len(train_files)} training shapes by its deadline; "
+            f"training uses those")
+    save()
+
+    # training
+    budget = deadline - time.perf_counter() - a.eval_reserve - 10.0
+    if a.train_seconds:
+        budget = min(budget, a.train_seconds)
+    cfg.budget_seconds = max(10.0, budget)
+    log(f"training for {cfg.budget_seconds:.0f} s: {len(tr_ok)} shapes, {cfg.shapes_per_step} shapes x "
+        f"({cfg.step_sources} x {cfg.step_targets}) pairs per step, lr {cfg.lr:g} cosine to {cfg.lr_min:g} over "
+        f"the budget, rotate={cfg.rotate}")
+    t = time.perf_counter()
+    model = a.out / "model.pt"
+    ck = train_generalizable(coll, model, cfg, device=a.device, cache=cache, log=log, files=(tr_ok, val_files))
+    tr_s = time.perf_counter() - t
+    summary["phases"]["training"] = {"seconds": tr_s, "steps": ck["step"], "train_seconds": ck["elapsed_s"],
+                                     "s_per_step": ck["elapsed_s"] / max(1, ck["step"]),
+                                     "val_history": ck["val_history"], "loss_history": ck["loss_history"][-50:],
+                                     "config": ck["config"]}
+    log(f"training: {ck['step']} steps in {ck['elapsed_s']:.1f} s ({1e3 * ck['elapsed_s'] / max(1, ck['step']):.1f} "
+        f"ms per step); validation MRE " + ", ".join(f"{s}: {100 * v:.2f}%" for s, v in ck["val_history"]))
+    save()
+    del ck
+    if torch.cuda.is_available():
+        torch.cuda.empty_cache()
+
+    # evaluation
+    left = deadline - time.perf_counter()
+    extra = ["--model", str(model), "--sources", "8", "--targets", "512"]
+    rc, ev_s = run_eval(a, log, test_files[: a.eval_shapes], extra, "eval.json", "table.txt", "eval.log",
+                        timeout=max(30.0, left + 25.0))
+    summary["phases"]["evaluation"] = {"seconds": ev_s, "exit": rc, "unseen_shapes": min(a.eval_shapes,
+                                                                                        len(test_files))}
+    if (a.out / "eval.json").exists():
+        summary["eval_summary"] = json.loads((a.out / "eval.json").read_text())["summary"]
+    summary["total_seconds"] = time.perf_counter() - T0
+    save()
+    log(f"done in {summary['total_seconds']:.1f} s; files in {a.out}: "
+        + ", ".join(sorted(p.name for p in a.out.iterdir())))
+    return 0 if rc == 0 else 1
+
+
+def cmd_per_mesh(a) -> int:
+    a.out.mkdir(parents=True, exist_ok=True)
+    a.work.mkdir(parents=True, exist_ok=True)
+    log = Log(a.out / "per_mesh.log")
+    shared = find_shared(a.shared)
+    log(f"shared data: {shared}; device {a.device}")
+    from neurogf_warp.generalizable.shapes import (
+        deform_sources_present,
+        is_test,
+        write_collection,
+    )
+
+    meshes = str(shared / "meshes") if shared else None
+    if not deform_sources_present(meshes):
+        log("WARNING: no 'deformed' family sources in the shared meshes: those shapes become 'blob' (as in run?)")
+    # only the test shapes (same seed and rule: the same files as in `run`), then the same order as `run`
+    coll = a.work / "coll_pm"
+    for i in range(a.shapes):
+        if is_test(i, a.test_every):
+            write_collection(coll, n=i + 1, seed=a.seed, test_every=a.test_every, shared_meshes=meshes, start=i,
+                             progress=False)
+    files = eval_order(sorted((coll / "test").glob("*.obj")))[: a.eval_shapes]
+    log("per-mesh shapes: " + ", ".join(f.name for f in files) + " + the shared meshes")
+    extra = ["--sources", "8", "--targets", "512", "--per-mesh-seconds", str(a.per_mesh_seconds),
+             "--work", str(a.work / "per_mesh_models")]
+    rc, _ = run_eval(a, log, files, extra, "eval_per_mesh.json", "table_per_mesh.txt", "eval_per_mesh.log",
+                     timeout=a.time_limit - (time.perf_counter() - T0))
+    return 0 if rc == 0 else 1
+
+
+def cmd_merge(a) -> int:
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from generalizable_eval import mre_table
+
+    base = json.loads(Path(a.run_json).read_text())
+    extra = json.loads(Path(a.per_mesh_json).read_text())
+    by = {(r["group"], r["shape"]): r for r in extra["rows"]}
+    rows, notes = [], []
+    for r in base["rows"]:
+        r = dict(r)
+        e = by.get((r["group"], r["shape"]))
+        if e is not None:
+            for k in ("per_mesh", "per_mesh_train_s"):
+                if k in e:
+                    r[k] = e[k]
+            if "heat" in r and "heat" in e and abs(r["heat"] - e["heat"]) > 1e-9 * max(1.0, r["heat"]):
+                notes.append(f"{r['shape']}: heat MRE differs between the calls ({r['heat']} vs {e['heat']}): "
+                             f"not the same pairs")
+        rows.append(r)
+    cols = [c for c in ("trained", "released", "heat", "per_mesh") if any(c in r for r in rows)]
+    text, summary = mre_table(rows, cols, f"MRE on the same pairs (merged: {a.run_json} + {a.per_mesh_json}; "
+                                          f"device {base.get('device')})")
+    text += "".join("\nNOTE: " + n for n in notes)
+    print(text)
+    out = Path(a.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps({"rows": rows, "summary": summary, "notes": notes}, indent=1))
+    out.with_suffix(".txt").write_text(text + "\n")
+    return 1 if notes else 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    for name in ("run", "per-mesh"):
+        p = sub.add_parser(name)
+        p.add_argument("--out", type=Path, default=Path(os.environ.get("OUT", "out")))
+        p.add_argument("--work", type=Path, default=Path("/tmp/gencoll"), help="scratch: collection, ground truth")
+        p.add_argument("--shared", default=None, help="shared data folder (meshes/, reference/, checkpoints/); "
+                                                      "default $NEUROGF_SHARED, ../shared, shared, .bench")
+        p.add_argument("--device", default="cuda:0")
+        p.add_argument("--shapes", type=int, default=540)
+        p.add_argument("--seed", type=int, default=0)
+        p.add_argument("--test-every", type=int, default=10)
+        p.add_argument("--time-limit", type=float, default=540.0 if name == "run" else 560.0,
+                       help="seconds from start to the end of the evaluation")
+    r = sub.choices["run"]
+    r.add_argument("--gen-workers", type=int, default=min(16, os.cpu_count() or 1))
+    r.add_argument("--sources", type=int, default=256)
+    r.add_argument("--targets", type=int, default=512)
+    r.add_argument("--cloud-points", type=int, default=2048)
+    r.add_argument("--shapes-per-step", type=int, default=16)
+    r.add_argument("--step-sources", type=int, default=64)
+    r.add_argument("--step-targets", type=int, default=128)
+    r.add_argument("--steps", type=int, default=20000, help="cosine length in steps, if the time budget lasts")
+    r.add_argument("--lr", type=float, default=1e-2)
+    r.add_argument("--rotate", type=lambda v: v.lower() in ("1", "true", "yes", "on"), default=True)
+    r.add_argument("--val-every", type=int, default=500)
+    r.add_argument("--val-shapes", type=int, default=32)
+    r.add_argument("--log-every", type=int, default=250)
+    r.add_argument("--train-seconds", type=float, default=None, help="cap on training time (default: what is left)")
+    r.add_argument("--min-train-seconds", type=float, default=200.0,
+                   help="ground truth stops early enough to leave this much training")
+    r.add_argument("--eval-reserve", type=float, default=60.0, help="seconds kept for the evaluation")
+    r.add_argument("--eval-shapes", type=int, default=30)
+    pm = sub.choices["per-mesh"]
+    pm.add_argument("--eval-shapes", type=int, default=3)
+    pm.add_argument("--per-mesh-seconds", type=float, default=60.0)
+    m = sub.add_parser("merge")
+    m.add_argument("run_json")
+    m.add_argument("per_mesh_json")
+    m.add_argument("-o", "--output", default="merged", help="writes OUTPUT.json and OUTPUT.txt")
+    a = ap.parse_args(argv)
+    if a.cmd == "merge":
+        return cmd_merge(a)
+    a.out, a.work = a.out.resolve(), a.work.resolve()
+    _ensure_importable()
+    return cmd_run(a) if a.cmd == "run" else cmd_per_mesh(a)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
