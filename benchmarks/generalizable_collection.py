@@ -6,6 +6,19 @@ Two calls on one GPU machine (each self-contained, each under 10 minutes), then 
     python benchmarks/generalizable_collection.py per-mesh --out $OUT          # 60 s per-mesh models, 3 + 3 shapes
     python benchmarks/generalizable_collection.py merge RUN/eval.json PM/eval_per_mesh.json -o merged   # CPU
 
+On the GPU machine (shared/gpu/README.md: Warp travels in two parts; the checkout is not installed there, so
+this script links ``neurogf_warp/kernels`` itself): first, here, ``python benchmarks/generalizable_collection.py
+pack-shared ../shared .benchgen`` (12 MiB: all 9 meshes, since 6 are the 'deformed' family's sources, 3 exact
+references, GenNeuroGF.pth; git-ignore it) so that it fits in one call's 64 MiB beside Warp's second part, then
+- call 1, carry [.gpu/warp.so.xz.part-aa, .gpu/on-device]: ``bash .gpu/on-device stage``
+- call 2 (at once), carry [.gpu/warp.so.xz.part-ab, .gpu/warp-rest.tar.xz, .gpu/wheels, .gpu/on-device,
+  .gpu/SHA256SUMS, .benchgen], timeout 600: ``bash .gpu/on-device stage >/dev/null && bash .gpu/on-device install
+  && source .gpu/on-device env && NEUROGF_SHARED=.benchgen python3 benchmarks/generalizable_collection.py run
+  --out $OUT``
+- call 3 (within 30 s), carry [.gpu/on-device, .benchgen], timeout 600: ``source .gpu/on-device env &&
+  NEUROGF_SHARED=.benchgen python3 benchmarks/generalizable_collection.py per-mesh --out $OUT``
+- here: ``python benchmarks/generalizable_collection.py merge CALL2/eval.json CALL3/eval_per_mesh.json -o merged``
+
 ``run`` (default: --time-limit 540 s from its start, so that it ends inside a 600 s call):
 1. collection: 540 shapes (``shapes.write_collection``, seed 0, 6 families x 90), split by family instance:
    486 train, 54 unseen test (9 of each family); made in --gen-workers processes.
@@ -29,17 +42,31 @@ the heat method and a per-mesh NeuroGF trained for --per-mesh-seconds (60) on ea
 name only). Writes eval_per_mesh.json, table_per_mesh.txt, per_mesh.log. ``merge`` joins the two JSONs by shape
 into one table (and checks that the heat-method MRE of a shape is identical in both: the same pairs).
 
-Estimated times on one H100 (from measurements on an H100 with this code's predecessor, 2026-11-24, and this
-2-core CPU; see the dry-run notes in the report):
-- start-up, imports: ~10 s; collection: ~10 s with 16 workers (60 shapes took 5.5 s in one process there);
-- solver kernels compile, cold cache: ~9 s; ground truth: ~0.29-0.31 s per shape (20 shapes in 5.7 s, one
-  process; 4 processes on the one GPU gave the same rate), so ~160 s for 486 + 32 shapes;
-- training: ~280 s (the rest); a step of 16 shapes took 210 ms before the nearest-point fix, of which 175 ms was
-  the exact elementwise cdist that the fix removes, so ~35-50 ms now: ~6,000-8,000 steps;
-- evaluation: ~30-45 s (30 unseen + 3 shared meshes; conditioning compile ~3 s, then ~20 ms a shape);
-- ``per-mesh`` call: ~7-8 min (6 x 60 s of per-mesh training plus its ground truth and compile).
-CPU dry run (this 2-core machine): ``run --shapes 24 --device cpu --time-limit 400 --val-shapes 4 ...`` (see
-the report): ground truth ~11-17 s per shape at 256 sources on one core, so use --sources 32 there.
+Estimated times on one H100 (measured there 2026-11-24 with the predecessor code plus the nearest-point fix as a
+patch, since this branch's files cannot travel to the device from a helper's worktree; and on this 2-core CPU):
+- start-up and imports ~10 s; collection ~5-10 s (16 workers; 120 shapes took 2.7 s with 2 workers on this CPU);
+- solver kernels, cold cache: ~9 s; ground truth: 0.30 s per shape in one process (20 shapes 5.7 s, 220 shapes
+  66.8 s; 4 processes on the one GPU were no faster), so ~155 s for 486 training + 32 validation shapes;
+- training: the rest, ~270 s. A step of 16 shapes x 8,192 pairs: 54 ms on the GPU alone (210 ms before the
+  nearest-point fix, with a quarter of the pairs), 70 ms in the predecessor's loop (a host sync every step and the
+  batch built in between; this loop overlaps them), 86 ms with rotations: so ~3,500-5,000 steps;
+- evaluation: ~30-45 s (30 unseen + 3 shared meshes; first conditioning ~3.3 s, then ~20 ms a shape);
+- total ~500-540 s (--time-limit 540 holds it: the ground truth stops at a deadline, training gets the rest less
+  --eval-reserve, the evaluation is killed 25 s after the limit and keeps the rows it finished);
+- ``per-mesh`` call: ~7-8 min (6 x 60 s of per-mesh training, the first maybe ~80 s with torch.compile's first
+  compilation, plus ground truth and heat for 6 shapes; --time-limit 560 keeps finished rows if it runs over).
+Quality to expect (same H100 runs, 198 training shapes, 100 s of training, 22 unseen shapes, step-based cosine cut
+short by the budget): validation MRE 8.4% -> 5.1% -> 4.8% -> 3.7% -> final 4.2% without rotations (1,428 steps);
+6.1% -> 4.5% -> 5.1% -> 4.9% -> final 3.7% with rotations (1,157 steps). Released network on the same kind of
+shapes: 3.7-8.1% (CPU dry run below); heat method 1.1-2.6%.
+
+CPU dry run (this 2-core machine, 2026-11-24; ~5 min): ``run --device cpu --shapes 24 --test-every 4
+--gen-workers 2 --sources 32 --targets 128 --shapes-per-step 2 --step-sources 8 --step-targets 16 --val-every 50
+--val-shapes 4 --log-every 50 --time-limit 420 --min-train-seconds 60 --eval-reserve 150 --eval-shapes 3``:
+collection 1.3 s, ground truth 2.4 s per shape at 32 sources (one core: ~11-17 s per shape at 256), 113 steps in
+207 s (1.8 s per step), validation 10.9% -> 7.6% -> 7.1%, evaluation 41 s; then ``per-mesh --device cpu --shapes
+24 --test-every 4 --eval-shapes 1 --per-mesh-seconds 10`` in 54 s (same released/heat MRE on the shared shape as
+the run: the same pairs), and ``merge``.
 """
 from __future__ import annotations
 
@@ -151,6 +178,18 @@ def run_eval(a, log, files, extra, json_name, table_name, log_name, timeout):
             rc = "timeout"
     log(f"eval finished (exit {rc}) in {time.perf_counter() - t:.1f} s")
     table = a.out / table_name
+    js = a.out / json_name
+    if not table.exists() and js.exists():  # stopped early: the table of the rows it finished
+        sys.path.insert(0, str(ROOT / "benchmarks"))
+        from generalizable_eval import mre_table
+
+        done = json.loads(js.read_text())
+        rows = done["rows"]
+        cols = [c for c in ("trained", "released", "heat", "per_mesh") if any(c in r for r in rows)]
+        text, summary = mre_table(rows, cols, f"MRE on the same pairs (PARTIAL: {len(rows)} shapes finished)")
+        done["summary"] = summary
+        js.write_text(json.dumps(done, indent=1))
+        table.write_text(text + "\n")
     if table.exists():
         for line in table.read_text().splitlines():
             log("  " + line)
@@ -326,6 +365,30 @@ def cmd_merge(a) -> int:
     return 1 if notes else 0
 
 
+def cmd_pack_shared(a) -> int:
+    """Copy what these calls read from the shared data (all 9 meshes: 3 to evaluate, 6 as 'deformed' sources;
+    the 3 exact references; GenNeuroGF.pth), ~12.6 MB, so that it fits beside Warp's parts in one call's carry."""
+    import shutil
+
+    src, dst = Path(a.src), Path(a.dst)
+    need = [src / "meshes" / n for n in sorted(p.name for p in (src / "meshes").iterdir()
+                                                if p.suffix in (".obj", ".ply"))]
+    need += [src / "reference" / "exact" / f"{n}.npz" for n in ("stanford-bunny", "fandisk", "spot")]
+    need += [src / "checkpoints" / "official" / "GenNeuroGF.pth"]
+    missing = [str(p) for p in need if not p.is_file()]
+    if missing:
+        print("error: missing " + ", ".join(missing), file=sys.stderr)
+        return 2
+    total = 0
+    for p in need:
+        q = dst / p.relative_to(src)
+        q.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(p, q)
+        total += q.stat().st_size
+    print(f"{len(need)} files, {total / 2**20:.1f} MiB in {dst}")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -356,13 +419,16 @@ def main(argv=None) -> int:
     r.add_argument("--val-shapes", type=int, default=32)
     r.add_argument("--log-every", type=int, default=250)
     r.add_argument("--train-seconds", type=float, default=None, help="cap on training time (default: what is left)")
-    r.add_argument("--min-train-seconds", type=float, default=200.0,
+    r.add_argument("--min-train-seconds", type=float, default=180.0,
                    help="ground truth stops early enough to leave this much training")
-    r.add_argument("--eval-reserve", type=float, default=60.0, help="seconds kept for the evaluation")
+    r.add_argument("--eval-reserve", type=float, default=75.0, help="seconds kept for the evaluation")
     r.add_argument("--eval-shapes", type=int, default=30)
     pm = sub.choices["per-mesh"]
     pm.add_argument("--eval-shapes", type=int, default=3)
     pm.add_argument("--per-mesh-seconds", type=float, default=60.0)
+    ps = sub.add_parser("pack-shared", help="copy the shared files these calls need into a small folder")
+    ps.add_argument("src", help="the shared data folder (meshes/, reference/, checkpoints/)")
+    ps.add_argument("dst")
     m = sub.add_parser("merge")
     m.add_argument("run_json")
     m.add_argument("per_mesh_json")
@@ -370,6 +436,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.cmd == "merge":
         return cmd_merge(a)
+    if a.cmd == "pack-shared":
+        return cmd_pack_shared(a)
     a.out, a.work = a.out.resolve(), a.work.resolve()
     _ensure_importable()
     return cmd_run(a) if a.cmd == "run" else cmd_per_mesh(a)

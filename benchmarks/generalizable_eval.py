@@ -191,6 +191,9 @@ def main(argv=None):
                 row["per_mesh_error"] = f"{type(e).__name__}: {e}"
         rows.append(row)
         print(json.dumps(row), flush=True)
+        if a.json:  # rows so far (a run stopped by a time limit keeps them); the summary comes at the end
+            Path(a.json).write_text(json.dumps({"rows": rows, "partial": True, "device": str(dev),
+                                                "args": vars(a)}, indent=1))
 
     cols = list(methods) + ([] if a.no_heat else ["heat"]) + (["per_mesh"] if a.per_mesh_seconds else [])
     text, summary = mre_table(rows, cols, f"MRE on the same pairs ({datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC, "

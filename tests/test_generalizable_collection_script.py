@@ -9,8 +9,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-import generalizable_collection as gc  # noqa: E402
-import generalizable_eval as ge  # noqa: E402
+import generalizable_collection as gc
+import generalizable_eval as ge
 
 
 def test_eval_order_round_robin_over_families():

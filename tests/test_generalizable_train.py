@@ -154,8 +154,8 @@ def test_rotation_augmentation_keeps_ratios_and_frame(collection, gt_cache):
     cfg = GenTrainConfig(**TINY)
     train, _ = mesh_files(collection)
     data = ShapeData(ground_truth_cache(train[:1], gt_cache, cfg, log=lambda s: None))
-    C0, S0, T0, R0, _ = data.batch([0], 4, 8, np.random.default_rng(3))
-    C1, S1, T1, R1, _ = data.batch([0], 4, 8, np.random.default_rng(3), rotate=True)
+    _, S0, _, R0, _ = data.batch([0], 4, 8, np.random.default_rng(3))
+    C1, S1, _, R1, _ = data.batch([0], 4, 8, np.random.default_rng(3), rotate=True)
     np.testing.assert_allclose(R1, R0, rtol=1e-4)
     assert not np.allclose(S1, S0, atol=1e-3)
     # the turned shape is in its own unit-sphere frame again: cloud points inside, close to radius 1 at most
