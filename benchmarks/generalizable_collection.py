@@ -23,8 +23,9 @@ references, GenNeuroGF.pth; git-ignore it) so that it fits in one call's 64 MiB 
 1. collection: 540 shapes (``shapes.write_collection``, seed 0, 6 families x 90), split by family instance:
    486 train, 54 unseen test (9 of each family); made in --gen-workers processes.
 2. ground truth, as the authors' data: per shape 256 source vertices x 512 targets from the project's solver
-   (``ngf.geodesic_distances``, default accuracy) and a 2,048-point cloud, for the training shapes and the first
-   --val-shapes test shapes (validation curve); one process on the GPU (4 processes were no faster on an H100).
+   (``ngf.geodesic_distances``, default accuracy) and a 2,048-point cloud, for the training shapes and up to
+   --val-shapes test shapes that the evaluation does not use (the 24 after its 30: the validation curve, which
+   picks nothing); one process on the GPU (4 processes were no faster on an H100).
    It stops at a deadline that keeps --min-train-seconds of training; the shapes it reached are used, and the
    summary says how many.
 3. training (``generalizable.train``, in this process): the rest of the time limit less --eval-reserve seconds,
@@ -235,17 +236,24 @@ def cmd_run(a) -> int:
                          shapes_per_step=a.shapes_per_step, step_sources=a.step_sources, step_targets=a.step_targets,
                          steps=a.steps, lr=a.lr, rotate=a.rotate, val_every=a.val_every, val_shapes=a.val_shapes,
                          checkpoint_seconds=60.0, log_every=a.log_every)
-    val_files = test_files[: a.val_shapes]
+    # validation (the curve only: no model is picked by it) on test shapes the evaluation does not use
+    val_files = test_files[a.eval_shapes:][: a.val_shapes] or test_files[: a.val_shapes]
+    log(f"{len(train_files)} training shapes; {len(test_files)} unseen: {min(a.eval_shapes, len(test_files))} "
+        f"evaluated, {len(val_files)} for the validation curve"
+        + (" (the same ones: too few test shapes)" if len(test_files) <= a.eval_shapes else ""))
 
     # ground truth: validation shapes first (few), then training shapes until the deadline
     cache = a.work / "gt"
     gt_deadline = deadline - a.eval_reserve - a.min_train_seconds
     t = time.perf_counter()
-    if a.device.startswith("cuda"):
+    if a.device.startswith("cuda"):  # compile once, timed apart (the first shape would pay it otherwise)
         from neurogf_warp.ground_truth.geodesics import load_kernels
 
-        load_kernels(a.device)
-        log(f"solver kernels ready in {time.perf_counter() - t:.1f} s")
+        try:
+            load_kernels(a.device)
+            log(f"solver kernels ready in {time.perf_counter() - t:.1f} s")
+        except Exception as e:  # noqa: BLE001 - only a warm-up: the first solve compiles them anyway
+            log(f"solver kernel warm-up failed ({type(e).__name__}: {e}); the first shape compiles them")
     ground_truth_cache(val_files, cache, cfg, device=a.device, log=log)
     ground_truth_cache(train_files, cache, cfg, device=a.device, log=log, deadline=gt_deadline)
     from neurogf_warp.generalizable.train import _file_key
