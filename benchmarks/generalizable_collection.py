@@ -7,16 +7,17 @@ Two calls on one GPU machine (each self-contained, each under 10 minutes), then 
     python benchmarks/generalizable_collection.py merge RUN/eval.json PM/eval_per_mesh.json -o merged   # CPU
 
 On the GPU machine (shared/gpu/README.md: Warp travels in two parts; the checkout is not installed there, so
-this script links ``neurogf_warp/kernels`` itself): first, here, ``python benchmarks/generalizable_collection.py
-pack-shared ../shared .benchgen`` (12 MiB: all 9 meshes, since 6 are the 'deformed' family's sources, 3 exact
-references, GenNeuroGF.pth; git-ignore it) so that it fits in one call's 64 MiB beside Warp's second part, then
+this script links ``neurogf_warp/kernels`` itself): first, here, in the checkout, ``python
+benchmarks/generalizable_collection.py pack-shared ../shared .gpu/genshared.tar.xz`` (5.0 MiB: all 9 meshes,
+since 6 are the 'deformed' family's sources, the 3 exact references and GenNeuroGF.pth; as a folder it would be
+12 MiB, and call 2 must stay under 64 MiB beside Warp's second part: ~55 MiB with the archive), then
 - call 1, carry [.gpu/warp.so.xz.part-aa, .gpu/on-device]: ``bash .gpu/on-device stage``
 - call 2 (at once), carry [.gpu/warp.so.xz.part-ab, .gpu/warp-rest.tar.xz, .gpu/wheels, .gpu/on-device,
-  .gpu/SHA256SUMS, .benchgen], timeout 600: ``bash .gpu/on-device stage >/dev/null && bash .gpu/on-device install
-  && source .gpu/on-device env && NEUROGF_SHARED=.benchgen python3 benchmarks/generalizable_collection.py run
-  --out $OUT``
-- call 3 (within 30 s), carry [.gpu/on-device, .benchgen], timeout 600: ``source .gpu/on-device env &&
-  NEUROGF_SHARED=.benchgen python3 benchmarks/generalizable_collection.py per-mesh --out $OUT``
+  .gpu/SHA256SUMS, .gpu/genshared.tar.xz], timeout 600: ``bash .gpu/on-device stage >/dev/null && bash
+  .gpu/on-device install && source .gpu/on-device env && NEUROGF_SHARED=.gpu/genshared.tar.xz python3
+  benchmarks/generalizable_collection.py run --out $OUT``
+- call 3 (within 30 s), carry [.gpu/on-device, .gpu/genshared.tar.xz], timeout 600: ``source .gpu/on-device env
+  && NEUROGF_SHARED=.gpu/genshared.tar.xz python3 benchmarks/generalizable_collection.py per-mesh --out $OUT``
 - here: ``python benchmarks/generalizable_collection.py merge CALL2/eval.json CALL3/eval_per_mesh.json -o merged``
 
 ``run`` (default: --time-limit 540 s from its start, so that it ends inside a 600 s call):
@@ -108,6 +109,24 @@ class Log:
         line = f"[{time.perf_counter() - T0:7.1f} s] {msg}"
         print(line, flush=True)
         self.f.write(line + "\n")
+
+
+def unpack_shared(arg, work: Path):
+    """A ``pack-shared`` archive (``*.tar.xz``, given as --shared or $NEUROGF_SHARED) is unpacked once into
+    ``work/shared``; returns the folder to use (or ``arg`` unchanged when it is not such a file)."""
+    arg = arg or os.environ.get("NEUROGF_SHARED")
+    if not arg or not str(arg).endswith(".tar.xz") or not Path(arg).is_file():
+        return arg
+    import tarfile
+
+    dst = work / "shared"
+    if not (dst / "meshes").is_dir():
+        tmp = work / "shared.tmp"
+        tmp.mkdir(parents=True, exist_ok=True)
+        with tarfile.open(arg, "r:xz") as tf:
+            tf.extractall(tmp, filter="data")
+        os.replace(tmp, dst)
+    return str(dst)
 
 
 def find_shared(arg=None) -> Path | None:
@@ -375,8 +394,12 @@ def cmd_merge(a) -> int:
 
 def cmd_pack_shared(a) -> int:
     """Copy what these calls read from the shared data (all 9 meshes: 3 to evaluate, 6 as 'deformed' sources;
-    the 3 exact references; GenNeuroGF.pth), ~12.6 MB, so that it fits beside Warp's parts in one call's carry."""
+    the 3 exact references; GenNeuroGF.pth), 12.0 MiB, so that it fits beside Warp's parts in one call's carry;
+    a destination ending in ``.tar.xz`` gets an archive of them instead (5.0 MiB), which --shared and
+    $NEUROGF_SHARED accept as they are."""
     import shutil
+    import tarfile
+    import tempfile
 
     src, dst = Path(a.src), Path(a.dst)
     need = [src / "meshes" / n for n in sorted(p.name for p in (src / "meshes").iterdir()
@@ -387,13 +410,23 @@ def cmd_pack_shared(a) -> int:
     if missing:
         print("error: missing " + ", ".join(missing), file=sys.stderr)
         return 2
+    archive = str(dst).endswith(".tar.xz")
+    folder = Path(tempfile.mkdtemp(prefix="pack_shared_")) if archive else dst
     total = 0
     for p in need:
-        q = dst / p.relative_to(src)
+        q = folder / p.relative_to(src)
         q.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(p, q)
         total += q.stat().st_size
-    print(f"{len(need)} files, {total / 2**20:.1f} MiB in {dst}")
+    if archive:
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        with tarfile.open(dst, "w:xz") as tf:
+            for name in ("meshes", "reference", "checkpoints"):
+                tf.add(folder / name, arcname=name)
+        shutil.rmtree(folder)
+        print(f"{len(need)} files ({total / 2**20:.1f} MiB) in {dst}: {dst.stat().st_size / 2**20:.1f} MiB")
+    else:
+        print(f"{len(need)} files, {total / 2**20:.1f} MiB in {dst}")
     return 0
 
 
@@ -404,8 +437,9 @@ def main(argv=None) -> int:
         p = sub.add_parser(name)
         p.add_argument("--out", type=Path, default=Path(os.environ.get("OUT", "out")))
         p.add_argument("--work", type=Path, default=Path("/tmp/gencoll"), help="scratch: collection, ground truth")
-        p.add_argument("--shared", default=None, help="shared data folder (meshes/, reference/, checkpoints/); "
-                                                      "default $NEUROGF_SHARED, ../shared, shared, .bench")
+        p.add_argument("--shared", default=None, help="shared data folder (meshes/, reference/, checkpoints/) or a "
+                                                      "pack-shared .tar.xz; default $NEUROGF_SHARED, ../shared, "
+                                                      "shared, .bench")
         p.add_argument("--device", default="cuda:0")
         p.add_argument("--shapes", type=int, default=540)
         p.add_argument("--seed", type=int, default=0)
@@ -447,6 +481,8 @@ def main(argv=None) -> int:
     if a.cmd == "pack-shared":
         return cmd_pack_shared(a)
     a.out, a.work = a.out.resolve(), a.work.resolve()
+    a.work.mkdir(parents=True, exist_ok=True)
+    a.shared = unpack_shared(a.shared, a.work)
     _ensure_importable()
     return cmd_run(a) if a.cmd == "run" else cmd_per_mesh(a)
 

@@ -49,3 +49,21 @@ def test_table_and_merge(tmp_path, capsys):
     (tmp_path / "b.json").write_text(json.dumps(pm))
     assert gc.main(["merge", str(tmp_path / "a.json"), str(tmp_path / "b.json"), "-o", str(tmp_path / "m")]) == 1
     assert "not the same pairs" in capsys.readouterr().out
+
+
+def test_pack_shared_archive_and_unpack(tmp_path, monkeypatch):
+    src = tmp_path / "shared"
+    for rel in ["meshes/a.obj", "meshes/b.ply", "meshes/manifest.json", "reference/exact/stanford-bunny.npz",
+                "reference/exact/fandisk.npz", "reference/exact/spot.npz", "reference/exact/cow.npz",
+                "checkpoints/official/GenNeuroGF.pth"]:
+        (src / rel).parent.mkdir(parents=True, exist_ok=True)
+        (src / rel).write_text(rel)
+    assert gc.main(["pack-shared", str(src), str(tmp_path / "p.tar.xz")]) == 0
+    monkeypatch.setenv("NEUROGF_SHARED", str(tmp_path / "p.tar.xz"))
+    got = Path(gc.unpack_shared(None, tmp_path / "work"))
+    assert sorted(str(p.relative_to(got)) for p in got.rglob("*") if p.is_file()) == sorted(
+        ["meshes/a.obj", "meshes/b.ply", "reference/exact/stanford-bunny.npz", "reference/exact/fandisk.npz",
+         "reference/exact/spot.npz", "checkpoints/official/GenNeuroGF.pth"])
+    assert (got / "meshes" / "a.obj").read_text() == "meshes/a.obj"
+    assert gc.find_shared(str(got)) == got.resolve()
+    assert gc.unpack_shared(str(src), tmp_path / "work") == str(src)  # a folder is used as it is
