@@ -135,3 +135,38 @@ def test_interrupt_writes_checkpoint_and_resumes(collection, tmp_path, gt_cache)
     ck = train_generalizable(collection, out, cfg, resume=True, device="cpu", log=lambda s: None,
                              callback=lambda s, l: seen.append(s), cache=gt_cache)
     assert seen == [6, 7, 8] and ck["step"] == 8
+
+
+def test_budget_ends_the_cosine_at_the_low_lr(collection, tmp_path, gt_cache):
+    """With a time budget shorter than the steps need, the schedule follows the clock: the last steps run near
+    lr_min (before, a budgeted run stopped at whatever lr its step count had reached, here the full 1e-2)."""
+    lines = []
+    cfg = GenTrainConfig(steps=10**6, budget_seconds=3.0, **dict(TINY, log_every=1, val_every=0))
+    ck = train_generalizable(collection, tmp_path / "m.pt", cfg, device="cpu", log=lines.append, cache=gt_cache)
+    lrs = [float(s.split("lr ")[1].split()[0]) for s in lines if s.startswith("step ") and " lr " in s]
+    assert ck["step"] < cfg.steps and len(lrs) >= 3
+    assert lrs[0] > 0.9 * cfg.lr and lrs[-1] < 0.1 * cfg.lr
+
+
+def test_rotation_augmentation_keeps_ratios_and_frame(collection, gt_cache):
+    from neurogf_warp.generalizable.train import ShapeData, ground_truth_cache
+
+    cfg = GenTrainConfig(**TINY)
+    train, _ = mesh_files(collection)
+    data = ShapeData(ground_truth_cache(train[:1], gt_cache, cfg, log=lambda s: None))
+    _, S0, _, R0, _ = data.batch([0], 4, 8, np.random.default_rng(3))
+    C1, S1, _, R1, _ = data.batch([0], 4, 8, np.random.default_rng(3), rotate=True)
+    np.testing.assert_allclose(R1, R0, rtol=1e-4)
+    assert not np.allclose(S1, S0, atol=1e-3)
+    # the turned shape is in its own unit-sphere frame again: cloud points inside, close to radius 1 at most
+    assert np.linalg.norm(C1[0], axis=1).max() <= 1.0 + 1e-4
+
+
+def test_files_override_and_validation_ground_truth_only_for_used_shapes(collection, tmp_path):
+    train, val = mesh_files(collection)
+    cache = tmp_path / "gt"
+    cfg = GenTrainConfig(steps=2, **dict(TINY, val_shapes=0))
+    ck = train_generalizable(collection, tmp_path / "m.pt", cfg, device="cpu", log=lambda s: None, cache=cache,
+                             files=(train[:3], val))
+    assert ck["trained_on"]["n_train"] == 3
+    assert len(list(cache.glob("*.npz"))) == 3  # no ground truth for the held-out shape validation does not use

@@ -44,8 +44,9 @@ def cli_shapes(argv) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--test-every", type=int, default=10)
     ap.add_argument("--shared-meshes", default=None)
+    ap.add_argument("--workers", type=int, default=1, help="processes making shapes (same files for any count)")
     a = ap.parse_args(argv)
-    write_collection(a.folder, a.n, a.seed, a.test_every, a.shared_meshes)
+    write_collection(a.folder, a.n, a.seed, a.test_every, a.shared_meshes, workers=a.workers)
     return 0
 
 

@@ -5,9 +5,12 @@
     shapes.write_collection("coll/", n=600)              # coll/train/*.obj, coll/test/*.obj, coll/manifest.json
 
 Shape i of a collection with seed s is fully determined by (s, i): its family is ``FAMILIES[i % len(FAMILIES)]``
-and its random numbers come from ``np.random.default_rng([s, i])``. The split is by number too: shape i is a test
-shape when ``i % test_every == test_every - 1`` (default 10: 10% test), so test shapes are unseen instances of
-the training families.
+and its random numbers come from ``np.random.default_rng([s, i])``. The split is by number too: shape i is the
+``i // len(FAMILIES)``-th instance of its family and a test shape when that instance number is
+``test_every - 1`` modulo ``test_every`` (default 10: 10% test, of every family alike), so test shapes are
+unseen instances of the training families. (A first rule, ``i % test_every == test_every - 1``, put only 3 of the
+6 families in the test split at test_every = 10, since 10 and 6 share the factor 2; ``manifest.json`` records the
+rule as ``split``.)
 
 Families (all closed, one connected component, 2K-10K vertices, in roughly unit size):
 - ``blob``: an icosphere (2,562 vertices) displaced radially by a random smooth field, random anisotropic scale;
@@ -18,8 +21,8 @@ Families (all closed, one connected component, 2K-10K vertices, in roughly unit 
   capsules, meshed by marching tetrahedra on a 40-56 cell grid;
 - ``deformed``: a shared mesh (cow, homer, rocker-arm, cheburashka, alligator, igea; NOT stanford-bunny, fandisk,
   spot, which stay unseen for evaluation) simplified to 3K-8K vertices, randomly rotated, scaled and bent by a
-  smooth sinusoidal displacement field. Needs the shared meshes folder (``shared_meshes=``); without it this
-  family is replaced by ``blob``.
+  smooth sinusoidal displacement field. Needs the shared meshes folder (``shared_meshes=``) with all six source
+  files; without them this family is replaced by ``blob`` (``write_collection`` says so once).
 """
 from __future__ import annotations
 
@@ -240,12 +243,17 @@ def _deformed(rng, shared_meshes):
     return (V + disp) * rng.uniform(0.75, 1.25, 3), F, name
 
 
+def deform_sources_present(shared_meshes) -> bool:
+    """Whether ``shared_meshes`` holds every source mesh of the ``deformed`` family."""
+    return shared_meshes is not None and all(os.path.isfile(os.path.join(shared_meshes, n)) for n in DEFORM_SOURCES)
+
+
 def make_shape(i: int, seed: int = 0, shared_meshes=None):
     """Shape number i of the collection ``seed`` -> (vertices (V, 3) float64, faces (F, 3) int64, info dict)."""
     rng = np.random.default_rng([int(seed), int(i)])
     fam = FAMILIES[i % len(FAMILIES)]
     info = {"index": int(i), "seed": int(seed), "family": fam}
-    if fam == "deformed" and (shared_meshes is None or not os.path.isdir(shared_meshes)):
+    if fam == "deformed" and not deform_sources_present(shared_meshes):
         fam = info["family"] = "blob"
     if fam == "deformed":
         V, F, src = _deformed(rng, shared_meshes)
@@ -258,41 +266,73 @@ def make_shape(i: int, seed: int = 0, shared_meshes=None):
     return V, np.asarray(F, np.int64), info
 
 
+SPLIT_RULE = "family-instance"
+
+
 def is_test(i: int, test_every: int = 10) -> bool:
-    return i % test_every == test_every - 1
+    """Whether shape i is a test shape: its instance number within its family is test_every - 1 mod test_every."""
+    return (i // len(FAMILIES)) % test_every == test_every - 1
+
+
+def _write_shape(job):
+    """Make shape i and write it (unless its file exists); returns its manifest entry. One job of
+    :func:`write_collection` (module level, so that worker processes can run it)."""
+    import trimesh
+
+    folder, i, seed, test_every, shared_meshes = job
+    split = "test" if is_test(i, test_every) else "train"
+    V, F, info = make_shape(i, seed, shared_meshes)
+    name = f"shape_{i:05d}_{info['family']}.obj"
+    (folder / split).mkdir(parents=True, exist_ok=True)
+    path = folder / split / name
+    if not path.exists():
+        tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.obj")
+        trimesh.Trimesh(V, F, process=False).export(tmp)
+        os.replace(tmp, path)
+    info["split"] = split
+    info["file"] = f"{split}/{name}"
+    return info
 
 
 def write_collection(folder, n: int = 600, seed: int = 0, test_every: int = 10, shared_meshes=None,
-                     start: int = 0, progress: bool = True) -> dict:
+                     start: int = 0, progress: bool = True, workers: int = 1) -> dict:
     """Write shapes start .. n-1 as ``folder/{train,test}/shape_{i:05d}_{family}.obj`` and a manifest.json
-    (family, seed, split, vertex/face counts of each). Existing files are kept (so a run can be resumed)."""
-    import trimesh
-
+    (family, seed, split, vertex/face counts of each). Existing files are kept (so a run can be resumed).
+    ``workers`` > 1 makes the shapes in that many processes (same files: each shape depends on (seed, i) only)."""
     folder = Path(folder)
     if shared_meshes is None:
         guess = Path(__file__).resolve().parents[2].parent / "shared" / "meshes"
         shared_meshes = str(guess) if guess.is_dir() else None
     man_path = folder / "manifest.json"
     man = json.loads(man_path.read_text()) if man_path.exists() else {"seed": seed, "test_every": test_every,
-                                                                       "shapes": {}}
+                                                                       "split": SPLIT_RULE, "shapes": {}}
+    if man.get("split") != SPLIT_RULE:
+        raise ValueError(f"{folder} holds a collection split by an older rule ({man.get('split', 'i % test_every')});"
+                         f" use another folder")
     if man["seed"] != seed or man["test_every"] != test_every:
         raise ValueError(f"{folder} holds a collection with seed {man['seed']} / test_every {man['test_every']}; "
                          f"use another folder or the same settings")
-    for i in range(start, n):
-        split = "test" if is_test(i, test_every) else "train"
-        V, F, info = make_shape(i, seed, shared_meshes)
-        name = f"shape_{i:05d}_{info['family']}.obj"
-        (folder / split).mkdir(parents=True, exist_ok=True)
-        path = folder / split / name
-        if not path.exists():
-            tmp = path.with_suffix(".tmp.obj")
-            trimesh.Trimesh(V, F, process=False).export(tmp)
-            os.replace(tmp, path)
-        info["split"] = split
-        info["file"] = f"{split}/{name}"
-        man["shapes"][str(i)] = info
-        if progress and (i + 1) % 50 == 0:
-            print(f"shapes: {i + 1}/{n}", flush=True)
+    if progress and not deform_sources_present(shared_meshes) and any(
+            FAMILIES[i % len(FAMILIES)] == "deformed" for i in range(start, n)):
+        print(f"note: the 'deformed' family needs {', '.join(DEFORM_SOURCES)} in the shared meshes folder "
+              f"({shared_meshes}); those shapes are 'blob' instead", flush=True)
+    jobs = [(folder, i, seed, test_every, shared_meshes) for i in range(start, n)]
+    if workers > 1 and len(jobs) > 1:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=mp.get_context("spawn")) as ex:
+            infos = ex.map(_write_shape, jobs, chunksize=4)
+            for n_done, info in enumerate(infos, 1):
+                man["shapes"][str(info["index"])] = info
+                if progress and n_done % 100 == 0:
+                    print(f"shapes: {n_done}/{len(jobs)}", flush=True)
+    else:
+        for job in jobs:
+            info = _write_shape(job)
+            man["shapes"][str(info["index"])] = info
+            if progress and (info["index"] + 1) % 50 == 0:
+                print(f"shapes: {info['index'] + 1}/{n}", flush=True)
     tmp = man_path.with_suffix(".tmp")
     tmp.write_text(json.dumps(man, indent=1))
     os.replace(tmp, man_path)
@@ -308,5 +348,6 @@ if __name__ == "__main__":
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--test-every", type=int, default=10)
     ap.add_argument("--shared-meshes", default=None)
+    ap.add_argument("--workers", type=int, default=1)
     a = ap.parse_args()
-    write_collection(a.folder, a.n, a.seed, a.test_every, a.shared_meshes)
+    write_collection(a.folder, a.n, a.seed, a.test_every, a.shared_meshes, workers=a.workers)

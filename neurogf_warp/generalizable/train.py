@@ -9,6 +9,10 @@ with ground-truth geodesic distances from the project's solver (``ngf.geodesic_d
 centre, largest vertex norm 1). A training step draws ``shapes_per_step`` shapes and, per shape,
 ``step_sources`` x ``step_targets`` of its pairs; the loss is the L1 error of the predicted ratio
 geodesic / Euclidean (the authors' target). AdamW, lr 1e-2 cosine to 1e-4 over ``steps``, weight decay 1e-8.
+With a time budget the cosine runs over whichever ends first, the steps or the budget (progress =
+max(step / steps, elapsed / budget)), so a budgeted run always ends at the low learning rate.
+``rotate`` (off by default) turns each drawn shape by a random rotation and re-normalizes it (bounding-box
+centre and largest vertex norm of the turned vertices, as conditioning would); the ratio target is unchanged.
 
 Split: if FOLDER has ``train/`` and ``test/`` subfolders (as ``shapes.write_collection`` writes), those;
 otherwise every 10th mesh file (sorted by path) is held out for validation. Validation MRE = mean over held-out
@@ -63,6 +67,7 @@ class GenTrainConfig:
     lr_min: float = 1e-4
     weight_decay: float = 1e-8
     budget_seconds: float | None = None  # stop after this much training time (ground truth not counted)
+    rotate: bool = False  # augmentation: a random rotation of every drawn shape (re-normalized)
     checkpoint_seconds: float = 120.0
     val_every: int = 200  # steps between validations
     val_shapes: int = 32  # held-out shapes used per validation (the first ones)
@@ -139,14 +144,20 @@ def _atomic_savez(path: Path, **arrays):
 
 
 def ground_truth_cache(files, cache: Path, cfg: GenTrainConfig, rank: int = 0, world: int = 1, device=None,
-                       log=print) -> list[Path]:
+                       log=print, deadline: float | None = None) -> list[Path]:
     """Compute (rank's shard: file i with i % world == rank) and cache the ground truth of ``files``; returns the
-    cache path of every file (all ranks), whether or not it is computed yet (a barrier follows under DDP)."""
+    cache path of every file (all ranks), whether or not it is computed yet (a barrier follows under DDP).
+    ``deadline`` (a ``time.perf_counter()`` value): start no shape after it (the files left have no cache file)."""
+    cache = Path(cache)
     cache.mkdir(parents=True, exist_ok=True)
     out = [cache / f"{p.stem}_{_file_key(p, cfg)}.npz" for p in files]
     mine = [i for i in range(len(files)) if i % world == rank and not out[i].exists()]
     t0 = time.perf_counter()
     for n, i in enumerate(mine):
+        if deadline is not None and time.perf_counter() >= deadline:
+            log(f"[rank {rank}] ground truth stopped at its deadline: {n}/{len(mine)} shapes, "
+                f"{time.perf_counter() - t0:.1f} s")
+            break
         _atomic_savez(out[i], **shape_ground_truth(files[i], cfg, device))
         if (n + 1) % 10 == 0 or n + 1 == len(mine):
             log(f"[rank {rank}] ground truth {n + 1}/{len(mine)} shapes, {time.perf_counter() - t0:.1f} s")
@@ -169,22 +180,41 @@ class ShapeData:
                 self._data[i] = {k: z[k] for k in z.files}
         return self._data[i]
 
-    def batch(self, idx, n_src, n_tgt, rng):
-        """(cloud (B, P, 3), s (B, M, 3), t (B, M, 3), ratio (B, M), dist (B, M)) float32, M = n_src n_tgt."""
+    def batch(self, idx, n_src, n_tgt, rng, rotate: bool = False):
+        """(cloud (B, P, 3), s (B, M, 3), t (B, M, 3), ratio (B, M), dist (B, M)) float32, M = n_src n_tgt.
+
+        rotate: each shape turned by a random rotation and moved back into the unit-sphere frame of its turned
+        vertices (ratios unchanged; distances scaled with the frame)."""
         C, S, T, D = [], [], [], []
         for i in idx:
             z = self[i]
             rs = rng.choice(len(z["src"]), n_src, replace=len(z["src"]) < n_src)
             ct = rng.integers(0, z["tgt"].shape[1], (n_src, n_tgt))
             tv = z["tgt"][rs[:, None], ct]
-            S.append(np.repeat(z["verts"][z["src"][rs]], n_tgt, axis=0))
-            T.append(z["verts"][tv.reshape(-1)])
-            D.append(z["dist"][rs[:, None], ct].reshape(-1))
-            C.append(z["cloud"])
+            verts, cloud, d = z["verts"], z["cloud"], z["dist"][rs[:, None], ct].reshape(-1)
+            if rotate:
+                q = random_rotation(rng).astype(np.float32)
+                v = verts @ q.T
+                c = (v.min(axis=0) + v.max(axis=0)) / 2
+                r = np.float32(np.sqrt(((v - c) ** 2).sum(axis=1)).max())
+                verts, cloud, d = (v - c) / r, (cloud @ q.T - c) / r, d / r
+            S.append(np.repeat(verts[z["src"][rs]], n_tgt, axis=0))
+            T.append(verts[tv.reshape(-1)])
+            D.append(d)
+            C.append(cloud)
         C, S, T, D = (np.stack(x) for x in (C, S, T, D))
         eu = np.linalg.norm(S - T, axis=-1)
         ratio = D / np.maximum(eu, 1e-12)
         return C, S, T, ratio.astype(np.float32), D
+
+
+def random_rotation(rng) -> np.ndarray:
+    """A uniformly random rotation matrix (3, 3) (QR of a Gaussian matrix, signs fixed, det +1)."""
+    q, r = np.linalg.qr(rng.standard_normal((3, 3)))
+    q = q * np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] = -q[:, 0]
+    return q
 
 
 # ---- distributed ---------------------------------------------------------------------------------------------
@@ -261,8 +291,12 @@ def validation_mre(net: GenNeuroGF, data: ShapeData, cfg: GenTrainConfig, device
 # ---- training ------------------------------------------------------------------------------------------------
 
 def train_generalizable(folder, output, config: GenTrainConfig | None = None, resume: bool = False,
-                        cache=None, device=None, gt_device=None, log=None, callback=None) -> dict:
+                        cache=None, device=None, gt_device=None, log=None, callback=None, files=None) -> dict:
     """Train (or resume) on a folder of meshes; returns the final checkpoint dict (see the module docstring).
+
+    ``files``: (training files, validation files) under ``folder`` instead of :func:`mesh_files`'s split (e.g.
+    only the shapes whose ground truth is cached). Ground truth is computed (or read from the cache) for every
+    training file and for the first ``val_shapes`` validation files, the only ones validation uses.
 
     ``callback(step, loss)`` runs after every step (raise KeyboardInterrupt there to stop like Ctrl-C: the
     checkpoint is written, then the KeyboardInterrupt propagates).
@@ -280,14 +314,17 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
     cache = Path(cache) if cache else output.with_name(output.name + ".gt")
     if dev.type == "cpu" and distributed:
         torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
-    train_files, val_files = mesh_files(folder)
-    say(f"{len(train_files)} training shapes, {len(val_files)} held out; world size {world}, device {dev}")
+    train_files, val_files = (list(files[0]), list(files[1])) if files is not None else mesh_files(folder)
+    if not train_files:
+        raise ValueError(f"no training shapes under {folder}")
+    say(f"{len(train_files)} training shapes, {len(val_files)} held out ({min(len(val_files), cfg.val_shapes)} "
+        f"used for validation); world size {world}, device {dev}")
 
     # ground truth, sharded over ranks
     t_gt = time.perf_counter()
     gtd = gt_device or (str(dev) if dev.type == "cuda" else "cpu")
     tr_cache = ground_truth_cache(train_files, cache, cfg, rank, world, gtd, log)
-    va_cache = ground_truth_cache(val_files, cache, cfg, rank, world, gtd, log)
+    va_cache = ground_truth_cache(val_files[: cfg.val_shapes], cache, cfg, rank, world, gtd, log)
     if distributed:
         dist.barrier()
     gt_seconds = time.perf_counter() - t_gt
@@ -313,8 +350,15 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
     model = DDP(net, device_ids=[dev.index] if dev.type == "cuda" else None) if distributed else net
     model.train()
 
-    def lr_at(step):
-        return cfg.lr_min + 0.5 * (cfg.lr - cfg.lr_min) * (1 + math.cos(math.pi * min(step, cfg.steps) / cfg.steps))
+    def progress(step, elapsed):
+        """Fraction of the run done: by steps, or by time when a budget is set and runs out first."""
+        p = step / cfg.steps
+        if budget:
+            p = max(p, elapsed / budget)
+        return min(p, 1.0)
+
+    def lr_at(p):
+        return cfg.lr_min + 0.5 * (cfg.lr - cfg.lr_min) * (1 + math.cos(math.pi * p))
 
     def checkpoint():
         if rank != 0:
@@ -330,24 +374,26 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
     t_start = time.perf_counter() - state["elapsed_s"]
     t_ck = time.perf_counter()
     budget = cfg.budget_seconds
-    run_loss, run_n = 0.0, 0
+    run_loss, run_n = torch.zeros((), device=dev), 0  # summed on the device: no host sync per step
     try:
         while True:
             step = state["step"]
             elapsed = time.perf_counter() - t_start
             stop = step >= cfg.steps or (budget is not None and elapsed >= budget)
-            if distributed:  # every rank stops at the same step (rank 0's clock decides)
-                flag = torch.tensor([1.0 if stop else 0.0], device=dev)
+            frac = progress(step, elapsed)
+            if distributed:  # every rank stops at the same step and follows one schedule (rank 0's clock)
+                flag = torch.tensor([1.0 if stop else 0.0, frac], device=dev, dtype=torch.float64)
                 dist.broadcast(flag, 0)
-                stop = bool(flag.item())
+                stop, frac = bool(flag[0].item()), float(flag[1].item())
             if stop:
                 break
             rng = np.random.default_rng([cfg.seed, step, rank])
             idx = rng.choice(shard, cfg.shapes_per_step, replace=len(shard) < cfg.shapes_per_step)
-            C, S, T, R, _ = train_data.batch(idx, cfg.step_sources, cfg.step_targets, rng)
-            C, S, T, R = (torch.from_numpy(x).to(dev) for x in (C, S, T, R))
+            C, S, T, R, _ = train_data.batch(idx, cfg.step_sources, cfg.step_targets, rng, rotate=cfg.rotate)
+            C, S, T, R = (torch.from_numpy(x).to(dev, non_blocking=True) for x in (C, S, T, R))
+            lr = lr_at(frac)
             for g in opt.param_groups:
-                g["lr"] = lr_at(step)
+                g["lr"] = lr
             loss = (model(C, S, T) - R).abs().mean()
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -355,18 +401,18 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
             state["step"] = step + 1
             if callback is not None:
                 callback(state["step"], float(loss.detach()))
-            run_loss += float(loss.detach())
+            run_loss += loss.detach()
             run_n += 1
             if state["step"] % cfg.log_every == 0 or state["step"] == 1:
-                mean = run_loss / run_n
+                mean = float(run_loss) / run_n
                 if distributed:
                     t = torch.tensor([mean], device=dev)
                     dist.all_reduce(t)
                     mean = float(t.item()) / world
                 state["loss_history"].append([state["step"], mean])
-                say(f"step {state['step']}/{cfg.steps}  loss {mean:.4f}  lr {lr_at(step):.2e}  "
+                say(f"step {state['step']}/{cfg.steps}  loss {mean:.4f}  lr {lr:.2e}  "
                     f"{time.perf_counter() - t_start:.1f} s")
-                run_loss, run_n = 0.0, 0
+                run_loss, run_n = torch.zeros((), device=dev), 0
             if cfg.val_every and state["step"] % cfg.val_every == 0 and rank == 0 and len(val_data):
                 mre = validation_mre(net, val_data, cfg, dev)
                 state["val_history"].append([state["step"], mre])
@@ -395,6 +441,15 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
     return ck
 
 
+def _flag(text: str) -> bool:
+    t = text.strip().lower()
+    if t in ("1", "true", "yes", "on"):
+        return True
+    if t in ("0", "false", "no", "off"):
+        return False
+    raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m neurogf_warp.generalizable.train",
                                  description="Train a generalizable NeuroGF network on a folder of meshes "
@@ -409,7 +464,8 @@ def main(argv=None):
     for f in dataclasses.fields(GenTrainConfig):
         if f.name == "budget_seconds":
             continue
-        ap.add_argument("--" + f.name.replace("_", "-"), type=type(f.default), default=None)
+        kind = _flag if isinstance(f.default, bool) else type(f.default)
+        ap.add_argument("--" + f.name.replace("_", "-"), type=kind, default=None)
     a = ap.parse_args(argv)
     cfg = GenTrainConfig(**{f.name: getattr(a, f.name) for f in dataclasses.fields(GenTrainConfig)
                             if f.name != "budget_seconds" and getattr(a, f.name) is not None},
