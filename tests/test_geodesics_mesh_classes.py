@@ -14,8 +14,8 @@ from tests import geodesic_meshes as M
 from tests.reference_geodesics import gdist_distances
 
 CLASSES = M.mesh_classes()
-# the coarse needle mesh keeps a tail of a few pairs above 0.5% (0.82% at k=3: the one-window-per-node limit of
-# benchmarks/geodesics_notes.md, not the needles: it moves with k, 1.6% at k=4, 0.50% at k=5); bounded, not met
+# the coarse needle mesh keeps a tail of a few pairs above 0.5% at k=3 (rays passing close to a flat or convex
+# vertex are lost: one window per node; benchmarks/geodesics_notes.md, "The worst-pair tail"); bounded, not met
 WORST = {"needles": 1e-2}
 
 
@@ -24,11 +24,11 @@ def compiled():
     G.load_kernels("cpu")
 
 
-def relative_errors(name, sources=4):
+def relative_errors(name, sources=4, seed=0, **solver):
     V, F, R = CLASSES[name]
-    src = np.random.default_rng(0).choice(len(V), sources, replace=False)
+    src = np.random.default_rng(seed).choice(len(V), sources, replace=False)
     exact = gdist_distances(V, R, src)
-    d = G.geodesic_distances((V, F), src, device="cpu").astype(np.float64)
+    d = G.geodesic_distances((V, F), src, device="cpu", **solver).astype(np.float64)
     assert np.array_equal(np.isfinite(d), np.isfinite(exact))
     ok = np.isfinite(exact) & (exact > 0)
     return (d[ok] - exact[ok]) / exact[ok], exact[ok]
@@ -44,6 +44,13 @@ def test_accuracy_against_exact(name):
     V = CLASSES[name][0]
     radius = np.linalg.norm(V - V.mean(0), axis=1).max()
     assert np.all(rel * exact >= -1e-5 * exact - 4e-7 * radius), rel.min()
+
+
+def test_needles_meet_the_bar_at_k5():
+    # the trade-off setting for exact-grade data: k=5 (2.1x the CPU time of k=3) has no pair above 0.5% on the
+    # needle mesh, with sources where k=3 leaves 0.82% (these 12 sources; 5.3K pairs: k=5 0.30%)
+    rel, _ = relative_errors("needles", sources=12, k=5)
+    assert np.abs(rel).mean() <= 5e-4 and rel.max() <= 5e-3, (np.abs(rel).mean(), rel.max())
 
 
 def test_thin_faces_get_more_steiner_points():
