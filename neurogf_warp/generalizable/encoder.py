@@ -162,9 +162,15 @@ class WarpGenNet:
         self._linear(cat, 64, w["e3P"], False, P)
         self._linear(cat, 64, w["e3Q"], False, Q)
         wp.launch(self.k.edge_one_layer, (n, 64), inputs=[P, Q, n3, cat, 128], device=dev)
-        # codeword: max over points of pw_embedding([f1, f2, f3])
+        return self._heads(self._linear, T, sc, buf, n, cat, X, V, [n1, n2, n3], into)
+
+    def _heads(self, lin, T, sc, buf, n, cat, X, V, nbrs, into):
+        """After the edge blocks (both encoders): the codeword (max over points of the point-wise embedding of
+        [f1, f2, f3]), the per-point features F and their fused part G, the query grid; ``lin`` is the linear
+        layer of the encoder in use."""
+        dev, w = self.device, self.w
         E = buf("E", 320)
-        self._linear(cat, 0, w["pw"], True, E)
+        lin(cat, 0, w["pw"], True, E)
         cw = self._buf(sc, "cw", (1, 320), T)
         chunks = max(1, min(32, n // 64)) if not dev.is_cpu else 1
         per = (n + chunks - 1) // chunks
@@ -174,21 +180,21 @@ class WarpGenNet:
         wp.launch(self.k.column_max, (1, 320), inputs=[part, chunks, cw], device=dev)
         # mlp.0 on [codeword, f]: the codeword part is the same for every point -> a per-cloud bias
         bias = self._buf(sc, "bias", (1, 128), T)
-        self._linear(cw, 0, w["mlp0cw"], False, bias)
+        lin(cw, 0, w["mlp0cw"], False, bias)
         H = buf("H", 128)
-        self._linear(cat, 0, (w["mlp0f"], bias.reshape((128,))), True, H)
+        lin(cat, 0, (w["mlp0f"], bias.reshape((128,))), True, H)
         F = buf("F", 128)
-        self._linear(H, 0, w["mlp1"], True, F)
+        lin(H, 0, w["mlp1"], True, F)
         G = buf("G", 128)
-        self._linear(F, 0, w["fuseF"], False, G)
+        lin(F, 0, w["fuseF"], False, G)
         grid, radius = None, 0.0
         if self.use_grid:
             grid, radius = self._grid(V, into.grid if into is not None else None)
         if into is not None:
             into.cloud, into.feats, into.fused, into.grid, into.radius = X, F, G, grid, radius
-            into.neighbours, into.points32 = [n1, n2, n3], V
+            into.neighbours, into.points32 = nbrs, V
             return into
-        return Encoded(X, F, G, grid, radius, [n1, n2, n3], V, sc)
+        return Encoded(X, F, G, grid, radius, nbrs, V, sc)
 
     def _fast_encoder_fits(self, n: int) -> bool:
         from neurogf_warp.kernels.generalizable.fast import EDGE_K_MAX, KNN_MAX_POINTS
@@ -242,31 +248,7 @@ class WarpGenNet:
         n3 = self._knn_fast(catT, 64, 64, sc, "3")
         self._lin(cat, 64, w["e3PQ"], False, PQ)
         wp.launch(fk.edge1, (n, 64), inputs=[PQ, n3, cat, 128], device=dev)
-        E = buf("E", 320)
-        self._lin(cat, 0, w["pw"], True, E)
-        cw = self._buf(sc, "cw", (1, 320), f32)
-        chunks = max(1, min(32, n // 64)) if not dev.is_cpu else 1
-        per = (n + chunks - 1) // chunks
-        chunks = (n + per - 1) // per
-        part = self._buf(sc, "cw_part", (chunks, 320), f32)
-        wp.launch(self.k.column_max, (chunks, 320), inputs=[E, per, part], device=dev)
-        wp.launch(self.k.column_max, (1, 320), inputs=[part, chunks, cw], device=dev)
-        bias = self._buf(sc, "bias", (1, 128), f32)
-        self._lin(cw, 0, w["mlp0cw"], False, bias)
-        H = buf("H", 128)
-        self._lin(cat, 0, (w["mlp0f"], bias.reshape((128,))), True, H)
-        F = buf("F", 128)
-        self._lin(H, 0, w["mlp1"], True, F)
-        G = buf("G", 128)
-        self._lin(F, 0, w["fuseF"], False, G)
-        grid, radius = None, 0.0
-        if self.use_grid:
-            grid, radius = self._grid(V, into.grid if into is not None else None)
-        if into is not None:
-            into.cloud, into.feats, into.fused, into.grid, into.radius = X, F, G, grid, radius
-            into.neighbours, into.points32 = [n1, n2, n3], V
-            return into
-        return Encoded(X, F, G, grid, radius, [n1, n2, n3], V, sc)
+        return self._heads(self._lin, f32, sc, buf, n, cat, X, V, [n1, n2, n3], into)
 
     def _grid(self, pts: wp.array, grid: wp.HashGrid | None = None):
         """A hash grid over the cloud for the nearest-point lookup of queries.
