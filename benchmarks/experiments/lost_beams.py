@@ -31,7 +31,7 @@ def main(argv=None):
 
     wp.config.quiet = True
     from neurogf_warp.ground_truth.solver import GeodesicSolver
-    from worst_pairs import angles, load
+    from worst_pairs import load, vertex_geometry
 
     V, F, src, ex = load(a.mesh, a.sources)
     s = GeodesicSolver((V, F), device="cpu", k=a.k, max_rows=len(src))
@@ -42,12 +42,7 @@ def main(argv=None):
     else:
         pairs = [divmod(int(i), len(V)) for i in np.argsort(rel.ravel())[::-1][:3]]
     Vn = s.mesh.normalized_vertices
-    P = s._positions.astype(np.float64)
-    tf = s.topo.faces
-    ang = angles(P[tf])
-    asum = np.zeros(len(P))
-    np.add.at(asum, tf.ravel(), ang.ravel())
-    val = np.bincount(tf.ravel(), minlength=len(P))
+    P, tf, asum, val = vertex_geometry(s)
     edges = s.topo.edges
     ekey = {(int(u), int(v)): i for i, (u, v) in enumerate(edges)}
     start, node_edge, node_t = s.nodes

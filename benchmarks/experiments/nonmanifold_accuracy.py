@@ -117,7 +117,7 @@ def main(argv=None):
         r = measure(name, V, F, src, ex, **kw)
         rows.append(r)
         print(json.dumps(r), flush=True)
-    print(f"\n| case | V | MRE | max rel | min rel | > 0.5% | paths | flagged | path > +0.1% | max path excess |")
+    print("\n| case | V | MRE | max rel | min rel | > 0.5% | paths | flagged | path > +0.1% | max path excess |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['case']} | {r['vertices']} | {100 * r['mre']:.4f}% | {100 * r['max_rel']:.3f}% "

@@ -51,6 +51,15 @@ def angles(P):
     return out
 
 
+def vertex_geometry(s):
+    """(positions (V, 3) float64, faces, angle sum per vertex, valence per vertex) of a solver's mesh."""
+    P = s._positions.astype(np.float64)
+    tf = s.topo.faces
+    asum = np.zeros(len(P))
+    np.add.at(asum, tf.ravel(), angles(P[tf]).ravel())
+    return P, tf, asum, np.bincount(tf.ravel(), minlength=len(P))
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--meshes", default="needles,cow,cheburashka,rocker-arm")
@@ -75,25 +84,13 @@ def main(argv=None):
         print(f"== {name}: V={len(V)} sources={len(src)} MRE {np.abs(rel[ok]).mean() * 100:.4f}% max "
               f"{rel.max() * 100:.3f}% >0.5%: {(rel > 5e-3).sum()} ({dt:.1f} s)")
         # vertex geometry (solver numbering)
-        P = s._positions.astype(np.float64)
-        tf = s.topo.faces
-        ang = angles(P[tf])
-        asum = np.zeros(len(P))
-        np.add.at(asum, tf.ravel(), ang.ravel())
-        val = np.bincount(tf.ravel(), minlength=len(P))
+        P, tf, asum, val = vertex_geometry(s)
         bnd = np.zeros(len(P), bool)
         eb = s.topo.edges[np.diff(s.topo.edge_face_start) == 1]
         bnd[eb.ravel()] = True
         # the worst pairs: (row, target)
         flat = np.argsort(rel.ravel())[::-1][: a.top]
-        dist = s.state.dist.numpy()
         origin = s.state.rec.origin.numpy()
-        parent = s.state.rec.parent.numpy()
-        rayf = s.state.rec.ray_face.numpy()
-        node_edge = s.nodes[1] if isinstance(s.nodes, tuple) else None
-        edges = s.topo.edges
-        # run again the rows one by one? the last batch holds all sources (max_rows=len(src))
-        npos = s.graph.pos.numpy() if hasattr(s.graph, "pos") else None
         for fi in flat:
             r, tgt = divmod(int(fi), len(V))
             x = int(s._solver_id[tgt])
@@ -131,10 +128,7 @@ def summary(names, sources=24, above=4e-3):
         d = s.solve(src).astype(np.float64) / s.mesh.scale
         ok = np.isfinite(ex) & (ex > 0)
         rel = np.where(ok, (d - ex) / np.where(ok, ex, 1), 0)
-        P = s._positions.astype(np.float64)
-        tf = s.topo.faces
-        asum = np.zeros(len(P))
-        np.add.at(asum, tf.ravel(), angles(P[tf]).ravel())
+        P, tf, asum, _ = vertex_geometry(s)
         origin = s.state.rec.origin.numpy()
         kinds = {"steiner": 0, "flat-or-convex vertex": 0, "saddle vertex": 0, "straight": 0}
         nb = []

@@ -515,7 +515,7 @@ def _build() -> SimpleNamespace:
     def to_unit(x: wp.array2d(dtype=f32), cx: wp.float64, cy: wp.float64, cz: wp.float64, scale: wp.float64,
                 y: wp.array2d(dtype=f32), yt: wp.array2d(dtype=f32), v: wp.array(dtype=wp.vec3)):
         """Thread i: y[i] = (x[i] - c) * scale (as the generic kernel rounds it), its channel-major copy yt and a
-        vec3 copy for the hash grid; threads i < zero.shape[1] also clear zero[0, i]."""
+        vec3 copy for the hash grid."""
         i = wp.tid()
         a = float((wp.float64(x[i, 0]) - cx) * scale)
         b = float((wp.float64(x[i, 1]) - cy) * scale)
