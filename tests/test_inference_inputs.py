@@ -138,6 +138,9 @@ def test_check_false_gives_nan_rows_for_bad_points(precision):
     np.testing.assert_array_equal(d[:4], ngf.distance(model, good, good[::-1], **kw))
     s = ngf.sdf(model, p, check=False, **kw)
     assert np.all(np.isnan(s[4:8])) and np.all(np.isfinite(s[:4])), s
+    # device input (float32 mesh coordinates, the kernels' own frame): the same rows are NaN
+    s_dev = ngf.sdf(model, wp.array(p.astype(np.float32), dtype=wp.vec3, device=DEV), check=False, **kw).numpy()
+    assert np.all(np.isnan(s_dev[4:8])) and np.all(np.isfinite(s_dev[:4])), s_dev
     P = ngf.path(model, p, q, m=8, check=False, **kw)
     assert np.all(np.isnan(P[4:])) and np.all(np.isfinite(P[:4]))
     for row in bad:

@@ -115,11 +115,21 @@ def in_domain(p: wp.vec3, frame: mlp.Frame, limit: float) -> bool:
 
 
 @wp.kernel(enable_backward=False)
+def nan_outside(xs: wp.array(dtype=wp.vec3), frame: mlp.Frame, out: wp.array(dtype=wp.float32)):
+    """NaN for points outside the domain or not finite."""
+    i = wp.tid()
+    if not mlp.in_domain(frame, mlp.to_net(frame, xs[i])):
+        out[i] = NAN
+
+
+@wp.kernel(enable_backward=False)
 def nan_paths(ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3), frame: mlp.Frame, x: wp.array2d(dtype=wp.vec3)):
-    """NaN rows for paths whose ends are outside the domain or not finite (their points have no meaning)."""
-    i, j = wp.tid()
+    """NaN rows for paths whose ends are outside the domain or not finite (their points have no meaning). One
+    thread per path."""
+    i = wp.tid()
     if not (mlp.in_domain(frame, mlp.to_net(frame, ps[i])) and mlp.in_domain(frame, mlp.to_net(frame, qs[i]))):
-        x[i, j] = wp.vec3(NAN, NAN, NAN)
+        for j in range(x.shape[1]):
+            x[i, j] = wp.vec3(NAN, NAN, NAN)
 
 
 @wp.kernel(enable_backward=False)

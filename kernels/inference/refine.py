@@ -206,10 +206,13 @@ def take_best(x: wp.array2d(dtype=wp.vec3), best: wp.array(dtype=wp.int32), reve
 
 @wp.kernel(enable_backward=False)
 def collapse_same_ends(ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3), x: wp.array2d(dtype=wp.vec3)):
-    """A path from a point to itself is that point: rows with p == q become p repeated."""
-    i, j = wp.tid()
-    if ps[i] == qs[i]:
-        x[i, j] = ps[i]
+    """A path from a point to itself is that point: rows with p == q become p repeated. One thread per path (most
+    rows are left as they are)."""
+    i = wp.tid()
+    p = ps[i]
+    if p == qs[i]:
+        for j in range(x.shape[1]):
+            x[i, j] = p
 
 
 @wp.kernel(enable_backward=False)

@@ -5,8 +5,9 @@ per-vertex results follow the mesh file's vertex numbering (NaN for vertices no 
 everything is in the normalized unit-sphere frame the network was trained in. Answers do not depend on where the
 mesh sits: its vertices, sources and numpy/list query points are taken relative to the mesh's centre in float64
 before they become float32; torch tensors and wp.arrays are float32 mesh coordinates, and the kernels subtract
-the float64 centre, so they are exact to their own float32 resolution (at 1e6 from the origin that is 0.06 units:
-pass far-away points as float64 numpy arrays). Results are float32 (paths: float32 mesh coordinates).
+the centre (in float64 in the per-thread kernels, as a float32 pair hi + lo in the tensor-core ones), so they are
+exact to about their own float32 resolution (at 1e6 from the origin that is 0.06 units: pass far-away points as
+float64 numpy arrays). Results are float32 (paths: float32 mesh coordinates).
 
 What the answers mean: a geodesic distance is never shorter than the straight line between its points (so never
 negative), is exactly 0 from a point to itself (and at an SSAD's source vertex), and is +inf between points of
@@ -221,6 +222,8 @@ def sdf(model: Model, x, device=None, precision: str = "auto", check: bool = Tru
     res = out.empty(X.shape[0])
     if X.shape[0]:
         be.sdf(X, res, frame)
+        if not check:  # the tensor-core SDF kernel does not test the domain (a test there costs it 16%)
+            wp.launch(finish.nan_outside, X.shape[0], inputs=[X, frame], outputs=[res], device=dev)
     return single_answer(out.result(res), kind, single)
 
 

@@ -175,6 +175,21 @@ inline void sincos_pi(float x, float* s, float* c)
 
 #endif
 
+// NaN and +inf from their bits: the C runtime's NAN is (float)(0.0 / 0.0), which CUDA evaluates at run time as a
+// call to a float64 division (in the SDF kernel it was 4 calls per lane and tile, and their registers)
+NGF_FN float bits_to_float(u32 b)
+{
+    union
+    {
+        u32 u;
+        float f;
+    } v;
+    v.u = b;
+    return v.f;
+}
+#define NGF_NAN bits_to_float(0x7fc00000u)
+#define NGF_INF bits_to_float(0x7f800000u)
+
 NGF_FN float relu(float x) { return x > 0.0f ? x : 0.0f; }
 NGF_FN float min2(float a, float b) { return b < a ? b : a; }
 
@@ -570,14 +585,17 @@ NGF_FN void distance_heads(const Head& W, const u32 (&e)[1][D / 16][4], const u3
 
 // ---- per-row inputs and outputs -----------------------------------------------------------------------------------
 
-// User frame -> network frame: x_net = (x - c) * xscale with the centre in float64, so that points far from the
-// origin lose nothing beyond their own float32 rounding; distances * dscale are in user units. A point outside the
-// cube |x_net| <= limit (or not finite) has no answer: its results are NaN.
+// User frame -> network frame: x_net = ((x - hi) - lo) * xscale with the centre c split into float32 pairs
+// hi + lo (hi = float32(c), lo = float32(c - hi)), so that points far from the origin lose little beyond their own
+// float32 rounding (a point near the centre subtracts hi exactly); distances * dscale are in user units. A point
+// outside the cube |x_net| <= limit (or not finite) has no answer: its results are NaN. The float64 centre cx..cz is
+// the per-thread Warp kernels' (kernels/inference/mlp.py); float64 arithmetic here cost the SDF kernel 16% and the
+// pair kernel 3% on an H100 (benchmarks/RESULTS.md).
 struct Frame
 {
     double cx, cy, cz;
     float xscale, dscale, limit;
-    float hx, hy, hz, lx, ly, lz;  // the centre as float32 pairs hi + lo (point_in_domain)
+    float hx, hy, hz, lx, ly, lz;
 };
 
 // Rows this lane reads: g and g + 8 of m-tile (tile, m), clamped to the last row (their results are not written).
@@ -597,9 +615,9 @@ NGF_FN void tile_rows(int tile, int mt, int m, int n, int& r0, int& r1, bool& ok
 
 NGF_FN void to_net(const Frame& f, const float* p, float (&x)[3])
 {
-    x[0] = (float)(((double)p[0] - f.cx) * (double)f.xscale);
-    x[1] = (float)(((double)p[1] - f.cy) * (double)f.xscale);
-    x[2] = (float)(((double)p[2] - f.cz) * (double)f.xscale);
+    x[0] = ((p[0] - f.hx) - f.lx) * f.xscale;
+    x[1] = ((p[1] - f.hy) - f.ly) * f.xscale;
+    x[2] = ((p[2] - f.hz) - f.lz) * f.xscale;
 }
 
 // Whether a point (network frame) is inside the domain: false for NaN and inf too.
@@ -608,13 +626,12 @@ NGF_FN bool in_domain(const Frame& f, const float (&x)[3])
     return fabsf(x[0]) <= f.limit && fabsf(x[1]) <= f.limit && fabsf(x[2]) <= f.limit;
 }
 
-// The same test for a point in the Frame's coordinates, in float32 arithmetic (it runs once per finished
-// distance, on the lanes that write): the centre split into a float32 pair hi + lo, so that a point far from the
-// origin tests right to float32 resolution of its offset from the centre. false for NaN and inf too.
+// The same test for a point in the Frame's coordinates.
 NGF_FN bool point_in_domain(const Frame& f, const float* p)
 {
-    return fabsf(((p[0] - f.hx) - f.lx) * f.xscale) <= f.limit && fabsf(((p[1] - f.hy) - f.ly) * f.xscale) <= f.limit &&
-           fabsf(((p[2] - f.hz) - f.lz) * f.xscale) <= f.limit;
+    float x[3];
+    to_net(f, p, x);
+    return in_domain(f, x);
 }
 
 // The rows of m-tiles (tile, 0 .. MT-1) this lane reads, and their points in the network frame.
@@ -703,9 +720,9 @@ NGF_FN float finish_inside(float y, const Frame& f, const float* p, const float*
                            int raw, bool inside)
 {
     if (!inside)
-        return NAN;
+        return NGF_NAN;
     if (other_part)
-        return INFINITY;
+        return NGF_INF;
     if (!raw && p[0] == sp[0] && p[1] == sp[1] && p[2] == sp[2])
         return 0.0f;
     // |x - s| from the input points' float32 difference: correctly rounded to the difference itself however far the
@@ -782,7 +799,7 @@ NGF_FN void distance_rows(const Lifting& L, const Head& H, const Frame& f, const
         const float* p1 = pts + 3 * r1;
         const int comp0 = o.row_comp ? o.row_comp[r0] : 0;
         const int comp1 = o.row_comp ? o.row_comp[r1] : 0;
-        float best0 = INFINITY, best1 = INFINITY;
+        float best0 = NGF_INF, best1 = NGF_INF;
         for (int s = 0; s < S.count; s += SP)
         {
             const u32x4* rows[SP];
@@ -985,7 +1002,10 @@ NGF_FN void pair_rows(const Lifting& L, const Head& H, const Frame& f, const flo
     }
 }
 
-// Signed distances from the SDF head, MT m-tiles per warp (16 MT points).
+// Signed distances from the SDF head, MT m-tiles per warp (16 MT points). No domain test here: kept to the end of
+// the tile, a point's test made this kernel spill registers (16% slower on an H100); rows outside the domain are
+// made NaN by the caller (inference/queries.py: finish.nan_outside, only with check=False, since checked input
+// is inside).
 template <int D, int KS0, int MT, int NC>
 NGF_FN void sdf_rows(const Lifting& L, const Head& H, const Frame& f, const float* pts, int n, float* out, int warp,
                      int n_warps)
@@ -1005,7 +1025,7 @@ NGF_FN void sdf_rows(const Lifting& L, const Head& H, const Frame& f, const floa
 #pragma unroll
             for (int i = 0; i < 2; ++i)
                 if (t == i && ok[m][i])
-                    out[r[m][i]] = in_domain(f, x[m][i]) ? y[m][i] * f.dscale : NAN;
+                    out[r[m][i]] = y[m][i] * f.dscale;
     }
 }
 
@@ -1139,7 +1159,7 @@ NGF_FN void path_point_rows(const PathWeights& W, const Frame& f, const float* p
                 if (!ok[i])
                     continue;
                 const float w = W.window != 0.0f ? sinpi_(u[i]) : 1.0f;
-                const double ctr[3] = {f.cx, f.cy, f.cz};
+                const float hi[3] = {f.hx, f.hy, f.hz}, lo[3] = {f.lx, f.ly, f.lz};
 #pragma unroll
                 for (int j = 0; j < 2; ++j)
                 {
@@ -1147,7 +1167,7 @@ NGF_FN void path_point_rows(const PathWeights& W, const Frame& f, const float* p
                     if (col < 3)
                     {
                         const float v = y[0][0][2 * i + j] * w + W.residual * x[i][col];
-                        out[(size_t)r[i] * 3 + col] = (float)((double)(v * f.dscale) + ctr[col]);
+                        out[(size_t)r[i] * 3 + col] = (v * f.dscale + lo[col]) + hi[col];  // from the network frame
                     }
                 }
             }
