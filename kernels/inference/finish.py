@@ -123,13 +123,22 @@ def nan_outside(xs: wp.array(dtype=wp.vec3), frame: mlp.Frame, out: wp.array(dty
 
 
 @wp.kernel(enable_backward=False)
-def nan_paths(ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3), frame: mlp.Frame, x: wp.array2d(dtype=wp.vec3)):
-    """NaN rows for paths whose ends are outside the domain or not finite (their points have no meaning). One
-    thread per path."""
+def finish_paths(ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3), frame: mlp.Frame, test_domain: int,
+                 x: wp.array2d(dtype=wp.vec3)):
+    """Per path (one thread; most rows are left as they are): NaN rows where an end is outside the domain or not
+    finite (their points have no meaning; tested with ``test_domain``, i.e. for unchecked input), and a path from a
+    point to itself is that point repeated."""
     i = wp.tid()
-    if not (mlp.in_domain(frame, mlp.to_net(frame, ps[i])) and mlp.in_domain(frame, mlp.to_net(frame, qs[i]))):
+    p = ps[i]
+    q = qs[i]
+    if test_domain != 0:
+        if not (mlp.in_domain(frame, mlp.to_net(frame, p)) and mlp.in_domain(frame, mlp.to_net(frame, q))):
+            for j in range(x.shape[1]):
+                x[i, j] = wp.vec3(NAN, NAN, NAN)
+            return
+    if p == q:
         for j in range(x.shape[1]):
-            x[i, j] = wp.vec3(NAN, NAN, NAN)
+            x[i, j] = p
 
 
 @wp.kernel(enable_backward=False)

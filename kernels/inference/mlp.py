@@ -336,8 +336,8 @@ class Frame:
     """User frame -> network frame: x_net = (x - center) * xscale, computed in float64 (the centre is float64, so a
     float32 point far from the origin keeps its own resolution); distances back to user units with * dscale.
     ``limit``: the domain, |x_net| <= limit on every axis (queries give NaN outside it). ``hi`` + ``lo``: the centre
-    as a float32 pair (hi = float32(centre), lo = float32(centre - hi)), for float32 domain tests of input points
-    (kernel parameters, so the tensor-core kernels read them without float64 work or registers)."""
+    as a float32 pair (hi = float32(centre), lo = float32(centre - hi)): the tensor-core kernels map points as
+    ((x - hi) - lo) * xscale, in float32 (float64 work cost them up to 16% on an H100)."""
 
     center: wp.vec3d
     xscale: wp.float32

@@ -205,17 +205,6 @@ def take_best(x: wp.array2d(dtype=wp.vec3), best: wp.array(dtype=wp.int32), reve
 
 
 @wp.kernel(enable_backward=False)
-def collapse_same_ends(ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3), x: wp.array2d(dtype=wp.vec3)):
-    """A path from a point to itself is that point: rows with p == q become p repeated. One thread per path (most
-    rows are left as they are)."""
-    i = wp.tid()
-    p = ps[i]
-    if p == qs[i]:
-        for j in range(x.shape[1]):
-            x[i, j] = p
-
-
-@wp.kernel(enable_backward=False)
 def end_offsets(s_start: wp.array(dtype=wp.float32), s_end: wp.array(dtype=wp.float32),
                 off: wp.array2d(dtype=wp.float32)):
     """off[i, 0] := s_start[i], off[i, m - 1] := s_end[i] (the path ends' SDF values; inner points lie on the

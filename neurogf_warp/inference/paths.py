@@ -95,16 +95,15 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None 
         be.paths(P, Q, res, frame)
     elif n:
         left = _refined_paths(st, be, P, Q, res, int(refine), dev, frame)
-    if n:
-        wp.launch(refine_kernels.collapse_same_ends, n, inputs=[P, Q, res], device=dev)
+    if n:  # NaN rows for unchecked ends outside the domain (before any projection: NaN stays NaN), p == q rows
+        wp.launch(finish.finish_paths, n, inputs=[P, Q, frame, int(not check)], outputs=[res], device=dev)
     if n and project == "sdf":
         flat = res.reshape(-1)
         wp.launch(mlp.project_points, flat.shape[0], inputs=[st.weights, flat, frame, 2 * PROJECT_STEPS],
                   outputs=[flat], device=dev)
     if n:
-        # NaN rows for ends outside the domain (check=False); host input ran relative to the mesh centre:
-        # back to mesh coordinates (float64 sum) before anything below reads the points
-        wp.launch(finish.nan_paths, n, inputs=[P, Q, frame], outputs=[res], device=dev)
+        # host input ran relative to the mesh centre: back to mesh coordinates (float64 sum) before anything below
+        # reads the points
         if frame is st.frame and st.model.in_mesh_frame:
             flat = res.reshape(-1)
             wp.launch(finish.shift_points, flat.shape[0], inputs=[flat, wp.vec3d(*st.center)], outputs=[flat],
