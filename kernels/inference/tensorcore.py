@@ -456,24 +456,23 @@ def path_pre_kernel(D: int, P1: int):
 
 @functools.lru_cache(maxsize=None)
 def path_points_kernel(P1: int, P2: int, P3: int):
-    """m points of each of N paths (N, m, 3), mapped back by the frame (from_net), rows finished (NaN for ends
-    outside the domain with test_domain, the point for p == q)."""
+    """m points of each of N paths (N, m, 3), mapped back by the frame (from_net)."""
     snippet = _PATH_CPP + _frame_cpp("frame") + f"""
     ngf::path_point_rows<{P1}, {P2}, {P3}>(W, F, (const float*)ps.data, (const float*)qs.data, (const float*)pre.data,
-                                            n, m, test_domain, (float*)out.data, tid >> 5, n_warps);
+                                            n, m, (float*)out.data, tid >> 5, n_warps);
 """
 
     def body(ph: PathHead, frame: mlp.Frame, ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3),
-             pre: wp.array(dtype=wp.float32), n: int, m: int, test_domain: int, out: wp.array2d(dtype=wp.vec3),
-             tid: int, n_warps: int): ...
+             pre: wp.array(dtype=wp.float32), n: int, m: int, out: wp.array2d(dtype=wp.vec3), tid: int,
+             n_warps: int): ...
 
     native = wp.func_native(snippet)(_unique(body, f"ngf_path_point_rows_{P1}_{P2}_{P3}"))
 
     @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
     def path_point_rows(ph: PathHead, frame: mlp.Frame, ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3),
-                        pre: wp.array(dtype=wp.float32), n: int, m: int, test_domain: int,
-                        out: wp.array2d(dtype=wp.vec3), n_warps: int):
-        native(ph, frame, ps, qs, pre, n, m, test_domain, out, wp.tid(), n_warps)
+                        pre: wp.array(dtype=wp.float32), n: int, m: int, out: wp.array2d(dtype=wp.vec3),
+                        n_warps: int):
+        native(ph, frame, ps, qs, pre, n, m, out, wp.tid(), n_warps)
 
     return path_point_rows
 

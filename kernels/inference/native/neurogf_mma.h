@@ -1099,12 +1099,10 @@ NGF_FN void path_pre_rows(const PathWeights& W, const u32x4* ep, const u32x4* eq
 }
 
 // m points for each of N paths: out[i, j] (from_net: the Frame's coordinates), straight line p_i -> q_i through the
-// point-wise head. The rows are finished here, as finish.finish_paths does for the other backends (a separate pass
-// cost a launch, and path queries are host-bound): NaN where an end is outside the domain or not finite (tested
-// with test_domain, for unchecked input), and p repeated where p == q.
+// point-wise head.
 template <int P1, int P2, int P3>
 NGF_FN void path_point_rows(const PathWeights& W, const Frame& f, const float* ps, const float* qs, const float* pre,
-                            int n_paths, int m, int test_domain, float* out, int warp, int n_warps)
+                            int n_paths, int m, float* out, int warp, int n_warps)
 {
     const int t = lane_id() & 3;
     const int n = n_paths * m;
@@ -1116,19 +1114,14 @@ NGF_FN void path_point_rows(const PathWeights& W, const Frame& f, const float* p
         tile_rows(tile, 1, 0, n, r[0], r[1], ok[0], ok[1]);
         float x[2][3], u[2];
         int path[2];
-        bool outside[2], same[2];
 #pragma unroll
         for (int i = 0; i < 2; ++i)
         {
             path[i] = r[i] / m;
             u[i] = (float)(r[i] - path[i] * m) / (float)(m > 1 ? m - 1 : 1);
-            const float* pp = ps + 3 * path[i];
-            const float* qq = qs + 3 * path[i];
             float p[3], q[3];
-            to_net(f, pp, p);
-            to_net(f, qq, q);
-            outside[i] = test_domain != 0 && !(in_domain(f, p) && in_domain(f, q));
-            same[i] = pp[0] == qq[0] && pp[1] == qq[1] && pp[2] == qq[2];
+            to_net(f, ps + 3 * path[i], p);
+            to_net(f, qs + 3 * path[i], q);
 #pragma unroll
             for (int c = 0; c < 3; ++c) x[i][c] = p[c] + u[i] * (q[c] - p[c]);
         }
@@ -1174,9 +1167,7 @@ NGF_FN void path_point_rows(const PathWeights& W, const Frame& f, const float* p
                     if (col < 3)
                     {
                         const float v = y[0][0][2 * i + j] * w + W.residual * x[i][col];
-                        out[(size_t)r[i] * 3 + col] = outside[i] ? NGF_NAN
-                                                      : same[i]  ? ps[3 * path[i] + col]
-                                                                 : (v * f.dscale + lo[col]) + hi[col];  // from_net
+                        out[(size_t)r[i] * 3 + col] = (v * f.dscale + lo[col]) + hi[col];  // from the network frame
                     }
                 }
             }
