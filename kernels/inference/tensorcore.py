@@ -435,32 +435,28 @@ def sdf_kernel(D: int, ks0: int, mt: int = 1, nc: int = 8):
 
 @functools.lru_cache(maxsize=None)
 def path_pre_kernel(D: int, P1: int):
-    """Per path: the guidance vector and the path-constant part of the point layer, pre (N * P1 + N) float32: (N, P1)
-    values, then each path's finishing flag (NaN rows / p == q rows, ``test_domain`` for unchecked input)."""
-    snippet = _PATH_CPP + _frame_cpp("frame") + f"""
-    ngf::path_pre_rows<{D}, {P1}>(W, F, (const float*)ps.data, (const float*)qs.data, (const ngf::u32x4*)ep.data,
-                                   (const ngf::u32x4*)eq.data, n, test_domain, (float*)pre.data, tid >> 5, n_warps);
+    """Per path: the guidance vector and the path-constant part of the point layer (N, P1) float32."""
+    snippet = _PATH_CPP + f"""
+    ngf::path_pre_rows<{D}, {P1}>(W, (const ngf::u32x4*)ep.data, (const ngf::u32x4*)eq.data, n, (float*)pre.data,
+                                   tid >> 5, n_warps);
 """
 
-    def body(ph: PathHead, frame: mlp.Frame, ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3),
-             ep: wp.array(dtype=wp.uint32), eq: wp.array(dtype=wp.uint32), n: int, test_domain: int,
+    def body(ph: PathHead, ep: wp.array(dtype=wp.uint32), eq: wp.array(dtype=wp.uint32), n: int,
              pre: wp.array(dtype=wp.float32), tid: int, n_warps: int): ...
 
     native = wp.func_native(snippet)(_unique(body, f"ngf_path_pre_rows_{D}_{P1}"))
 
     @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
-    def path_pre_rows(ph: PathHead, frame: mlp.Frame, ps: wp.array(dtype=wp.vec3), qs: wp.array(dtype=wp.vec3),
-                      ep: wp.array(dtype=wp.uint32), eq: wp.array(dtype=wp.uint32), n: int, test_domain: int,
+    def path_pre_rows(ph: PathHead, ep: wp.array(dtype=wp.uint32), eq: wp.array(dtype=wp.uint32), n: int,
                       pre: wp.array(dtype=wp.float32), n_warps: int):
-        native(ph, frame, ps, qs, ep, eq, n, test_domain, pre, wp.tid(), n_warps)
+        native(ph, ep, eq, n, pre, wp.tid(), n_warps)
 
     return path_pre_rows
 
 
 @functools.lru_cache(maxsize=None)
 def path_points_kernel(P1: int, P2: int, P3: int):
-    """m points of each of N paths (N, m, 3), mapped back by the frame (from_net), rows finished by the flags
-    that follow pre's values (``path_pre_kernel``)."""
+    """m points of each of N paths (N, m, 3), mapped back by the frame (from_net)."""
     snippet = _PATH_CPP + _frame_cpp("frame") + f"""
     ngf::path_point_rows<{P1}, {P2}, {P3}>(W, F, (const float*)ps.data, (const float*)qs.data, (const float*)pre.data,
                                             n, m, (float*)out.data, tid >> 5, n_warps);

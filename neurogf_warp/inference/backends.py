@@ -10,8 +10,7 @@ and never look at the precision:
     target_distances(src, tgt, src_comp, tgt_comp, out, raw)     sources -> given targets, (S, T)
     pairs(p, q, out, raw, frame)                       distances of point pairs
     sdf(x, out, frame)                                 the SDF head
-    paths(p, q, out, frame, test_domain)               the path head's points, out (N, m) vec3, rows finished
-                                                       (finish.finish_paths: NaN / p == q rows)
+    paths(p, q, out, frame)                            the path head's points, out (N, m) vec3
     settle(x, starts, ends, steps, scratch, frame)     path refinement: ends pinned, inner points onto the surface
     sweep(x, starts, ends, scratch, frame)             one shortening sweep (midpoints, one Newton step)
 
@@ -173,8 +172,8 @@ class TensorCores(_Backend):
     def sdf(self, x, out, frame):
         self.eng.sdf(x, out, frame)
 
-    def paths(self, p, q, out, frame, test_domain: bool = False):
-        self.eng.paths(p, q, out, frame, test_domain)  # the native kernel finishes the rows
+    def paths(self, p, q, out, frame):
+        self.eng.paths(p, q, out, frame)
 
     def _h(self) -> float:
         m = self.state.model
@@ -266,7 +265,7 @@ class PerThread(_Backend):
         wp.launch(mlp.signed_distances, x.shape[0], inputs=[self.state.weights, x, frame], outputs=[out],
                   device=self.device)
 
-    def paths(self, p, q, out, frame, test_domain: bool = False):
+    def paths(self, p, q, out, frame):
         st, dev = self.state, self.device
         n, D = p.shape[0], st.shape.D
         w = st.weights
@@ -278,7 +277,6 @@ class PerThread(_Backend):
         wp.launch(mlp.path_guidance, (n, D), inputs=[w, e, n], outputs=[g], device=dev)
         wp.launch(mlp.path_first_layer, pre.shape, inputs=[w, g], outputs=[pre], device=dev)
         wp.launch(mlp.path_points, out.shape, inputs=[w, p, q, pre, frame], outputs=[out], device=dev)
-        wp.launch(finish.finish_paths, n, inputs=[p, q, frame, int(test_domain)], outputs=[out], device=dev)
 
     def settle(self, x, starts, ends, steps: int, scratch: dict, frame):
         wp.launch(mlp.pin_and_project, x.shape, inputs=[self.state.weights, starts, ends, frame, steps], outputs=[x],

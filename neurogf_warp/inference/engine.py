@@ -172,9 +172,8 @@ class Engine:
             self._launch(tc.sdf_kernel(self.D, self.ks0, mt, nc), -(-n // (16 * mt)),
                          [self.lifting, self.sdf_head, frame or self.frame, x, n, out], self.tuning.warps_sdf)
 
-    def paths(self, p: wp.array, q: wp.array, out: wp.array, frame: mlp.Frame | None = None, test_domain: bool = False):
-        """out: (N, m) vec3, the path head's points; rows finished (``finish.finish_paths``'s rule: NaN rows for ends
-        outside the domain when ``test_domain``, p repeated where p == q)."""
+    def paths(self, p: wp.array, q: wp.array, out: wp.array, frame: mlp.Frame | None = None):
+        """out: (N, m) vec3, the path head's points."""
         n, m = out.shape
         if not n:
             return
@@ -182,13 +181,11 @@ class Engine:
         ends = wp.empty(2 * n * D // 2, dtype=wp.uint32, device=self.device)
         self.embed(p, ends[: n * D // 2], frame)
         self.embed(q, ends[n * D // 2:], frame)
-        pre = wp.empty(n * P1 + n, dtype=wp.float32, device=self.device)  # then one finishing flag per path
-        fr = frame or self.frame
-        self._launch(tc.path_pre_kernel(D, P1), -(-n // 16), [self.path_head, fr, p, q, ends[: n * D // 2],
-                                                               ends[n * D // 2:], n, int(test_domain), pre],
-                     self.tuning.warps_other)
+        pre = wp.empty(n * P1, dtype=wp.float32, device=self.device)
+        self._launch(tc.path_pre_kernel(D, P1), -(-n // 16), [self.path_head, ends[: n * D // 2], ends[n * D // 2:],
+                                                               n, pre], self.tuning.warps_other)
         self._launch(tc.path_points_kernel(*self.path_widths), -(-(n * m) // 16),
-                     [self.path_head, fr, p, q, pre, n, m, out], self.tuning.warps_other)
+                     [self.path_head, frame or self.frame, p, q, pre, n, m, out], self.tuning.warps_other)
 
     # -- path shortening on the SDF surface ----------------------------------------------------------------------
     def newton_steps(self, x: wp.array, starts: wp.array, ends: wp.array, steps: int, midpoints: bool, h: float,

@@ -91,11 +91,11 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None 
         # mesh's own scale; device input is moved there once (float64 arithmetic) and the result moved back below
         P, Q, frame = relative_points(model, P, frame), relative_points(model, Q, frame), st.frame
     left = None
-    # rows finished before any projection (NaN stays NaN): NaN for unchecked ends outside the domain, p for p == q
     if n and not refine:
-        be.paths(P, Q, res, frame, not check)
+        be.paths(P, Q, res, frame)
     elif n:
         left = _refined_paths(st, be, P, Q, res, int(refine), dev, frame)
+    if n:  # NaN rows for unchecked ends outside the domain (before any projection: NaN stays NaN), p == q rows
         wp.launch(finish.finish_paths, n, inputs=[P, Q, frame, int(not check)], outputs=[res], device=dev)
     if n and project == "sdf":
         flat = res.reshape(-1)

@@ -1049,21 +1049,10 @@ struct PathWeights
     float residual, window;
 };
 
-// How a path's rows are finished (finish.finish_paths is the same rule for the other backends): 1 (NaN rows) where an
-// end is outside the domain or not finite (tested with test_domain: unchecked input), 2 (p repeated) where p == q,
-// else 0. Computed once per path in path_pre_rows, so that the points kernel only reads it (a per-row test there
-// cost that kernel 20% on an H100), and no separate pass is launched (path queries are host-bound).
-NGF_FN float path_flag(const Frame& f, const float* p, const float* q, int test_domain)
-{
-    if (test_domain != 0 && !(point_in_domain(f, p) && point_in_domain(f, q)))
-        return 1.0f;
-    return p[0] == q[0] && p[1] == q[1] && p[2] == q[2] ? 2.0f : 0.0f;
-}
-
-// pre (P1 floats per path, natural order) for N paths from their endpoints' packed embeddings, then a finishing flag per path (path_flag).
+// pre (P1 floats per path, natural order) for N paths from their endpoints' packed embeddings.
 template <int D, int P1>
-NGF_FN void path_pre_rows(const PathWeights& W, const Frame& f, const float* ps, const float* qs, const u32x4* ep,
-                          const u32x4* eq, int n, int test_domain, float* pre, int warp, int n_warps)
+NGF_FN void path_pre_rows(const PathWeights& W, const u32x4* ep, const u32x4* eq, int n, float* pre, int warp,
+                          int n_warps)
 {
     const int t = lane_id() & 3;
     const int n_tiles = (n + 15) / 16;
@@ -1072,11 +1061,6 @@ NGF_FN void path_pre_rows(const PathWeights& W, const Frame& f, const float* ps,
         int r0, r1;
         bool ok0, ok1;
         tile_rows(tile, 1, 0, n, r0, r1, ok0, ok1);
-        if (t < 2 && (t ? ok1 : ok0))  // the path's finishing flag, after its n x P1 values (path_point_rows)
-        {
-            const int r = t ? r1 : r0;
-            pre[(size_t)n * P1 + r] = path_flag(f, ps + 3 * r, qs + 3 * r, test_domain);
-        }
         float acc[1][P1 / 8][4];
         zero<1, P1 / 8>(acc);
 #pragma unroll 1
@@ -1115,7 +1099,7 @@ NGF_FN void path_pre_rows(const PathWeights& W, const Frame& f, const float* ps,
 }
 
 // m points for each of N paths: out[i, j] (from_net: the Frame's coordinates), straight line p_i -> q_i through the
-// point-wise head; rows finished by their path's flag (path_flag, after pre's n x P1 values): NaN, or p repeated.
+// point-wise head.
 template <int P1, int P2, int P3>
 NGF_FN void path_point_rows(const PathWeights& W, const Frame& f, const float* ps, const float* qs, const float* pre,
                             int n_paths, int m, float* out, int warp, int n_warps)
@@ -1183,9 +1167,7 @@ NGF_FN void path_point_rows(const PathWeights& W, const Frame& f, const float* p
                     if (col < 3)
                     {
                         const float v = y[0][0][2 * i + j] * w + W.residual * x[i][col];
-                        const float flag = pre[(size_t)n_paths * P1 + path[i]];
-                        out[(size_t)r[i] * 3 + col] = flag == 0.0f ? (v * f.dscale + lo[col]) + hi[col]  // from_net
-                                                      : flag == 1.0f ? NGF_NAN : ps[3 * path[i] + col];
+                        out[(size_t)r[i] * 3 + col] = (v * f.dscale + lo[col]) + hi[col];  // from the network frame
                     }
                 }
             }
