@@ -191,6 +191,30 @@ def pick_best(length: wp.array(dtype=wp.float32), excess: wp.array(dtype=wp.floa
 
 
 @wp.kernel(enable_backward=False)
+def span_ends(x: wp.array2d(dtype=wp.vec3), stride: int, a: wp.array2d(dtype=wp.vec3), b: wp.array2d(dtype=wp.vec3)):
+    """The spans of ``stride`` chords of each path: a[i, k] = x[i, k * stride], b[i, k] = the point ``stride``
+    further on (the last point for the last span). a and b are (N, ceil((m - 1) / stride))."""
+    i, k = wp.tid()
+    j = k * stride
+    a[i, k] = x[i, j]
+    b[i, k] = x[i, wp.min(j + stride, x.shape[1] - 1)]
+
+
+@wp.kernel(enable_backward=False)
+def fold_jumps(a: wp.array2d(dtype=wp.vec3), b: wp.array2d(dtype=wp.vec3), d: wp.array2d(dtype=wp.float32),
+               scale: float, excess: wp.array(dtype=wp.float32)):
+    """excess[i] := max(excess[i], scale * (d - |b - a|) over the spans of path i): a span whose ends are much
+    farther apart along the surface (d, the network's geodesic distance) than in space jumps a gap. NaN stays."""
+    i = wp.tid()
+    worst = excess[i]
+    for k in range(a.shape[1]):
+        e = scale * (d[i, k] - wp.length(b[i, k] - a[i, k]))
+        if not (e <= worst):
+            worst = e
+    excess[i] = worst
+
+
+@wp.kernel(enable_backward=False)
 def take_best(x: wp.array2d(dtype=wp.vec3), best: wp.array(dtype=wp.int32), reversed_mask: wp.array(dtype=wp.int32),
               out: wp.array2d(dtype=wp.vec3)):
     """out[i] := candidate best[i] of path i (rows i + c N of x), turned around where reversed_mask[c]."""
