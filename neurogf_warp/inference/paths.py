@@ -197,10 +197,10 @@ def _fold_jumps(be, x, excess, dev, frame):
     """Count, in ``excess``, the spans of candidate paths x (N, m) that jump a gap. Snapping to the closest surface
     point lets a sweep (or a snapped straight line) cross a gap narrower than a point spacing, between a leg and the
     body or across a thin slot: every chord then stays near the surface, yet the path is shorter than the geodesic
-    (a cow model: 15-20% on 6 of 64 pairs, and twice the head's Chamfer distance to the solver's paths). Such a span's
-    ends are far apart along the surface: the network's distance between them exceeds their straight distance by
-    much more than a legitimate span's (<= 1e-3 of a point spacing there), and the excess, in units of JUMP_TOL, is
-    compared with the same tolerance as the chords' distance from the surface."""
+    (a cow model: 15-20% on 6 of 64 pairs, and twice the head's Chamfer distance to the solver's paths). Such a
+    span's ends are far apart along the surface: the network's distance between them exceeds their straight
+    distance by much more than a legitimate chord's (<= 0.005, a tenth of a point spacing, there); that excess,
+    divided by JUMP_TOL, is held to the same tolerance as the chords' distance from the surface."""
     n, m = x.shape
     k = -(-(m - 1) // JUMP_SPAN)
     a, b = wp.empty((n, k), dtype=wp.vec3, device=dev), wp.empty((n, k), dtype=wp.vec3, device=dev)
