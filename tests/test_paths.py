@@ -315,8 +315,29 @@ def test_a_candidate_that_jumps_a_gap_counts_as_leaving_the_surface():
     beside = np.stack([t + 0.1, 0.2 * t, 0 * t], 1)          # stays at x > 0
     x = wp.array(np.stack([across, beside]).astype(np.float32), dtype=wp.vec3, device=DEV)
     excess = wp.zeros(2, dtype=wp.float32, device=DEV)
-    paths_mod._fold_jumps(_Along(), x, excess, DEV, None)
+    length = wp.array(np.linalg.norm(np.diff(np.stack([across, beside]), axis=1), axis=2).sum(1).astype(np.float32),
+                      dtype=wp.float32, device=DEV)
+    both = np.stack([across, beside]).astype(np.float32)
+    ends = lambda k: wp.array(both[:, k], dtype=wp.vec3, device=DEV)  # noqa: E731
+    paths_mod._fold_jumps(_Along(), x, excess, DEV, None, length, ends(0), ends(-1))
     spacing = np.linalg.norm(np.diff(across, axis=0), axis=1).mean()
     e = excess.numpy()
     assert e[0] > paths_mod.SURFACE_TOL * spacing * 10, e
     assert abs(e[1]) < 1e-5, e
+
+
+def test_a_candidate_shorter_than_the_networks_distance_counts_as_leaving_the_surface():
+    """No path on the surface is shorter than the geodesic: a candidate shorter than SHORT_OF times the network's
+    distance between its ends (here the stand-in's 5 + the straight distance) jumped somewhere, even where every
+    span looks ordinary; one as long as that distance keeps its excess."""
+    m = 33
+    t = np.linspace(0.0, 1.0, m)
+    short = np.stack([-0.5 + 0 * t, 0.3 * t - 0.15, 0 * t], 1)  # all at x < 0: no span crosses x = 0
+    x = wp.array(short[None].astype(np.float32), dtype=wp.vec3, device=DEV)
+    P = wp.array(np.array([[-0.5, -0.15, 0.0]], np.float32), dtype=wp.vec3, device=DEV)
+    Q = wp.array(np.array([[0.5, 0.15, 0.0]], np.float32), dtype=wp.vec3, device=DEV)  # the stand-in's far side
+    for length, flagged in ((0.3, True), (6.5, False)):
+        excess = wp.zeros(1, dtype=wp.float32, device=DEV)
+        L = wp.array([length], dtype=wp.float32, device=DEV)
+        paths_mod._fold_jumps(_Along(), x, excess, DEV, None, L, P, Q)
+        assert (excess.numpy()[0] > 1.0) == flagged, (length, excess.numpy())

@@ -202,15 +202,22 @@ def span_ends(x: wp.array2d(dtype=wp.vec3), stride: int, a: wp.array2d(dtype=wp.
 
 @wp.kernel(enable_backward=False)
 def fold_jumps(a: wp.array2d(dtype=wp.vec3), b: wp.array2d(dtype=wp.vec3), d: wp.array2d(dtype=wp.float32),
+               length: wp.array(dtype=wp.float32), d_ends: wp.array(dtype=wp.float32), short_of: float,
                scale: float, excess: wp.array(dtype=wp.float32)):
-    """excess[i] := max(excess[i], scale * (d - |b - a|) over the spans of path i): a span whose ends are much
-    farther apart along the surface (d, the network's geodesic distance) than in space jumps a gap. NaN stays."""
+    """excess[i] := max(excess[i], scale * (d - |b - a|) over the spans of path i,
+    scale * (short_of * d_ends - length)):
+    a span whose ends are much farther apart along the surface (d, the network's geodesic distance) than in space
+    jumps a gap, and so does a path shorter than ``short_of`` times the network's distance between its ends (path i
+    joins the ends of pair i % N, N = d_ends.shape[0]). NaN stays."""
     i = wp.tid()
     worst = excess[i]
     for k in range(a.shape[1]):
         e = scale * (d[i, k] - wp.length(b[i, k] - a[i, k]))
         if not (e <= worst):
             worst = e
+    g = scale * (short_of * d_ends[i % d_ends.shape[0]] - length[i])
+    if g > worst:
+        worst = g
     excess[i] = worst
 
 

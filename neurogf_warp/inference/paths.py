@@ -26,6 +26,8 @@ PROJECT_STEPS = 2  # Newton steps from a point near the surface; |sdf| falls ~10
 JUMP_SPAN = 4  # chords per span in the gap test of refined candidates (the network's distance between span ends)
 JUMP_TOL = 2.0  # a span may be at most this many mean point spacings longer along the surface than in space: on
 # a 60 s cow model legitimate chords came out <= 0.005 longer, spans that jump a gap 0.3-0.8 (spacing 0.06)
+SHORT_OF = 0.8  # nor may a candidate be shorter than this share of the network's distance between its ends (no path
+# on the surface is shorter than the geodesic; the margin covers the network's error: cow p99 5%)
 SURFACE_TOL = 1.0  # a path follows the surface when no chord's midpoint is farther from it than one mean point
 # spacing (beyond its ends' own distance): a legitimate chord across a crease leaves by at most half its length;
 # a chord that jumps through the solid or across a gap leaves by about half the gap, far more than a spacing
@@ -184,7 +186,7 @@ def _refined_paths(st: QueryState, be, P, Q, res, refine: int, dev, frame):
         off = wp.zeros((5 * n, m), dtype=wp.float32, device=dev)  # inner points: on the SDF surface (projected)
         wp.launch(refine_kernels.end_offsets, 5 * n, inputs=[s_start, s_end], outputs=[off], device=dev)
         length, excess = _fit(be, full, dev, frame, None, off)
-    _fold_jumps(be, full, excess, dev, frame)
+    _fold_jumps(be, full, excess, dev, frame, length, P, Q)
     best, left = wp.empty(n, dtype=wp.int32, device=dev), wp.empty(n, dtype=wp.float32, device=dev)
     wp.launch(refine_kernels.pick_best, n, inputs=[length, excess, 5, m, SURFACE_TOL], outputs=[best, left],
               device=dev)
@@ -193,21 +195,27 @@ def _refined_paths(st: QueryState, be, P, Q, res, refine: int, dev, frame):
     return left
 
 
-def _fold_jumps(be, x, excess, dev, frame):
+def _fold_jumps(be, x, excess, dev, frame, length, P, Q):
     """Count, in ``excess``, the spans of candidate paths x (N, m) that jump a gap. Snapping to the closest surface
     point lets a sweep (or a snapped straight line) cross a gap narrower than a point spacing, between a leg and the
     body or across a thin slot: every chord then stays near the surface, yet the path is shorter than the geodesic
     (a cow model: 15-20% on 6 of 64 pairs, and twice the head's Chamfer distance to the solver's paths). Such a
     span's ends are far apart along the surface: the network's distance between them exceeds their straight
     distance by much more than a legitimate chord's (<= 0.005, a tenth of a point spacing, there); that excess,
-    divided by JUMP_TOL, is held to the same tolerance as the chords' distance from the surface."""
+    divided by JUMP_TOL, is held to the same tolerance as the chords' distance from the surface. A gap can also
+    lie where the network's own field is smooth across it (a cow pair: a path of 2.35 between ends 5.6 apart on the
+    surface, every span unremarkable): a candidate shorter than SHORT_OF times the network's distance between its
+    ends P, Q (``length``: the candidates' lengths along the surface) counts as leaving too."""
     n, m = x.shape
     k = -(-(m - 1) // JUMP_SPAN)
     a, b = wp.empty((n, k), dtype=wp.vec3, device=dev), wp.empty((n, k), dtype=wp.vec3, device=dev)
     wp.launch(refine_kernels.span_ends, (n, k), inputs=[x, JUMP_SPAN], outputs=[a, b], device=dev)
     d = wp.empty((n, k), dtype=wp.float32, device=dev)
     be.pairs(a.reshape(-1), b.reshape(-1), d.reshape(-1), False, frame)
-    wp.launch(refine_kernels.fold_jumps, n, inputs=[a, b, d, SURFACE_TOL / JUMP_TOL], outputs=[excess], device=dev)
+    d_ends = wp.empty(P.shape[0], dtype=wp.float32, device=dev)
+    be.pairs(P, Q, d_ends, False, frame)
+    wp.launch(refine_kernels.fold_jumps, n, inputs=[a, b, d, length, d_ends, SHORT_OF, SURFACE_TOL / JUMP_TOL],
+              outputs=[excess], device=dev)
 
 
 def _shorten_on_mesh(mesh_id, cand, starts, ends, levels, refine: int, dev):
