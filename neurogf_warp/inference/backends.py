@@ -9,7 +9,7 @@ and never look at the precision:
     vertex_distances(md, pts, ids, comp, out, reduce_min, raw)   sources -> every mesh vertex (internal order)
     target_distances(src, tgt, src_comp, tgt_comp, out, raw)     sources -> given targets, (S, T)
     pairs(p, q, out, raw, frame)                       distances of point pairs
-    sdf(x, out, frame)                                 the SDF head
+    sdf(x, out, frame, test_domain)                    the SDF head (NaN outside the domain when test_domain)
     paths(p, q, out, frame)                            the path head's points, out (N, m) vec3
     settle(x, starts, ends, steps, scratch, frame)     path refinement: ends pinned, inner points onto the surface
     sweep(x, starts, ends, scratch, frame)             one shortening sweep (midpoints, one Newton step)
@@ -169,8 +169,10 @@ class TensorCores(_Backend):
     def pairs(self, p, q, out, raw: bool, frame):
         self.eng.pairs(p, q, out, raw, frame)
 
-    def sdf(self, x, out, frame):
+    def sdf(self, x, out, frame, test_domain: bool = False):
         self.eng.sdf(x, out, frame)
+        if test_domain:  # the native SDF kernel does not test the domain (a test there cost it 16%)
+            wp.launch(finish.nan_outside, x.shape[0], inputs=[x, frame], outputs=[out], device=self.device)
 
     def paths(self, p, q, out, frame):
         self.eng.paths(p, q, out, frame)
@@ -261,7 +263,7 @@ class PerThread(_Backend):
                                                            1.0 if st.options["euclid"] else 0.0, int(raw)],
                   outputs=[out], device=self.device)
 
-    def sdf(self, x, out, frame):
+    def sdf(self, x, out, frame, test_domain: bool = False):  # the kernel gives NaN outside the domain anyway
         wp.launch(mlp.signed_distances, x.shape[0], inputs=[self.state.weights, x, frame], outputs=[out],
                   device=self.device)
 

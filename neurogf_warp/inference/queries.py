@@ -221,9 +221,7 @@ def sdf(model: Model, x, device=None, precision: str = "auto", check: bool = Tru
     out = Output(kind, dev)
     res = out.empty(X.shape[0])
     if X.shape[0]:
-        be.sdf(X, res, frame)
-        if not check:  # the tensor-core SDF kernel does not test the domain (a test there costs it 16%)
-            wp.launch(finish.nan_outside, X.shape[0], inputs=[X, frame], outputs=[res], device=dev)
+        be.sdf(X, res, frame, not check)
     return single_answer(out.result(res), kind, single)
 
 

@@ -1004,8 +1004,8 @@ NGF_FN void pair_rows(const Lifting& L, const Head& H, const Frame& f, const flo
 
 // Signed distances from the SDF head, MT m-tiles per warp (16 MT points). No domain test here: kept to the end of
 // the tile, a point's test made this kernel spill registers (16% slower on an H100); rows outside the domain are
-// made NaN by the caller (inference/queries.py: finish.nan_outside, only with check=False, since checked input
-// is inside).
+// made NaN by the caller (inference/backends.py, TensorCores.sdf: finish.nan_outside, only for unchecked input,
+// since checked input is inside).
 template <int D, int KS0, int MT, int NC>
 NGF_FN void sdf_rows(const Lifting& L, const Head& H, const Frame& f, const float* pts, int n, float* out, int warp,
                      int n_warps)
