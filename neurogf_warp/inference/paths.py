@@ -25,7 +25,7 @@ from neurogf_warp.model.model import Model
 PROJECT_STEPS = 2  # Newton steps from a point near the surface; |sdf| falls ~10x per step (a trained SDF head)
 JUMP_SPAN = 4  # chords per span in the gap test of refined candidates (the network's distance between span ends)
 JUMP_TOL = 2.0  # a span may be at most this many mean point spacings longer along the surface than in space: on
-# a 60 s cow model legitimate chords came out <= 0.005 longer, spans that jump a gap 0.3-0.8 (spacing 0.06)
+# a 74 s CPU cow model legitimate chords came out <= 0.005 longer, chords that jump a gap 0.3-0.8 (spacing 0.06)
 SHORT_OF = 0.8  # nor may a candidate be shorter than this share of the network's distance between its ends (no path
 # on the surface is shorter than the geodesic; the margin covers the network's error: cow p99 5%)
 SURFACE_TOL = 1.0  # a path follows the surface when no chord's midpoint is farther from it than one mean point
