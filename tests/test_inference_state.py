@@ -115,3 +115,39 @@ def test_other_shapes_run_in_fp32_or_are_refused_naming_the_shape():
     big.net.sdf_head = _head([64, 256, 16, 1]).eval()  # wider than the per-thread accumulators
     with pytest.raises(ValueError, match=r"SDF head widths \(64, 256, 16, 1\)"):
         ngf.sdf(big, big.mesh.vertices[:2], device=DEV)
+
+
+@pytest.mark.parametrize("precision", ["fp32", "fp16"])
+def test_replayed_path_launches_answer_each_call(precision, monkeypatch):
+    """Path queries replay their recorded launches (fp16: embeddings, per-path layer, points, with kept scratch;
+    both: the finishing pass) with each call's arrays: a second call of the same size with other ends, a p == q row
+    among them, and the per-call launches of large queries give what a fresh state gives; unbind drops the
+    recorded launches and the arrays they hold."""
+    import neurogf_warp.inference.engine as engine
+
+    model = small_model(fourier=2)
+    rng = np.random.default_rng(5)
+    v = model.mesh.vertices
+    kw = dict(device=DEV, precision=precision, project=None, m=8)
+    calls = [(v[rng.integers(0, len(v), 6)], v[rng.integers(0, len(v), 6)]) for _ in range(3)]
+    calls[1][1][2] = calls[1][0][2]  # a point to itself
+    got = [ngf.path(model, p, q, **kw) for p, q in calls]
+    st = query_state(model, DEV)
+    held = [weakref.ref(a) for a in st.engine.launches.held(("path", 6, 8))] if precision == "fp16" else []
+    fresh = []
+    for p, q in calls:
+        model.invalidate()
+        fresh.append(ngf.path(model, p, q, **kw))
+    for a, b in zip(got, fresh):
+        np.testing.assert_array_equal(a, b)
+    # the point itself, to float32 (host input runs relative to the mesh centre and is moved back)
+    np.testing.assert_allclose(got[1][2], np.repeat(calls[1][0][2:3], 8, axis=0), rtol=0, atol=1e-6)
+    assert not np.array_equal(got[0], got[2])
+    monkeypatch.setattr(engine, "_PATH_SCRATCH_BYTES", 0)  # every size above the kept-scratch limit
+    model.invalidate()
+    for (p, q), want in zip(calls, got):
+        np.testing.assert_array_equal(ngf.path(model, p, q, **kw), want)
+    if held:
+        del st
+        model.invalidate()
+        assert dead(held), "invalidate left the recorded path scratch alive"

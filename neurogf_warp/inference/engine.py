@@ -12,10 +12,13 @@ from neurogf_warp.kernels.inference import mlp, refine
 from neurogf_warp.kernels.inference import tensorcore as tc
 from neurogf_warp.model.folded import NetShape
 
+from .launches import Recorded
+
 __all__ = ["Engine", "fp16_refusal"]
 
-_UNSET = object()
-_EMBED_LAUNCHES = 16  # recorded embedding launches kept (a few sizes recur: single sources, path ends)
+_SIZED_LAUNCHES = 16  # recorded launches kept per kind that is keyed by a size (a few sizes recur: single sources,
+# path ends, one path)
+_PATH_SCRATCH_BYTES = 16 << 20  # path queries up to this much scratch keep it with their recorded launches
 
 
 def fp16_refusal(shape: NetShape) -> str | None:
@@ -65,12 +68,11 @@ class Engine:
                                         options["path_window"], device)
         self.path_widths = tc.path_widths(layers["path"])
         self._none = tc.empty_int(device)
-        self._launches, self._last = {}, {}
+        self.launches = Recorded(device, tc._cpu_blocks, keep=_SIZED_LAUNCHES)
 
     def forget_launches(self):
         """Drop every recorded launch: they hold references to the arrays they were recorded with."""
-        self._launches.clear()
-        self._last.clear()
+        self.launches.clear()
 
     def _launch(self, kernel, n_tiles: int, inputs: list, warps: int, record: bool = False):
         t = self.tuning
@@ -86,15 +88,11 @@ class Engine:
         if n:
             kernel = tc.embed_kernel(self.D, self.ks0)
             key = ("embed", n)
-            if key not in self._launches:
-                if len(self._launches) > _EMBED_LAUNCHES:
-                    for k in [k for k in self._launches if isinstance(k, tuple) and k[0] == "embed"]:
-                        self._launches.pop(k)
-                        self._last.pop(k, None)
+            if key not in self.launches:
                 cmd = self._launch(kernel, -(-n // 16), [self.lifting, self.dist_head, self.frame, pts, n, out],
                                    self.tuning.warps_other, record=True)
-                self._launches[key] = (None, cmd, tc.param_index(kernel))
-            self._replay(key, {"pts": pts, "out": out, "frame": frame or self.frame})
+                self.launches.record(key, cmd, kernel, group="embed", cpu_blocks=True)
+            self.launches.replay(key, {"pts": pts, "out": out, "frame": frame or self.frame})
         return out
 
     # -- distances from sources to rows ------------------------------------------------------------------------
@@ -133,30 +131,15 @@ class Engine:
         else:
             kernel, mt, warps = tc.distance_kernel(self.D, self.ks0, not cached, t.source_group), 1, t.warps_distance
         key = kernel  # one recorded launch per kernel, re-recorded when the rows change
-        cmd = self._launches.get(key)
-        if cmd is None or cmd[0] is not rows:
-            self._last.pop(key, None)
+        if key not in self.launches or self.launches.held(key) is not rows:
             tiles = -(-n // (16 * mt))
-            self._launches[key] = (rows, self._launch(kernel, tiles, [self.lifting, self.dist_head, self.frame, rows,
-                                                                      src, self._none, 0, 1, out, 0, 0, self.euclid],
-                                                      warps, record=True), tc.param_index(kernel))
+            cmd = self._launch(kernel, tiles, [self.lifting, self.dist_head, self.frame, rows, src, self._none, 0, 1,
+                                               out, 0, 0, self.euclid], warps, record=True)
+            self.launches.record(key, cmd, kernel, held=rows, cpu_blocks=True)
         flags = (tc.REDUCE_MIN if reduce_min else 0) | (tc.RAW if raw else 0)
-        self._replay(key, {"src": src, "src_ids": ids if ids is not None else self._none, "src_row": int(row0),
-                           "n_src": int(count), "out": out, "ld": int(ld), "flags": flags})
-
-    def _replay(self, key, params: dict):
-        """Replay a recorded launch, packing only the parameters (by name) that differ from its previous call."""
-        _, launch, index = self._launches[key]
-        last = self._last.setdefault(key, {})
-        for name, v in params.items():
-            if last.get(name, _UNSET) is not v and not (isinstance(v, int) and last.get(name) == v):
-                launch.set_param_at_index(index[name], v)
-                last[name] = v
-        if self.device.is_cpu:
-            with tc._cpu_blocks():
-                launch.launch()
-        else:
-            launch.launch()
+        self.launches.replay(key, {"src": src, "src_ids": ids if ids is not None else self._none,
+                                   "src_row": int(row0), "n_src": int(count), "out": out, "ld": int(ld),
+                                   "flags": flags})
 
     def pairs(self, p: wp.array, q: wp.array, out: wp.array, raw: bool = False, frame: mlp.Frame | None = None):
         n = p.shape[0]
@@ -173,19 +156,41 @@ class Engine:
                          [self.lifting, self.sdf_head, frame or self.frame, x, n, out], self.tuning.warps_sdf)
 
     def paths(self, p: wp.array, q: wp.array, out: wp.array, frame: mlp.Frame | None = None):
-        """out: (N, m) vec3, the path head's points."""
+        """out: (N, m) vec3, the path head's points.
+
+        Small queries (scratch up to ``_PATH_SCRATCH_BYTES``: every host-bound size) keep their scratch and two
+        recorded launches per (N, m); larger ones allocate and launch per call."""
         n, m = out.shape
         if not n:
             return
         D, P1 = self.D, self.path_widths[0]
-        ends = wp.empty(2 * n * D // 2, dtype=wp.uint32, device=self.device)
-        self.embed(p, ends[: n * D // 2], frame)
-        self.embed(q, ends[n * D // 2:], frame)
-        pre = wp.empty(n * P1, dtype=wp.float32, device=self.device)
-        self._launch(tc.path_pre_kernel(D, P1), -(-n // 16), [self.path_head, ends[: n * D // 2], ends[n * D // 2:],
-                                                               n, pre], self.tuning.warps_other)
-        self._launch(tc.path_points_kernel(*self.path_widths), -(-(n * m) // 16),
-                     [self.path_head, frame or self.frame, p, q, pre, n, m, out], self.tuning.warps_other)
+        half = n * D // 2
+        pre_k, points_k = tc.path_pre_kernel(D, P1), tc.path_points_kernel(*self.path_widths)
+        warps = self.tuning.warps_other
+        params = {"frame": frame or self.frame, "ps": p, "qs": q, "out": out}
+        key = ("path", n, m)
+        if key in self.launches:
+            ends_p, ends_q, pre = self.launches.held(key)
+        else:
+            ends = wp.empty(2 * half, dtype=wp.uint32, device=self.device)
+            ends_p, ends_q = ends[:half], ends[half:]
+            pre = wp.empty(n * P1, dtype=wp.float32, device=self.device)
+        self.embed(p, ends_p, frame)
+        self.embed(q, ends_q, frame)
+        if key not in self.launches and (2 * half + n * P1) * 4 > _PATH_SCRATCH_BYTES:
+            self._launch(pre_k, -(-n // 16), [self.path_head, ends_p, ends_q, n, pre], warps)
+            self._launch(points_k, -(-(n * m) // 16), [self.path_head, params["frame"], p, q, pre, n, m, out], warps)
+            return
+        if key not in self.launches:
+            self.launches.record(("path_pre", n, m), self._launch(pre_k, -(-n // 16), [self.path_head, ends_p, ends_q,
+                                                                                         n, pre], warps, record=True),
+                                 pre_k, group="path_pre", cpu_blocks=True)
+            self.launches.record(key, self._launch(points_k, -(-(n * m) // 16), [self.path_head, params["frame"], p,
+                                                                                  q, pre, n, m, out], warps,
+                                                   record=True),
+                                 points_k, held=(ends_p, ends_q, pre), group="path", cpu_blocks=True)
+        self.launches.replay(("path_pre", n, m), {})
+        self.launches.replay(key, params)
 
     # -- path shortening on the SDF surface ----------------------------------------------------------------------
     def newton_steps(self, x: wp.array, starts: wp.array, ends: wp.array, steps: int, midpoints: bool, h: float,

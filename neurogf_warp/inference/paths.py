@@ -101,7 +101,8 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None 
     elif n:
         left = _refined_paths(st, be, P, Q, res, int(refine), dev, frame)
     if n:  # NaN rows for unchecked ends outside the domain (before any projection: NaN stays NaN), p == q rows
-        wp.launch(finish.finish_paths, n, inputs=[P, Q, frame, int(not check)], outputs=[res], device=dev)
+        st.launches.run(finish.finish_paths, n, {"ps": P, "qs": Q, "frame": frame, "test_domain": int(not check),
+                                                 "x": res}, group="finish_paths")
     if n and project == "sdf":
         flat = res.reshape(-1)
         wp.launch(mlp.project_points, flat.shape[0], inputs=[st.weights, flat, frame, 2 * PROJECT_STEPS],

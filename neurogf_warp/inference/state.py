@@ -16,6 +16,7 @@ import warp as wp
 from neurogf_warp.common.arrays import resolve_device
 from neurogf_warp.common.checks import InputError
 from neurogf_warp.inference.engine import Engine
+from neurogf_warp.inference.launches import Recorded
 from neurogf_warp.kernels.inference import finish, mlp
 from neurogf_warp.kernels.inference import tensorcore as tc
 from neurogf_warp.model.folded import folded_layers, net_shape
@@ -71,7 +72,7 @@ class QueryState:
     Attributes made on first use: ``weights`` (``mlp.NeuroGFWeights``, folded float32), ``head_weights`` (the
     same with the |x - s| term off), ``shape`` (``folded.NetShape``), ``engine`` (``engine.Engine``, fp16 only),
     ``mesh(what)`` (``MeshOnDevice``), ``backends``, ``bound`` ({precision: kept embeddings}), ``tables`` (the
-    fp16 rows and sources made from the fp16 binding).
+    fp16 rows and sources made from the fp16 binding), ``launches`` (the queries' recorded finishing launches).
     """
 
     def __init__(self, model: Model, dev, tuning: tc.Tuning = tc.Tuning()):
@@ -97,6 +98,7 @@ class QueryState:
                               wp.empty(2, dtype=wp.int32, device="cpu", pinned=dev.is_cuda))
         self.no_points = wp.empty(0, dtype=wp.vec3, device=dev)
         self.no_ints = wp.empty(0, dtype=wp.int32, device=dev)
+        self.launches = Recorded(dev)  # the public queries' own recorded launches (finishing passes)
 
     # -- parts made on first use ----------------------------------------------------------------------------
     @property
@@ -159,6 +161,7 @@ class QueryState:
         """Free the kept vertex embeddings and everything made from them (tables, recorded launches)."""
         self.bound.clear()
         self.tables = None
+        self.launches.clear()
         if self._engine is not None:
             self._engine.forget_launches()
 
