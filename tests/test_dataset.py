@@ -71,17 +71,19 @@ def test_rows_and_paths_stay_in_their_component(built):
 
 def test_untraceable_paths_are_left_out_and_counted(two_blobs, monkeypatch):
     """A path the solver reports as NaN rows (untraceable or stale) never reaches the training data."""
-    real = D.resample_polyline
+    real = D.resample_polylines
 
-    def some_nan(points, offsets, m):
-        out = real(points, offsets, m)
-        out[::2] = np.nan  # every other path of each batch
+    def some_nan(points, starts, ends, m, device):
+        out = real(points, starts, ends, m, device)
+        out[::2] = np.nan  # every other path of each batch and kind
         return out
 
-    monkeypatch.setattr(D, "resample_polyline", some_nan)
+    monkeypatch.setattr(D, "resample_polylines", some_nan)
     d = D.build_dataset(two_blobs, None, **dict(SMALL, n_sources=4, n_test=0))
-    assert d.meta["dropped_paths"] == 2 * (2 + 2)  # paths 0 and 2 of 4 global and of 3 local, 2 sources
-    assert len(d.path_global) == 2 * 2 and len(d.path_local) == 2 * 1
+    n_src = 2  # path sources, one batch: 4 global and 3 local paths each, resampled per kind
+    kept_g, kept_l = (4 * n_src) // 2, (3 * n_src) // 2
+    assert d.meta["dropped_paths"] == (4 * n_src - kept_g) + (3 * n_src - kept_l)
+    assert len(d.path_global) == kept_g and len(d.path_local) == kept_l
     assert np.isfinite(d.path_global).all() and np.isfinite(d.path_local).all()
 
 

@@ -139,3 +139,48 @@ def test_untraceable_paths_are_flagged_and_nan():
         assert np.isnan(p).all() if bad[i] else np.isfinite(p).all()
     r = G.resample_polyline(pts, offs, 8)
     assert np.isnan(r[bad]).all() and np.isfinite(r[~bad]).all()
+
+
+def _resample_reference(p: np.ndarray, m: int) -> np.ndarray:
+    """float64, one polyline at a time: arc-length samples at k / (m - 1) of the length."""
+    if len(p) == 0 or not np.isfinite(p).all():
+        return np.full((m, 3), np.nan)
+    if len(p) == 1:
+        return np.repeat(p[:1], m, axis=0)
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))]
+    t = np.arange(m) / (m - 1) * s[-1]
+    j = np.clip(np.searchsorted(s, t, side="right") - 1, 0, len(p) - 2)
+    seg = s[j + 1] - s[j]
+    w = np.where(seg > 0, (t - s[j]) / np.where(seg > 0, seg, 1.0), 0.0)
+    return p[j] + w[:, None] * (p[j + 1] - p[j])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_resample_polylines_against_float64(seed):
+    """The one-launch resampling (``resample_polylines``, a thread per polyline) against a float64 loop on fresh
+    random polylines anywhere in the point array: empty ones, single points, repeated points (zero-length
+    segments), NaN and inf points (NaN rows), and lengths from 1e-3 to 1e3."""
+    rng = np.random.default_rng(seed)
+    T = 300
+    count = rng.integers(0, 40, T)
+    count[rng.random(T) < 0.1] = 1
+    scale = 10.0 ** rng.uniform(-3, 3)
+    pts = (np.cumsum(rng.standard_normal((count.sum() + 7, 3)), axis=0) * scale).astype(np.float32)
+    k = rng.integers(1, len(pts), 25)
+    pts[k] = pts[k - 1]
+    pts[rng.integers(0, len(pts), 3)] = np.nan
+    pts[rng.integers(0, len(pts), 2)] = np.inf
+    order = rng.permutation(T)  # polylines in any order in the array, with points before and after
+    starts = np.empty(T, np.int64)
+    starts[order] = 5 + np.r_[0, np.cumsum(count[order])[:-1]]
+    m = int(rng.integers(2, 130))
+    got = G.resample_polylines(pts, starts, starts + count, m)
+    want = np.stack([_resample_reference(pts[a:a + c].astype(np.float64), m) for a, c in zip(starts, count)])
+    assert got.shape == (T, m, 3) and got.dtype == np.float32
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    ok = np.isfinite(want)
+    assert ok.any() and (~ok).any()
+    # float32 output: within two roundings of the largest coordinate
+    np.testing.assert_allclose(got[ok], want[ok], rtol=0, atol=2 * np.finfo(np.float32).eps * np.abs(want[ok]).max())
+    offsets = np.r_[starts[order], starts[order[-1]] + count[order[-1]]]  # the same polylines as offsets
+    np.testing.assert_array_equal(G.resample_polyline(pts, offsets, m), got[order])

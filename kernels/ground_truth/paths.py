@@ -297,3 +297,41 @@ def walk_paths(graph: SteinerGraph, rec: PathRecords, dist: wp.array2d(dtype=flo
     if not done:
         nstale = -1
     q.stale[t] = nstale
+
+
+@wp.kernel
+def resample_by_length(points: wp.array(dtype=wp.vec3), starts: wp.array(dtype=int), ends: wp.array(dtype=int),
+                       out: wp.array2d(dtype=wp.vec3)):
+    """Thread i: polyline points[starts[i]:ends[i]] resampled to m = out.shape[1] points equally spaced by arc
+    length (float64 arc lengths accumulated point by point; sample k at k / (m - 1) of the length, on the last
+    segment whose start is at or before it). No points or a non-finite one: a NaN row; one point: that point m
+    times. One walk along the polyline serves all m samples (they come in order)."""
+    i = wp.tid()
+    a = starts[i]
+    b = ends[i]
+    m = out.shape[1]
+    length = wp.float64(0.0)
+    for k in range(a + 1, b):
+        length += wp.length(wp.vec3d(points[k]) - wp.vec3d(points[k - 1]))
+    if b <= a or not wp.isfinite(length) or not wp.isfinite(points[a]):
+        for k in range(m):
+            out[i, k] = wp.vec3(wp.nan, wp.nan, wp.nan)
+        return
+    if b - a == 1:
+        for k in range(m):
+            out[i, k] = points[a]
+        return
+    j = a  # segment j -> j + 1, starting at arc length s
+    s = wp.float64(0.0)
+    seg = wp.length(wp.vec3d(points[a + 1]) - wp.vec3d(points[a]))
+    for k in range(m):
+        t = length * (wp.float64(k) / wp.float64(m - 1))
+        while j < b - 2 and s + seg <= t:
+            s += seg
+            j += 1
+            seg = wp.length(wp.vec3d(points[j + 1]) - wp.vec3d(points[j]))
+        w = wp.float64(0.0)
+        if seg > wp.float64(0.0):
+            w = (t - s) / seg
+        p = wp.vec3d(points[j])
+        out[i, k] = wp.vec3(p + w * (wp.vec3d(points[j + 1]) - p))

@@ -31,7 +31,7 @@ import warp as wp
 from neurogf_warp.common.arrays import resolve_device
 from neurogf_warp.common.checks import integer, number
 from neurogf_warp.common.files import atomic_write
-from neurogf_warp.ground_truth.geodesics import DEFAULT_K, PATH_DELTA, GeodesicSolver, resample_polyline
+from neurogf_warp.ground_truth.geodesics import DEFAULT_K, PATH_DELTA, GeodesicSolver, resample_polylines
 from neurogf_warp.ground_truth.workers import DistanceRows
 from neurogf_warp.mesh.mesh import Mesh, load_mesh
 
@@ -548,13 +548,13 @@ def _paths(m: Mesh, st: DatasetSettings, plan: _Plan, path_src: np.ndarray, rng,
                     count.append((kind, s, len(t)))
             pts, offs, st_flags = ps.trace(np.concatenate(row_of), np.concatenate(targets))
             stale += int(np.sum(st_flags != 0))
-            c = 0
-            for kind, s, n in count:
-                if n:
-                    m_pts = GLOBAL_PATH_POINTS if kind == "global" else LOCAL_PATH_POINTS
-                    paths[kind].append(resample_polyline(pts, offs[c: c + n + 1], m_pts))
-                    path_of[kind].append(np.full(n, s, dtype=np.int64))
-                c += n
+            n_of = [n for _, _, n in count]
+            kinds = np.repeat([kind == "global" for kind, _, _ in count], n_of).astype(bool)
+            src_of = np.repeat(np.array([s for _, s, _ in count], dtype=np.int64), n_of)
+            for kind, m_pts, sel in (("global", GLOBAL_PATH_POINTS, kinds), ("local", LOCAL_PATH_POINTS, ~kinds)):
+                if sel.any():  # the batch's paths of one kind in one launch
+                    paths[kind].append(resample_polylines(pts, offs[:-1][sel], offs[1:][sel], m_pts, ps.device))
+                    path_of[kind].append(src_of[sel])
             bar.update(len(src))
             done += len(src)
             if clock.left() < time.perf_counter() - t_batch:  # the next batch would end past the limit

@@ -7,6 +7,7 @@ geodesic distance, within 0.02% of it on average at the defaults; benchmarks/geo
 from __future__ import annotations
 
 import numpy as np
+import warp as wp
 
 from neurogf_warp.ground_truth.solver import (
     DEFAULT_DELTA,
@@ -75,25 +76,37 @@ def resample_polyline(points: np.ndarray, offsets: np.ndarray, m: int) -> np.nda
     -------
     (T, m, 3) float32: a polyline of one point is repeated; an empty one (or one with NaN points) gives NaN.
     """
+    offsets = np.asarray(offsets, dtype=np.int64)
+    return resample_polylines(points, offsets[:-1], offsets[1:], m)
+
+
+def resample_polylines(points: np.ndarray, starts: np.ndarray, ends: np.ndarray, m: int,
+                       device="cpu") -> np.ndarray:
+    """``resample_polyline`` for polylines anywhere in ``points``: polyline i is points[starts[i]:ends[i]]; one
+    Warp launch on ``device`` (one thread per polyline) for all of them.
+
+    A dataset batch on a GPU resamples ~80K paths of ~100-200 points: the loop over them in numpy this replaces
+    took ~13 ms per path source, most of a small mesh's ground-truth time (benchmarks/RESULTS.md).
+    """
+    from neurogf_warp.kernels.ground_truth import paths as kp
+
     m = _points_per_path(m)
-    T = len(offsets) - 1
-    out = np.empty((T, m, 3), dtype=np.float32)
-    u = np.linspace(0.0, 1.0, m)
-    for i in range(T):
-        p = points[offsets[i]: offsets[i + 1]].astype(np.float64)
-        if len(p) == 0:
-            out[i] = np.nan
-            continue
-        if len(p) == 1:
-            out[i] = p[0]
-            continue
-        s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))]
-        tq = u * s[-1]
-        j = np.clip(np.searchsorted(s, tq, side="right") - 1, 0, len(p) - 2)
-        seg = s[j + 1] - s[j]
-        w = np.where(seg > 0, (tq - s[j]) / np.where(seg > 0, seg, 1.0), 0.0)
-        out[i] = p[j] + w[:, None] * (p[j + 1] - p[j])
-    return out
+    starts, ends = np.asarray(starts, dtype=np.int64), np.asarray(ends, dtype=np.int64)
+    T = len(starts)
+    if T == 0:
+        return np.zeros((0, m, 3), dtype=np.float32)
+    lo, hi = int(starts.min()), int(max(ends.max(), starts.min()))
+    if hi - lo >= 2**31:
+        raise MemoryError("too many polyline points in one call: resample fewer polylines at a time")
+    pts = wp.array(np.ascontiguousarray(points[lo:hi], dtype=np.float32).reshape(-1, 3), dtype=wp.vec3,
+                   device=device)
+    out = wp.empty((T, m), dtype=wp.vec3, device=device)
+    wp.launch(kp.resample_by_length, T, inputs=[pts, wp.array((starts - lo).astype(np.int32), dtype=int,
+                                                               device=device),
+                                                 wp.array((np.maximum(ends, starts) - lo).astype(np.int32),
+                                                          dtype=int, device=device)],
+              outputs=[out], device=device)
+    return out.numpy().reshape(T, m, 3)
 
 
 def _points_per_path(m) -> int:
