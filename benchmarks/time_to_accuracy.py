@@ -108,9 +108,18 @@ def _plot(rows: list, path: Path) -> bool:
     return True
 
 
+def _phases(r: dict) -> str:
+    """The dataset's distance and path phases (seconds) from the training log, with the sources each solved."""
+    ph = r["timings"].get("dataset_phases") or {}
+    if "distances_s" not in ph:
+        return "-"
+    src = r.get("sources") or {}
+    return f"{ph['distances_s']:.1f} s ({src.get('distance', '?')}) / {ph.get('paths_s', 0):.1f} s"
+
+
 def _table(rows: list) -> str:
     head = ("mesh", "budget", "call", "MRE", "p99", "max", "heat", "Chamfer", "refined", "SDF L1", "dataset",
-            "steps joint/rd")
+            "distances/paths", "steps joint/rd")
     lines = [head]
     pct = lambda x: "-" if x is None else f"{100 * x:.3f}%"  # noqa: E731
     sci = lambda x: "-" if x is None else f"{x:.3e}"  # noqa: E731
@@ -118,7 +127,7 @@ def _table(rows: list) -> str:
         st = r["steps"] or {}
         lines.append((r["mesh"], f"{r['budget_s']:g} s", f"{r['call_s']:.1f} s", pct(r["mre"]), pct(r["p99"]),
                       pct(r["max"]), pct(r["heat_mre"]), sci(r["chamfer"]), sci(r["chamfer_refined"]),
-                      sci(r["sdf_l1"]), f"{r['timings'].get('dataset_s', 0):.1f} s",
+                      sci(r["sdf_l1"]), f"{r['timings'].get('dataset_s', 0):.1f} s", _phases(r),
                       f"{st.get('joint', '?')}/{st.get('refine_dist', '?')}"))
     w = [max(len(x[i]) for x in lines) for i in range(len(head))]
     return "\n".join("  ".join(c.rjust(w[i]) for i, c in enumerate(x)) for x in lines)

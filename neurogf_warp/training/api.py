@@ -208,7 +208,8 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     ds = obtain_dataset(mesh, dataset, files.dataset if dataset is None else None, cfg.data, cfg.seed, dev, progress,
                         time_limit_s=limit, partial_ok=ck is not None)
     dataset_s = time.perf_counter() - t_data
-    timings = {"dataset_s": dataset_s}
+    # the dataset's own phases (sampling, distances, paths; a cached dataset's are those of its build)
+    timings = {"dataset_s": dataset_s, "dataset_phases": dict(ds.meta.get("timings") or {})}
     t0 = time.perf_counter()
     if ck is not None and "heat_mre" in ck["history"]:
         heat_mre = ck["history"]["heat_mre"]
