@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from neurogf_warp.common.arrays import resolve_device
 from neurogf_warp.ground_truth.solver import (
     DEFAULT_DELTA,
     DEFAULT_K,
@@ -63,25 +64,26 @@ def geodesic_distances(mesh, sources, device=None, k: int = DEFAULT_K, windows: 
     return m.to_input(d.astype(np.float32))
 
 
-def resample_polyline(points: np.ndarray, offsets: np.ndarray, m: int) -> np.ndarray:
+def resample_polyline(points: np.ndarray, offsets: np.ndarray, m: int, device=None) -> np.ndarray:
     """Resample polylines to m points each, equally spaced by arc length.
 
     Parameters
     ----------
-    points : (P, 3) float, the polylines one after the other
+    points : (P, 3) float, the polylines one after the other (computed from their float32 values)
     offsets : (T + 1,) int, polyline i is points[offsets[i]:offsets[i+1]]
     m : int >= 2, points per resampled polyline
+    device : Warp device of the launch (default: Warp's preferred device)
 
     Returns
     -------
     (T, m, 3) float32: a polyline of one point is repeated; an empty one (or one with NaN points) gives NaN.
     """
     offsets = np.asarray(offsets, dtype=np.int64)
-    return resample_polylines(points, offsets[:-1], offsets[1:], m)
+    return resample_polylines(points, offsets[:-1], offsets[1:], m, device)
 
 
 def resample_polylines(points: np.ndarray, starts: np.ndarray, ends: np.ndarray, m: int,
-                       device="cpu") -> np.ndarray:
+                       device=None) -> np.ndarray:
     """``resample_polyline`` for polylines anywhere in ``points``: polyline i is points[starts[i]:ends[i]]; one
     Warp launch on ``device`` (one thread per polyline) for all of them.
 
@@ -90,6 +92,7 @@ def resample_polylines(points: np.ndarray, starts: np.ndarray, ends: np.ndarray,
     """
     from neurogf_warp.kernels.ground_truth import paths as kp
 
+    device = resolve_device(device)
     m = _points_per_path(m)
     starts, ends = np.asarray(starts, dtype=np.int64), np.asarray(ends, dtype=np.int64)
     T = len(starts)
@@ -157,5 +160,5 @@ def geodesic_paths(mesh, source, targets, m: int | None = None, device=None, k: 
                       stacklevel=2)
     pts = msh.denormalize(pts)
     if m is not None:
-        return resample_polyline(pts, offs, m).astype(np.float32)
+        return resample_polyline(pts, offs, m, solver.device).astype(np.float32)
     return [pts[offs[i]: offs[i + 1]].astype(np.float32) for i in range(len(tg))]
