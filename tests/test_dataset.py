@@ -220,3 +220,17 @@ def test_a_time_limit_covers_test_sources_and_paths_too():
     batch_s = t["distances_s"] / (len(d.gd_src) + len(d.test_src)) * 8  # one solver batch
     assert t["total_s"] <= limit + max(batch_s, 0.5), t
     assert not d.meta["complete"] and len(d.gd_src) < 400 and d.meta["settings"]["n_path_sources"] <= len(d.gd_src)
+
+
+def test_nearest_first_is_the_head_of_a_stable_argsort():
+    """The local pools' selection (partition, then a sort of the candidates) against a full stable argsort on random
+    rows with many ties, unreachable (inf) vertices and every pool size."""
+    rng = np.random.default_rng(3)
+    for t in range(200):
+        V = int(rng.integers(1, 2000))
+        d = rng.integers(0, int(rng.integers(1, 40)), V).astype(np.float32) if t % 2 else rng.random(V, np.float32)
+        d[rng.random(V) < 0.1] = np.inf
+        s, n = int(rng.integers(0, V)), int(rng.integers(0, V + 3))
+        order = np.argsort(d, kind="stable")
+        want = order[np.isfinite(d[order]) & (order != s)][:n]
+        np.testing.assert_array_equal(D.nearest_first(d, s, n), want)
