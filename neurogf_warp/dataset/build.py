@@ -416,20 +416,27 @@ PATH_SHARE = 0.25
 
 # Under a time limit on a GPU, one solver batch must fit well inside its share of the limit: the solver's own batch
 # (a memory budget: 512 sources on the bunny) took ~4 s for distances and ~12 s for paths on an H100, a 20 s
-# budget's whole dataset share and more. The first distance batch is sized from an estimate (seconds per source
-# on an H100 for the 34,834-vertex bunny, scaled like the solver's cost, ~V^1.3); the path batch from the
-# distance sources' measured rate, a path source costing ~PATH_COST distance sources (tracing). A batch smaller
-# than the GPU can hold costs little per source on meshes of 30K+ vertices (each row is one mesh-sized sweep).
+# budget's whole dataset share and more. The first distance batch is sized from an estimate (an H100's seconds
+# per source measured on meshes of four sizes, interpolated log-log); the path batch from the distance sources'
+# measured rate, a path source costing ~PATH_COST distance sources (solve with path records, trace, resample). A
+# batch smaller than the GPU can hold costs little per source on meshes of 30K+ vertices (each row is one
+# mesh-sized sweep), but much below ~64 rows the sweeps stop filling the GPU (igea: 31 sources/s in batches of 16,
+# 54 in batches of 64).
 DISTANCE_BATCH_SHARE = 0.12  # of the limit, per distance batch
-PATH_COST = 3.0
-GPU_S_PER_SOURCE = 8.5e-3  # H100, bunny (benchmarks/RESULTS.md, 2026-11-24)
-GPU_REF_VERTICES = 34_834
+PATH_COST = 1.5  # cow 2.2 ms / 1.7, bunny 14 / 11 ms per source (H100, benchmarks/RESULTS.md, 2026-11-24)
+# (vertices, seconds per distance source) on an H100, batches of 64+ (benchmarks/RESULTS.md, 2026-11-24): the
+# bunny, igea, and the bunny subdivided twice and three times
+GPU_S_PER_SOURCE = ((34_834, 5.0e-3), (134_345, 1.86e-2), (556_051, 0.100), (2_223_321, 0.833))
 MIN_LIMITED_BATCH = 16
 
 
 def gpu_seconds_per_source(n_vertices: int) -> float:
-    """Estimated GPU seconds per distance source on a mesh of ``n_vertices`` (an H100's rate, scaled)."""
-    return GPU_S_PER_SOURCE * (max(n_vertices, 1) / GPU_REF_VERTICES) ** 1.3
+    """Estimated GPU seconds per distance source on a mesh of ``n_vertices`` (an H100's measured rates,
+    interpolated log-log, extrapolated with the slope of the nearest two)."""
+    v, t = np.log([p[0] for p in GPU_S_PER_SOURCE]), np.log([p[1] for p in GPU_S_PER_SOURCE])
+    x = np.log(max(n_vertices, 1))
+    i = int(np.clip(np.searchsorted(v, x) - 1, 0, len(v) - 2))
+    return float(np.exp(t[i] + (t[i + 1] - t[i]) * (x - v[i]) / (v[i + 1] - v[i])))
 
 
 def limited_batch(seconds: float, per_source: float) -> int:
