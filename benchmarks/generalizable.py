@@ -18,7 +18,7 @@ What it does, on one device and arithmetic mode (default: fp32 on CUDA, fp64 on 
    (``distances_tiled``: tile GEMMs, cuBLASDx on CUDA) with fp32 and fp16 (tensor-core) operands;
 5. fp16 pairs (--precision fp16 or both, the default): the same 1M pairs through ``distances(...,
    precision="fp16")`` (the tensor-core pair head, kernels/generalizable/tensorcore.py) for each tile shape of
-   --tc-tiles (m-tiles per warp x layer-0 n-tiles per chunk): wall and Warp kernel timer as in 4, and its error
+   --tc-tiles (m-tiles per warp x layer-0 n-tiles per chunk @ warps per SM): wall and Warp kernel timer as in 4, and its error
    against float64 torch on the check pairs of 2 (ratios) and on 512 of the 1M pairs (distances);
 and prints a table (and writes --json). Targets from issue 23: conditioning <= 1 ms, 1M pairs <= 1 ms (GPU).
 """
@@ -93,8 +93,9 @@ def main(argv=None):
                     "float32 ones (kernels/generalizable/fast.py, the fp32 default)")
     ap.add_argument("--precision", default="both", choices=["fp32", "fp16", "both"],
                     help="pair queries timed: the fp32 kernels, the fp16 tensor-core head, or both (default)")
-    ap.add_argument("--tc-tiles", default="1x8,1x16,2x4", help="tile shapes of the fp16 pair kernel to time, "
-                    "MTxNC (m-tiles of 16 pairs per warp x layer-0 n-tiles per chunk), comma-separated")
+    ap.add_argument("--tc-tiles", default="1x8@16,1x8@12,2x4@8", help="shapes of the fp16 pair kernel to time, "
+                    "MTxNC@W (m-tiles of 16 pairs per warp x layer-0 n-tiles per chunk @ persistent warps per SM, "
+                    "which the kernel is compiled for: 16 -> 128 registers, 12 -> 168, 8 -> 255), comma-separated")
     ap.add_argument("--quick", action="store_true", help="CPU smoke run: 20K pairs, 1 repeat")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
@@ -209,9 +210,10 @@ def main(argv=None):
     fp16 = {}
     if a.precision in ("fp16", "both"):
         for shape in [x.strip() for x in a.tc_tiles.split(",") if x.strip()]:
-            mt, nc = (int(v) for v in shape.lower().split("x"))
+            tiles, _, warps = shape.lower().partition("@")
+            mt, nc = (int(v) for v in tiles.split("x"))
             try:
-                wn.tc_tiles = (mt, nc)
+                wn.tc_tiles = (mt, nc, int(warps) if warps else None)
                 t0 = time.perf_counter()
                 wn.distances(enc, Pd[:64], Qd[:64], center, scale, False, precision="fp16")
                 sync()

@@ -46,6 +46,7 @@ def head_ref(w, g, us, ut, si, ti):
 
 @pytest.mark.parametrize("storage,mt,nc", [("fp32", 1, 8), ("fp64", 1, 8), ("fp32", 2, 4), ("fp32", 1, 16)])
 def test_kernel_random_weights(storage, mt, nc):
+    # (the warps-per-SM variants differ only in their CUDA launch bounds: the CPU code is the same)
     """Raw ratios, distances (matrix indexing, zero for equal points, inf across components) against float64;
     pair counts not a multiple of the tile, so the tail is exercised."""
     rng = np.random.default_rng([11, mt, nc, storage == "fp64"])

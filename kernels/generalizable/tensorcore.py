@@ -32,7 +32,10 @@ FUSE = 128  # fuse / head.0 width (the A fragments: 8 k-steps)
 HID = 64  # head.1 width (8 n-tiles)
 MT = 1  # m-tiles (16 pairs each) per warp and tile step; MT = 2 shares each weight load by two tiles
 NC = 8  # layer-0 n-tiles per chunk (16 = the whole layer at once)
-WARPS_PER_SM = 16  # persistent warps per multiprocessor on CUDA
+WARPS_PER_SM = 16  # persistent warps per multiprocessor on CUDA (MT = 1; 8 for MT >= 2)
+# The kernel is compiled for that occupancy (__launch_bounds__(128, WARPS_PER_SM / 4)): without the bound NVRTC
+# (Warp 1.19, sm_90) gave the 1 x 8 kernel 143 registers, so only 12 of the 16 persistent warps per SM would be
+# resident at once and the rest would run after them; with it, 128 registers and no spills (cubin attributes).
 CPU_WARPS = 1  # the CPU emulation runs one warp (32 fibers) through every tile
 
 # the mma column position (within a k-step) -> channel offset (within the 16 channels of that k-step)
@@ -60,8 +63,9 @@ NGF_FN void load4(const double* p, float (&v)[4])
     v[0] = (float)p[0]; v[1] = (float)p[1]; v[2] = (float)p[2]; v[3] = (float)p[3];
 }
 
-// Pairs m = tile rows: m -> (a, b) = (m / n_t, m % n_t) for a matrix (n_t > 0), else (m, m).
-NGF_FN void pair_ends(long long m, long long n_t, long long& a, long long& b)
+// Pairs m = tile rows: m -> (a, b) = (m / n_t, m % n_t) for a matrix (n_t > 0), else (m, m). 32-bit: M is a
+// Warp int.
+NGF_FN void pair_ends(int m, int n_t, int& a, int& b)
 {
     a = m; b = m;
     if (n_t > 0) { a = m / n_t; b = m - a * n_t; }
@@ -115,16 +119,16 @@ NGF_FN void fuse_diff_rows(const T* G, const float* wxp, const T* (&gs)[2], cons
 template <class T, int MT, int NC>
 NGF_FN void gen_pair_rows(const Head& H, const T* G, const float* wxp, const T* S, const int* si, const int* sc,
                       const T* Tq, const int* ti, const int* tc, double cx, double cy, double cz, double scale,
-                      long long n_t, long long M, int raw, float* out, long long warp, long long n_warps)
+                      int n_t, int M, int raw, float* out, int warp, int n_warps)
 {
     static_assert(16 % NC == 0 && NC % 2 == 0, "NC: an even divisor of 16");
     const int lane = lane_id();
     const int g = lane >> 2, t = lane & 3;
     const T tcx = (T)cx, tcy = (T)cy, tcz = (T)cz, tsc = (T)scale;
-    const long long n_tiles = (M + 16 * MT - 1) / (16 * MT);
-    for (long long tile = warp; tile < n_tiles; tile += n_warps)
+    const int n_tiles = (int)(((long long)M + 16 * MT - 1) / (16 * MT));
+    for (int tile = warp; tile < n_tiles; tile += n_warps)
     {
-        long long rows[MT][2];
+        int rows[MT][2];
         u32 a0[MT][8][4];
 #pragma unroll
         for (int m = 0; m < MT; ++m)
@@ -135,9 +139,10 @@ NGF_FN void gen_pair_rows(const Head& H, const T* G, const float* wxp, const T* 
 #pragma unroll
             for (int i = 0; i < 2; ++i)
             {
-                const long long r = tile * 16 * MT + 16 * m + g + 8 * i;
+                const long long r0 = (long long)tile * 16 * MT + 16 * m + g + 8 * i;
+                const int r = r0 < M ? (int)r0 : M;  // M: past the end (the pair is not stored)
                 rows[m][i] = r;
-                long long a, b;
+                int a, b;
                 pair_ends(r < M ? r : M - 1, n_t, a, b);  // a tail tile repeats the last pair (never stored)
                 unit_point<T>(S + 3 * a, tcx, tcy, tcz, tsc, us[i]);
                 unit_point<T>(Tq + 3 * b, tcx, tcy, tcz, tsc, ut[i]);
@@ -168,12 +173,12 @@ NGF_FN void gen_pair_rows(const Head& H, const T* G, const float* wxp, const T* 
 #pragma unroll
             for (int i = 0; i < 2; ++i)
             {
-                const long long r = rows[m][i];
+                const int r = rows[m][i];
                 if (t != i || r >= M)
                     continue;
                 const float ratio = y[m][i];
                 if (raw) { out[r] = ratio; continue; }
-                long long a, b;
+                int a, b;
                 pair_ends(r, n_t, a, b);
                 if (sc && sc[a] != tc[b]) { out[r] = NGF_INF; continue; }
                 const T* s_ = S + 3 * a;
@@ -206,12 +211,20 @@ def pack_head(wx: np.ndarray, w0: np.ndarray, b0: np.ndarray, w1: np.ndarray, b1
     return H, wp.array(np.ascontiguousarray(wxp, np.float32).reshape(-1), dtype=wp.float32, device=device)
 
 
+def warps_per_sm(mt: int) -> int:
+    """The default occupancy of the kernel with mt m-tiles per warp (persistent warps per multiprocessor)."""
+    return WARPS_PER_SM if mt == 1 else WARPS_PER_SM // 2
+
+
 @functools.lru_cache(maxsize=None)
-def pair_kernel(storage: str = "fp32", mt: int = MT, nc: int = NC):
+def pair_kernel(storage: str = "fp32", mt: int = MT, nc: int = NC, warps: int | None = None):
     """The pair kernel for float32 ("fp32") or float64 ("fp64") storage of G and the points, mt m-tiles per warp,
-    layer 0 in chunks of nc n-tiles. Launch with :func:`launch_pairs`."""
-    if storage not in ("fp32", "fp64") or mt not in (1, 2, 3, 4) or nc not in (2, 4, 8, 16):
-        raise ValueError(f"pair_kernel: storage {storage!r}, mt {mt}, nc {nc} not supported")
+    layer 0 in chunks of nc n-tiles, compiled for ``warps`` resident warps per multiprocessor (default
+    :func:`warps_per_sm`; a multiple of 4). Launch with :func:`launch_pairs` and the same ``warps``."""
+    warps = warps or warps_per_sm(mt)
+    if storage not in ("fp32", "fp64") or mt not in (1, 2, 3, 4) or nc not in (2, 4, 8, 16) or warps % 4 or \
+            not 4 <= warps <= 64:
+        raise ValueError(f"pair_kernel: storage {storage!r}, mt {mt}, nc {nc}, warps {warps} not supported")
     T = wp.float32 if storage == "fp32" else wp.float64
     ctype = "float" if storage == "fp32" else "double"
     snippet = tc.native_initializer(tc.Head, "Head", "head", "H") + f"""
@@ -227,9 +240,10 @@ def pair_kernel(storage: str = "fp32", mt: int = MT, nc: int = NC):
              cz: wp.float64, scale: wp.float64, n_t: int, M: int, raw: int, out: wp.array(dtype=wp.float32),
              tid: int, n_warps: int): ...
 
-    native = wp.func_native(snippet)(tc._unique(body, f"ngf_gen_pair_rows_{storage}_{mt}_{nc}"))
+    native = wp.func_native(snippet)(tc._unique(body, f"ngf_gen_pair_rows_{storage}_{mt}_{nc}_{warps}"))
 
-    @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
+    @wp.kernel(module="unique", module_options=MODULE_OPTIONS,
+               launch_bounds=(tc.BLOCK_THREADS, warps * 32 // tc.BLOCK_THREADS))
     def gen_pair_rows(head: tc.Head, g: wp.array2d(dtype=T), wxp: wp.array(dtype=wp.float32),
                       S: wp.array2d(dtype=T), si: wp.array(dtype=wp.int32), s_comp: wp.array(dtype=wp.int32),
                       Tq: wp.array2d(dtype=T), ti: wp.array(dtype=wp.int32), t_comp: wp.array(dtype=wp.int32),
@@ -244,10 +258,11 @@ def pair_kernel(storage: str = "fp32", mt: int = MT, nc: int = NC):
 
 
 def launch_pairs(kernel, head, wxp, G, S, si, s_comp, T, ti, t_comp, center, scale, n_t: int, m: int, raw: bool, out,
-                 device, mt: int = MT, warps_per_sm: int = WARPS_PER_SM):
-    """Launch ``pair_kernel(...)`` over m pairs (persistent warps; the CPU emulation: one warp of 32 fibers)."""
+                 device, mt: int = MT, warps: int | None = None):
+    """Launch ``pair_kernel(storage, mt, nc, warps)`` over m pairs: persistent warps, ``warps`` per multiprocessor
+    (default :func:`warps_per_sm`); the CPU emulation: one warp of 32 fibers."""
     n_tiles = (m + 16 * mt - 1) // (16 * mt)
     device = wp.get_device(device)
     tc.launch(kernel, n_tiles, [head, G, wxp, S, si, s_comp, T, ti, t_comp, *(float(c) for c in center), float(scale),
-                                int(n_t), int(m), int(raw), out], device, warps_per_sm, CPU_WARPS)
+                                int(n_t), int(m), int(raw), out], device, warps or warps_per_sm(mt), CPU_WARPS)
     return out

@@ -75,7 +75,8 @@ class WarpGenNet:
         w["head2"] = a(L["head2"][0])
         self.w = w
         # the tensor-core head (precision="fp16", kernels/generalizable/tensorcore.py): float64 weights kept here,
-        # packed on first use; tc_tiles: (m-tiles per warp, layer-0 n-tiles per chunk) of its kernel
+        # packed on first use; tc_tiles: (m-tiles per warp, layer-0 n-tiles per chunk, warps per multiprocessor)
+        # of its kernel (None: the kernel file's defaults; the benchmark's --tc-tiles sweeps them)
         self._head64 = (L["fuse"][0][:, 128:], *L["head0"], *L["head1"], L["head2"][0])
         self._tc = None
         self.tc_tiles = None
@@ -376,16 +377,18 @@ class WarpGenNet:
         dev = self.device
         if self._tc is None:
             self._tc = gtc.pack_head(*self._head64, dev)
-        mt, nc = self.tc_tiles or (gtc.MT, gtc.NC)
+        mt, nc, warps = self.tc_tiles or (gtc.MT, gtc.NC, None)
         if s_nn is None:
             s_nn = self._nearest_user(enc, S, center, scale)
         if t_nn is None:
             t_nn = self._nearest_user(enc, T, center, scale)
         e = wp.empty(0, dtype=wp.int32, device=dev)
-        kernel = gtc.pair_kernel("fp32" if enc.fused.dtype == wp.float32 else "fp64", mt, nc)
+        warps = warps or gtc.warps_per_sm(mt)
+        kernel = gtc.pair_kernel("fp32" if enc.fused.dtype == wp.float32 else "fp64", mt, nc, warps)
         head, wxp = self._tc
         return gtc.launch_pairs(kernel, head, wxp, enc.fused, S, s_nn, s_comp if s_comp is not None else e, T, t_nn,
-                                t_comp if t_comp is not None else e, center, scale, n_t, m, raw, out, dev, mt=mt)
+                                t_comp if t_comp is not None else e, center, scale, n_t, m, raw, out, dev, mt=mt,
+                                warps=warps)
 
     # ---- tiled query (tensor cores on CUDA) ------------------------------------------------------------------
     def tiled_weights(self, operand: str):
