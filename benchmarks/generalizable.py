@@ -20,6 +20,9 @@ What it does, on one device and arithmetic mode (default: fp32 on CUDA, fp64 on 
    precision="fp16")`` (the tensor-core pair head, kernels/generalizable/tensorcore.py) for each tile shape of
    --tc-tiles (m-tiles per warp x layer-0 n-tiles per chunk @ warps per SM): wall and Warp kernel timer as in 4, and its error
    against float64 torch on the check pairs of 2 (ratios) and on 512 of the 1M pairs (distances);
+6. the nearest-cloud-point lookups of 4 and 5 alone (2 x --pairs points): Warp's hash grid and the dense
+   candidate grid (--nearest picks the one the pair timings use, default grid), the grid's build time (it is
+   built on a cloud's first query, not at conditioning) and the indices' agreement (grid = hash = brute force);
 and prints a table (and writes --json). Targets from issue 23: conditioning <= 1 ms, 1M pairs <= 1 ms (GPU).
 """
 from __future__ import annotations
@@ -91,6 +94,10 @@ def main(argv=None):
                     "cuBLASDx takes about a minute)")
     ap.add_argument("--generic", action="store_true", help="time the generic SIMT kernels instead of the fast "
                     "float32 ones (kernels/generalizable/fast.py, the fp32 default)")
+    ap.add_argument("--nearest", default="grid", choices=["hash", "grid"],
+                    help="nearest-cloud-point lookup of the timed pair queries (default grid: the dense candidate "
+                    "grid, kernels/generalizable/nearest_grid.py; hash: Warp's hash grid); both lookups are timed "
+                    "on their own in any case")
     ap.add_argument("--precision", default="both", choices=["fp32", "fp16", "both"],
                     help="pair queries timed: the fp32 kernels, the fp16 tensor-core head, or both (default)")
     ap.add_argument("--tc-tiles", default="1x8@16,1x8@12,2x4@8", help="shapes of the fp16 pair kernel to time, "
@@ -131,7 +138,7 @@ def main(argv=None):
 
     # 1. compile / first call
     t0 = time.perf_counter()
-    wn = WarpGenNet(net, dev, mode, knn_chunks=a.knn_chunks, fast=not a.generic)
+    wn = WarpGenNet(net, dev, mode, knn_chunks=a.knn_chunks, fast=not a.generic, nearest=a.nearest)
     enc = wn.encode(unit)
     wn.ratio(enc, unit[:4], unit[4:8]).numpy()
     compile_s = time.perf_counter() - t0
@@ -242,6 +249,41 @@ def main(argv=None):
             finally:
                 wn.tc_tiles = None
 
+    # 6. the nearest-cloud-point lookups alone: the hash grid and the dense candidate grid on the 2 x pairs query
+    # points (as a pair query runs them), the candidate grid's build (done on a cloud's first query), and whether
+    # both give the brute-force scan's indices
+    nearest = {}
+    idx = {}
+    for look in ("hash", "grid"):
+        wn.nearest_lookup = look
+        r = {}
+        if look == "grid":
+            def rebuild():
+                enc.nn_grid_built = False
+                wn._nn_grid(enc)
+            rebuild()
+            r["build_ms_median"], r["build_ms_min"] = median_ms(rebuild, a.repeats, sync)
+            _, r["build_kernels_ms_sum"] = kernel_times(rebuild)
+            g = enc.nn_grid
+            cnt = g.count.numpy()
+            r["cells_per_axis"], r["lists"], r["list_entries"] = g.G, int((cnt > 0).sum()), int(cnt.sum())
+        def look_up():
+            return wn._nearest_user(enc, Pd, center, scale), wn._nearest_user(enc, Qd, center, scale)
+        look_up()
+        r["ms_median"], r["ms_min"] = median_ms(look_up, a.repeats, sync)
+        ks, r["kernels_ms_sum"] = kernel_times(look_up)
+        r["kernels_note"] = kernel_note(ks)
+        idx[look] = np.concatenate([x.numpy() for x in look_up()])
+        nearest[look] = r
+    wn.nearest_lookup = a.nearest
+    sub = rng.integers(0, a.pairs, 4096)
+    brute = wp.empty(len(sub), dtype=wp.int32, device=dev)
+    wp.launch(wn.k.nearest_user, len(sub), inputs=[enc.cloud, wp.uint64(0), 0.0, 0, wn._arr(P[sub]),
+                                                    *(float(c) for c in center), float(scale), brute], device=dev)
+    nearest["grid_vs_hash_mismatches"] = int((idx["grid"] != idx["hash"]).sum())
+    nearest["vs_brute_force_mismatches"] = {k: int((v[sub] != brute.numpy()).sum()) for k, v in idx.items()}
+    nearest["brute_force_queries"] = len(sub)
+
     # 4b. the tiled (tile-GEMM) query: operand fp32 and fp16 (tensor cores on CUDA); compile timed apart
     tiled = {}
     if mode in ("fp32", "fp64") and not a.no_tiled:
@@ -294,7 +336,7 @@ def main(argv=None):
         "encode_graph_note": graph_note, "encode_kernels_ms_sum": enc_kernel_ms, "condition_numpy_ms_median": cond_ms,
         "pairs_ms_median": pair_ms, "pairs_ms_min": pair_min, "pairs_kernel_ms_median": pair_kernel_ms,
         "pairs_per_s": a.pairs / (pair_ms / 1e3) if pair_ms else None, "pairs_max_rel_vs_torch_fp64": pair_check,
-        "tiled": tiled, "fp16": fp16,
+        "tiled": tiled, "fp16": fp16, "nearest_lookup": a.nearest, "nearest": nearest,
     }
     f = (lambda v: "-" if v is None else f"{v:.3f}")
     rows = [
@@ -324,6 +366,16 @@ def main(argv=None):
         rows.append((f"fp16 {shape} vs float64 torch", f"ratio mean {rc['mean_rel']:.2e} max {rc['max_rel']:.2e} "
                      f"({rc['pairs']} pairs); distance mean {dc['mean_rel']:.2e} max {dc['max_rel']:.2e} "
                      f"({dc['pairs']} pairs) ({'ok' if r['ok'] else 'FAIL'})"))
+    for look in ("hash", "grid"):
+        r = nearest[look]
+        rows.append((f"nearest, {look}, 2 x {a.pairs:,} pts (wall)", f"{f(r['ms_median'])} ms median, {f(r['ms_min'])} min; "
+                     f"kernels {f(r['kernels_ms_sum'])} ms ({r['kernels_note']})"))
+    g = nearest["grid"]
+    rows.append(("nearest grid build (first query)", f"{f(g['build_ms_median'])} ms median, kernels "
+                 f"{f(g['build_kernels_ms_sum'])} ms; {g['cells_per_axis']}^3 cells, {g['lists']} lists, "
+                 f"{g['list_entries']} entries"))
+    rows.append(("nearest: grid vs hash / vs brute", f"{nearest['grid_vs_hash_mismatches']} different of "
+                 f"{2 * a.pairs:,}; vs brute force on {len(sub)}: {nearest['vs_brute_force_mismatches']}"))
     for op, r in tiled.items():
         if "error" in r:
             rows.append((f"tiled query ({op} operands)", r["error"]))
@@ -339,7 +391,8 @@ def main(argv=None):
         print(f"  {k:<{wd}}  {v}")
     if a.json:
         Path(a.json).write_text(json.dumps(result, indent=1))
-    ok16 = all(r.get("ok", False) for r in fp16.values())
+    ok16 = all(r.get("ok", False) for r in fp16.values()) and nearest["grid_vs_hash_mismatches"] == 0 and \
+        not any(nearest["vs_brute_force_mismatches"].values())
     return 0 if check["ok"] and (pair_check is None or pair_check <= 1e-3) and ok16 else 1
 
 

@@ -36,6 +36,8 @@ class Encoded:
     neighbours: list  # the three (N, k) kNN index arrays (for tests)
     points32: wp.array | None = None  # (N,) vec3 float32 copy of ``cloud`` (the hash grid's points)
     scratch: dict = field(default_factory=dict)  # every device array of the encoder, reused by encode(into=)
+    nn_grid: object = None  # the candidate grid of WarpGenNet(nearest="grid"), built on the first query
+    nn_grid_built: bool = False  # False after encode(into=) until the next query rebuilds it
 
 
 class WarpGenNet:
@@ -44,10 +46,16 @@ class WarpGenNet:
     mode: ``"fp64"``, ``"fp32"`` or ``"mixed"`` (see ``kernels/generalizable``); default: :func:`default_mode`.
     knn_chunks: candidate chunks per point of the neighbour search (parallelism on a GPU, default 16; 1 on the
     CPU); sweep it with the benchmark's --knn-chunks.
+    nearest: the nearest-cloud-point lookup of the queries: ``"hash"`` (default: Warp's hash grid, built at
+    conditioning) or ``"grid"`` (a dense grid of candidate lists, ``kernels/generalizable/nearest_grid.py``, built
+    on the first query of a conditioned cloud); both return the brute-force scan's index (ties -> smaller index).
     """
 
     def __init__(self, net: GenNeuroGF, device=None, mode: str | None = None, knn_chunks: int | None = None,
-                 use_grid: bool = True, fast: bool | None = None):
+                 use_grid: bool = True, fast: bool | None = None, nearest: str = "hash"):
+        if nearest not in ("hash", "grid"):
+            raise ValueError(f"nearest must be 'hash' or 'grid', got {nearest!r}")
+        self.nearest_lookup = nearest
         self.device = wp.get_device(device)
         self.mode = mode or default_mode(self.device)
         self.k = kernels(self.mode)
@@ -199,6 +207,7 @@ class WarpGenNet:
         if into is not None:
             into.cloud, into.feats, into.fused, into.grid, into.radius = X, F, G, grid, radius
             into.neighbours, into.points32 = nbrs, V
+            into.nn_grid_built = False  # the candidate lists are the old cloud's
             return into
         return Encoded(X, F, G, grid, radius, nbrs, V, sc)
 
@@ -293,9 +302,26 @@ class WarpGenNet:
                           *w["head0"], *w["head1"], w["head2"], S, Tt, out], device=self.device)
         return out
 
+    def _nn_grid(self, enc: Encoded):
+        """The candidate grid of enc (nearest="grid"), built here on first use after encode."""
+        from neurogf_warp.kernels.generalizable.nearest_grid import NearestGrid
+
+        if enc.nn_grid is None or enc.nn_grid.n_points != enc.cloud.shape[0]:
+            enc.nn_grid = NearestGrid(self.mode, enc.cloud.shape[0], self.device)
+            enc.nn_grid_built = False
+        if not enc.nn_grid_built:
+            enc.nn_grid.build(enc.cloud)
+            enc.nn_grid_built = True
+        return enc.nn_grid
+
     def nearest(self, enc: Encoded, pts: wp.array) -> wp.array:
         """Nearest cloud point of each row of pts (M, 3) (storage dtype, unit frame) -> (M,) int32."""
         out = wp.empty(pts.shape[0], dtype=wp.int32, device=self.device)
+        if self.nearest_lookup == "grid":
+            if pts.shape[0]:
+                g = self._nn_grid(enc)
+                wp.launch(g.k.nearest, pts.shape[0], inputs=[enc.cloud, *g.args(), pts, out], device=self.device)
+            return out
         grid_id = enc.grid.id if enc.grid is not None else wp.uint64(0)
         wp.launch(self.k.nearest, pts.shape[0],
                   inputs=[enc.cloud, grid_id, enc.radius, int(enc.grid is not None), pts, out], device=self.device)
@@ -325,6 +351,9 @@ class WarpGenNet:
             return self._pair_head_tc(enc, S, T, s_nn, t_nn, s_comp, t_comp, center, scale, n_t, m, False, out)
         if self.fast:
             return self._pair_head(enc, S, T, s_nn, t_nn, s_comp, t_comp, center, scale, n_t, m, False, out)
+        if self.nearest_lookup == "grid":  # else the kernel looks them up in the hash grid
+            s_nn = self._nearest_user(enc, S, center, scale) if s_nn is None else s_nn
+            t_nn = self._nearest_user(enc, T, center, scale) if t_nn is None else t_nn
         e = wp.empty(0, dtype=wp.int32, device=self.device)
         w = self.w
         grid_id = enc.grid.id if enc.grid is not None else wp.uint64(0)
@@ -339,7 +368,11 @@ class WarpGenNet:
     def _nearest_user(self, enc: Encoded, pts: wp.array, center, scale) -> wp.array:
         """Nearest cloud point of each row of pts (user units, rounded to the unit frame as the pair kernels do)."""
         out = wp.empty(pts.shape[0], dtype=wp.int32, device=self.device)
-        if pts.shape[0]:
+        if pts.shape[0] and self.nearest_lookup == "grid":
+            g = self._nn_grid(enc)
+            wp.launch(g.k.nearest_user, pts.shape[0], inputs=[enc.cloud, *g.args(), pts, *(float(c) for c in center),
+                                                             float(scale), out], device=self.device)
+        elif pts.shape[0]:
             grid_id = enc.grid.id if enc.grid is not None else wp.uint64(0)
             wp.launch(self.k.nearest_user, pts.shape[0],
                       inputs=[enc.cloud, grid_id, enc.radius, int(enc.grid is not None), pts,
