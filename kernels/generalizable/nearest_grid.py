@@ -6,7 +6,8 @@ nearest point of some query inside it: with U = min over points p of the largest
 the cell is at most sqrt(U) (squared, with a relative margin of MARGIN for rounding). The cells are inflated by
 PAD on every side, so a query whose float32 cell index is off by one at a boundary is still inside its cell.
 
-A query then scans only its cell's list with the exact distance formula and tie rule of ``nearest_point``
+A query then scans only its cell's list (float32 storage: entries (x, y, z, index), one 16-byte load each;
+float64: indices) with the exact distance formula and tie rule of ``nearest_point``
 (``kernels/generalizable/__init__.py``: squared distance in the mode's accumulation type, ties -> the smaller
 index), so it returns the same index as the brute-force scan: every point whose distance is (within rounding)
 the smallest is in the list. Queries outside the box, or in a cell whose list did not fit the candidate
@@ -55,6 +56,10 @@ def _build(mode: str) -> SimpleNamespace:
     T = wp.float64 if mode == "fp64" else wp.float32  # storage
     A = wp.float32 if mode == "fp32" else wp.float64  # accumulation
     opts = dict(enable_backward=False, module=f"neurogf_generalizable_nngrid_{mode}")
+    # float32 storage: a list entry is the point itself (x, y, z, index), one 16-byte load per candidate instead
+    # of an index and three gathers; the coordinates are the cloud's float32 values, so distances are the same
+    INLINE = T == wp.float32
+    C = wp.vec4 if INLINE else wp.int32
     INF = float("inf")
 
     @wp.func
@@ -123,7 +128,7 @@ def _build(mode: str) -> SimpleNamespace:
 
     @wp.kernel(**opts)
     def cell_fill(cloud: wp.array2d(dtype=T), G: int, h: float, U: wp.array(dtype=float),
-                  start: wp.array(dtype=wp.int32), fill: wp.array(dtype=wp.int32), cand: wp.array(dtype=wp.int32)):
+                  start: wp.array(dtype=wp.int32), fill: wp.array(dtype=wp.int32), cand: wp.array(dtype=C)):
         """Thread (cell, chunk): writes the chunk's candidates into cand[start[cell] ...] (fill starts at 0);
         entries past the buffer are dropped (the query then scans every point for that cell)."""
         c, k = wp.tid()
@@ -142,7 +147,10 @@ def _build(mode: str) -> SimpleNamespace:
         for j in range(k * CHUNK, j1):
             if is_candidate(near2(point(cloud, j), lo, hi), u):
                 if s < cand.shape[0]:
-                    cand[s] = j
+                    if wp.static(INLINE):
+                        cand[s] = wp.vec4(float(cloud[j, 0]), float(cloud[j, 1]), float(cloud[j, 2]), float(j))
+                    else:
+                        cand[s] = j
                 s += 1
 
     @wp.func
@@ -161,7 +169,7 @@ def _build(mode: str) -> SimpleNamespace:
 
     @wp.func
     def nearest_point(cloud: wp.array2d(dtype=T), G: int, h: float, start: wp.array(dtype=wp.int32),
-                      count: wp.array(dtype=wp.int32), cand: wp.array(dtype=wp.int32), x: A, y: A, z: A):
+                      count: wp.array(dtype=wp.int32), cand: wp.array(dtype=C), x: A, y: A, z: A):
         """Index of the cloud point nearest to (x, y, z) (unit frame), ties -> the smaller index."""
         inv = 1.0 / h
         fx = (float(x) + BOX) * inv
@@ -178,11 +186,21 @@ def _build(mode: str) -> SimpleNamespace:
         best = A(INF)
         bi = int(-1)
         for q in range(s, e):
-            j = cand[q]
-            dx = A(cloud[j, 0]) - x
-            dy = A(cloud[j, 1]) - y
-            dz = A(cloud[j, 2]) - z
-            d = dx * dx + dy * dy + dz * dz
+            j = int(0)
+            d = A(0.0)
+            if wp.static(INLINE):
+                v = cand[q]
+                j = int(v[3])
+                dx = A(v[0]) - x
+                dy = A(v[1]) - y
+                dz = A(v[2]) - z
+                d = dx * dx + dy * dy + dz * dz
+            else:
+                j = cand[q]
+                dx = A(cloud[j, 0]) - x
+                dy = A(cloud[j, 1]) - y
+                dz = A(cloud[j, 2]) - z
+                d = dx * dx + dy * dy + dz * dz
             if d < best or (d == best and j < bi):
                 best = d
                 bi = j
@@ -192,7 +210,7 @@ def _build(mode: str) -> SimpleNamespace:
 
     @wp.kernel(**opts)
     def nearest_user(cloud: wp.array2d(dtype=T), G: int, h: float, start: wp.array(dtype=wp.int32),
-                     count: wp.array(dtype=wp.int32), cand: wp.array(dtype=wp.int32), pts: wp.array2d(dtype=T),
+                     count: wp.array(dtype=wp.int32), cand: wp.array(dtype=C), pts: wp.array2d(dtype=T),
                      cx: wp.float64, cy: wp.float64, cz: wp.float64, scale: wp.float64, out: wp.array(dtype=wp.int32)):
         """Thread m: the nearest cloud point of pts[m] given in user units, the unit-frame coordinates rounded as
         ``kernels(mode).nearest_user`` rounds them."""
@@ -203,13 +221,13 @@ def _build(mode: str) -> SimpleNamespace:
 
     @wp.kernel(**opts)
     def nearest(cloud: wp.array2d(dtype=T), G: int, h: float, start: wp.array(dtype=wp.int32),
-                count: wp.array(dtype=wp.int32), cand: wp.array(dtype=wp.int32), pts: wp.array2d(dtype=T),
+                count: wp.array(dtype=wp.int32), cand: wp.array(dtype=C), pts: wp.array2d(dtype=T),
                 out: wp.array(dtype=wp.int32)):
         """Thread m: the nearest cloud point of pts[m] (unit frame)."""
         m = wp.tid()
         out[m] = nearest_point(cloud, G, h, start, count, cand, A(pts[m, 0]), A(pts[m, 1]), A(pts[m, 2]))
 
-    return SimpleNamespace(cell_bound=cell_bound, cell_count=cell_count, cell_cap=cell_cap, cell_fill=cell_fill,
+    return SimpleNamespace(entry=C, cell_bound=cell_bound, cell_count=cell_count, cell_cap=cell_cap, cell_fill=cell_fill,
                            nearest_user=nearest_user, nearest=nearest)
 
 
@@ -228,7 +246,9 @@ class NearestGrid:
         self.count = wp.empty(nc, dtype=wp.int32, device=dev)
         self.start = wp.empty(nc, dtype=wp.int32, device=dev)
         self.fill = wp.empty(nc, dtype=wp.int32, device=dev)
-        self.cand = wp.empty(max(nc * CAND_PER_CELL, n_points * CAND_PER_POINT), dtype=wp.int32, device=dev)
+        if n_points >= 1 << 24:
+            raise ValueError("the candidate grid stores point indices as float32: at most 2^24 points")
+        self.cand = wp.empty(max(nc * CAND_PER_CELL, n_points * CAND_PER_POINT), dtype=self.k.entry, device=dev)
 
     def build(self, cloud: wp.array):
         """The lists of ``cloud`` ((N, 3) storage dtype, unit frame): no host synchronisation."""
