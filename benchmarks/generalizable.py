@@ -18,8 +18,8 @@ What it does, on one device and arithmetic mode (default: fp32 on CUDA, fp64 on 
    (``distances_tiled``: tile GEMMs, cuBLASDx on CUDA) with fp32 and fp16 (tensor-core) operands;
 5. fp16 pairs (--precision fp16 or both, the default): the same 1M pairs through ``distances(...,
    precision="fp16")`` (the tensor-core pair head, kernels/generalizable/tensorcore.py) for each tile shape of
-   --tc-tiles (m-tiles per warp x layer-0 n-tiles per chunk @ warps per SM): wall and Warp kernel timer as in 4, and its error
-   against float64 torch on the check pairs of 2 (ratios) and on 512 of the 1M pairs (distances);
+   --tc-tiles (m-tiles per warp x layer-0 n-tiles per chunk @ warps per SM): wall and Warp kernel timer as in 4,
+   and its error against float64 torch on the check pairs of 2 (ratios) and on 512 of the 1M pairs (distances);
 6. the nearest-cloud-point lookups of 4 and 5 alone (2 x --pairs points): Warp's hash grid and the dense
    candidate grid (--nearest picks the one the pair timings use, default grid), the grid's build time (it is
    built on a cloud's first query, not at conditioning) and the indices' agreement (grid = hash = brute force);
@@ -368,8 +368,9 @@ def main(argv=None):
                      f"({dc['pairs']} pairs) ({'ok' if r['ok'] else 'FAIL'})"))
     for look in ("hash", "grid"):
         r = nearest[look]
-        rows.append((f"nearest, {look}, 2 x {a.pairs:,} pts (wall)", f"{f(r['ms_median'])} ms median, {f(r['ms_min'])} min; "
-                     f"kernels {f(r['kernels_ms_sum'])} ms ({r['kernels_note']})"))
+        rows.append((f"nearest, {look}, 2 x {a.pairs:,} pts (wall)",
+                     f"{f(r['ms_median'])} ms median, {f(r['ms_min'])} min; kernels {f(r['kernels_ms_sum'])} ms "
+                     f"({r['kernels_note']})"))
     g = nearest["grid"]
     rows.append(("nearest grid build (first query)", f"{f(g['build_ms_median'])} ms median, kernels "
                  f"{f(g['build_kernels_ms_sum'])} ms; {g['cells_per_axis']}^3 cells, {g['lists']} lists, "

@@ -1,5 +1,6 @@
 """The dense candidate grid of the nearest-cloud-point lookup (kernels/generalizable/nearest_grid.py) against the
-brute-force scan: the same index for every query, ties (equal distances) included, on Warp's CPU device."""
+brute-force scan: the same index for every query, ties (equal distances) included, on Warp's CPU device and,
+with a GPU, on cuda:0."""
 import numpy as np
 import pytest
 import torch
@@ -10,7 +11,7 @@ from neurogf_warp.generalizable.network import GenNeuroGF
 from neurogf_warp.kernels.generalizable import kernels
 from neurogf_warp.kernels.generalizable.nearest_grid import NearestGrid
 
-DEV = "cpu"
+DEVICES = (["cpu"] if wp.is_cpu_available() else []) + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
 
 
 def surface_cloud(n, rng):
@@ -31,20 +32,21 @@ def queries(cloud, rng):
     return np.concatenate([near, mid, far, cloud, [[np.nan, 0.0, 0.0]]])
 
 
+@pytest.mark.parametrize("dev", DEVICES)
 @pytest.mark.parametrize("mode,n,seed", [("fp32", 256, 0), ("fp64", 256, 1), ("fp32", 700, 2)])
-def test_grid_equals_brute_force(mode, n, seed):
+def test_grid_equals_brute_force(mode, n, seed, dev):
     rng = np.random.default_rng(seed)
     k = kernels(mode)
     npd = np.float32 if k.dtype == wp.float32 else np.float64
     cloud = surface_cloud(n, rng).astype(npd)
-    C = wp.array(cloud, dtype=k.dtype, device=DEV)
+    C = wp.array(cloud, dtype=k.dtype, device=dev)
     Q = queries(cloud, rng).astype(npd)
-    P = wp.array(Q, dtype=k.dtype, device=DEV)
-    grid = NearestGrid(mode, n, DEV).build(C)
-    got = wp.empty(len(Q), dtype=wp.int32, device=DEV)
-    want = wp.empty(len(Q), dtype=wp.int32, device=DEV)
-    wp.launch(grid.k.nearest, len(Q), inputs=[C, *grid.args(), P, got], device=DEV)
-    wp.launch(k.nearest, len(Q), inputs=[C, wp.uint64(0), 0.0, 0, P, want], device=DEV)  # brute force
+    P = wp.array(Q, dtype=k.dtype, device=dev)
+    grid = NearestGrid(mode, n, dev).build(C)
+    got = wp.empty(len(Q), dtype=wp.int32, device=dev)
+    want = wp.empty(len(Q), dtype=wp.int32, device=dev)
+    wp.launch(grid.k.nearest, len(Q), inputs=[C, *grid.args(), P, got], device=dev)
+    wp.launch(k.nearest, len(Q), inputs=[C, wp.uint64(0), 0.0, 0, P, want], device=dev)  # brute force
     np.testing.assert_array_equal(got.numpy(), want.numpy())
     # the lists were used (not the fallback) for the queries near the cloud, and ties occurred
     assert (grid.count.numpy() > 0).sum() > 0.1 * grid.G ** 3
@@ -52,20 +54,21 @@ def test_grid_equals_brute_force(mode, n, seed):
     assert (np.sort(d, axis=1)[:, 1] == d.min(axis=1)).sum() > 10
     # user-unit queries (centre and scale applied in the kernel) agree with the unit-frame ones
     c, s = np.array([3.0, -2.0, 0.5]), 0.25
-    user = wp.array((Q / s + c).astype(npd), dtype=k.dtype, device=DEV)
-    got_u = wp.empty(len(Q), dtype=wp.int32, device=DEV)
-    want_u = wp.empty(len(Q), dtype=wp.int32, device=DEV)
-    wp.launch(grid.k.nearest_user, len(Q), inputs=[C, *grid.args(), user, *c, s, got_u], device=DEV)
-    wp.launch(k.nearest_user, len(Q), inputs=[C, wp.uint64(0), 0.0, 0, user, *c, s, want_u], device=DEV)
+    user = wp.array((Q / s + c).astype(npd), dtype=k.dtype, device=dev)
+    got_u = wp.empty(len(Q), dtype=wp.int32, device=dev)
+    want_u = wp.empty(len(Q), dtype=wp.int32, device=dev)
+    wp.launch(grid.k.nearest_user, len(Q), inputs=[C, *grid.args(), user, *c, s, got_u], device=dev)
+    wp.launch(k.nearest_user, len(Q), inputs=[C, wp.uint64(0), 0.0, 0, user, *c, s, want_u], device=dev)
     np.testing.assert_array_equal(got_u.numpy(), want_u.numpy())
 
 
-def test_warp_gen_net_grid_lookup():
+@pytest.mark.parametrize("dev", DEVICES)
+def test_warp_gen_net_grid_lookup(dev):
     """WarpGenNet(nearest="grid") gives bit for bit the hash-grid distances; encode(into=) rebuilds the lists."""
     torch.manual_seed(2)
     net = GenNeuroGF().double().eval()
     rng = np.random.default_rng(3)
-    hashed, gridded = WarpGenNet(net, DEV, mode="fp32"), WarpGenNet(net, DEV, mode="fp32", nearest="grid")
+    hashed, gridded = WarpGenNet(net, dev, mode="fp32"), WarpGenNet(net, dev, mode="fp32", nearest="grid")
     a, b = surface_cloud(200, rng), surface_cloud(200, rng) * 0.9
     S, T = hashed._arr(a[rng.integers(0, 200, 150)] * 2 + 1), hashed._arr(b[rng.integers(0, 200, 150)] * 2 + 1)
     state = gridded.encode(a)
@@ -80,4 +83,4 @@ def test_warp_gen_net_grid_lookup():
         U = hashed._arr(cloud + rng.standard_normal(cloud.shape) * 0.01)
         np.testing.assert_array_equal(gridded.nearest(state, U).numpy(), hashed.nearest(ref, U).numpy())
     with pytest.raises(ValueError, match="nearest"):
-        WarpGenNet(net, DEV, mode="fp32", nearest="kd")
+        WarpGenNet(net, dev, mode="fp32", nearest="kd")

@@ -3,6 +3,7 @@ against float64 on fresh random inputs, on Warp's CPU device.
 
 On the CPU the kernel runs as the per-mesh engine's warp emulation (32 fibers per warp, the mma emulated): the
 same native code as on a GPU, so these tests check its fragment layout, column permutation and finishing rules.
+With a GPU the same checks run there too (cuda:0).
 
 Tolerances come from fp16 rounding: the weights and the activations entering each layer are rounded to fp16
 (unit roundoff 2^-11 = 4.9e-4, sums in fp32), so a ratio carries an error of a few 1e-4 of the magnitude of the
@@ -25,7 +26,7 @@ from neurogf_warp.kernels.generalizable import tensorcore as gtc
 
 from .conftest import shared_path
 
-DEV = "cpu"
+DEVICES = (["cpu"] if wp.is_cpu_available() else []) + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
 
 
 def random_head(rng):
@@ -44,8 +45,9 @@ def head_ref(w, g, us, ut, si, ti):
     return h @ w["w2"][0], h @ np.abs(w["w2"][0])
 
 
+@pytest.mark.parametrize("dev", DEVICES)
 @pytest.mark.parametrize("storage,mt,nc", [("fp32", 1, 8), ("fp64", 1, 8), ("fp32", 2, 4), ("fp32", 1, 16)])
-def test_kernel_random_weights(storage, mt, nc):
+def test_kernel_random_weights(storage, mt, nc, dev):
     # (the warps-per-SM variants differ only in their CUDA launch bounds: the CPU code is the same)
     """Raw ratios, distances (matrix indexing, zero for equal points, inf across components) against float64;
     pair counts not a multiple of the tile, so the tail is exercised."""
@@ -54,10 +56,10 @@ def test_kernel_random_weights(storage, mt, nc):
     w = random_head(rng)
     g = rng.standard_normal((n, 128))
     npd, T = (np.float32, wp.float32) if storage == "fp32" else (np.float64, wp.float64)
-    arr = (lambda x: wp.array(np.ascontiguousarray(x, dtype=npd), dtype=T, device=DEV))
-    iarr = (lambda x: wp.array(np.asarray(x, np.int32), dtype=wp.int32, device=DEV))
+    arr = (lambda x: wp.array(np.ascontiguousarray(x, dtype=npd), dtype=T, device=dev))
+    iarr = (lambda x: wp.array(np.asarray(x, np.int32), dtype=wp.int32, device=dev))
     e = iarr(np.zeros(0))
-    H, wxp = gtc.pack_head(*w.values(), DEV)
+    H, wxp = gtc.pack_head(*w.values(), dev)
     k = gtc.pair_kernel(storage, mt, nc)
     c, sc_ = np.array([0.5, -1.0, 2.0]), 0.25
     # a matrix of 5 x 61 pairs (305): one target equals a source, one source in another component
@@ -72,15 +74,15 @@ def test_kernel_random_weights(storage, mt, nc):
     gs = g.astype(npd).astype(np.float64)
     unit = (lambda x: ((x - c.astype(npd)) * npd(sc_)).astype(np.float32).astype(np.float64))
     r, mag = head_ref(w, gs, unit(S)[a], unit(Tq)[b], si[a], ti[b])
-    out = wp.empty(m, dtype=wp.float32, device=DEV)
+    out = wp.empty(m, dtype=wp.float32, device=dev)
     args = [arr(gs), arr(S), iarr(si), e, arr(Tq), iarr(ti), e, c, sc_, len(Tq), m]
-    gtc.launch_pairs(k, H, wxp, *args, True, out, DEV, mt=mt)
+    gtc.launch_pairs(k, H, wxp, *args, True, out, dev, mt=mt)
     got = out.numpy().astype(np.float64)
     err = np.abs(got - r) / mag
     assert err.mean() <= 5e-4 and err.max() <= 2e-3, (err.mean(), err.max())
     # distances with the fast kernel's finishing rules
     args[3], args[6] = iarr(scomp), iarr(tcomp)
-    gtc.launch_pairs(k, H, wxp, *args, False, out, DEV, mt=mt)
+    gtc.launch_pairs(k, H, wxp, *args, False, out, dev, mt=mt)
     d = out.numpy()
     chord = np.linalg.norm(S[a].astype(np.float64) - Tq[b], axis=1)
     inf = scomp[a] != tcomp[b]
@@ -93,24 +95,25 @@ def test_kernel_random_weights(storage, mt, nc):
     assert (d[ok] >= chord[ok] * (1 - 1e-6)).all()
 
 
-def test_kernel_pairs_equal_matrix():
+@pytest.mark.parametrize("dev", DEVICES)
+def test_kernel_pairs_equal_matrix(dev):
     """Pair mode (n_t = 0) on the expanded pairs gives bit for bit the matrix mode's values."""
     rng = np.random.default_rng(5)
     n = 64
     w = random_head(rng)
-    H, wxp = gtc.pack_head(*w.values(), DEV)
-    g = wp.array(rng.standard_normal((n, 128)).astype(np.float32), dtype=wp.float32, device=DEV)
+    H, wxp = gtc.pack_head(*w.values(), dev)
+    g = wp.array(rng.standard_normal((n, 128)).astype(np.float32), dtype=wp.float32, device=dev)
     S, Tq = rng.standard_normal((3, 3)).astype(np.float32), rng.standard_normal((23, 3)).astype(np.float32)
     si, ti = rng.integers(0, n, 3).astype(np.int32), rng.integers(0, n, 23).astype(np.int32)
     a, b = np.divmod(np.arange(3 * 23), 23)
-    f = (lambda x: wp.array(np.ascontiguousarray(x), dtype=wp.float32, device=DEV))
-    i = (lambda x: wp.array(np.ascontiguousarray(x), dtype=wp.int32, device=DEV))
+    f = (lambda x: wp.array(np.ascontiguousarray(x), dtype=wp.float32, device=dev))
+    i = (lambda x: wp.array(np.ascontiguousarray(x), dtype=wp.int32, device=dev))
     e = i(np.zeros(0, np.int32))
     k = gtc.pair_kernel()
-    dm = wp.empty(69, dtype=wp.float32, device=DEV)
-    dp = wp.empty(69, dtype=wp.float32, device=DEV)
-    gtc.launch_pairs(k, H, wxp, g, f(S), i(si), e, f(Tq), i(ti), e, (0, 0, 0), 1.0, 23, 69, False, dm, DEV)
-    gtc.launch_pairs(k, H, wxp, g, f(S[a]), i(si[a]), e, f(Tq[b]), i(ti[b]), e, (0, 0, 0), 1.0, 0, 69, False, dp, DEV)
+    dm = wp.empty(69, dtype=wp.float32, device=dev)
+    dp = wp.empty(69, dtype=wp.float32, device=dev)
+    gtc.launch_pairs(k, H, wxp, g, f(S), i(si), e, f(Tq), i(ti), e, (0, 0, 0), 1.0, 23, 69, False, dm, dev)
+    gtc.launch_pairs(k, H, wxp, g, f(S[a]), i(si[a]), e, f(Tq[b]), i(ti[b]), e, (0, 0, 0), 1.0, 0, 69, False, dp, dev)
     np.testing.assert_array_equal(dm.numpy(), dp.numpy())
 
 
@@ -128,8 +131,8 @@ def shape(n, seed):
     return u * (1 + bump) * np.array([1.0, 0.7, 0.5]) * 5.0 + np.array([2.0, -1.0, 3.0])
 
 
-@pytest.mark.parametrize("mode", ["fp64", "fp32"])
-def test_released_network_fp16_vs_float64(released, mode):
+@pytest.mark.parametrize("dev,mode", [(d, m) for d in DEVICES for m in (["fp64", "fp32"] if d == "cpu" else ["fp32"])])
+def test_released_network_fp16_vs_float64(released, dev, mode):
     """The public queries with precision="fp16" against the float64 torch network on a 256-point cloud; fp32
     (the default) is unchanged; matrix, ssad and msad agree with the pair call."""
     cloud = shape(256, 3)
@@ -142,7 +145,7 @@ def test_released_network_fp16_vs_float64(released, mode):
         ratio = released.net(*(torch.tensor((x - c) * sc)[None]
                                for x in (cloud, P, Q)))[0].numpy()
     want = np.maximum(ratio, 1) * np.linalg.norm(P - Q, axis=1)
-    cond = released.condition(cloud, device=DEV, mode=mode)
+    cond = released.condition(cloud, device=dev, mode=mode)
     d16 = cond.distance(P, Q, precision="fp16")
     rel = np.abs(d16 - want) / want
     assert rel.mean() <= 4e-4 and rel.max() <= 5e-3, (rel.mean(), rel.max())
@@ -163,12 +166,13 @@ def test_released_network_fp16_vs_float64(released, mode):
                                   np.fmin(row, cond.ssad(9, precision="fp16")))
 
 
-def test_components_inf_and_bad_precision(released):
+@pytest.mark.parametrize("dev", DEVICES)
+def test_components_inf_and_bad_precision(released, dev):
     a = trimesh.creation.icosphere(subdivisions=1)
     b = trimesh.creation.icosphere(subdivisions=1)
     b.vertices += np.array([3.0, 0.0, 0.0])
     mesh = ngf.load_mesh((np.vstack([a.vertices, b.vertices]), np.vstack([a.faces, b.faces + len(a.vertices)])))
-    cond = released.condition(mesh, n_points=200, seed=1, device=DEV)
+    cond = released.condition(mesh, n_points=200, seed=1, device=dev)
     na = len(a.vertices)
     row = cond.ssad(0, precision="fp16")
     assert np.isinf(row[na:]).all() and np.isfinite(row[:na]).all() and row[0] == 0

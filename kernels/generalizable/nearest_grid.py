@@ -227,7 +227,8 @@ def _build(mode: str) -> SimpleNamespace:
         m = wp.tid()
         out[m] = nearest_point(cloud, G, h, start, count, cand, A(pts[m, 0]), A(pts[m, 1]), A(pts[m, 2]))
 
-    return SimpleNamespace(entry=C, cell_bound=cell_bound, cell_count=cell_count, cell_cap=cell_cap, cell_fill=cell_fill,
+    return SimpleNamespace(entry=C, cell_bound=cell_bound, cell_count=cell_count, cell_cap=cell_cap,
+                           cell_fill=cell_fill,
                            nearest_user=nearest_user, nearest=nearest)
 
 

@@ -229,9 +229,9 @@ def pair_kernel(storage: str = "fp32", mt: int = MT, nc: int = NC, warps: int | 
     ctype = "float" if storage == "fp32" else "double"
     snippet = tc.native_initializer(tc.Head, "Head", "head", "H") + f"""
     ngf_gen::gen_pair_rows<{ctype}, {mt}, {nc}>(H, ({ctype}*)g.data, (const float*)wxp.data, ({ctype}*)S.data,
-        (const int*)si.data, s_comp.shape[0] ? (const int*)s_comp.data : nullptr, ({ctype}*)Tq.data, (const int*)ti.data,
-        t_comp.shape[0] ? (const int*)t_comp.data : nullptr, cx, cy, cz, scale, n_t, M, raw, (float*)out.data, tid >> 5,
-        n_warps);
+        (const int*)si.data, s_comp.shape[0] ? (const int*)s_comp.data : nullptr, ({ctype}*)Tq.data,
+        (const int*)ti.data, t_comp.shape[0] ? (const int*)t_comp.data : nullptr, cx, cy, cz, scale, n_t, M, raw,
+        (float*)out.data, tid >> 5, n_warps);
 """
 
     def body(head: tc.Head, g: wp.array2d(dtype=T), wxp: wp.array(dtype=wp.float32), S: wp.array2d(dtype=T),
