@@ -16,6 +16,13 @@ What it does, on one device and arithmetic mode (default: fp32 on CUDA, fp64 on 
    (``WarpGenNet.distances``, nearest-cloud-point lookup included), median wall of --repeats synchronized runs and
    the kernel time from Warp's CUDA activity timers (``wp.timing_begin``); then the same through the tiled query
    (``distances_tiled``: tile GEMMs, cuBLASDx on CUDA) with fp32 and fp16 (tensor-core) operands;
+5. fp16 pairs (--precision fp16 or both, the default): the same 1M pairs through ``distances(...,
+   precision="fp16")`` (the tensor-core pair head, kernels/generalizable/tensorcore.py) for each tile shape of
+   --tc-tiles (m-tiles per warp x layer-0 n-tiles per chunk @ warps per SM): wall and Warp kernel timer as in 4,
+   and its error against float64 torch on the check pairs of 2 (ratios) and on 512 of the 1M pairs (distances);
+6. the nearest-cloud-point lookups of 4 and 5 alone (2 x --pairs points): Warp's hash grid and the dense
+   candidate grid (--nearest picks the one the pair timings use, default grid), the grid's build time (it is
+   built on a cloud's first query, not at conditioning) and the indices' agreement (grid = hash = brute force);
 and prints a table (and writes --json). Targets from issue 23: conditioning <= 1 ms, 1M pairs <= 1 ms (GPU).
 """
 from __future__ import annotations
@@ -87,6 +94,15 @@ def main(argv=None):
                     "cuBLASDx takes about a minute)")
     ap.add_argument("--generic", action="store_true", help="time the generic SIMT kernels instead of the fast "
                     "float32 ones (kernels/generalizable/fast.py, the fp32 default)")
+    ap.add_argument("--nearest", default="grid", choices=["hash", "grid"],
+                    help="nearest-cloud-point lookup of the timed pair queries (default grid: the dense candidate "
+                    "grid, kernels/generalizable/nearest_grid.py; hash: Warp's hash grid); both lookups are timed "
+                    "on their own in any case")
+    ap.add_argument("--precision", default="both", choices=["fp32", "fp16", "both"],
+                    help="pair queries timed: the fp32 kernels, the fp16 tensor-core head, or both (default)")
+    ap.add_argument("--tc-tiles", default="1x8@16,1x8@12,2x4@8", help="shapes of the fp16 pair kernel to time, "
+                    "MTxNC@W (m-tiles of 16 pairs per warp x layer-0 n-tiles per chunk @ persistent warps per SM, "
+                    "which the kernel is compiled for: 16 -> 128 registers, 12 -> 168, 8 -> 255), comma-separated")
     ap.add_argument("--quick", action="store_true", help="CPU smoke run: 20K pairs, 1 repeat")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
@@ -122,7 +138,7 @@ def main(argv=None):
 
     # 1. compile / first call
     t0 = time.perf_counter()
-    wn = WarpGenNet(net, dev, mode, knn_chunks=a.knn_chunks, fast=not a.generic)
+    wn = WarpGenNet(net, dev, mode, knn_chunks=a.knn_chunks, fast=not a.generic, nearest=a.nearest)
     enc = wn.encode(unit)
     wn.ratio(enc, unit[:4], unit[4:8]).numpy()
     compile_s = time.perf_counter() - t0
@@ -159,28 +175,114 @@ def main(argv=None):
     Q = near_surface(cloud, a.pairs, rng)
     Pd, Qd = wn._arr(P), wn._arr(Q)
     out = wp.empty(a.pairs, dtype=wp.float32, device=dev)
-    run = (lambda: wn.distances(enc, Pd, Qd, center, scale, False, out=out))
-    run()
-    pair_ms, pair_min = median_ms(run, a.repeats, sync)
-    pair_kernel_ms = None
-    pair_kernels = {}
-    if dev.is_cuda:
+    def kernel_times(run):
+        """{kernel: [ms] of its launches in 5 runs} from Warp's CUDA timers, and the time per run: the sum of the
+        per-kernel medians, each times its launches per run."""
+        if not dev.is_cuda:
+            return {}, None
         wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
         for _ in range(5):
             run()
         res = wp.timing_end()
-        pair_kernels = {}
+        ks = {}
         for r in res:
-            pair_kernels.setdefault(r.name.split("_cuda_kernel")[0].replace("_build__locals__", ""), []).append(
+            ks.setdefault(r.name.split("_cuda_kernel")[0].replace("_build__locals__", ""), []).append(
                 float(r.elapsed))
-        pair_kernel_ms = float(sum(np.median(v) for v in pair_kernels.values()))
-    d = out.numpy()
+        # a kernel launched twice per run (the nearest-point lookups of S and T) counts twice
+        return ks, float(sum(np.median(v) * (len(v) // 5) for v in ks.values()))
+
     sel = rng.integers(0, a.pairs, 512)
     with torch.no_grad():
         w = net(torch.tensor(unit)[None], torch.tensor((P[sel] - center) * scale)[None],
                 torch.tensor((Q[sel] - center) * scale)[None])[0].numpy()
     want_d = np.maximum(w, 1.0) * np.linalg.norm(P[sel] - Q[sel], axis=1)
-    pair_check = float((np.abs(d[sel] - want_d) / want_d).max())
+    pair_ms = pair_min = pair_kernel_ms = pair_check = None
+    pair_kernels = {}
+    pair_kernel_note = ""
+
+    def kernel_note(ks):
+        return ", ".join(f"{k} {np.median(v):.3f}" + (f" x{len(v) // 5}" if len(v) // 5 > 1 else "")
+                         for k, v in ks.items())
+
+    if a.precision in ("fp32", "both"):
+        run = (lambda: wn.distances(enc, Pd, Qd, center, scale, False, out=out))
+        run()
+        pair_ms, pair_min = median_ms(run, a.repeats, sync)
+        pair_kernels, pair_kernel_ms = kernel_times(run)
+        pair_kernel_note = kernel_note(pair_kernels)
+        d = out.numpy()
+        pair_check = float((np.abs(d[sel] - want_d) / want_d).max())
+
+    # 5. fp16: the tensor-core pair head, each tile shape of --tc-tiles
+    fp16 = {}
+    if a.precision in ("fp16", "both"):
+        for shape in [x.strip() for x in a.tc_tiles.split(",") if x.strip()]:
+            tiles, _, warps = shape.lower().partition("@")
+            mt, nc = (int(v) for v in tiles.split("x"))
+            try:
+                wn.tc_tiles = (mt, nc, int(warps) if warps else None)
+                t0 = time.perf_counter()
+                wn.distances(enc, Pd[:64], Qd[:64], center, scale, False, precision="fp16")
+                sync()
+                comp_s = time.perf_counter() - t0
+                out16 = wp.empty(a.pairs, dtype=wp.float32, device=dev)
+                def run16(out16=out16):
+                    return wn.distances(enc, Pd, Qd, center, scale, False, out=out16, precision="fp16")
+                run16()
+                ms, mn = median_ms(run16, a.repeats, sync)
+                ks, kms = kernel_times(run16)
+                d16 = out16.numpy()
+                r16 = wn.ratio(enc, S, T, precision="fp16").numpy().astype(np.float64)
+                rr = np.abs(r16 - want) / np.abs(want)
+                rd = np.abs(d16[sel] - want_d) / want_d
+                fp16[shape] = {"compile_s": comp_s, "ms_median": ms, "ms_min": mn, "kernels_ms_sum": kms,
+                               "kernels_ms_median": {k: float(np.median(v)) for k, v in ks.items()},
+                               "kernel_launches_per_run": {k: len(v) // 5 for k, v in ks.items()},
+                               "kernels_note": kernel_note(ks),
+                               "ratio_vs_torch_fp64": {"pairs": m_chk, "mean_rel": float(rr.mean()),
+                                                       "max_rel": float(rr.max())},
+                               "distance_vs_torch_fp64": {"pairs": len(sel), "mean_rel": float(rd.mean()),
+                                                          "max_rel": float(rd.max())},
+                               "ok": bool(rr.mean() <= 5e-4 and rr.max() <= 1e-2 and rd.max() <= 1e-2)}
+            except Exception as e:  # noqa: BLE001
+                fp16[shape] = {"error": f"{type(e).__name__}: {str(e)[:300]}"}
+            finally:
+                wn.tc_tiles = None
+
+    # 6. the nearest-cloud-point lookups alone: the hash grid and the dense candidate grid on the 2 x pairs query
+    # points (as a pair query runs them), the candidate grid's build (done on a cloud's first query), and whether
+    # both give the brute-force scan's indices
+    nearest = {}
+    idx = {}
+    for look in ("hash", "grid"):
+        wn.nearest_lookup = look
+        r = {}
+        if look == "grid":
+            def rebuild():
+                enc.nn_grid_built = False
+                wn._nn_grid(enc)
+            rebuild()
+            r["build_ms_median"], r["build_ms_min"] = median_ms(rebuild, a.repeats, sync)
+            _, r["build_kernels_ms_sum"] = kernel_times(rebuild)
+            g = enc.nn_grid
+            cnt = g.count.numpy()
+            r["cells_per_axis"], r["lists"], r["list_entries"] = g.G, int((cnt > 0).sum()), int(cnt.sum())
+        def look_up():
+            return wn._nearest_user(enc, Pd, center, scale), wn._nearest_user(enc, Qd, center, scale)
+        look_up()
+        r["ms_median"], r["ms_min"] = median_ms(look_up, a.repeats, sync)
+        ks, r["kernels_ms_sum"] = kernel_times(look_up)
+        r["kernels_note"] = kernel_note(ks)
+        idx[look] = np.concatenate([x.numpy() for x in look_up()])
+        nearest[look] = r
+    wn.nearest_lookup = a.nearest
+    sub = rng.integers(0, a.pairs, 4096)
+    brute = wp.empty(len(sub), dtype=wp.int32, device=dev)
+    wp.launch(wn.k.nearest_user, len(sub), inputs=[enc.cloud, wp.uint64(0), 0.0, 0, wn._arr(P[sub]),
+                                                    *(float(c) for c in center), float(scale), brute], device=dev)
+    nearest["grid_vs_hash_mismatches"] = int((idx["grid"] != idx["hash"]).sum())
+    nearest["vs_brute_force_mismatches"] = {k: int((v[sub] != brute.numpy()).sum()) for k, v in idx.items()}
+    nearest["brute_force_queries"] = len(sub)
 
     # 4b. the tiled (tile-GEMM) query: operand fp32 and fp16 (tensor cores on CUDA); compile timed apart
     tiled = {}
@@ -233,7 +335,8 @@ def main(argv=None):
         "pair_kernels_ms_median": {k: float(np.median(v)) for k, v in pair_kernels.items()},
         "encode_graph_note": graph_note, "encode_kernels_ms_sum": enc_kernel_ms, "condition_numpy_ms_median": cond_ms,
         "pairs_ms_median": pair_ms, "pairs_ms_min": pair_min, "pairs_kernel_ms_median": pair_kernel_ms,
-        "pairs_per_s": a.pairs / (pair_ms / 1e3), "pairs_max_rel_vs_torch_fp64": pair_check, "tiled": tiled,
+        "pairs_per_s": a.pairs / (pair_ms / 1e3) if pair_ms else None, "pairs_max_rel_vs_torch_fp64": pair_check,
+        "tiled": tiled, "fp16": fp16, "nearest_lookup": a.nearest, "nearest": nearest,
     }
     f = (lambda v: "-" if v is None else f"{v:.3f}")
     rows = [
@@ -248,10 +351,32 @@ def main(argv=None):
         ("encode kernels (Warp timers, sum)", f"{f(enc_kernel_ms)} ms"),
         ("model.condition(numpy)", f"{f(cond_ms)} ms median"),
         (f"{a.pairs:,} pairs (wall, sync)", f"{f(pair_ms)} ms median, {f(pair_min)} min"),
-        (f"{a.pairs:,} pairs (Warp kernel timer)", f"{f(pair_kernel_ms)} ms (" + ", ".join(
-            f"{k} {np.median(v):.3f}" for k, v in pair_kernels.items()) + ")"),
-        ("pair distances vs float64 torch", f"max rel {pair_check:.2e}"),
+        (f"{a.pairs:,} pairs (Warp kernel timer)", f"{f(pair_kernel_ms)} ms ({pair_kernel_note})"),
+        ("pair distances vs float64 torch", f"max rel {f(pair_check) if pair_check is None else f'{pair_check:.2e}'}"),
     ]
+    for shape, r in fp16.items():
+        if "error" in r:
+            rows.append((f"fp16 pairs, tiles {shape}", r["error"]))
+            continue
+        rows.append((f"{a.pairs:,} pairs fp16 {shape} (wall, sync)",
+                     f"{f(r['ms_median'])} ms median, {f(r['ms_min'])} min, compile {r['compile_s']:.1f} s"))
+        rows.append((f"{a.pairs:,} pairs fp16 {shape} (Warp kernel timer)",
+                     f"{f(r['kernels_ms_sum'])} ms ({r['kernels_note']})"))
+        rc, dc = r["ratio_vs_torch_fp64"], r["distance_vs_torch_fp64"]
+        rows.append((f"fp16 {shape} vs float64 torch", f"ratio mean {rc['mean_rel']:.2e} max {rc['max_rel']:.2e} "
+                     f"({rc['pairs']} pairs); distance mean {dc['mean_rel']:.2e} max {dc['max_rel']:.2e} "
+                     f"({dc['pairs']} pairs) ({'ok' if r['ok'] else 'FAIL'})"))
+    for look in ("hash", "grid"):
+        r = nearest[look]
+        rows.append((f"nearest, {look}, 2 x {a.pairs:,} pts (wall)",
+                     f"{f(r['ms_median'])} ms median, {f(r['ms_min'])} min; kernels {f(r['kernels_ms_sum'])} ms "
+                     f"({r['kernels_note']})"))
+    g = nearest["grid"]
+    rows.append(("nearest grid build (first query)", f"{f(g['build_ms_median'])} ms median, kernels "
+                 f"{f(g['build_kernels_ms_sum'])} ms; {g['cells_per_axis']}^3 cells, {g['lists']} lists, "
+                 f"{g['list_entries']} entries"))
+    rows.append(("nearest: grid vs hash / vs brute", f"{nearest['grid_vs_hash_mismatches']} different of "
+                 f"{2 * a.pairs:,}; vs brute force on {len(sub)}: {nearest['vs_brute_force_mismatches']}"))
     for op, r in tiled.items():
         if "error" in r:
             rows.append((f"tiled query ({op} operands)", r["error"]))
@@ -267,7 +392,9 @@ def main(argv=None):
         print(f"  {k:<{wd}}  {v}")
     if a.json:
         Path(a.json).write_text(json.dumps(result, indent=1))
-    return 0 if check["ok"] and pair_check <= 1e-3 else 1
+    ok16 = all(r.get("ok", False) for r in fp16.values()) and nearest["grid_vs_hash_mismatches"] == 0 and \
+        not any(nearest["vs_brute_force_mismatches"].values())
+    return 0 if check["ok"] and (pair_check is None or pair_check <= 1e-3) and ok16 else 1
 
 
 if __name__ == "__main__":
