@@ -77,7 +77,10 @@ def test_snap_to_mesh_matches_brute_force():
         np.testing.assert_allclose(np.linalg.norm(pts - x, axis=1), best, atol=2e-6 * scale, err_msg=msg)
         # the reported face is a closest one (ties allowed), the point lies on it, the weights rebuild it
         assert np.all(dist[np.arange(len(x)), face] <= best + 2e-6 * scale), msg
-        np.testing.assert_allclose(pts, ref[np.arange(len(x)), face], atol=2e-5 * scale, err_msg=msg)
+        # where the surface is nearly flat across from x, float32 moves the closest point along it by up to
+        # sqrt(2 d tol) for a distance tolerance tol (the distance changes by only delta^2 / 2d)
+        off = np.linalg.norm(pts - ref[np.arange(len(x)), face], axis=1)
+        assert np.all(off <= 2e-5 * scale + np.sqrt(2 * best * 2e-6 * scale)), (msg, off.max())
         assert np.all(bary >= -1e-6) and np.allclose(bary.sum(1), 1, atol=1e-5), msg
         rebuilt = np.einsum("nk,nkc->nc", bary, V[F[face]])
         np.testing.assert_allclose(rebuilt, pts, atol=2e-5 * scale, err_msg=msg)
