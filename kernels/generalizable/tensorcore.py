@@ -32,10 +32,11 @@ FUSE = 128  # fuse / head.0 width (the A fragments: 8 k-steps)
 HID = 64  # head.1 width (8 n-tiles)
 MT = 1  # m-tiles (16 pairs each) per warp and tile step; MT = 2 shares each weight load by two tiles
 NC = 8  # layer-0 n-tiles per chunk (16 = the whole layer at once)
-WARPS_PER_SM = 16  # persistent warps per multiprocessor on CUDA (MT = 1; 8 for MT >= 2)
+WARPS_PER_SM = 12  # persistent warps per multiprocessor on CUDA (MT = 1; 8 for MT >= 2)
 # The kernel is compiled for that occupancy (__launch_bounds__(128, WARPS_PER_SM / 4)): without the bound NVRTC
-# (Warp 1.19, sm_90) gave the 1 x 8 kernel 143 registers, so only 12 of the 16 persistent warps per SM would be
-# resident at once and the rest would run after them; with it, 128 registers and no spills (cubin attributes).
+# (Warp 1.19, sm_90) gave the 1 x 8 kernel 143 registers, so only 12 of 16 persistent warps would be resident. For
+# 12 warps it keeps 168 registers and no local frame, for 16 it gets 128 and a 64-byte frame: 1M pairs on an H100
+# took 0.312 vs 0.385 ms of kernel time (benchmarks/RESULTS.md, 2026-11-24).
 CPU_WARPS = 1  # the CPU emulation runs one warp (32 fibers) through every tile
 
 # the mma column position (within a k-step) -> channel offset (within the 16 channels of that k-step)
@@ -213,7 +214,7 @@ def pack_head(wx: np.ndarray, w0: np.ndarray, b0: np.ndarray, w1: np.ndarray, b1
 
 def warps_per_sm(mt: int) -> int:
     """The default occupancy of the kernel with mt m-tiles per warp (persistent warps per multiprocessor)."""
-    return WARPS_PER_SM if mt == 1 else WARPS_PER_SM // 2
+    return WARPS_PER_SM if mt == 1 else 8
 
 
 @functools.lru_cache(maxsize=None)
