@@ -289,3 +289,26 @@ def test_fill_budget_false_runs_the_presets_steps_capped(tmp_path, ellipsoid, ti
     assert ("the budget bound" in capsys.readouterr().err) is bound
     # unbound: the preset's steps, not a budget filled (which ends at about 0.95 x budget); 34 s measured here
     assert took <= budget + max(0.02 * budget, 1.0) and (bound or took < 0.8 * budget), took
+
+
+def test_the_heat_baseline_runs_in_another_process_and_gives_up_at_the_deadline():
+    """The heat method's rows come from a separate process (potpourri3d holds the GIL through a set-up that took
+    over 9 minutes at 2.2M vertices): equal to the in-process call, and a deadline already reached gives no MRE and
+    the reason, which the verdict warns about and records."""
+    pytest.importorskip("potpourri3d")
+    from neurogf_warp.dataset.heat import HeatJob, heat_distances
+
+    v, f = ellipsoid_mesh()
+    src = np.array([0, 7, 20])
+    rows, why = HeatJob(v, f, src).rows(None)
+    assert why is None and rows.dtype == np.float32
+    np.testing.assert_allclose(rows, heat_distances(v, f, src), rtol=1e-6, atol=1e-7)
+    truth = heat_distances(v, f, src) * 1.01
+    mre, why = quality.HeatBaseline(v, f, src, truth).mre(None)
+    assert why is None and abs(mre - 1 / 101) < 1e-4
+    late = quality.HeatBaseline(v, f, src, truth)
+    assert late.mre(0.0) == (None, "the heat method did not finish within the time left (0 s)")
+    assert late.job._proc.poll() is not None  # stopped, not left running
+    with pytest.warns(ModelQualityWarning, match="heat method was not compared: the heat method did not finish"):
+        q = quality.final_verdict(0.01, None, progress=False, heat_note="the heat method did not finish in time")
+    assert q["worse_than_heat"] is None and q["heat_note"] and "not compared" in q["quality_warning"]

@@ -29,10 +29,24 @@ import numpy as np
 
 from neurogf_warp.common.checks import integer
 
-__all__ = ["DistanceRows", "cpu_cores", "MAX_WORKERS"]
+__all__ = ["DistanceRows", "cpu_cores", "start_package_process", "MAX_WORKERS"]
 
 MAX_WORKERS = 8  # processes in all (the caller included); each holds Warp and a solver (~0.3 GB)
 START_COST_S = 4.0  # start workers only when the batches left take longer than this on the caller alone
+
+
+def start_package_process(module: str, function: str, stderr) -> subprocess.Popen:
+    """A Python subprocess of this very package that runs ``module.function()``, stdin and stdout pipes for
+    pickled messages, stderr to ``stderr``.
+
+    ``-c``, not ``-m``: "-m" puts the current directory first on sys.path, where a checkout's (or any)
+    neurogf_warp/ folder would shadow the package this process runs; ``_BOOT`` puts this package's root first."""
+    import neurogf_warp
+
+    package = os.path.abspath(neurogf_warp.__file__)
+    root = os.path.dirname(os.path.dirname(package))
+    return subprocess.Popen([sys.executable, "-c", _BOOT, root, package, module, function], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, stderr=stderr)
 
 
 def cpu_cores() -> int:
@@ -47,15 +61,8 @@ class _Worker:
     """One worker process with a solver for the caller's mesh; ``solve(sources)`` -> (rows, V) float32."""
 
     def __init__(self, mesh, settings: dict):
-        import neurogf_warp
-
-        package = os.path.abspath(neurogf_warp.__file__)
-        root = os.path.dirname(os.path.dirname(package))
         self.log = tempfile.TemporaryFile()  # its stderr, shown only if it fails
-        # -c, not -m: "-m" puts the current directory first on sys.path, where a checkout's (or any) neurogf_warp/
-        # folder would shadow the package this process runs; _BOOT puts this package's root first instead
-        self.proc = subprocess.Popen([sys.executable, "-c", _BOOT, root, package], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, stderr=self.log)
+        self.proc = start_package_process("neurogf_warp.ground_truth.workers", "_serve", self.log)
         self.closing = False
         self.failed = False  # it stopped answering: no more batches for it
         self._ready = False
@@ -268,8 +275,8 @@ import neurogf_warp
 got = os.path.abspath(neurogf_warp.__file__)
 if os.path.realpath(got) != os.path.realpath(want):
     raise ImportError(f"the worker imported neurogf_warp from {got}, not the caller's {want}")
-from neurogf_warp.ground_truth.workers import _serve
-_serve()
+import importlib
+getattr(importlib.import_module(sys.argv[3]), sys.argv[4])()
 """
 
 

@@ -29,7 +29,7 @@ from neurogf_warp.training.data import TrainingData, make_sdf_pool, obtain_datas
 from neurogf_warp.training.loop import Runner
 from neurogf_warp.training.presets import choose_preset, preset
 from neurogf_warp.training.run_folder import call_key, finished_log
-from neurogf_warp.training.quality import ModelQualityWarning, budget_verdict, final_verdict, heat_validation_mre
+from neurogf_warp.training.quality import HeatBaseline, ModelQualityWarning, budget_verdict, final_verdict
 
 if TYPE_CHECKING:
     import torch
@@ -210,12 +210,11 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     dataset_s = time.perf_counter() - t_data
     # the dataset's own phases (sampling, distances, paths; a cached dataset's are those of its build)
     timings = {"dataset_s": dataset_s, "dataset_phases": dict(ds.meta.get("timings") or {})}
-    t0 = time.perf_counter()
+    heat, heat_mre = None, None
     if ck is not None and "heat_mre" in ck["history"]:
         heat_mre = ck["history"]["heat_mre"]
-    else:  # the baseline on the held-out pairs, before any step (it is part of the budget)
-        heat_mre = heat_validation_mre(ds.vertices, ds.faces, ds.test_src, ds.test_dist)
-    timings["heat_s"] = time.perf_counter() - t0
+    else:  # the baseline on the held-out pairs, made by another process while the model trains (within the budget)
+        heat = HeatBaseline(ds.vertices, ds.faces, ds.test_src, ds.test_dist)
     data = TrainingData(ds, dev)
     t0 = time.perf_counter()
     pool = make_sdf_pool(mesh, data.surface_points, cfg.batches.sdf_pool, cfg.seed, dev)
@@ -294,13 +293,24 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
 
     run = Runner(trainer, save, files.checkpoint, progress, callback, budget, chooser)
     t0 = time.perf_counter()
-    stage_i, step, history, elapsed = run(stage_i, step, history, elapsed)
+    try:
+        stage_i, step, history, elapsed = run(stage_i, step, history, elapsed)
+    except BaseException:
+        if heat is not None:
+            heat.close()
+        raise
     timings["steps_s"] = time.perf_counter() - t0
     if chooser is not None:
         history["threads"] = chooser.chosen
         say(progress, "torch threads (timed fastest on the first steps): "
             + ", ".join(f"{k} {v}" for k, v in chooser.chosen.items()))
-    quality = final_verdict(trainer.validate(), heat_mre, progress)
+    val_mre, heat_note = trainer.validate(), None
+    if heat is not None:  # wait for the heat method at most until the deadline
+        t0 = time.perf_counter()
+        heat_mre, heat_note = heat.mre(None if deadline is None else max(0.0, deadline - t0))
+        timings.update(heat_wait_s=time.perf_counter() - t0, heat_s=heat.seconds)
+        history["heat_mre"] = heat_mre
+    quality = final_verdict(val_mre, heat_mre, progress, heat_note)
     if "planned_steps" in history:  # fill_budget=False: did the budget cut the preset's steps?
         planned = history["planned_steps"]
         quality["budget_bound"] = any(trainer.steps[s] < planned[s] for s in STAGES)
