@@ -352,6 +352,7 @@ def _build(mode: str) -> SimpleNamespace:
 
     return SimpleNamespace(mode=mode, dtype=T, acc=A, module=module, knn_partial=knn_partial, knn_merge=knn_merge,
                            linear=linear, edge_two_layers=edge_two_layers, edge_one_layer=edge_one_layer,
-                           column_max=column_max, nearest=nearest, nearest_user=nearest_user, nearest_point_func=nearest_point, pair_ratio=pair_ratio,
+                           column_max=column_max, nearest=nearest, nearest_user=nearest_user, nearest_point_func=nearest_point,
+                           nearest_brute_func=nearest_brute, pair_ratio=pair_ratio,
                            pair_distance=pair_distance, to_unit=to_unit,
                            point_component=point_component)

@@ -24,6 +24,8 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
+from . import kernels as base_kernels
+
 BOX = 1.1  # half-width of the gridded unit-frame box (the cloud lies in the unit sphere; queries near it)
 PAD = 1.0e-4  # cells are inflated by this much on every side (unit frame)
 MARGIN = 1.0e-4  # relative margin of the candidate test on squared distances
@@ -153,19 +155,8 @@ def _build(mode: str) -> SimpleNamespace:
                         cand[s] = j
                 s += 1
 
-    @wp.func
-    def nearest_brute(cloud: wp.array2d(dtype=T), x: A, y: A, z: A):
-        best = A(INF)
-        bi = int(0)
-        for j in range(cloud.shape[0]):
-            dx = A(cloud[j, 0]) - x
-            dy = A(cloud[j, 1]) - y
-            dz = A(cloud[j, 2]) - z
-            d = dx * dx + dy * dy + dz * dz
-            if d < best:  # strict: ties go to the smaller index
-                best = d
-                bi = j
-        return bi
+    # the scan the hash-grid lookup falls back to, the same function: the same index on every input
+    nearest_brute = base_kernels(mode).nearest_brute_func
 
     @wp.func
     def nearest_point(cloud: wp.array2d(dtype=T), G: int, h: float, start: wp.array(dtype=wp.int32),
