@@ -168,8 +168,9 @@ class Engine:
         pre_k, points_k = tc.path_pre_kernel(D, P1), tc.path_points_kernel(*self.path_widths)
         warps = self.tuning.warps_other
         params = {"frame": frame or self.frame, "ps": p, "qs": q, "out": out}
-        key = ("path", n, m)
-        if key in self.launches:
+        key, pre_key = ("path", n, m), ("path_pre", n, m)
+        kept = key in self.launches and pre_key in self.launches  # both, or record both again
+        if kept:
             ends_p, ends_q, pre = self.launches.held(key)
         else:
             ends = wp.empty(2 * half, dtype=wp.uint32, device=self.device)
@@ -177,19 +178,17 @@ class Engine:
             pre = wp.empty(n * P1, dtype=wp.float32, device=self.device)
         self.embed(p, ends_p, frame)
         self.embed(q, ends_q, frame)
-        if key not in self.launches and (2 * half + n * P1) * 4 > _PATH_SCRATCH_BYTES:
+        if not kept and (2 * half + n * P1) * 4 > _PATH_SCRATCH_BYTES:
             self._launch(pre_k, -(-n // 16), [self.path_head, ends_p, ends_q, n, pre], warps)
             self._launch(points_k, -(-(n * m) // 16), [self.path_head, params["frame"], p, q, pre, n, m, out], warps)
             return
-        if key not in self.launches:
-            self.launches.record(("path_pre", n, m), self._launch(pre_k, -(-n // 16), [self.path_head, ends_p, ends_q,
-                                                                                         n, pre], warps, record=True),
-                                 pre_k, group="path_pre", cpu_blocks=True)
-            self.launches.record(key, self._launch(points_k, -(-(n * m) // 16), [self.path_head, params["frame"], p,
-                                                                                  q, pre, n, m, out], warps,
-                                                   record=True),
-                                 points_k, held=(ends_p, ends_q, pre), group="path", cpu_blocks=True)
-        self.launches.replay(("path_pre", n, m), {})
+        if not kept:
+            pre_cmd = self._launch(pre_k, -(-n // 16), [self.path_head, ends_p, ends_q, n, pre], warps, record=True)
+            points_cmd = self._launch(points_k, -(-(n * m) // 16), [self.path_head, params["frame"], p, q, pre, n, m,
+                                                                     out], warps, record=True)
+            self.launches.record(pre_key, pre_cmd, pre_k, group="path_pre", cpu_blocks=True)
+            self.launches.record(key, points_cmd, points_k, held=(ends_p, ends_q, pre), group="path", cpu_blocks=True)
+        self.launches.replay(pre_key, {})
         self.launches.replay(key, params)
 
     # -- path shortening on the SDF surface ----------------------------------------------------------------------
