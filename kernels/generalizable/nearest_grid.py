@@ -55,8 +55,8 @@ def kernels(mode: str) -> SimpleNamespace:
 
 
 def _build(mode: str) -> SimpleNamespace:
-    T = wp.float64 if mode == "fp64" else wp.float32  # storage
-    A = wp.float32 if mode == "fp32" else wp.float64  # accumulation
+    base = base_kernels(mode)  # the mode's storage and accumulation types, and its brute-force scan
+    T, A = base.dtype, base.acc
     opts = dict(enable_backward=False, module=f"neurogf_generalizable_nngrid_{mode}")
     # float32 storage: a list entry is the point itself (x, y, z, index), one 16-byte load per candidate instead
     # of an index and three gathers; the coordinates are the cloud's float32 values, so distances are the same
@@ -103,6 +103,15 @@ def _build(mode: str) -> SimpleNamespace:
     def is_candidate(d2: float, u: float):
         return d2 <= u * (1.0 + MARGIN) + 1.0e-12
 
+    @wp.func
+    def chunk_candidates(cloud: wp.array2d(dtype=T), j0: int, j1: int, lo: wp.vec3, hi: wp.vec3, u: float):
+        """How many of the points j0 .. j1 - 1 can be nearest to some point of the box [lo, hi]."""
+        n = int(0)
+        for j in range(j0, j1):
+            if is_candidate(near2(point(cloud, j), lo, hi), u):
+                n += 1
+        return n
+
     @wp.kernel(**opts)
     def cell_count(cloud: wp.array2d(dtype=T), G: int, h: float, U: wp.array(dtype=float),
                    count: wp.array(dtype=wp.int32)):
@@ -113,10 +122,7 @@ def _build(mode: str) -> SimpleNamespace:
             return
         lo, hi = cell_box(c, G, h)
         j1 = wp.min((k + 1) * CHUNK, cloud.shape[0])
-        n = int(0)
-        for j in range(k * CHUNK, j1):
-            if is_candidate(near2(point(cloud, j), lo, hi), u):
-                n += 1
+        n = chunk_candidates(cloud, k * CHUNK, j1, lo, hi, u)
         if n > 0:
             wp.atomic_add(count, c, n)
 
@@ -139,10 +145,7 @@ def _build(mode: str) -> SimpleNamespace:
             return
         lo, hi = cell_box(c, G, h)
         j1 = wp.min((k + 1) * CHUNK, cloud.shape[0])
-        n = int(0)
-        for j in range(k * CHUNK, j1):
-            if is_candidate(near2(point(cloud, j), lo, hi), u):
-                n += 1
+        n = chunk_candidates(cloud, k * CHUNK, j1, lo, hi, u)
         if n == 0:
             return
         s = start[c] + wp.atomic_add(fill, c, n)
@@ -156,7 +159,7 @@ def _build(mode: str) -> SimpleNamespace:
                 s += 1
 
     # the scan the hash-grid lookup falls back to, the same function: the same index on every input
-    nearest_brute = base_kernels(mode).nearest_brute_func
+    nearest_brute = base.nearest_brute_func
 
     @wp.func
     def nearest_point(cloud: wp.array2d(dtype=T), G: int, h: float, start: wp.array(dtype=wp.int32),
