@@ -315,3 +315,28 @@ def test_allocation_failure_names_the_sizes(monkeypatch):
     monkeypatch.setattr(G.GeodesicSolver, "_alloc", fail)
     with pytest.raises(MemoryError, match="GB for 3 source rows .* lower batch or k"):
         G.GeodesicSolver((s.vertices, s.faces), batch=3, device="cpu")
+
+
+def test_the_solver_loads_only_its_own_modules_and_captures_its_loop(monkeypatch):
+    """The solver's kernels load (in a background thread) before its first capture, and the capture compiles no
+    other imported Warp module (a fresh machine compiled every one of them: warp.utils, coloring, the dataset's
+    SDF kernel), so its loop still runs as a captured graph."""
+    import warp._src.context as ctx
+
+    from neurogf_warp.ground_truth import solver as S
+
+    loaded = []
+    orig = ctx.Module.load
+
+    def spy(self, device, *a, **k):
+        loaded.append(self.name)
+        return orig(self, device, *a, **k)
+
+    monkeypatch.setattr(ctx.Module, "load", spy)
+    monkeypatch.setattr(S, "_LOADS", {})  # a fresh process's first solver
+    V, F = grid_square(6)
+    sv = G.GeodesicSolver((V, F), device="cpu")
+    sv.run(np.array([0]))
+    assert sv.captured
+    assert set(loaded) <= {m.__name__ for m in S._kernels().MODULES}, sorted(set(loaded))
+    assert {m.__name__ for m in S._kernels().MODULES} <= set(loaded)

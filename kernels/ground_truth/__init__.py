@@ -15,8 +15,8 @@ MODULES = (relax, paths)  # the modules that hold kernels (graph and unfolding h
 
 
 def load(device) -> None:
-    """Compile (or load from the kernel cache) every solver kernel for `device`."""
+    """Compile (or load from the kernel cache) every solver kernel for `device`, the modules in parallel threads
+    (NVRTC and Warp's CPU compiler run outside the GIL)."""
     import warp as wp
 
-    for m in MODULES:
-        wp.load_module(m, device=device)
+    wp.force_load(device, modules=[wp.get_module(m.__name__) for m in MODULES], max_workers=len(MODULES))
