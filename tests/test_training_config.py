@@ -86,3 +86,23 @@ def test_paper_preset_gives_the_official_network_and_recipe():
     assert cfg.ratio("refine_path") == 0.1 and cfg.schedule.refine_path_lr == 1e-3
     defaults = NeuroGFNet(64, TrainConfig().network.fourier).lifting[0].linear.weight.shape
     assert defaults == (16, 3 + 6 * TrainConfig().network.fourier)
+
+
+def test_short_budget_batches_shrink_by_two_or_four():
+    from neurogf_warp.training.budget import SHORT_BUDGET_STEPS, short_budget_scale
+    from neurogf_warp.training.config import BatchConfig
+
+    n = SHORT_BUDGET_STEPS
+    assert [short_budget_scale(k) for k in (1, n // 4, n // 2 - 1, n // 2, n - 1, n, 10 * n)] == \
+        [0.25, 0.25, 0.25, 0.5, 0.5, 1.0, 1.0]
+    b = BatchConfig()
+    q = b.scaled(0.25)
+    assert (q.batch_g, q.batch_l1, q.batch_l2, q.batch_sdf, q.batch_querier) == \
+        (b.batch_g // 4, b.batch_l1 // 4, b.batch_l2 // 4, b.batch_sdf // 4, b.batch_querier // 4)
+    assert (q.batch_paths_g, q.batch_paths_l, q.batch_surf) == (512, 512, 64)
+    assert q.sdf_pool == b.sdf_pool and q.short_budget_batches
+    tiny = BatchConfig(batch_paths_g=2, batch_surf=2).scaled(0.25)
+    assert tiny.batch_paths_g == 1 and tiny.batch_surf <= tiny.batch_paths_g and tiny.validate() is None
+    from neurogf_warp.training import preset
+
+    assert preset("default", short_budget_batches="false").batches.short_budget_batches is False

@@ -7,6 +7,7 @@ finished one; other settings on top of an existing run are refused unless ``resu
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -15,7 +16,7 @@ from typing import TYPE_CHECKING
 from neurogf_warp.common.checks import InputError, number, say
 from neurogf_warp.dataset.build import check_trainable
 from neurogf_warp.mesh.mesh import load_mesh
-from neurogf_warp.training.budget import Budget, ThreadChooser, calibrate, fit_budget
+from neurogf_warp.training.budget import Budget, ThreadChooser, calibrate, fit_budget, short_budget_scale
 from neurogf_warp.training.checkpoint import (
     CKPT_VERSION,
     RunFiles,
@@ -268,6 +269,22 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
                 record_compile(compile_key, timings["calibrate_s"])
             left = deadline - time.perf_counter()
             fitted = fit_budget(cfg, per, max(left, 0.0))
+            scale, history["batch_scale"] = short_budget_scale(fitted.joint_steps), 1.0
+            if scale < 1 and dev.type == "cuda" and cfg.batches.short_budget_batches and cfg.runtime.fill_budget \
+                    and compile_key is None:  # (compiled losses would compile again for the new shapes)
+                cfg = dataclasses.replace(cfg, batches=cfg.batches.scaled(scale))
+                trainer = Trainer(cfg, data, pool, dev)  # its CUDA graphs are captured for the new shapes
+                trainer.compile_losses(False)
+                tf32 = set_tf32(cfg.runtime.tf32)
+                try:
+                    per = calibrate(trainer, n=8)
+                finally:
+                    set_tf32(tf32)
+                left = deadline - time.perf_counter()
+                fitted = fit_budget(cfg, per, max(left, 0.0))
+                timings["calibrate_s"] = time.perf_counter() - t0
+                history["batch_scale"] = scale
+                say(progress, f"short budget: batches x{scale:g} for more steps ({fitted.joint_steps:,} joint steps)")
             cap = None
             if not cfg.runtime.fill_budget:  # the preset's own steps, the budget only a cap
                 cap = cfg.joint_steps

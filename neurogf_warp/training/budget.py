@@ -121,6 +121,22 @@ class ThreadChooser:
         torch.set_num_threads(count)
 
 
+# Short GPU budgets: the default batches (65K distance pairs, 4K paths) gave the bunny 2,165 joint steps in 60 s and
+# 0.82% MRE; half the batches 3,530 steps and 0.69%, a quarter 5,360 and 0.59% (igea: 0.47% -> 0.46% at half; H100,
+# benchmarks/RESULTS.md, 2026-11-24). At 300 s (18,875 steps) the default batches gave 0.42%. So a budget that fits
+# fewer than SHORT_BUDGET_STEPS joint steps trains on batches 2x (at least half that many steps) or 4x smaller.
+SHORT_BUDGET_STEPS = 6000
+MIN_BATCH_SCALE = 0.25
+
+
+def short_budget_scale(joint_steps: int) -> float:
+    """The batch factor (1, 1/2 or 1/4) for a budget that fits ``joint_steps`` joint steps at the full batches."""
+    scale = 1.0
+    while scale > MIN_BATCH_SCALE and joint_steps < SHORT_BUDGET_STEPS * scale:
+        scale /= 2
+    return scale
+
+
 def fit_budget(cfg: TrainConfig, per_step: dict, seconds: float) -> TrainConfig:
     """A copy of ``cfg`` whose joint steps (other stages by their ratios) fill ``SLACK`` x ``seconds``, given
     the seconds per step of each stage."""
