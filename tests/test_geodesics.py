@@ -318,7 +318,7 @@ def test_allocation_failure_names_the_sizes(monkeypatch):
 
 
 def test_the_solver_loads_only_its_own_modules_and_captures_its_loop(monkeypatch):
-    """The solver's kernels load (in a background thread) before its first capture, and the capture compiles no
+    """The solver's kernels load (in parallel) before its first capture, and the capture compiles no
     other imported Warp module (a fresh machine compiled every one of them: warp.utils, coloring, the dataset's
     SDF kernel), so its loop still runs as a captured graph."""
     import warp._src.context as ctx
@@ -333,7 +333,6 @@ def test_the_solver_loads_only_its_own_modules_and_captures_its_loop(monkeypatch
         return orig(self, device, *a, **k)
 
     monkeypatch.setattr(ctx.Module, "load", spy)
-    monkeypatch.setattr(S, "_LOADS", {})  # a fresh process's first solver
     V, F = grid_square(6)
     sv = G.GeodesicSolver((V, F), device="cpu")
     sv.run(np.array([0]))

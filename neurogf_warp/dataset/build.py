@@ -32,7 +32,6 @@ from neurogf_warp.common.arrays import resolve_device
 from neurogf_warp.common.checks import integer, number
 from neurogf_warp.common.files import atomic_write
 from neurogf_warp.ground_truth.geodesics import DEFAULT_K, PATH_DELTA, GeodesicSolver, resample_polylines
-from neurogf_warp.ground_truth.solver import kernel_load
 from neurogf_warp.ground_truth.workers import DistanceRows
 from neurogf_warp.mesh.mesh import Mesh, load_mesh
 
@@ -625,7 +624,6 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
 
     t_start = time.perf_counter()
     clock = _Clock(t_start, time_limit_s)
-    kernel_load(device)  # a fresh machine compiles the solver while the mesh is read and the sources are drawn
     m = load_mesh(mesh)
     check_trainable(m)
     st = settings

@@ -67,42 +67,6 @@ def load_kernels(device=None) -> None:
     _kernels().load(resolve_device(device))
 
 
-class KernelLoad:
-    """The solver's kernels compiled (or loaded from the kernel cache) for one device by a background thread, so
-    that a fresh machine's compile overlaps the host's set-up (mesh tables, Steiner points, sampling); ``wait()``
-    before the first launch re-raises what the thread met. One per device per process (``kernel_load``)."""
-
-    def __init__(self, device):
-        import threading
-
-        self.device, self.error = device, None
-        self._thread = threading.Thread(target=self._run, name=f"neurogf-solver-load-{device}", daemon=True)
-        self._thread.start()
-
-    def _run(self):
-        try:
-            _kernels().load(self.device)
-        except BaseException as e:  # noqa: BLE001 - handed to the thread that waits
-            self.error = e
-
-    def wait(self) -> None:
-        self._thread.join()
-        if self.error is not None:
-            raise self.error
-
-
-_LOADS = {}  # device alias -> KernelLoad
-
-
-def kernel_load(device=None) -> KernelLoad:
-    """Start (once per device and process) loading the solver's kernels in the background; returns the load."""
-    dev = resolve_device(device)
-    load = _LOADS.get(dev.alias)
-    if load is None or load.error is not None:
-        load = _LOADS[dev.alias] = KernelLoad(dev)
-    return load
-
-
 class GeodesicSolver:
     """Multi-source solver bound to one mesh and device. Reuse it for many sources.
 
@@ -130,7 +94,6 @@ class GeodesicSolver:
         self.k = _count("k (Steiner points per edge)", k)
         self.windows = bool(windows)
         self.device = resolve_device(device)
-        self._kernels_ready = kernel_load(self.device)  # compiles while the tables below are built
         self.max_iter = _count("max_iter", max_iter)
         if isinstance(delta, bool) or not isinstance(delta, (int, float, np.integer, np.floating)) \
                 or not np.isfinite(delta) or delta < 0:
@@ -292,15 +255,24 @@ class GeodesicSolver:
         # where capture is not available the same program runs from the host.
         graph = self._graphs.get(name)
         if graph is None:
-            # only the solver's own modules: force_module_load=True would compile every imported Warp module
-            # (warp.utils, coloring, the dataset's SDF kernel: 3.3 of 5.5 s on a 2-core CPU with an empty cache)
-            self._kernels_ready.wait()
+            # only the solver's own modules, loaded in parallel first: force_module_load=True compiled every
+            # imported Warp module (warp.utils, coloring, the dataset's SDF kernel: 3.3 of 5.5 s on a 2-core CPU with
+            # an empty cache, 6.2 of 9.5 s on a fresh H100). Not in a background thread during the host's set-up:
+            # that raced with Warp's own calls (3 of 17 training runs on an H100 had this capture fail with CUDA
+            # error 906, a memset on the legacy stream, and fall back to the host loop, unsaid until now)
+            load_kernels(self.device)
             try:
                 with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
                     program()
                 graph = cap.graph
-            except Exception:  # noqa: BLE001 - any capture failure falls back to the host loop
+            except Exception as e:  # noqa: BLE001 - any capture failure falls back to the host loop
                 graph = False
+                self.timings.setdefault("capture_failed", []).append(f"{name}: {type(e).__name__}: {e}"[:300])
+                import warnings
+
+                warnings.warn(f"the geodesic solver's {name!r} program could not be captured as a graph "
+                              f"({type(e).__name__}: {str(e)[:200]}); it runs from the host instead (same results, "
+                              "slower)", RuntimeWarning, stacklevel=2)
             self._graphs[name] = graph
         if graph:
             wp.capture_launch(graph)
