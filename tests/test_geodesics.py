@@ -317,25 +317,25 @@ def test_allocation_failure_names_the_sizes(monkeypatch):
         G.GeodesicSolver((s.vertices, s.faces), batch=3, device="cpu")
 
 
-def test_the_solver_loads_only_its_own_modules_and_captures_its_loop(monkeypatch):
-    """The solver's kernels load (in parallel) before its first capture, and the capture compiles no
-    other imported Warp module (a fresh machine compiled every one of them: warp.utils, coloring, the dataset's
-    SDF kernel), so its loop still runs as a captured graph."""
-    import warp._src.context as ctx
+def test_the_solver_captures_its_programs_and_says_when_it_cannot(monkeypatch):
+    """Start, loop and finish run as captured graphs; a capture that fails is said (RuntimeWarning, timings)
+    and the same answer comes from the host loop (3 of 17 H100 training runs had fallen back unsaid)."""
+    import warnings
 
-    from neurogf_warp.ground_truth import solver as S
-
-    loaded = []
-    orig = ctx.Module.load
-
-    def spy(self, device, *a, **k):
-        loaded.append(self.name)
-        return orig(self, device, *a, **k)
-
-    monkeypatch.setattr(ctx.Module, "load", spy)
     V, F = grid_square(6)
-    sv = G.GeodesicSolver((V, F), device="cpu")
-    sv.run(np.array([0]))
-    assert sv.captured
-    assert set(loaded) <= {m.__name__ for m in S._kernels().MODULES}, sorted(set(loaded))
-    assert {m.__name__ for m in S._kernels().MODULES} <= set(loaded)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sv = G.GeodesicSolver((V, F), device="cpu")
+        sv.run(np.array([0, 5]))
+    assert sv.captured and all(sv._graphs.values()) and "capture_failed" not in sv.timings
+    want = sv.vertex_distances()
+
+    def broken(*a, **k):
+        raise RuntimeError("CUDA error 906 (simulated)")
+
+    monkeypatch.setattr(wp, "ScopedCapture", broken)
+    sv2 = G.GeodesicSolver((V, F), device="cpu")
+    with pytest.warns(RuntimeWarning, match="could not be captured.*host"):
+        sv2.run(np.array([0, 5]))
+    assert not sv2.captured and "error 906" in sv2.timings["capture_failed"][0]
+    np.testing.assert_array_equal(sv2.vertex_distances(), want)

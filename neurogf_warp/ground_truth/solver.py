@@ -255,14 +255,13 @@ class GeodesicSolver:
         # where capture is not available the same program runs from the host.
         graph = self._graphs.get(name)
         if graph is None:
-            # only the solver's own modules, loaded in parallel first: force_module_load=True compiled every
-            # imported Warp module (warp.utils, coloring, the dataset's SDF kernel: 3.3 of 5.5 s on a 2-core CPU with
-            # an empty cache, 6.2 of 9.5 s on a fresh H100). Not in a background thread during the host's set-up:
-            # that raced with Warp's own calls (3 of 17 training runs on an H100 had this capture fail with CUDA
-            # error 906, a memset on the legacy stream, and fall back to the host loop, unsaid until now)
+            # The solver's own modules load in parallel first (serially, at the capture, they took 5.3 of 9.5 s of
+            # a fresh H100's first solve). The capture still force-loads every other imported module: with
+            # force_module_load=False (6.2 s less on a fresh H100) 3 of 17 H100 training runs had the "start"
+            # capture fail (CUDA error 906, a memset on the legacy stream) and ran the host loop; not understood.
             load_kernels(self.device)
             try:
-                with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
+                with wp.ScopedCapture(device=self.device, force_module_load=True) as cap:
                     program()
                 graph = cap.graph
             except Exception as e:  # noqa: BLE001 - any capture failure falls back to the host loop
