@@ -98,6 +98,11 @@ def test_the_call_ends_within_its_budget(tmp_path, make, budget):
     # the ground truth's share counts from the start of the call: at most a third, give or take a solver batch
     assert tm["dataset_s"] <= budget / 3 + 1.0, tm
     assert took >= 0.6 * budget, took  # and the budget is used, not wasted (loose: one step can take seconds here)
+    # a short budget trains on smaller batches, and the model's settings say which
+    log = log_of(out)
+    scale = log["history"]["batch_scale"]
+    assert scale in (0.25, 0.5), scale
+    assert log["config"]["batches"]["batch_g"] == round(preset("cpu").batches.batch_g * scale)
 
 
 def test_a_fresh_process_budget_counts_the_import_of_train(tmp_path):

@@ -270,16 +270,17 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
             left = deadline - time.perf_counter()
             fitted = fit_budget(cfg, per, max(left, 0.0))
             scale, history["batch_scale"] = short_budget_scale(fitted.joint_steps), 1.0
-            if scale < 1 and dev.type == "cuda" and cfg.batches.short_budget_batches and cfg.runtime.fill_budget \
+            if scale < 1 and cfg.batches.short_budget_batches and cfg.runtime.fill_budget \
                     and compile_key is None:  # (compiled losses would compile again for the new shapes)
                 cfg = dataclasses.replace(cfg, batches=cfg.batches.scaled(scale))
                 trainer = Trainer(cfg, data, pool, dev)  # its CUDA graphs are captured for the new shapes
                 trainer.compile_losses(False)
-                tf32 = set_tf32(cfg.runtime.tf32)
+                tf32 = set_tf32(cfg.runtime.tf32) if dev.type == "cuda" else None
                 try:
-                    per = calibrate(trainer, n=8)
+                    per = calibrate(trainer, n=8 if trainer.graphs else 2)
                 finally:
-                    set_tf32(tf32)
+                    if tf32 is not None:
+                        set_tf32(tf32)
                 left = deadline - time.perf_counter()
                 fitted = fit_budget(cfg, per, max(left, 0.0))
                 timings["calibrate_s"] = time.perf_counter() - t0

@@ -121,9 +121,11 @@ class ThreadChooser:
         torch.set_num_threads(count)
 
 
-# Short GPU budgets: the default batches (65K distance pairs, 4K paths) gave the bunny 2,165 joint steps in 60 s and
+# Short budgets: the default batches (65K distance pairs, 4K paths) gave the bunny 2,165 joint steps in 60 s and
 # 0.82% MRE; half the batches 3,530 steps and 0.69%, a quarter 5,360 and 0.59% (igea: 0.47% -> 0.46% at half; H100,
-# benchmarks/RESULTS.md, 2026-11-24). At 300 s (18,875 steps) the default batches gave 0.42%. So a budget that fits
+# benchmarks/RESULTS.md, 2026-11-24). At 300 s (18,875 steps) the default batches gave 0.42%. On a 2-core CPU the
+# cpu preset makes ~170 joint steps in 60 s: a quarter of its batches gave fandisk 1.11% -> 0.80% (60 s) and
+# 0.75% -> 0.54% (180 s), spot 0.74% -> 0.62% (180 s). So a budget that fits
 # fewer than SHORT_BUDGET_STEPS joint steps trains on batches 2x (at least half that many steps) or 4x smaller.
 SHORT_BUDGET_STEPS = 6000
 MIN_BATCH_SCALE = 0.25

@@ -121,8 +121,9 @@ class BatchConfig:
     batch_surf: int = 256           # global paths whose points the surface term checks (0: no surface term)
     batch_querier: int = 90000      # SDF points, querier and refine_sdf stages
     sdf_pool: int = 1_000_000       # SDF ground-truth points computed once; batches are drawn from them
-    # with a budget on a GPU: when fewer than training.budget.SHORT_BUDGET_STEPS joint steps fit, every batch
-    # above (not sdf_pool) shrinks 2x or 4x for 2-2.5x the steps (bunny, 60 s: 0.82% -> 0.59% MRE; RESULTS.md)
+    # with a budget: when fewer than training.budget.SHORT_BUDGET_STEPS joint steps fit, every batch above (not
+    # sdf_pool) shrinks 2x or 4x for 2-2.5x the steps (bunny, 60 s, H100: 0.82% -> 0.59% MRE; fandisk, 60 s, 2-core
+    # CPU: 1.11% -> 0.80%; RESULTS.md)
     short_budget_batches: bool = True
 
     def scaled(self, factor: float) -> "BatchConfig":
