@@ -78,7 +78,8 @@ def run_one(ngf, shared: Path, name: str, budget: float, a, work: Path) -> dict:
             "validation_heat_mre": cfg.get("heat_mre"), "worse_than_heat": cfg.get("worse_than_heat"),
             "budget_warning": cfg.get("budget_warning"), "preset": cfg.get("preset"), "steps": cfg.get("steps"),
             "sources": log["history"].get("sources"), "timings": log["timings"],
-            "threads": log["history"].get("threads"),
+            "threads": log["history"].get("threads"), "batch_scale": log["history"].get("batch_scale"),
+            "batches": cfg.get("batches"),
             "warnings": sorted({f"{w.category.__name__}: {w.message}" for w in caught})}
 
 

@@ -88,13 +88,17 @@ def test_paper_preset_gives_the_official_network_and_recipe():
     assert defaults == (16, 3 + 6 * TrainConfig().network.fourier)
 
 
-def test_short_budget_batches_shrink_by_two_or_four():
+def test_short_budget_batches_shrink_to_the_devices_floor():
     from neurogf_warp.training.budget import SHORT_BUDGET_STEPS, short_budget_scale
     from neurogf_warp.training.config import BatchConfig
 
     n = SHORT_BUDGET_STEPS
     assert [short_budget_scale(k) for k in (1, n // 4, n // 2 - 1, n // 2, n - 1, n, 10 * n)] == \
         [0.25, 0.25, 0.25, 0.5, 0.5, 1.0, 1.0]
+    assert [short_budget_scale(k, "cpu") for k in (1, n // 8 - 1, n // 8, n // 4 - 1, n // 4, n)] == \
+        [1 / 16, 1 / 16, 1 / 8, 1 / 8, 1 / 4, 1.0]
+    s = BatchConfig().scaled(1 / 16, sdf_factor=0.25)
+    assert (s.batch_g, s.batch_paths_g, s.batch_sdf, s.batch_querier) == (4096, 128, 7500, 22500)
     b = BatchConfig()
     q = b.scaled(0.25)
     assert (q.batch_g, q.batch_l1, q.batch_l2, q.batch_sdf, q.batch_querier) == \

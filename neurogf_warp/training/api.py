@@ -16,7 +16,8 @@ from typing import TYPE_CHECKING
 from neurogf_warp.common.checks import InputError, number, say
 from neurogf_warp.dataset.build import check_trainable
 from neurogf_warp.mesh.mesh import load_mesh
-from neurogf_warp.training.budget import Budget, ThreadChooser, calibrate, fit_budget, short_budget_scale
+from neurogf_warp.training.budget import (MIN_SDF_SCALE, Budget, ThreadChooser, calibrate, fit_budget,
+                                         short_budget_scale)
 from neurogf_warp.training.checkpoint import (
     CKPT_VERSION,
     RunFiles,
@@ -194,6 +195,18 @@ def _warn_again(model) -> None:
         warnings.warn(msg, ModelQualityWarning, stacklevel=4)
 
 
+def _calibrate(trainer, cfg: TrainConfig, dev, n: int) -> dict:
+    """Seconds per step of each stage, timed with the run's own TF32 setting."""
+    from neurogf_warp.training.acceleration import set_tf32
+
+    tf32 = set_tf32(cfg.runtime.tf32) if dev.type == "cuda" else None
+    try:
+        return calibrate(trainer, n=n)
+    finally:
+        if tf32 is not None:
+            set_tf32(tf32)
+
+
 def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, dev, progress, callback,
          t_call: float, key):
     """Dataset, set-up, budget, the stages and the model file of a run (new, or continued from ``ck``).
@@ -240,6 +253,11 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
         timings["compile"] = {"used": use, "expected_s": round(expected, 1)}
         if not use:
             compile_key = None
+    # a new budgeted run may shrink its batches (short_budget_scale); a compiled one decides that on eager steps
+    # first, so that it compiles once, for the shapes it trains on
+    rescale = ck is None and deadline is not None and cfg.batches.short_budget_batches and cfg.runtime.fill_budget
+    if ck is None and compile_key is not None:
+        trainer.compile_losses(False)
     if ck is not None:
         trainer.load_state(ck)
         stage_i, step, history, elapsed = ck["stage"], ck["step"], ck["history"], ck["elapsed"]
@@ -253,39 +271,33 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
         stage_i, step, elapsed = 0, 0, 0.0
         history = {"loss": [], "val": []}
         if deadline is not None:
-            from neurogf_warp.training.acceleration import set_tf32
-
             t0 = time.perf_counter()
-            tf32 = set_tf32(cfg.runtime.tf32) if dev.type == "cuda" else None  # time what the run will do
-            try:
-                per = calibrate(trainer, n=20 if trainer.graphs else 2)
-            finally:
-                if tf32 is not None:
-                    set_tf32(tf32)
-            timings["calibrate_s"] = time.perf_counter() - t0
-            if compile_key is not None:  # calibration compiled every stage: the time a later run here plans with
-                from neurogf_warp.training.acceleration import record_compile
-
-                record_compile(compile_key, timings["calibrate_s"])
+            per = _calibrate(trainer, cfg, dev, n=20 if trainer.graphs else 2)
             left = deadline - time.perf_counter()
             fitted = fit_budget(cfg, per, max(left, 0.0))
-            scale, history["batch_scale"] = short_budget_scale(fitted.joint_steps), 1.0
-            if scale < 1 and cfg.batches.short_budget_batches and cfg.runtime.fill_budget \
-                    and compile_key is None:  # (compiled losses would compile again for the new shapes)
-                cfg = dataclasses.replace(cfg, batches=cfg.batches.scaled(scale))
+            scale, history["batch_scale"] = short_budget_scale(fitted.joint_steps, dev.type), 1.0
+            if rescale and scale < 1:
+                batches = cfg.batches.scaled(scale, sdf_factor=max(scale, MIN_SDF_SCALE))
+                cfg = dataclasses.replace(cfg, batches=batches)
                 trainer = Trainer(cfg, data, pool, dev)  # its CUDA graphs are captured for the new shapes
                 trainer.compile_losses(False)
-                tf32 = set_tf32(cfg.runtime.tf32) if dev.type == "cuda" else None
-                try:
-                    per = calibrate(trainer, n=8 if trainer.graphs else 2)
-                finally:
-                    if tf32 is not None:
-                        set_tf32(tf32)
+                history["batch_scale"] = scale
+            if compile_key is not None:  # compile every stage now, timed: a later run here plans with that
+                from neurogf_warp.training.acceleration import compile_key as key_of, record_compile
+
+                compile_key = key_of(cfg, dev)
+                trainer.compile_losses(True)
+                t1 = time.perf_counter()
+                per = _calibrate(trainer, cfg, dev, n=20)
+                record_compile(compile_key, time.perf_counter() - t1)
+            elif scale < 1 and rescale:
+                per = _calibrate(trainer, cfg, dev, n=8 if trainer.graphs else 2)
+            if scale < 1 and rescale or compile_key is not None:
                 left = deadline - time.perf_counter()
                 fitted = fit_budget(cfg, per, max(left, 0.0))
-                timings["calibrate_s"] = time.perf_counter() - t0
-                history["batch_scale"] = scale
+            if scale < 1 and rescale:
                 say(progress, f"short budget: batches x{scale:g} for more steps ({fitted.joint_steps:,} joint steps)")
+            timings["calibrate_s"] = time.perf_counter() - t0
             cap = None
             if not cfg.runtime.fill_budget:  # the preset's own steps, the budget only a cap
                 cap = cfg.joint_steps

@@ -123,18 +123,25 @@ class ThreadChooser:
 
 # Short budgets: the default batches (65K distance pairs, 4K paths) gave the bunny 2,165 joint steps in 60 s and
 # 0.82% MRE; half the batches 3,530 steps and 0.69%, a quarter 5,360 and 0.59% (igea: 0.47% -> 0.46% at half; H100,
-# benchmarks/RESULTS.md, 2026-11-24). At 300 s (18,875 steps) the default batches gave 0.42%. On a 2-core CPU the
-# cpu preset makes ~170 joint steps in 60 s: a quarter of its batches gave fandisk 1.11% -> 0.80% (60 s) and
-# 0.75% -> 0.54% (180 s), spot 0.74% -> 0.62% (180 s). So a budget that fits
-# fewer than SHORT_BUDGET_STEPS joint steps trains on batches 2x (at least half that many steps) or 4x smaller.
-SHORT_BUDGET_STEPS = 6000
-MIN_BATCH_SCALE = 0.25
+# benchmarks/RESULTS.md, 2026-11-24). At 300 s a quarter also won: bunny 0.41% -> 0.37% (19,664 -> 61,126 joint
+# steps), igea 0.31% -> 0.27%; an eighth at 60 s (bunny 0.52%) did not clearly beat a quarter on the GPU, whose
+# small steps are bound by kernel count, not size. On a 2-core CPU, where a step's time follows its size, the cpu
+# preset makes ~170 joint steps in 60 s: a quarter of its batches gave fandisk 1.11% -> 0.80% (60 s), a sixteenth
+# 0.68%, and a sixteenth won on all seven small meshes at 60 s and on spot and fandisk at 180 s. SDF batches stop
+# at a quarter: at a sixteenth the SDF error grew up to 2x (alligator). So a budget that fits fewer than
+# SHORT_BUDGET_STEPS joint steps at the full batches trains on batches halved until that many fit, down to the
+# device's MIN_BATCH_SCALE.
+SHORT_BUDGET_STEPS = 60_000
+MIN_BATCH_SCALE = {"cuda": 0.25, "cpu": 1 / 16}
+MIN_SDF_SCALE = 0.25  # SDF batches (joint stage's SDF points, querier / refine_sdf) shrink at most this far
 
 
-def short_budget_scale(joint_steps: int) -> float:
-    """The batch factor (1, 1/2 or 1/4) for a budget that fits ``joint_steps`` joint steps at the full batches."""
+def short_budget_scale(joint_steps: int, device_type: str = "cuda") -> float:
+    """The batch factor (1, 1/2, ... down to ``MIN_BATCH_SCALE[device_type]``) for a budget that fits
+    ``joint_steps`` joint steps at the full batches."""
+    floor = MIN_BATCH_SCALE.get(device_type, MIN_BATCH_SCALE["cuda"])
     scale = 1.0
-    while scale > MIN_BATCH_SCALE and joint_steps < SHORT_BUDGET_STEPS * scale:
+    while scale > floor and joint_steps < SHORT_BUDGET_STEPS * scale:
         scale /= 2
     return scale
 

@@ -108,6 +108,9 @@ class ScheduleConfig:
             raise ValueError(f"loss_weights must be numbers >= 0, got {self.loss_weights!r}")
 
 
+SDF_BATCHES = ("batch_sdf", "batch_querier")
+
+
 @dataclass
 class BatchConfig:
     """Samples per step (distance pairs, paths before their reversed copies, SDF points)."""
@@ -122,14 +125,17 @@ class BatchConfig:
     batch_querier: int = 90000      # SDF points, querier and refine_sdf stages
     sdf_pool: int = 1_000_000       # SDF ground-truth points computed once; batches are drawn from them
     # with a budget: when fewer than training.budget.SHORT_BUDGET_STEPS joint steps fit, every batch above (not
-    # sdf_pool) shrinks 2x or 4x for 2-2.5x the steps (bunny, 60 s, H100: 0.82% -> 0.59% MRE; fandisk, 60 s, 2-core
-    # CPU: 1.11% -> 0.80%; RESULTS.md)
+    # sdf_pool) shrinks, down to a quarter on a GPU and a sixteenth on the CPU (SDF batches a quarter), for more
+    # steps (bunny, H100: 60 s 0.82% -> 0.59% MRE, 300 s 0.41% -> 0.37%; fandisk, 60 s, 2-core CPU: 1.11% -> 0.68%;
+    # training/budget.py, RESULTS.md)
     short_budget_batches: bool = True
 
-    def scaled(self, factor: float) -> "BatchConfig":
-        """A copy with every per-step batch multiplied by ``factor`` (at least 1 each; ``sdf_pool`` unchanged)."""
-        sizes = {f.name: max(1, int(round(getattr(self, f.name) * factor))) for f in dataclasses.fields(self)
-                 if f.name.startswith("batch_") and f.name != "batch_surf"}
+    def scaled(self, factor: float, sdf_factor: float | None = None) -> "BatchConfig":
+        """A copy with every per-step batch multiplied by ``factor`` (at least 1 each; ``sdf_pool`` unchanged), the
+        SDF batches (``batch_sdf``, ``batch_querier``) by ``sdf_factor`` (default: ``factor``)."""
+        sdf_factor = factor if sdf_factor is None else sdf_factor
+        sizes = {f.name: max(1, int(round(getattr(self, f.name) * (sdf_factor if f.name in SDF_BATCHES else factor))))
+                 for f in dataclasses.fields(self) if f.name.startswith("batch_") and f.name != "batch_surf"}
         return dataclasses.replace(self, **sizes, batch_surf=min(int(round(self.batch_surf * factor)),
                                                                  sizes["batch_paths_g"]))
 
