@@ -234,3 +234,22 @@ def test_nearest_first_is_the_head_of_a_stable_argsort():
         order = np.argsort(d, kind="stable")
         want = order[np.isfinite(d[order]) & (order != s)][:n]
         np.testing.assert_array_equal(D.nearest_first(d, s, n), want)
+
+
+def test_held_out_rows_are_exact_grade_when_training_rows_are_coarse(two_blobs):
+    """A coarse training solver (k=1, the cpu_large preset) still gives held-out rows at the default accuracy: those
+    rows judge the model against the heat method (training.quality), and k=1 rows flattered the model there."""
+    from neurogf_warp.ground_truth.geodesics import DEFAULT_K, GeodesicSolver
+
+    coarse = D.build_dataset(two_blobs, None, **{**SMALL, "k": 1})
+    assert coarse.meta["settings"]["k"] == 1 and coarse.meta["settings"]["test_k"] == DEFAULT_K
+    m = load_mesh(two_blobs)
+    fine, rough = (GeodesicSolver(m, k=k, device="cpu") for k in (DEFAULT_K, 1))
+    fine.run(coarse.test_src)
+    rough.run(coarse.test_src)
+    np.testing.assert_allclose(coarse.test_dist, fine.vertex_distances(), rtol=1e-6)
+    assert not np.allclose(coarse.test_dist, rough.vertex_distances(), rtol=1e-4)  # k=1 rows differ here
+    assert D.build_dataset(two_blobs, None, **SMALL).meta["settings"]["test_k"] == DEFAULT_K
+    # under a time limit too (the distance batches are then asked for by the clock, with no test batch before them)
+    timed = D.build_dataset(two_blobs, None, **{**SMALL, "k": 1, "batch": 2}, time_limit_s=60.0)
+    assert timed.meta["settings"]["test_k"] == DEFAULT_K and len(timed.gd_src) == SMALL["n_sources"]

@@ -205,6 +205,20 @@ def test_a_model_better_than_the_heat_method_gives_no_warning(tmp_path):
     assert model.config["worse_than_heat"] is False and model.config["quality_warning"] is None
 
 
+def test_a_model_within_the_margin_of_the_heat_method_is_not_called_better():
+    heat = 0.0100
+    assert quality.heat_margin(4) == pytest.approx(0.2) and quality.heat_margin(8) < quality.heat_margin(4)
+    for n in (4, 8):
+        close = (1 - quality.heat_margin(n) / 2) * heat
+        with pytest.warns(ModelQualityWarning, match="not clearly better than the heat method"):
+            q = quality.final_verdict(close, heat, progress=False, n_test=n)
+        assert q["worse_than_heat"] is False and "not clearly better" in q["quality_warning"]
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", ModelQualityWarning)
+            q = quality.final_verdict((1 - 1.5 * quality.heat_margin(n)) * heat, heat, progress=False, n_test=n)
+        assert q["worse_than_heat"] is False and q["quality_warning"] is None
+
+
 def test_without_potpourri3d_the_verdict_is_unknown_not_good(tmp_path, ellipsoid, tiny_dataset, monkeypatch,
                                                              capsys):
     from neurogf_warp.dataset import heat

@@ -559,6 +559,8 @@ def _quality_line(q: dict) -> str:
         line += f" (heat method {100 * h:.3f}% on the same pairs)"
         if q.get("worse_than_heat"):
             line += ": WORSE than the heat method, train longer (--budget-seconds) or use the heat method"
+        elif q.get("quality_warning"):
+            line += ": NOT CLEARLY BETTER than the heat method, train longer (--budget-seconds)"
     else:
         line += " (heat method not compared: pip install potpourri3d)"
     return line

@@ -343,7 +343,7 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
         heat_mre, heat_note = heat.mre(None if deadline is None else max(0.0, deadline - t0))
         timings.update(heat_wait_s=time.perf_counter() - t0, heat_s=heat.seconds)
         history["heat_mre"] = heat_mre
-    quality = final_verdict(val_mre, heat_mre, progress, heat_note)
+    quality = final_verdict(val_mre, heat_mre, progress, heat_note, n_test=len(ds.test_src))
     if "planned_steps" in history:  # fill_budget=False: did the budget cut the preset's steps?
         planned = history["planned_steps"]
         quality["budget_bound"] = any(trainer.steps[s] < planned[s] for s in STAGES)

@@ -1,5 +1,5 @@
 """Never a silently bad model: the held-out validation error against the heat method's on the same pairs, and
-the warnings a run gives when its model is, or is predicted to be, worse than that baseline.
+the warnings a run gives when its model is, or is predicted to be, worse than that baseline, or not clearly better.
 
 A run's dataset holds ``test_src``, sources never trained on, with their full solver distance rows
 ``test_dist`` (normalized units). The validation MRE is the network's mean relative error over those pairs
@@ -18,7 +18,8 @@ import numpy as np
 from neurogf_warp.common.checks import say
 
 __all__ = ["ModelQualityWarning", "HeatBaseline", "validation_mre", "final_verdict", "budget_verdict",
-           "MIN_JOINT_STEPS", "MIN_TRAIN_SHARE"]
+           "MIN_JOINT_STEPS", "MIN_TRAIN_SHARE", "HEAT_SPREAD",
+           "heat_margin"]
 
 # A plan below either figure is predicted too small, before the run starts. Both are floors, not a promise:
 # the end-of-run comparison with the heat method is the check that counts. The CPU runs of benchmarks/RESULTS.md
@@ -26,6 +27,17 @@ __all__ = ["ModelQualityWarning", "HeatBaseline", "validation_mre", "final_verdi
 # dataset and set-up; the 120 s teapot of issue 24, 16.9% MRE, had 37% left.
 MIN_JOINT_STEPS = 100
 MIN_TRAIN_SHARE = 0.4
+# The held-out comparison uses a few sources (4 on the CPU presets, 8 on the GPU), and the heat method's error
+# varies from source to source: a 120 s CPU bunny model scored 0.90% against the heat method's 1.12% on its 4
+# held-out sources, but 0.95% against 0.95% on 8 other sources with exact geodesics (benchmarks/RESULTS.md, sixth
+# session). So a model is called better only by a margin of HEAT_SPREAD / sqrt(held-out sources) (20% with 4,
+# 14% with 8); inside it, the run says that the model is not clearly better.
+HEAT_SPREAD = 0.4
+
+
+def heat_margin(n_test: int) -> float:
+    """The fraction by which the validation MRE must beat the heat method's to count as better."""
+    return min(0.5, HEAT_SPREAD / max(int(n_test), 1) ** 0.5)
 
 
 class ModelQualityWarning(UserWarning):
@@ -103,10 +115,12 @@ def budget_verdict(joint_steps: int, train_share: float, sources: int, sources_a
     return msg
 
 
-def final_verdict(val_mre: float, heat_mre: float | None, progress: bool = True, heat_note: str | None = None) -> dict:
+def final_verdict(val_mre: float, heat_mre: float | None, progress: bool = True, heat_note: str | None = None,
+                  n_test: int = 8) -> dict:
     """After the steps: the metadata fields, warning when the model is worse than the heat method.
 
-    heat_note: why ``heat_mre`` is None (default: potpourri3d is not installed).
+    heat_note: why ``heat_mre`` is None (default: potpourri3d is not installed); n_test: the held-out sources
+    compared (sets the margin, ``heat_margin``).
     Returns {"validation_mre", "heat_mre", "worse_than_heat" (None when not compared), "quality_warning",
     "heat_note"}."""
     val = None if val_mre is None or not np.isfinite(val_mre) else float(val_mre)
@@ -130,6 +144,13 @@ def final_verdict(val_mre: float, heat_mre: float | None, progress: bool = True,
         msg = (f"the model is worse than the heat method on held-out sources: validation MRE {val:.3%}, heat "
                f"method {heat_mre:.3%} on the same pairs. Train longer (budget_seconds / --budget-seconds) or use "
                "the heat method")
+        out["quality_warning"] = msg
+        _emit(msg, progress)
+    elif val > (1.0 - heat_margin(n_test)) * heat_mre:
+        msg = (f"the model is not clearly better than the heat method on held-out sources: validation MRE {val:.3%}, "
+               f"heat method {heat_mre:.3%} on the same pairs of {n_test} sources (within {heat_margin(n_test):.0%}, "
+               "the spread of a comparison on so few sources). Train longer (budget_seconds / --budget-seconds) "
+               "for a clear margin")
         out["quality_warning"] = msg
         _emit(msg, progress)
     else:
