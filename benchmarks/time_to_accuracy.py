@@ -58,6 +58,9 @@ def run_one(ngf, shared: Path, name: str, budget: float, a, work: Path) -> dict:
     from neurogf_warp.training.checkpoint import RunFiles
 
     out = work / f"{name}_{budget:g}s.ngf"
+    cached = Path(RunFiles.for_model(out).dataset)
+    if cached.exists():  # force=True would reuse an earlier row's complete dataset: every row builds its own
+        cached.unlink()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         t0 = time.perf_counter()
