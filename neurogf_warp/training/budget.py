@@ -127,10 +127,11 @@ class ThreadChooser:
 # steps), igea 0.31% -> 0.27%; an eighth at 60 s (bunny 0.52%) did not clearly beat a quarter on the GPU, whose
 # small steps are bound by kernel count, not size. On a 2-core CPU, where a step's time follows its size, the cpu
 # preset makes ~170 joint steps in 60 s: a quarter of its batches gave fandisk 1.11% -> 0.80% (60 s), a sixteenth
-# 0.68%, and a sixteenth won on all seven small meshes at 60 s and on spot and fandisk at 180 s. SDF batches stop
-# at a quarter: at a sixteenth the SDF error grew up to 2x (alligator). So a budget that fits fewer than
-# SHORT_BUDGET_STEPS joint steps at the full batches trains on batches halved until that many fit, down to the
-# device's MIN_BATCH_SCALE.
+# 0.68%; over the seven small meshes at 60 s the mean MRE went 0.84% -> 0.78% from a quarter to a sixteenth (spot
+# and cow 5% worse, the others better) and 180 s gave spot 0.61%, fandisk 0.59% (full batches: 0.74%, 0.75%). The
+# SDF error rose 24% on average (alligator 2.3x) although the SDF batches stop at a quarter (MIN_SDF_SCALE). So a
+# budget that fits fewer than SHORT_BUDGET_STEPS joint steps at the full batches trains on batches halved until
+# that many fit, down to the device's MIN_BATCH_SCALE.
 SHORT_BUDGET_STEPS = 60_000
 MIN_BATCH_SCALE = {"cuda": 0.25, "cpu": 1 / 16}
 MIN_SDF_SCALE = 0.25  # SDF batches (joint stage's SDF points, querier / refine_sdf) shrink at most this far

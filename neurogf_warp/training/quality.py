@@ -18,8 +18,7 @@ import numpy as np
 from neurogf_warp.common.checks import say
 
 __all__ = ["ModelQualityWarning", "HeatBaseline", "validation_mre", "final_verdict", "budget_verdict",
-           "MIN_JOINT_STEPS", "MIN_TRAIN_SHARE", "HEAT_SPREAD",
-           "heat_margin"]
+           "MIN_JOINT_STEPS", "MIN_TRAIN_SHARE", "HEAT_SPREAD", "heat_margin"]
 
 # A plan below either figure is predicted too small, before the run starts. Both are floors, not a promise:
 # the end-of-run comparison with the heat method is the check that counts. The CPU runs of benchmarks/RESULTS.md
@@ -27,7 +26,7 @@ __all__ = ["ModelQualityWarning", "HeatBaseline", "validation_mre", "final_verdi
 # dataset and set-up; the 120 s teapot of issue 24, 16.9% MRE, had 37% left.
 MIN_JOINT_STEPS = 100
 MIN_TRAIN_SHARE = 0.4
-# The held-out comparison uses a few sources (4 on the CPU presets, 8 on the GPU), and the heat method's error
+# The held-out comparison uses a few sources (8 in the default and CPU presets), and the heat method's error
 # varies from source to source: a 120 s CPU bunny model scored 0.90% against the heat method's 1.12% on its 4
 # held-out sources, but 0.95% against 0.95% on 8 other sources with exact geodesics (benchmarks/RESULTS.md, sixth
 # session). So a model is called better only by a margin of HEAT_SPREAD / sqrt(held-out sources) (20% with 4,
