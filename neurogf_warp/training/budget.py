@@ -129,7 +129,8 @@ class ThreadChooser:
 # preset makes ~170 joint steps in 60 s: a quarter of its batches gave fandisk 1.11% -> 0.80% (60 s), a sixteenth
 # 0.68%; over the seven small meshes at 60 s the mean MRE went 0.84% -> 0.78% from a quarter to a sixteenth (spot
 # and cow 5% worse, the others better) and 180 s gave spot 0.61%, fandisk 0.59% (full batches: 0.74%, 0.75%). The
-# SDF error rose 24% on average (alligator 2.3x) although the SDF batches stop at a quarter (MIN_SDF_SCALE). So a
+# SDF error rose 24% on average (alligator 2.3x) although the SDF batches stop at a quarter (MIN_SDF_SCALE), until
+# the cpu preset's refine_sdf ratio went 0.1 -> 1.0 (then 46% below the quarter's; presets.py). So a
 # budget that fits fewer than SHORT_BUDGET_STEPS joint steps at the full batches trains on batches halved until
 # that many fit, down to the device's MIN_BATCH_SCALE.
 SHORT_BUDGET_STEPS = 60_000

@@ -25,8 +25,11 @@ PRESETS = {
     # CPU: a short joint stage and a long refine_dist (its steps cost a third to a fifth of a joint step); 4 x 100
     # joint steps without a budget, a few minutes on a 2-core machine. 8 held-out sources, as on the GPU: with 4
     # the validation comparison with the heat method was off by up to 1.75x (training/quality.py)
+    # refine_sdf 1.0: with the short-budget batches (a sixteenth) 0.1 left the SDF head behind the features that the
+    # many refine_dist steps move (alligator 60 s SDF L1 39.9e-3 at a quarter, 93.7e-3 at a sixteenth, 32.9e-3 with
+    # 1.0; RESULTS.md, sixth session)
     "cpu": dict(_SMALL_BATCHES, D=128, batch_surf=4, batch_querier=1024, sdf_pool=100000, val_every=500, epochs=4,
-                iters_per_epoch=100, ratios={"querier": 0.15, "refine_dist": 10.0, "refine_sdf": 0.1, "refine_path": 0.3},
+                iters_per_epoch=100, ratios={"querier": 0.15, "refine_dist": 10.0, "refine_sdf": 1.0, "refine_path": 0.3},
                 n_sources=256, n_global=2048, n_local1=32, n_local2=512, n_path_sources=32, n_path_global=64,
                 n_path_local=32, n_test=8, n_surface=30000, target_pool="all", threads=0),
     # CPU, meshes above LARGE_MESH vertices: a source's ground truth costs ~0.25 s or more there, so k=1 Steiner
