@@ -543,16 +543,6 @@ def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _C
     return kept, rows, solved[0], test_dist, worker_batches
 
 
-def _exact_grade_rows(m: Mesh, ids: np.ndarray, device, batch: int | None) -> np.ndarray:
-    """(len(ids), V) float32 distance rows of the solver at its default accuracy (``DEFAULT_K``), in this process."""
-    solver = GeodesicSolver(m, k=DEFAULT_K, device=device, batch=batch, max_rows=max(len(ids), 1))
-    out = np.zeros((len(ids), len(m.vertices)), np.float32)
-    for i in range(0, len(ids), solver.batch):
-        solver.run(ids[i: i + solver.batch])
-        out[i: i + solver.batch] = solver.vertex_distances()
-    return out
-
-
 def _paths(m: Mesh, st: DatasetSettings, plan: _Plan, path_src: np.ndarray, rng, batch, device, clock: _Clock,
            bar, max_rows: int) -> tuple:
     """Phase 3: ground-truth paths from ``path_src`` (near-Dijkstra order, so every traced polyline is as long as
@@ -662,7 +652,9 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
         # solver at its default accuracy even when the training sources use a coarser one. With k=1 rows (~0.2%
         # MRE) a 120 s CPU bunny model scored 0.91% against the heat method's 1.14% on them, but 1.01% against
         # 0.95% on exact geodesics (benchmarks/RESULTS.md, sixth session).
-        test_dist, test_k = _exact_grade_rows(m, plan.test_src, device, batch), DEFAULT_K
+        exact = GeodesicSolver(m, k=DEFAULT_K, device=device, batch=batch, max_rows=len(plan.test_src))
+        test_dist, test_k = exact.solve(plan.test_src), DEFAULT_K
+        del exact
         bar.update(len(plan.test_src))
         timings["test_rows_s"] = time.perf_counter() - t0
     kept, rows, solved, test_dist, timings["worker_batches"] = _distances(m, st, plan, rng, solver, clock, bar,

@@ -276,7 +276,8 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
             left = deadline - time.perf_counter()
             fitted = fit_budget(cfg, per, max(left, 0.0))
             scale, history["batch_scale"] = short_budget_scale(fitted.joint_steps, dev.type), 1.0
-            if rescale and scale < 1:
+            shrunk = rescale and scale < 1
+            if shrunk:
                 batches = cfg.batches.scaled(scale, sdf_factor=max(scale, MIN_SDF_SCALE))
                 cfg = dataclasses.replace(cfg, batches=batches)
                 trainer = Trainer(cfg, data, pool, dev)  # its CUDA graphs are captured for the new shapes
@@ -290,12 +291,12 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
                 t1 = time.perf_counter()
                 per = _calibrate(trainer, cfg, dev, n=20)
                 record_compile(compile_key, time.perf_counter() - t1)
-            elif scale < 1 and rescale:
+            elif shrunk:
                 per = _calibrate(trainer, cfg, dev, n=8 if trainer.graphs else 2)
-            if scale < 1 and rescale or compile_key is not None:
+            if shrunk or compile_key is not None:
                 left = deadline - time.perf_counter()
                 fitted = fit_budget(cfg, per, max(left, 0.0))
-            if scale < 1 and rescale:
+            if shrunk:
                 say(progress, f"short budget: batches x{scale:g} for more steps ({fitted.joint_steps:,} joint steps)")
             timings["calibrate_s"] = time.perf_counter() - t0
             cap = None

@@ -126,7 +126,7 @@ class BatchConfig:
     sdf_pool: int = 1_000_000       # SDF ground-truth points computed once; batches are drawn from them
     # with a budget: when fewer than training.budget.SHORT_BUDGET_STEPS joint steps fit, every batch above (not
     # sdf_pool) shrinks, down to a quarter on a GPU and a sixteenth on the CPU (SDF batches a quarter), for more
-    # steps (bunny, H100: 60 s 0.82% -> 0.59% MRE, 300 s 0.41% -> 0.37%; fandisk, 60 s, 2-core CPU: 1.11% -> 0.68%;
+    # steps (bunny, H100: 60 s 0.82% -> 0.59% MRE, 300 s 0.41% -> 0.37%; fandisk, 60 s, 2-core CPU: 1.11% -> 0.76%;
     # training/budget.py, RESULTS.md)
     short_budget_batches: bool = True
 
