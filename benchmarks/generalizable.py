@@ -4,14 +4,19 @@
     python benchmarks/generalizable.py --device cpu --quick          # < 60 s on a 2-core CPU
 
 What it does, on one device and arithmetic mode (default: fp32 on CUDA, fp64 on the CPU):
-1. compile: the first conditioning + query (kernel compilation or cache load), timed apart;
+1. compile: the first conditioning + query (kernel compilation or cache load; on CUDA the encoder graph's
+   capture too), timed apart;
 2. check: a fresh random shape (a noise-displaced ellipsoid, 2,048 points, seeded by --seed) and random pairs
    near it: the Warp ratio against the float64 torch network (mean / max relative difference; fails the run
    with exit status 1 above 1e-5 mean or 1e-3 max);
 3. conditioning a 2,048-point cloud: (a) ``WarpGenNet.encode(X, into=state)`` of a device-resident cloud into
-   reused buffers (steady state, no allocation), (b) ``encode`` allocating new buffers, (c) the user call
-   ``model.condition(numpy points)`` (host normalization and upload included), (d) (a) replayed as a CUDA graph
-   when capture works (measured last); median of --repeats runs, each CUDA-synchronized;
+   reused buffers (steady state, no allocation; Python launches), (b) ``encode`` allocating new buffers (Python
+   launches, the graph switched off), (c) the user call ``model.condition(numpy points)`` (host normalization and
+   upload included) as it runs by default: on CUDA the encoder's captured graph replayed and its outputs copied
+   (``WarpGenNet.encode`` without ``into``), and (c') the same call with the graph off (``use_graph = False``, as
+   ``NGF_NO_GRAPH=1``: Python launches, the hash grid built at conditioning), (e) ``encode(X)`` through that graph
+   path alone (replay + copies), (d) (a) replayed as a CUDA graph captured here when capture works (measured
+   last); median of --repeats runs, each CUDA-synchronized;
 4. pairs: 1M (--pairs) random pairs of points near the surface, distances in user units
    (``WarpGenNet.distances``, nearest-cloud-point lookup included), median wall of --repeats synchronized runs and
    the kernel time from Warp's CUDA activity timers (``wp.timing_begin``); then the same through the tiled query
@@ -156,10 +161,25 @@ def main(argv=None):
 
     # 3. conditioning
     X = wn._arr(unit)  # device-resident input, storage dtype
+    wn.use_graph = False  # (a), (b): the Python launches, as measured before the graph path
     enc_new_ms, _ = median_ms(lambda: wn.encode(X), few, sync)  # allocates every call
     state = wn.encode(X)
+    wn.use_graph = True
     enc_ms, enc_min = median_ms(lambda: wn.encode(X, into=state), a.repeats, sync)  # steady state: no allocation
-    cond_ms, _ = median_ms(lambda: model.condition(cloud, device=dev, mode=mode), few, sync)
+    # the public call: by default (on CUDA: the encoder's graph, captured on the first call), then the graph off
+    cwn = model.warp_net(dev, mode)
+    model.condition(cloud, device=dev, mode=mode)
+    reps = a.repeats if dev.is_cuda else few
+    cond_ms, _ = median_ms(lambda: model.condition(cloud, device=dev, mode=mode), reps, sync)
+    cond_graph = bool(cwn._graphs)
+    cwn.use_graph = False
+    cond_eager_ms, _ = median_ms(lambda: model.condition(cloud, device=dev, mode=mode), reps, sync)
+    cwn.use_graph = True
+    enc_graph_path_ms = None
+    if dev.is_cuda:
+        wn.encode(X)
+        if wn._graphs:
+            enc_graph_path_ms, _ = median_ms(lambda: wn.encode(X), a.repeats, sync)
     enc_kernel_ms = None
     enc_kernels = []
     if dev.is_cuda:
@@ -334,6 +354,8 @@ def main(argv=None):
         "kernels": "generic" if not wn.fast else "fast", "encode_kernels": enc_kernels,
         "pair_kernels_ms_median": {k: float(np.median(v)) for k, v in pair_kernels.items()},
         "encode_graph_note": graph_note, "encode_kernels_ms_sum": enc_kernel_ms, "condition_numpy_ms_median": cond_ms,
+        "condition_numpy_graph": cond_graph, "condition_numpy_no_graph_ms_median": cond_eager_ms,
+        "encode_graph_path_ms_median": enc_graph_path_ms, "graph_off_reason": cwn._graph_off,
         "pairs_ms_median": pair_ms, "pairs_ms_min": pair_min, "pairs_kernel_ms_median": pair_kernel_ms,
         "pairs_per_s": a.pairs / (pair_ms / 1e3) if pair_ms else None, "pairs_max_rel_vs_torch_fp64": pair_check,
         "tiled": tiled, "fp16": fp16, "nearest_lookup": a.nearest, "nearest": nearest,
@@ -349,7 +371,11 @@ def main(argv=None):
         ("encode, new buffers each call", f"{f(enc_new_ms)} ms median"),
         ("encode under a CUDA graph", f"{f(graph_ms)} ms" + (f" ({graph_note})" if graph_note else "")),
         ("encode kernels (Warp timers, sum)", f"{f(enc_kernel_ms)} ms"),
-        ("model.condition(numpy)", f"{f(cond_ms)} ms median"),
+        ("model.condition(numpy)", f"{f(cond_ms)} ms median"
+         + (" (encoder graph replayed)" if cond_graph else " (Python launches" + (f": {cwn._graph_off}"
+                                                                                   if cwn._graph_off else "") + ")")),
+        ("model.condition(numpy), graph off", f"{f(cond_eager_ms)} ms median (use_graph=False / NGF_NO_GRAPH=1)"),
+        ("encode(X), graph path (replay + copies)", f"{f(enc_graph_path_ms)} ms median"),
         (f"{a.pairs:,} pairs (wall, sync)", f"{f(pair_ms)} ms median, {f(pair_min)} min"),
         (f"{a.pairs:,} pairs (Warp kernel timer)", f"{f(pair_kernel_ms)} ms ({pair_kernel_note})"),
         ("pair distances vs float64 torch", f"max rel {f(pair_check) if pair_check is None else f'{pair_check:.2e}'}"),

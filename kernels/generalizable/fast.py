@@ -24,6 +24,8 @@ Kernels (float32 storage and accumulation; the ``fp32`` mode):
 - ``edge2``: one block per point: the 40 x 64 edge activations relu(P_i + Q_j) are computed once into shared
   memory, then each of 64 threads applies one row of the second layer to 4 edges at a time and keeps the max.
 - ``linear``: a shared-memory tiled y = act(x W^T + b) (32 rows x 64 outputs per block of 256 threads).
+- ``to_unit_frame``, ``copy_encoded``: the two ends of the encoder's CUDA graph (``WarpGenNet.encode``): the
+  frame read from a device array, and the graph's outputs copied into arrays of the caller's own.
 """
 from types import SimpleNamespace
 
@@ -528,5 +530,52 @@ def _build() -> SimpleNamespace:
         yt[2, i] = c
         v[i] = wp.vec3(a, b, c)
 
-    return SimpleNamespace(modules=[module + '_256', module + '_128', module + '_64'], pair_head=pair_head, knn=knn, edge2=edge2, edge1=edge1, linear=linear,
-                           to_unit=to_unit, pair_tile=PAIRS, pair_threads=PAIR_THREADS)
+    # the captured encoder's ends (WarpGenNet.encode on CUDA replays a CUDA graph): its own small module, so that
+    # adding them left the compiled modules above as they were
+    opts_io = {"enable_backward": False, "module": module + "_io"}
+
+    @wp.kernel(**opts_io)
+    def to_unit_frame(x: wp.array2d(dtype=f32), frame: wp.array(dtype=wp.float64), y: wp.array2d(dtype=f32),
+                      yt: wp.array2d(dtype=f32), v: wp.array(dtype=wp.vec3)):
+        """to_unit with (cx, cy, cz, scale) read from the device array ``frame`` (not launch constants, which a
+        CUDA graph would keep): the same arithmetic, so the same bits."""
+        i = wp.tid()
+        cx = frame[0]
+        cy = frame[1]
+        cz = frame[2]
+        scale = frame[3]
+        a = float((wp.float64(x[i, 0]) - cx) * scale)
+        b = float((wp.float64(x[i, 1]) - cy) * scale)
+        c = float((wp.float64(x[i, 2]) - cz) * scale)
+        y[i, 0] = a
+        y[i, 1] = b
+        y[i, 2] = c
+        yt[0, i] = a
+        yt[1, i] = b
+        yt[2, i] = c
+        v[i] = wp.vec3(a, b, c)
+
+    @wp.kernel(**opts_io)
+    def copy_encoded(x: wp.array2d(dtype=f32), v: wp.array(dtype=wp.vec3), f: wp.array2d(dtype=f32),
+                     g: wp.array2d(dtype=f32), n1: wp.array2d(dtype=wp.int32), n2: wp.array2d(dtype=wp.int32),
+                     n3: wp.array2d(dtype=wp.int32), x2: wp.array2d(dtype=f32), v2: wp.array(dtype=wp.vec3),
+                     f2: wp.array2d(dtype=f32), g2: wp.array2d(dtype=f32), m1: wp.array2d(dtype=wp.int32),
+                     m2: wp.array2d(dtype=wp.int32), m3: wp.array2d(dtype=wp.int32)):
+        """Thread (i, c), c < 128: row i of an encoding (cloud, its vec3 copy, F, G, the three kNN lists of at
+        most 128 neighbours) into fresh arrays: one launch instead of seven copies."""
+        i, c = wp.tid()
+        f2[i, c] = f[i, c]
+        g2[i, c] = g[i, c]
+        if c < n1.shape[1]:
+            m1[i, c] = n1[i, c]
+            m2[i, c] = n2[i, c]
+            m3[i, c] = n3[i, c]
+        if c < 3:
+            x2[i, c] = x[i, c]
+        if c == 0:
+            v2[i] = v[i]
+
+    return SimpleNamespace(modules=[module + '_256', module + '_128', module + '_64', module + '_io'],
+                           pair_head=pair_head, knn=knn, edge2=edge2, edge1=edge1, linear=linear, to_unit=to_unit,
+                           to_unit_frame=to_unit_frame, copy_encoded=copy_encoded, pair_tile=PAIRS,
+                           pair_threads=PAIR_THREADS)

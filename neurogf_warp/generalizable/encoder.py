@@ -4,9 +4,17 @@
 turns a point cloud (unit-sphere frame) into a :class:`Encoded` state (per-point features F, the precomputed
 ``G = W_F F + b`` of ``fuse``, a hash grid for the nearest-point lookup) and :meth:`WarpGenNet.ratio` evaluates
 pairs against it. Everything stays on the device; nothing synchronizes with the host except the hash-grid build.
+
+On CUDA, ``encode`` of a new state with the fast kernels replays a CUDA graph of the whole encoder (captured on
+the first cloud of each point count, kept by the :class:`WarpGenNet`) and copies its outputs into arrays of the
+returned state's own; ``NGF_NO_GRAPH=1`` in the environment (or ``WarpGenNet.use_graph = False``) launches the
+kernels from Python instead (same numbers).
 """
 from __future__ import annotations
 
+import os
+import warnings
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -17,6 +25,14 @@ from neurogf_warp.generalizable.network import GenNeuroGF, folded_layers
 from neurogf_warp.kernels.generalizable import kernels
 
 init_warp()  # quietly: library calls print nothing unless asked (NEUROGF_WARP_VERBOSE=1)
+
+GRAPHS_KEPT = 4  # point counts whose captured encoder a WarpGenNet keeps (the least recently used one is dropped)
+
+
+def graph_default() -> bool:
+    """Whether a new :class:`WarpGenNet` replays its encoder as a CUDA graph: yes unless ``NGF_NO_GRAPH`` is set to
+    something other than "", "0", "false" or "no"."""
+    return os.environ.get("NGF_NO_GRAPH", "").strip().lower() in ("", "0", "false", "no")
 
 
 def default_mode(device) -> str:
@@ -38,6 +54,17 @@ class Encoded:
     scratch: dict = field(default_factory=dict)  # every device array of the encoder, reused by encode(into=)
     nn_grid: object = None  # the candidate grid of WarpGenNet(nearest="grid"), built on the first query
     nn_grid_built: bool = False  # False after encode(into=) until the next query rebuilds it
+    grid_pending: bool = False  # True: ``grid`` is built on the first query that needs it (the graph path)
+
+
+@dataclass
+class _EncodeGraph:
+    """The captured encoder of one point count: the inputs it reads, the state it writes, the graph."""
+
+    cloud: wp.array  # (N, 3) float32: each call copies its cloud here
+    frame: wp.array  # (4,) float64: center x, y, z and scale, copied here by each call
+    state: Encoded | None = None  # the arrays the graph writes; never handed out (copied into each result)
+    graph: object = None
 
 
 class WarpGenNet:
@@ -50,10 +77,14 @@ class WarpGenNet:
     the default on the CPU, where building the grid costs ~130 ms) or ``"grid"`` (the default on CUDA: a dense
     grid of candidate lists, ``kernels/generalizable/nearest_grid.py``, 4x faster on an H100, built
     on the first query of a conditioned cloud); both return the brute-force scan's index (ties -> smaller index).
+    graph: replay the fast encoder as a CUDA graph in :meth:`encode` (default: :func:`graph_default`, i.e. yes
+    unless ``NGF_NO_GRAPH=1``); the attribute ``use_graph`` switches it later. Only CUDA devices capture; where a
+    capture fails the encoder launches from Python (one warning, remembered per device).
     """
 
     def __init__(self, net: GenNeuroGF, device=None, mode: str | None = None, knn_chunks: int | None = None,
-                 use_grid: bool = True, fast: bool | None = None, nearest: str | None = None):
+                 use_grid: bool = True, fast: bool | None = None, nearest: str | None = None,
+                 graph: bool | None = None):
         if nearest not in (None, "hash", "grid"):
             raise ValueError(f"nearest must be 'hash' or 'grid', got {nearest!r}")
         self.device = wp.get_device(device)
@@ -63,6 +94,12 @@ class WarpGenNet:
         self.np_dtype = np.float64 if self.mode == "fp64" else np.float32
         self.knn_chunks = knn_chunks or (1 if self.device.is_cpu else 16)
         self.use_grid = use_grid
+        self.use_graph = graph_default() if graph is None else bool(graph)
+        # per point count, the captured encoder (warp/fem style: the owner of the device state caches it)
+        self._graphs: OrderedDict[int, _EncodeGraph] = OrderedDict()
+        self._graph_off: str | None = None  # why capture is off on this device for good (a capture failed)
+        self._graph_warned: set = set()
+        self._graph_cpu = False  # tests only: Warp's CPU graphs stand in for CUDA's (off: the CPU launches eagerly)
         self.kk = net.backbone.econv_1.k
         L = folded_layers(net)
         a = self._arr
@@ -145,13 +182,25 @@ class WarpGenNet:
         unit-sphere frame (defaults: the cloud is in that frame already). ``into``: an earlier result whose
         arrays (and hash grid) are overwritten and returned (no allocation when N is unchanged; that earlier
         state is then gone). Returns :class:`Encoded`.
+
+        Without ``into``, on CUDA with the fast kernels (and ``use_graph``), the encoder runs as a CUDA graph
+        replay (captured on the first cloud of this N) and the result holds copies of the graph's outputs: every
+        result is its own, whatever later calls replay; its hash grid is built on the first query that uses it.
         """
         dev, T = self.device, self.k.dtype
+        host = None
         if not (isinstance(cloud, wp.array) and cloud.dtype == T and cloud.ndim == 2 and cloud.device == dev):
-            cloud = self._arr(np.asarray(cloud.numpy() if isinstance(cloud, wp.array) else cloud))
-        n = cloud.shape[0]
+            host = np.asarray(cloud.numpy() if isinstance(cloud, wp.array) else cloud)
+            host = np.ascontiguousarray(np.asarray(host, dtype=np.float64).astype(self.np_dtype))  # as _arr
+        n = (host if host is not None else cloud).shape[0]
         if n < self.kk:
             raise ValueError(f"the point cloud has {n} points; the encoder needs at least k={self.kk}")
+        if into is None and (host if host is not None else cloud).shape == (n, 3) and self._graph_usable(n):
+            enc = self._encode_graph(cloud if host is None else host, center, scale)
+            if enc is not None:
+                return enc
+        if host is not None:
+            cloud = wp.array(host, dtype=T, device=dev)
         if self._fast_encoder_fits(n):
             return self._encode_fast(cloud, center, scale, into)
         sc = into.scratch if into is not None else {}
@@ -179,10 +228,10 @@ class WarpGenNet:
         wp.launch(self.k.edge_one_layer, (n, 64), inputs=[P, Q, n3, cat, 128], device=dev)
         return self._heads(self._linear, T, sc, buf, n, cat, X, V, [n1, n2, n3], into)
 
-    def _heads(self, lin, T, sc, buf, n, cat, X, V, nbrs, into):
+    def _heads(self, lin, T, sc, buf, n, cat, X, V, nbrs, into, build_grid=True):
         """After the edge blocks (both encoders): the codeword (max over points of the point-wise embedding of
-        [f1, f2, f3]), the per-point features F and their fused part G, the query grid; ``lin`` is the linear
-        layer of the encoder in use."""
+        [f1, f2, f3]), the per-point features F and their fused part G, the query grid (not with ``build_grid``
+        False: the captured encoder); ``lin`` is the linear layer of the encoder in use."""
         dev, w = self.device, self.w
         E = buf("E", 320)
         lin(cat, 0, w["pw"], True, E)
@@ -203,12 +252,13 @@ class WarpGenNet:
         G = buf("G", 128)
         lin(F, 0, w["fuseF"], False, G)
         grid, radius = None, 0.0
-        if self.use_grid:
+        if self.use_grid and build_grid:
             grid, radius = self._grid(V, into.grid if into is not None else None)
         if into is not None:
             into.cloud, into.feats, into.fused, into.grid, into.radius = X, F, G, grid, radius
             into.neighbours, into.points32 = nbrs, V
             into.nn_grid_built = False  # the candidate lists are the old cloud's
+            into.grid_pending = False
             return into
         return Encoded(X, F, G, grid, radius, nbrs, V, sc)
 
@@ -239,9 +289,11 @@ class WarpGenNet:
                       device=self.device)
         return nbr
 
-    def _encode_fast(self, cloud, center, scale, into):
+    def _encode_fast(self, cloud, center, scale, into, frame=None, build_grid=True):
         """encode() with the fast float32 kernels: 16 launches, no host synchronisation (except the hash-grid
-        build), every buffer reused through ``into`` (so the whole encoder can be captured in a CUDA graph)."""
+        build), every buffer reused through ``into`` (so the whole encoder can be captured in a CUDA graph).
+        frame: a (4,) float64 device array (center, scale) read by the first kernel instead of ``center`` and
+        ``scale`` (the captured encoder: nothing of a particular cloud is kept in the graph)."""
         dev, fk, w = self.device, self.fk, self.w
         n = cloud.shape[0]
         f32 = wp.float32
@@ -250,7 +302,11 @@ class WarpGenNet:
         X = buf("X", 3)
         XT = self._buf(sc, "XT", (3, n), f32)
         V = self._buf(sc, "V", (n,), wp.vec3)
-        wp.launch(fk.to_unit, n, inputs=[cloud, *(float(c) for c in center), float(scale), X, XT, V], device=dev)
+        if frame is None:
+            wp.launch(fk.to_unit, n, inputs=[cloud, *(float(c) for c in center), float(scale), X, XT, V],
+                      device=dev)
+        else:
+            wp.launch(fk.to_unit_frame, n, inputs=[cloud, frame, X, XT, V], device=dev)
         cat = buf("cat", 192)  # [f1, f2, f3]
         catT = self._buf(sc, "catT", (128, n), f32)  # f1, f2 channel-major (the kNN's coalesced reads)
         PQ = buf("PQ", 128)
@@ -264,7 +320,90 @@ class WarpGenNet:
         n3 = self._knn_fast(catT, 64, 64, sc, "3")
         self._lin(cat, 64, w["e3PQ"], False, PQ)
         wp.launch(fk.edge1, (n, 64), inputs=[PQ, n3, cat, 128], device=dev)
-        return self._heads(self._lin, f32, sc, buf, n, cat, X, V, [n1, n2, n3], into)
+        return self._heads(self._lin, f32, sc, buf, n, cat, X, V, [n1, n2, n3], into, build_grid)
+
+    # ---- the encoder as a CUDA graph --------------------------------------------------------------------------
+    def _graph_usable(self, n: int) -> bool:
+        """Whether encode() of n points replays the captured encoder now (else: launches from Python)."""
+        if not (self.use_graph and self._fast_encoder_fits(n)):
+            return False
+        dev = self.device
+        if dev.is_capturing:
+            return False  # inside the caller's own capture: the launches are recorded there
+        if dev.is_cpu:
+            return self._graph_cpu  # the CPU launches eagerly (tests may stand Warp's CPU graphs in)
+        reason = self._graph_off
+        if reason is None and not getattr(dev, "is_capturable", True):
+            reason = f"{dev} cannot capture CUDA graphs"
+        elif reason is None and not dev.is_mempool_enabled:
+            reason = f"the CUDA memory pool is off on {dev} (wp.set_mempool_enabled)"
+        elif reason is None and wp.config.verify_cuda:
+            reason = "wp.config.verify_cuda is on (no capture with CUDA error checks)"
+        if reason is not None:
+            self._warn_graph(reason)
+            return False
+        return True
+
+    def _warn_graph(self, reason: str):
+        if reason not in self._graph_warned:
+            self._graph_warned.add(reason)
+            warnings.warn(f"the generalizable encoder runs without a CUDA graph on {self.device}: {reason}; its "
+                          "kernels launch from Python (same results, slower)", RuntimeWarning, stacklevel=4)
+
+    def _encode_graph(self, cloud, center, scale) -> Encoded | None:
+        """encode() by replaying the captured encoder of this point count (captured here on its first cloud, after
+        one eager run that loads the modules and allocates its arrays); the result holds copies of the graph's
+        outputs. cloud: numpy (N, 3) float32 or a device array. None where the capture failed (then remembered:
+        this device launches eagerly from now on)."""
+        dev, n = self.device, cloud.shape[0]
+        g = self._graphs.get(n)
+        fresh = g is None
+        if fresh:
+            g = _EncodeGraph(wp.empty((n, 3), dtype=wp.float32, device=dev), wp.empty(4, dtype=wp.float64, device=dev))
+        g.cloud.assign(cloud)  # a copy on the device's stream: after every earlier replay's reads
+        g.frame.assign(np.array([*(float(c) for c in center), float(scale)], dtype=np.float64))
+        if fresh:
+            g.state = self._encode_fast(g.cloud, None, None, None, frame=g.frame, build_grid=False)
+            try:
+                with wp.ScopedCapture(device=dev, force_module_load=False) as cap:
+                    self._encode_fast(g.cloud, None, None, g.state, frame=g.frame, build_grid=False)
+                g.graph = cap.graph
+            except Exception as e:  # noqa: BLE001 - any capture failure: eager launches from now on
+                self._graph_off = f"the capture failed ({type(e).__name__}: {str(e)[:200]})"
+                self._warn_graph(self._graph_off)
+                return None
+            self._graphs[n] = g
+            while len(self._graphs) > GRAPHS_KEPT:
+                wp.synchronize_device(dev)  # nothing in flight still reads the arrays of the one dropped
+                self._graphs.popitem(last=False)
+        else:
+            self._graphs.move_to_end(n)
+        wp.capture_launch(g.graph)
+        return self._copy_encoded(g.state)
+
+    def _copy_encoded(self, st: Encoded) -> Encoded:
+        """A new Encoded holding device copies of st's cloud, features and neighbour lists (one launch); its hash
+        grid is built on first use (:meth:`_hash`), its nearest grid on the first query, over its own points."""
+        dev, n, f32 = self.device, st.cloud.shape[0], wp.float32
+        X = wp.empty((n, 3), dtype=f32, device=dev)
+        V = wp.empty(n, dtype=wp.vec3, device=dev)
+        F = wp.empty(st.feats.shape, dtype=f32, device=dev)
+        G = wp.empty(st.fused.shape, dtype=f32, device=dev)
+        nbrs = [wp.empty(a.shape, dtype=wp.int32, device=dev) for a in st.neighbours]
+        wp.launch(self.fk.copy_encoded, (n, F.shape[1]), inputs=[st.cloud, st.points32, st.feats, st.fused,
+                                                                  *st.neighbours, X, V, F, G, *nbrs], device=dev)
+        sc = {"X": X, "V": V, "F": F, "G": G, "nbr1": nbrs[0], "nbr2": nbrs[1], "nbr3": nbrs[2]}
+        return Encoded(X, F, G, None, _grid_radius(n) if self.use_grid else 0.0, nbrs, V, sc,
+                       grid_pending=self.use_grid)
+
+    def _hash(self, enc: Encoded):
+        """(grid id, radius, has grid) of enc's hash grid for the kernels; built here if encode left it for later."""
+        if enc.grid is None and enc.grid_pending:
+            enc.grid, enc.radius = self._grid(enc.points32)
+            enc.grid_pending = False
+        if enc.grid is None:
+            return wp.uint64(0), enc.radius, 0
+        return enc.grid.id, enc.radius, 1
 
     def _grid(self, pts: wp.array, grid: wp.HashGrid | None = None):
         """A hash grid over the cloud for the nearest-point lookup of queries.
@@ -272,7 +411,7 @@ class WarpGenNet:
         radius: 4 / sqrt(N) in the unit frame (about twice the typical spacing of N points on a surface of area
         ~4 pi r^2 / 2); queries farther than that from every point fall back to a brute-force scan (exact)."""
         n = pts.shape[0]
-        radius = float(4.0 / np.sqrt(n))
+        radius = _grid_radius(n)
         dim = int(max(8, min(128, np.ceil(2.0 / radius))))
         if grid is None:
             grid = wp.HashGrid(dim, dim, dim, device=self.device)
@@ -297,9 +436,9 @@ class WarpGenNet:
                 self._pair_head(enc, S, Tt, None, None, None, None, (0.0, 0.0, 0.0), 1.0, 0, m, True, out)
             return out
         w = self.w
-        grid_id = enc.grid.id if enc.grid is not None else wp.uint64(0)
+        grid_id, radius, has = self._hash(enc)
         wp.launch(self.k.pair_ratio, m,
-                  inputs=[enc.cloud, grid_id, enc.radius, int(enc.grid is not None), enc.fused, w["fuseX"],
+                  inputs=[enc.cloud, grid_id, radius, has, enc.fused, w["fuseX"],
                           *w["head0"], *w["head1"], w["head2"], S, Tt, out], device=self.device)
         return out
 
@@ -323,9 +462,9 @@ class WarpGenNet:
                 g = self._nn_grid(enc)
                 wp.launch(g.k.nearest, pts.shape[0], inputs=[enc.cloud, *g.args(), pts, out], device=self.device)
             return out
-        grid_id = enc.grid.id if enc.grid is not None else wp.uint64(0)
-        wp.launch(self.k.nearest, pts.shape[0],
-                  inputs=[enc.cloud, grid_id, enc.radius, int(enc.grid is not None), pts, out], device=self.device)
+        grid_id, radius, has = self._hash(enc)
+        wp.launch(self.k.nearest, pts.shape[0], inputs=[enc.cloud, grid_id, radius, has, pts, out],
+                  device=self.device)
         return out
 
     def distances(self, enc: Encoded, S: wp.array, T: wp.array, center, scale: float, matrix: bool,
@@ -357,9 +496,9 @@ class WarpGenNet:
             t_nn = self._nearest_user(enc, T, center, scale) if t_nn is None else t_nn
         e = wp.empty(0, dtype=wp.int32, device=self.device)
         w = self.w
-        grid_id = enc.grid.id if enc.grid is not None else wp.uint64(0)
+        grid_id, radius, has = self._hash(enc)
         wp.launch(self.k.pair_distance, m,
-                  inputs=[enc.cloud, grid_id, enc.radius, int(enc.grid is not None), enc.fused, w["fuseX"],
+                  inputs=[enc.cloud, grid_id, radius, has, enc.fused, w["fuseX"],
                           *w["head0"], *w["head1"], w["head2"],
                           S, s_nn if s_nn is not None else e, s_comp if s_comp is not None else e,
                           T, t_nn if t_nn is not None else e, t_comp if t_comp is not None else e,
@@ -374,9 +513,9 @@ class WarpGenNet:
             wp.launch(g.k.nearest_user, pts.shape[0], inputs=[enc.cloud, *g.args(), pts, *(float(c) for c in center),
                                                              float(scale), out], device=self.device)
         elif pts.shape[0]:
-            grid_id = enc.grid.id if enc.grid is not None else wp.uint64(0)
+            grid_id, radius, has = self._hash(enc)
             wp.launch(self.k.nearest_user, pts.shape[0],
-                      inputs=[enc.cloud, grid_id, enc.radius, int(enc.grid is not None), pts,
+                      inputs=[enc.cloud, grid_id, radius, has, pts,
                               *(float(c) for c in center), float(scale), out], device=self.device)
         return out
 
@@ -463,10 +602,9 @@ class WarpGenNet:
             out = wp.empty(m, dtype=wp.float32, device=dev)
         if m == 0:
             return out
-        grid_id = enc.grid.id if enc.grid is not None else wp.uint64(0)
+        grid_id, radius, has = self._hash(enc)
         fr = [*(float(c) for c in center), float(scale)]
-        wp.launch(tk.pair_prep, m, inputs=[enc.cloud, grid_id, enc.radius, int(enc.grid is not None), S, T, *fr,
-                                           su, tu, si, ti], device=dev)
+        wp.launch(tk.pair_prep, m, inputs=[enc.cloud, grid_id, radius, has, S, T, *fr, su, tu, si, ti], device=dev)
         nblocks = (m + block_pairs - 1) // block_pairs
         wp.launch_tiled(tk.pair_head, dim=[nblocks], inputs=[enc.fused, si, ti, su, tu, *self.tiled_weights(operand), r],
                         block_dim=64 if dev.is_cuda else 1, device=dev)
@@ -477,6 +615,11 @@ class WarpGenNet:
 
 
 PRECISIONS = ("fp32", "fp16")
+
+
+def _grid_radius(n: int) -> float:
+    """The hash grid's query radius for n points (unit frame), see WarpGenNet._grid."""
+    return float(4.0 / np.sqrt(n))
 
 
 def check_precision(precision) -> None:

@@ -86,7 +86,7 @@ class GeneralizableModel:
         return f"GeneralizableModel(path={self.path!r}, trained_on={what!r})"
 
     def warp_net(self, device=None, mode: str | None = None) -> WarpGenNet:
-        """The Warp weights on ``device`` in ``mode`` (cached)."""
+        """The Warp weights on ``device`` in ``mode`` (cached; it also keeps the encoder's CUDA graphs)."""
         dev = wp.get_device(device)
         mode = mode or default_mode(dev)
         key = (str(dev), mode)
@@ -108,7 +108,9 @@ class GeneralizableModel:
         the network was trained with, :attr:`cloud_points`) are sampled on it with ``seed`` (see the module
         docstring), and results are per mesh vertex with +inf across connected
         components. device: "cpu" / "cuda:N" (default: Warp's). mode: "fp64" / "fp32" / "mixed" (default
-        fp64 on the CPU, fp32 on CUDA).
+        fp64 on the CPU, fp32 on CUDA). On CUDA (fp32) the encoder replays a CUDA graph captured on the first
+        cloud of each size (``NGF_NO_GRAPH=1`` or ``model.warp_net(device).use_graph = False``: launches from
+        Python, same numbers); every conditioned shape holds arrays of its own.
         """
         mesh = None
         if isinstance(shape, (str, os.PathLike)) or hasattr(shape, "faces") or (
