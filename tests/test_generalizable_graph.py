@@ -3,7 +3,9 @@ graph per point count on CUDA and copies its outputs into the returned state, so
 same time stay independent. On the CPU the public call launches eagerly (checked as such); the graph machinery
 itself is checked on the CPU too through Warp's CPU graphs (``WarpGenNet._graph_cpu``, a test switch), with the
 fast float32 kernels. With a GPU the public-call checks run on cuda:0 as well."""
+import os
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -30,7 +32,9 @@ def blob(n, seed, axes):
 
 @pytest.fixture(scope="module")
 def model():
-    return load(shared_path("checkpoints", "official", "GenNeuroGF.pth"))
+    """The released network: from $NEUROGF_SHARED when set (the GPU machines' copy), else ../shared."""
+    alt = Path(os.environ.get("NEUROGF_SHARED", "/nonexistent"), "checkpoints", "official", "GenNeuroGF.pth")
+    return load(alt if alt.exists() else shared_path("checkpoints", "official", "GenNeuroGF.pth"))
 
 
 @pytest.fixture(scope="module")
