@@ -16,6 +16,9 @@ how "local" was chosen):
 - local_2 and local path targets: random vertices among the `local_ball` (default 5% of V, at least
   4*n_local2) nearest to the source by geodesic distance;
 - a ground-truth path with a non-finite point (the solver could not trace it) is left out and counted.
+- a proxy (``proxy`` setting, or a large mesh under a time limit on a GPU): spread vertices, distance and path
+  sources, targets and paths come from a QSlim proxy in the mesh's frame (``dataset/proxy.py``), stored ids are
+  the fine vertices nearest to the proxy's; surface points and held-out rows are the mesh's own.
 """
 from __future__ import annotations
 
@@ -31,6 +34,7 @@ import warp as wp
 from neurogf_warp.common.arrays import resolve_device
 from neurogf_warp.common.checks import integer, number
 from neurogf_warp.common.files import atomic_write
+from neurogf_warp.dataset.proxy import pin_vertices, proxy_error, proxy_mesh
 from neurogf_warp.ground_truth.geodesics import DEFAULT_K, PATH_DELTA, GeodesicSolver, resample_polylines
 from neurogf_warp.ground_truth.workers import DistanceRows
 from neurogf_warp.mesh.mesh import Mesh, load_mesh
@@ -78,13 +82,16 @@ class DatasetSettings:
     batch: int | None = None       # sources per solver launch (None: from a memory budget)
     workers: int | None = None     # CPU solver processes, this one included (None: one per core; GPU: 1)
     target_pool: str = "spread"    # "spread" or "all": where global targets come from
+    proxy: int | None = None       # training sources on a QSlim proxy of this many vertices (dataset/proxy.py);
+                                   # None: sized to the time limit on a GPU (auto_proxy), 0: never
 
     def recipe(self, seed: int) -> dict:
         """What a dataset built with these settings and ``seed`` holds (every setting but the solver's batch and
         workers, which change only speed): recorded in its meta as ``requested``, compared before a cached dataset
         is reused."""
+        # (an automatic proxy is left out: files written before it existed are still reused)
         return {"seed": int(seed), **{k: v for k, v in dataclasses.asdict(self).items()
-                                      if k not in ("batch", "workers")}}
+                                      if k not in ("batch", "workers") and not (k == "proxy" and v is None)}}
 
     def validate(self) -> "DatasetSettings":
         """Raise ValueError naming the first setting out of range; returns self."""
@@ -95,6 +102,8 @@ class DatasetSettings:
         for name in ("batch", "workers"):
             if getattr(self, name) is not None:
                 integer(name, getattr(self, name), minimum=1)
+        if self.proxy is not None:
+            integer("proxy", self.proxy, minimum=0)
         number("local_ball", self.local_ball, above=0, maximum=1)
         if self.target_pool not in ("spread", "all"):
             raise ValueError(f"target_pool must be 'spread' or 'all', got {self.target_pool!r}")
@@ -368,6 +377,14 @@ def sdf_truth(mesh_or_wp_mesh, points, device=None, watertight: bool | None = No
 
 
 # ---- builder ---------------------------------------------------------------------------------------
+def fine_proxy_of(proxy_src: np.ndarray, fine_src: np.ndarray, fine_of: np.ndarray) -> np.ndarray:
+    """The proxy vertex standing for each fine source: of ``proxy_src`` (whose fine vertices, deduplicated, are
+    ``fine_src``), the first mapped to each."""
+    first = {}
+    for p in np.asarray(proxy_src, np.int64):
+        first.setdefault(int(fine_of[p]), int(p))
+    return np.array([first[int(f)] for f in fine_src], np.int64)
+
 def _pick(rng, pool: np.ndarray, n: int) -> np.ndarray:
     if len(pool) == 0:
         return pool
@@ -446,6 +463,35 @@ def limited_batch(seconds: float, per_source: float) -> int:
     return max(MIN_LIMITED_BATCH, 1 << max(0, int(np.floor(np.log2(max(n, 1.0))))))
 
 
+# A mesh too large for its time limit trains on a proxy (dataset/proxy.py): when fewer than PROXY_WHEN sources
+# of the fine mesh fit in PROXY_SHARE of the limit, the proxy is sized so that PROXY_SOURCES do (the GPU rate
+# table above), never below PROXY_MIN_VERTICES nor above half the mesh. The proxy is kept only if its distances
+# from the held-out sources are within PROXY_MAX_MRE of the fine mesh's (measured before any training source).
+PROXY_WHEN = 256
+PROXY_SOURCES = 1024
+PROXY_SHARE = 0.5
+PROXY_MIN_VERTICES = 100_000
+PROXY_MAX_MRE = 0.003
+
+
+def auto_proxy(n_vertices: int, n_sources: int, time_limit_s: float | None) -> int:
+    """Vertices of the proxy a GPU build under ``time_limit_s`` uses for ``n_sources`` asked on a mesh of
+    ``n_vertices`` (0: none, the fine mesh is affordable or no limit is set)."""
+    if time_limit_s is None or n_vertices < 2 * PROXY_MIN_VERTICES:
+        return 0
+    share = PROXY_SHARE * time_limit_s
+    if gpu_seconds_per_source(n_vertices) * min(n_sources, PROXY_WHEN) <= share:
+        return 0
+    per = share / min(n_sources, PROXY_SOURCES)
+    lo, hi = PROXY_MIN_VERTICES, n_vertices // 2  # the largest size whose estimated rate fits: bisection
+    if gpu_seconds_per_source(lo) > per:
+        return lo
+    while hi - lo > 1000:
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if gpu_seconds_per_source(mid) <= per else (lo, mid)
+    return lo
+
+
 class _Clock:
     """The dataset's time limit: seconds since the call started, and what is left of ``limit`` (None: no limit)."""
 
@@ -470,15 +516,20 @@ class _Plan:
     target_set: np.ndarray
 
 
-def _sample(m: Mesh, st: DatasetSettings, rng) -> _Plan:
-    """Phase 1: spread vertices (QSlim), test / distance / path sources, area-weighted surface points."""
+def _sample(m: Mesh, st: DatasetSettings, rng, surface_mesh: Mesh | None = None,
+            test_src: np.ndarray | None = None) -> _Plan:
+    """Phase 1: spread vertices (QSlim), test / distance / path sources, area-weighted surface points (on
+    ``surface_mesh``, default ``m``). ``test_src``: held-out sources already chosen (left out of the others)."""
     V = len(m.vertices)
     spread = spread_vertices(m, min(st.n_spread, max(V // 2, 1)))
     n_sources = min(st.n_sources, max(len(spread) - st.n_test, 1))
     perm = rng.permutation(spread)
-    test_src = np.sort(perm[:st.n_test]) if len(perm) > n_sources else perm[:0]
-    gd_src = perm[len(test_src): len(test_src) + n_sources]
-    surface = surface_samples(m, max(st.n_surface, 30000), rng)
+    if test_src is None:
+        test_src = np.sort(perm[:st.n_test]) if len(perm) > n_sources else perm[:0]
+        gd_src = perm[len(test_src): len(test_src) + n_sources]
+    else:
+        gd_src = perm[~np.isin(perm, test_src)][:n_sources]
+    surface = surface_samples(m if surface_mesh is None else surface_mesh, max(st.n_surface, 30000), rng)
     nball = int(min(V - 1, max(st.local_ball * V, 4 * st.n_local2, st.n_local1)))
     target_set = np.asarray(spread) if st.target_pool == "spread" else np.arange(V)
     return _Plan(spread, test_src, gd_src, min(st.n_path_sources, len(gd_src)), surface, nball, target_set)
@@ -613,6 +664,11 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
         ``n_sources`` distance sources or fewer path sources, and its meta says ``"complete": False``. The test
         sources are always solved (first). None (default) solves them all.
 
+    A mesh too large for ``time_limit_s`` on a GPU (``auto_proxy``), or any mesh with ``proxy=N`` set, has its
+    distance and path sources solved on a QSlim proxy of about N vertices (``dataset/proxy.py``); the held-out
+    test sources are still solved on the mesh itself, on both, and the proxy is dropped (back to the mesh) when
+    its distances from them are more than ``PROXY_MAX_MRE`` off. ``meta["proxy"]`` says what happened.
+
     Returns
     -------
     Dataset
@@ -633,31 +689,62 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     rng = np.random.default_rng(seed)
     timings = {}
 
-    t0 = time.perf_counter()
-    plan = _sample(m, st, rng)
-    timings["sampling_s"] = time.perf_counter() - t0
-
     batch = solver_batch(st.batch, device)
-    rows_cap = max(len(plan.gd_src), len(plan.test_src), 1)
-    if batch is None and time_limit_s is not None:  # a GPU under a time limit: batches that fit inside it
-        per = gpu_seconds_per_source(len(m.vertices))
-        rows_cap = min(rows_cap, limited_batch(DISTANCE_BATCH_SHARE * time_limit_s, per))
-    solver = GeodesicSolver(m, k=st.k, device=device, batch=batch, max_rows=rows_cap)
+    n_proxy = st.proxy if st.proxy is not None else \
+        (auto_proxy(len(m.vertices), st.n_sources, time_limit_s) if batch is None else 0)
+    g, fine_of, proxy_meta = m, None, None  # g: the mesh the training sources are solved on
+    if n_proxy and 2 * n_proxy <= len(m.vertices):
+        t0 = time.perf_counter()
+        g, where = proxy_mesh(m, n_proxy, device)
+        fine_of = where.nearest_vertex
+        timings["proxy_s"] = time.perf_counter() - t0
+        proxy_meta = {"asked": int(n_proxy), "vertices": int(len(g.vertices)), "faces": int(len(g.faces))}
+
+    t0 = time.perf_counter()
+    plan = _sample(g, st, rng, surface_mesh=m)
+    timings["sampling_s"] = time.perf_counter() - t0
+    test_src = plan.test_src
+    if fine_of is not None:  # the held-out sources: fine vertices, where their proxy vertices are pinned
+        g = pin_vertices(g, where, plan.test_src, m)
+        test_src = np.unique(fine_of[plan.test_src])
+
+    def solver_for(mesh_):
+        rows_cap = max(len(plan.gd_src), len(plan.test_src), 1)
+        if batch is None and time_limit_s is not None:  # a GPU under a time limit: batches that fit inside it
+            per = gpu_seconds_per_source(len(mesh_.vertices))
+            rows_cap = min(rows_cap, limited_batch(DISTANCE_BATCH_SHARE * time_limit_s, per))
+        return GeodesicSolver(mesh_, k=st.k, device=device, batch=batch, max_rows=rows_cap)
+
+    solver = solver_for(g)
     bar = tqdm(total=len(plan.gd_src) + len(plan.test_src) + plan.n_path_sources, desc="ground truth",
                disable=not progress, unit="source", dynamic_ncols=True)
     t0 = time.perf_counter()
     test_dist, test_k = None, st.k
-    if st.k < DEFAULT_K and len(plan.test_src):
+    if (st.k < DEFAULT_K or fine_of is not None) and len(test_src):
         # The held-out rows judge the model, and the heat method against it (training.quality): they come from the
-        # solver at its default accuracy even when the training sources use a coarser one. With k=1 rows (~0.2%
-        # MRE) a 120 s CPU bunny model scored 0.91% against the heat method's 1.14% on them, but 1.01% against
-        # 0.95% on exact geodesics (benchmarks/RESULTS.md, sixth session).
-        exact = GeodesicSolver(m, k=DEFAULT_K, device=device, batch=batch, max_rows=len(plan.test_src))
-        test_dist, test_k = exact.solve(plan.test_src), DEFAULT_K
+        # solver at its default accuracy on the mesh itself, even when the training sources use a coarser solver
+        # or a proxy. With k=1 rows (~0.2% MRE) a 120 s CPU bunny model scored 0.91% against the heat method's
+        # 1.14% on them, but 1.01% against 0.95% on exact geodesics (benchmarks/RESULTS.md, sixth session).
+        exact = GeodesicSolver(m, k=DEFAULT_K, device=device, batch=batch, max_rows=len(test_src))
+        test_dist, test_k = exact.solve(test_src), DEFAULT_K
         del exact
-        bar.update(len(plan.test_src))
+        bar.update(len(test_src))
         timings["test_rows_s"] = time.perf_counter() - t0
-    kept, rows, solved, test_dist, timings["worker_batches"] = _distances(m, st, plan, rng, solver, clock, bar,
+    if fine_of is not None:
+        t1 = time.perf_counter()
+        proxy_meta["error"] = proxy_error(solver.solve(fine_proxy_of(plan.test_src, test_src, fine_of)),
+                                          test_dist, where) if len(test_src) else None
+        timings["proxy_check_s"] = time.perf_counter() - t1
+        err = (proxy_meta["error"] or {}).get("mre")
+        proxy_meta["kept"] = err is not None and err <= PROXY_MAX_MRE
+        if not proxy_meta["kept"]:  # too far from the mesh's own geodesics (or nothing to tell): the fine mesh
+            del solver
+            g, fine_of = m, None
+            t1 = time.perf_counter()
+            plan = _sample(m, st, rng, test_src=test_src)
+            timings["sampling_s"] += time.perf_counter() - t1
+            solver = solver_for(m)
+    kept, rows, solved, test_dist, timings["worker_batches"] = _distances(g, st, plan, rng, solver, clock, bar,
                                                                           test_dist)
     if solved < len(plan.gd_src):  # the time limit cut the sources short
         bar.total = solved + len(plan.test_src) + min(plan.n_path_sources, solved)
@@ -673,21 +760,26 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     if batch is None and time_limit_s is not None and solved:  # from the distance sources' measured rate
         per = timings["distances_s"] / (solved + len(plan.test_src))
         path_rows = min(path_rows, limited_batch(PATH_SHARE * time_limit_s / 2, PATH_COST * per))
-    out_paths, stale, dropped, timings["path_iterations"], n_path_done = _paths(m, st, plan, path_src, rng, batch,
+    out_paths, stale, dropped, timings["path_iterations"], n_path_done = _paths(g, st, plan, path_src, rng, batch,
                                                                                  device, clock, bar, path_rows)
+    if fine_of is not None:  # every id the dataset stores is the fine mesh's (rows and paths carry coordinates)
+        kept, gd_src = fine_of[np.asarray(kept, np.int64)], fine_of[gd_src]
+        out_paths = {k: (p, fine_of[src]) for k, (p, src) in out_paths.items()}
+    plan.test_src = np.asarray(test_src, np.int64)
     bar.close()
     timings["paths_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     complete = solved == len(plan.gd_src) and n_path_done == plan.n_path_sources
     ds = _assemble(m, st, seed, plan, kept, rows, gd_src, n_path_done, out_paths, test_dist, test_k, complete,
-                   time_limit_s, stale, dropped, timings)
+                   time_limit_s, stale, dropped, timings, proxy_meta)
     if out_path is not None:
         ds.save(out_path)
     return ds
 
 
 def _assemble(m: Mesh, st: DatasetSettings, seed: int, plan: _Plan, kept, rows, gd_src, n_path_sources, out_paths,
-              test_dist, test_k: int, complete: bool, time_limit_s, stale: int, dropped: int, timings: dict) -> Dataset:
+              test_dist, test_k: int, complete: bool, time_limit_s, stale: int, dropped: int, timings: dict,
+              proxy_meta: dict | None = None) -> Dataset:
     """Phase 4: the Dataset and its meta (what was asked for, what was made, how long it took)."""
     meta = {
         "format_version": FORMAT_VERSION, "fingerprint": m.fingerprint, "n_input_vertices": m.n_input, "seed": seed,
@@ -701,6 +793,8 @@ def _assemble(m: Mesh, st: DatasetSettings, seed: int, plan: _Plan, kept, rows, 
         "complete": bool(complete), "time_limit_s": time_limit_s,
         "sources_without_targets": int(len(gd_src) - len(kept)), "stale_paths": stale, "dropped_paths": dropped,
         "components": int(m.n_components), "units": "normalized (unit sphere)",
+        # the training sources' mesh when it was a proxy (dataset/proxy.py): its size, its measured error, kept
+        "proxy": proxy_meta,
         "versions": {"warp": wp.config.version, "numpy": np.__version__},
         "timings": timings,
     }

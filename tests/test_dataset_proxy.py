@@ -1,0 +1,114 @@
+"""Training sources on a QSlim proxy of a large mesh (dataset/proxy.py): rows in the fine mesh's frame and ids,
+held-out rows from the mesh itself, the proxy dropped when it is too far off, the automatic size rule."""
+import numpy as np
+import pytest
+import trimesh
+
+from neurogf_warp.dataset import build as D
+from neurogf_warp.dataset.proxy import Surface, proxy_error, proxy_mesh
+from neurogf_warp.ground_truth.geodesics import GeodesicSolver
+from neurogf_warp.mesh.mesh import load_mesh
+
+SMALL = dict(n_sources=6, n_global=32, n_local1=8, n_local2=16, n_path_sources=2, n_path_global=4,
+             n_path_local=3, n_test=4, n_surface=30000, n_spread=200, progress=False, device="cpu")
+
+
+@pytest.fixture(scope="module")
+def fine_blobs():
+    """Two icospheres (the second half as large, apart), each midpoint-subdivided twice: 5,124 vertices whose
+    surface is that of the two 162-vertex polyhedra, so a proxy of ~700 vertices can be almost exact."""
+    a = trimesh.creation.icosphere(subdivisions=2)
+    b = trimesh.creation.icosphere(subdivisions=2)
+    b.vertices = b.vertices * 0.5 + np.array([3.0, 0.0, 0.0])
+    v, f = np.concatenate([a.vertices, b.vertices]), np.concatenate([a.faces, b.faces + len(a.vertices)])
+    for _ in range(2):
+        v, f = trimesh.remesh.subdivide(v, f)
+    return v, f
+
+
+@pytest.fixture(scope="module")
+def proxied(fine_blobs):
+    from neurogf_warp.ground_truth.geodesics import load_kernels
+
+    load_kernels("cpu")
+    return D.build_dataset(fine_blobs, proxy=700, **SMALL)
+
+
+def test_a_kept_proxy_gives_rows_of_the_fine_mesh(proxied, fine_blobs):
+    d = proxied
+    m = load_mesh(fine_blobs)
+    p = d.meta["proxy"]
+    assert p["kept"] and 600 <= p["vertices"] <= 800 and p["error"]["mre"] <= D.PROXY_MAX_MRE
+    assert d.fingerprint == m.fingerprint and len(d.vertices) == len(m.vertices)  # the dataset is the fine mesh's
+    V = d.vertices.astype(np.float64)
+    for k in ("gd_src", "path_global_src", "path_local_src", "test_src"):
+        a = getattr(d, k)
+        assert a.size and a.min() >= 0 and a.max() < len(V)
+    # held-out rows: the mesh's own solver at its default accuracy, from fine vertices
+    exact = GeodesicSolver(m, device="cpu").solve(d.test_src)
+    np.testing.assert_array_equal(d.test_dist, exact)
+    # rows start at proxy vertices on the fine surface, next to the fine vertex their source id names
+    rows = d.gd_global
+    edge = np.linalg.norm(V[m.faces[:, 0]] - V[m.faces[:, 1]], axis=1).mean()
+    assert np.all(np.linalg.norm(rows[:, 0, :3] - V[d.gd_src], axis=1) < edge)
+    where = Surface.of(m, rows[:, :, 3:6].reshape(-1, 3))
+    assert np.abs(np.linalg.norm(where.points - rows[:, :, 3:6].reshape(-1, 3), axis=1)).max() < 1e-5
+    # never across the two parts; geodesic >= straight line
+    part = lambda x: x[..., 0] > 0.4  # noqa: E731  (the second, smaller sphere lies at x > 0.5 normalized)
+    assert part(rows[:, :, :3]).any() and not part(rows[:, :, :3]).all()  # sources on both parts
+    assert np.all(part(rows[:, :, :3]) == part(rows[:, :, 3:6]))
+    assert np.all(rows[:, :, 6] >= np.linalg.norm(rows[:, :, 3:6] - rows[:, :, :3], axis=2) * (1 - 1e-5))
+    # and close to the fine mesh's geodesics between the fine vertices nearest to both ends
+    tgt = where.nearest_vertex.reshape(rows.shape[:2])
+    D_fine = GeodesicSolver(m, device="cpu").solve(d.gd_src)
+    fine = np.take_along_axis(D_fine, tgt, axis=1)
+    far = fine > 0.2
+    assert np.mean(np.abs(rows[:, :, 6][far] - fine[far]) / fine[far]) < 0.02
+    assert len(d.path_global) and np.isfinite(d.path_global).all()
+
+
+def test_a_proxy_too_far_from_the_mesh_is_dropped(fine_blobs, monkeypatch):
+    monkeypatch.setattr(D, "PROXY_MAX_MRE", 0.0)
+    d = D.build_dataset(fine_blobs, proxy=700, **SMALL)
+    p = d.meta["proxy"]
+    assert not p["kept"] and p["error"]["mre"] > 0
+    V = d.vertices
+    np.testing.assert_array_equal(d.gd_global[:, 0, :3], V[d.gd_src])  # rows start at fine vertices again
+    assert not set(d.test_src) & set(d.gd_src)
+    m = load_mesh(fine_blobs)
+    np.testing.assert_array_equal(d.test_dist, GeodesicSolver(m, device="cpu").solve(d.test_src))
+
+
+def test_no_proxy_unless_asked_or_needed(fine_blobs):
+    d = D.build_dataset(fine_blobs, **SMALL)  # CPU, no time limit: the mesh itself
+    assert d.meta["proxy"] is None
+    d = D.build_dataset(fine_blobs, proxy=4000, **SMALL)  # not worth it: more than half the mesh
+    assert d.meta["proxy"] is None
+
+
+def test_proxy_error_reads_the_fine_rows_on_each_proxy_vertex(fine_blobs):
+    m = load_mesh(fine_blobs)
+    proxy, where = proxy_mesh(m, 700, "cpu")
+    assert np.allclose(proxy.center, m.center) and proxy.scale == m.scale
+    # the proxy's vertices are on the fine surface: their interpolated coordinates are themselves
+    xyz = np.stack([where.values(m.normalized_vertices[:, k][None])[0] for k in range(3)], 1)
+    np.testing.assert_allclose(xyz, proxy.normalized_vertices, atol=1e-5)
+    fine = np.abs(m.normalized_vertices[:, :1].T - 0.1) + 0.2  # any smooth field: linear in x away from a kink
+    e = proxy_error(where.values(fine) * 1.01, fine, where)
+    assert e["pairs"] > 0 and abs(e["mre"] - 0.01) < 1e-6 and abs(e["bias"] - 0.01) < 1e-6
+
+
+@pytest.mark.parametrize("V,limit,expect", [
+    (2_223_321, 170.0, (400_000, 550_000)),  # the 2.2M bunny in a 520 s call: a ~460K proxy (RESULTS.md)
+    (2_223_321, 20.0, (100_000, 100_000)),   # never below PROXY_MIN_VERTICES
+    (436_076, 100.0, (0, 0)),                # 256 sources fit: the mesh itself
+    (134_345, 20.0, (0, 0)),                 # too small to decimate
+    (34_834, 20.0, (0, 0)),
+    (2_223_321, None, (0, 0)),               # no time limit: the mesh itself
+])
+def test_auto_proxy_sizes(V, limit, expect):
+    n = D.auto_proxy(V, 2048, limit)
+    assert expect[0] <= n <= expect[1]
+    if n:
+        assert D.gpu_seconds_per_source(n) * min(2048, D.PROXY_SOURCES) <= D.PROXY_SHARE * limit or \
+            n == D.PROXY_MIN_VERTICES
