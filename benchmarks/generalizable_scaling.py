@@ -66,6 +66,11 @@ def main(argv=None):
             return 1
         m = re.search(r"ground truth of (\d+) shapes in ([\d.]+) s", r.stdout)
         n, gt_s = int(m.group(1)), float(m.group(2))
+        # each rank's own time for its shard (the last progress line of each): the balance of the split
+        per_rank = {}
+        for rk, done, total, sec in re.findall(r"\[rank (\d+)\] ground truth (\d+)/(\d+) shapes, ([\d.]+) s",
+                                               r.stdout + r.stderr):
+            per_rank[int(rk)] = max(per_rank.get(int(rk), 0.0), float(sec))
         out = work / f"m_w{w}.pt"
         if out.exists():
             out.unlink()
@@ -81,6 +86,7 @@ def main(argv=None):
         ck = torch.load(out, map_location="cpu", weights_only=True)
         tr_s = float(ck["elapsed_s"])
         row = {"world": w, "shapes": n, "gt_s": gt_s, "gt_wall_s": wall_gt, "gt_shapes_per_s": n / gt_s,
+               "gt_rank_s": per_rank,
                "train_steps": int(ck["step"]), "train_s": tr_s, "train_wall_s": wall_tr,
                "train_shapes_per_s": ck["step"] * a.shapes_per_step * w / tr_s,
                "final_loss": ck["loss_history"][-1][1] if ck["loss_history"] else None}

@@ -63,7 +63,7 @@ def test_two_gloo_ranks_train_write_and_resume(collection, tmp_path, gt_cache):
     assert ck["val_history"] and np.isfinite(ck["val_mre"])
     gt = sorted(p.name for p in gt_cache.iterdir())
     assert len(gt) == 6 and not any(".tmp" in n for n in gt + [p.name for p in tmp_path.iterdir()])
-    # both ranks computed ground truth (file i on rank i mod 2)
+    # both ranks computed ground truth (balanced by file size: common/shards.py)
     assert "[rank 1] ground truth" in r.stdout
 
     # resume with another world size (1, in this process): continues the step count and the history
@@ -81,6 +81,24 @@ def test_two_gloo_ranks_train_write_and_resume(collection, tmp_path, gt_cache):
     assert c.points.shape == (64, 3)
     row = c.ssad(0)
     assert row[0] == 0 and np.isfinite(row).all() and (row[1:] > 0).all()
+
+
+def test_two_gloo_ranks_stop_together_at_a_budget(collection, tmp_path, gt_cache):
+    """Rank 0's clock ends a budgeted run; it is shared every SYNC_EVERY steps, so both ranks stop at one of
+    those steps (a rank stopping alone would leave the other in a collective until the timeout)."""
+    from neurogf_warp.generalizable.train import SYNC_EVERY
+
+    out = tmp_path / "budget.pt"
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
+           str(29000 + os.getpid() % 400), "-m", "neurogf_warp.generalizable.train", str(collection), "-o",
+           str(out), "--device", "cpu", "--steps", "1000000", "--budget-seconds", "2", "--cache", str(gt_cache),
+           *_cli_args(TINY)]
+    r = subprocess.run(cmd, check=False, env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    ck = torch.load(out, map_location="cpu", weights_only=True)
+    assert 0 < ck["step"] < 1000000 and ck["step"] % SYNC_EVERY == 0 and ck["world_size"] == 2
+    assert ck["elapsed_s"] < 2 + 1.5
 
 
 def test_bad_folder(tmp_path, capsys):

@@ -3,7 +3,8 @@
     python -m neurogf_warp.generalizable.per_mesh FOLDER -o OUTDIR --budget-seconds 60
     torchrun --nproc_per_node 8 -m neurogf_warp.generalizable.per_mesh FOLDER -o OUTDIR --budget-seconds 60
 
-Mesh i (files sorted by path) is trained by rank ``i mod world`` on that rank's device (``cuda:LOCAL_RANK`` when
+The meshes (files sorted by path) are split over the ranks (``common/shards.py``: equal counts under
+``--budget-seconds``, else balanced by file size) and trained on each rank's device (``cuda:LOCAL_RANK`` when
 there is a GPU) with ``ngf.train`` (one model each, ``OUTDIR/<relative path>.ngf``; the run folder beside it).
 Re-running the same command continues interrupted runs and skips finished ones (``ngf.train``'s own resume
 rules), so it can also be run again with another world size. A mesh that fails is recorded and does not stop the
@@ -19,6 +20,9 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
+from neurogf_warp.common.shards import balanced_shard, file_sizes
 from neurogf_warp.generalizable.train import MESH_EXTENSIONS
 
 
@@ -52,9 +56,10 @@ def train_folder(folder, outdir, budget_seconds=None, config=None, device=None, 
         torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
     rows = []
     t_all = time.perf_counter()
-    for i, f in enumerate(files):
-        if i % world != rank:
-            continue
+    # under a budget every mesh costs about that long; without one, about its size (common/shards.py)
+    cost = np.ones(len(files)) if budget_seconds else file_sizes(files)
+    for i in balanced_shard(cost, world, rank):
+        f = files[i]
         rel = f.relative_to(folder)
         out = (outdir / rel).with_suffix(".ngf")
         out.parent.mkdir(parents=True, exist_ok=True)

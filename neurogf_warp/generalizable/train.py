@@ -20,7 +20,7 @@ pairs of |d - d_gt| / d_gt with d = max(ratio, 1) |s - t| (what ``Conditioned.di
 
 Ground truth is cached per shape under ``--cache`` (default ``<output>.gt/``), keyed by the file's content and
 the data settings, written atomically: an interrupted run recomputes only what is missing. Under torchrun the
-shapes are sharded over the ranks (shape i on rank i mod world) both for ground truth and for training
+shapes are sharded over the ranks (``common/shards.py``: largest first, by file size) both for ground truth and for training
 (data-parallel DDP: each rank draws its batch from its own shard; gradients are averaged). Rank 0 writes the
 checkpoint (atomically: a temporary file, then a rename) every ``checkpoint_seconds`` and at the end; ``--resume``
 continues from it with any world size (the model and optimizer state are global; the shard is recomputed).
@@ -46,10 +46,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from neurogf_warp.common.shards import balanced_shard, file_sizes
 from neurogf_warp.generalizable.network import GenNeuroGF
 
 MESH_EXTENSIONS = (".obj", ".ply", ".stl", ".off")
 FORMAT = "neurogf-generalizable"
+# Under DDP rank 0's clock decides when a budget ends and where the schedule is. Sharing it is a host sync (the
+# broadcast's .item() waits for the GPU), which took the host's batch preparation out of the GPU's shadow: two
+# H200s trained 1.70x the shapes/s of one with a broadcast every step (benchmarks/RESULTS.md, seventh session).
+# So it is shared every SYNC_EVERY steps; in between, every rank keeps the last shared fraction (the same lr).
+SYNC_EVERY = 8
 
 
 @dataclass
@@ -145,13 +151,13 @@ def _atomic_savez(path: Path, **arrays):
 
 def ground_truth_cache(files, cache: Path, cfg: GenTrainConfig, rank: int = 0, world: int = 1, device=None,
                        log=print, deadline: float | None = None) -> list[Path]:
-    """Compute (rank's shard: file i with i % world == rank) and cache the ground truth of ``files``; returns the
+    """Compute (rank's shard: ``balanced_shard`` of the file sizes) and cache the ground truth of ``files``; returns the
     cache path of every file (all ranks), whether or not it is computed yet (a barrier follows under DDP).
     ``deadline`` (a ``time.perf_counter()`` value): start no shape after it (the files left have no cache file)."""
     cache = Path(cache)
     cache.mkdir(parents=True, exist_ok=True)
     out = [cache / f"{p.stem}_{_file_key(p, cfg)}.npz" for p in files]
-    mine = [i for i in range(len(files)) if i % world == rank and not out[i].exists()]
+    mine = [i for i in balanced_shard(file_sizes(files), world, rank) if not out[i].exists()]
     t0 = time.perf_counter()
     for n, i in enumerate(mine):
         if deadline is not None and time.perf_counter() >= deadline:
@@ -236,6 +242,9 @@ def _dist_setup(device_arg):
         torch.cuda.set_device(device)
     if world > 1 and not dist.is_initialized():
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo", timeout=timedelta(hours=6))
+        # NCCL builds its communicator at the first collective (seconds on two H200s): here, with the start-up,
+        # rather than inside the first barrier, which ends the ground-truth phase
+        dist.all_reduce(torch.zeros(1, device=device))
     return rank, world, device, world > 1
 
 
@@ -330,7 +339,8 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
     gt_seconds = time.perf_counter() - t_gt
     say(f"ground truth ready in {gt_seconds:.1f} s ({cache})")
     train_data, val_data = ShapeData(tr_cache), ShapeData(va_cache)
-    shard = [i for i in range(len(train_data)) if i % world == rank] or list(range(len(train_data)))
+    # the shapes this rank solved (the same split as the ground truth's: a rank reads only its own cache files)
+    shard = balanced_shard(file_sizes(train_files), world, rank) or list(range(len(train_data)))
 
     torch.manual_seed(cfg.seed)
     net = GenNeuroGF().to(dev)
@@ -375,6 +385,7 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
     t_ck = time.perf_counter()
     budget = cfg.budget_seconds
     run_loss, run_n = torch.zeros((), device=dev), 0  # summed on the device: no host sync per step
+    shared_frac = None  # rank 0's fraction of the run, as last shared (DDP)
     try:
         while True:
             step = state["step"]
@@ -382,9 +393,13 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
             stop = step >= cfg.steps or (budget is not None and elapsed >= budget)
             frac = progress(step, elapsed)
             if distributed:  # every rank stops at the same step and follows one schedule (rank 0's clock)
-                flag = torch.tensor([1.0 if stop else 0.0, frac], device=dev, dtype=torch.float64)
-                dist.broadcast(flag, 0)
-                stop, frac = bool(flag[0].item()), float(flag[1].item())
+                if step % SYNC_EVERY == 0 or shared_frac is None:
+                    flag = torch.tensor([1.0 if stop else 0.0, frac], device=dev, dtype=torch.float64)
+                    dist.broadcast(flag, 0)
+                    stop, frac = bool(flag[0].item()), float(flag[1].item())
+                    shared_frac = frac
+                else:  # the step count is the same on every rank; the clock waits for the next share
+                    stop, frac = step >= cfg.steps, shared_frac
             if stop:
                 break
             rng = np.random.default_rng([cfg.seed, step, rank])
