@@ -513,12 +513,11 @@ def _build() -> SimpleNamespace:
         smem = wp.tile_empty(shape=NLIN, dtype=f32, storage="shared")
         linear_body(smem, x, x_off, w, b, relu, y, y_off, blk / nob, blk % nob, lane, wp.block_dim())
 
-    @wp.kernel(**opts)
-    def to_unit(x: wp.array2d(dtype=f32), cx: wp.float64, cy: wp.float64, cz: wp.float64, scale: wp.float64,
-                y: wp.array2d(dtype=f32), yt: wp.array2d(dtype=f32), v: wp.array(dtype=wp.vec3)):
-        """Thread i: y[i] = (x[i] - c) * scale (as the generic kernel rounds it), its channel-major copy yt and a
-        vec3 copy for the hash grid."""
-        i = wp.tid()
+    @wp.func
+    def unit_row(x: wp.array2d(dtype=f32), i: int, cx: wp.float64, cy: wp.float64, cz: wp.float64,
+                 scale: wp.float64, y: wp.array2d(dtype=f32), yt: wp.array2d(dtype=f32), v: wp.array(dtype=wp.vec3)):
+        """y[i] = (x[i] - c) * scale (as the generic kernel rounds it), its channel-major copy yt and a vec3 copy
+        for the hash grid."""
         a = float((wp.float64(x[i, 0]) - cx) * scale)
         b = float((wp.float64(x[i, 1]) - cy) * scale)
         c = float((wp.float64(x[i, 2]) - cz) * scale)
@@ -530,8 +529,13 @@ def _build() -> SimpleNamespace:
         yt[2, i] = c
         v[i] = wp.vec3(a, b, c)
 
-    # the captured encoder's ends (WarpGenNet.encode on CUDA replays a CUDA graph): its own small module, so that
-    # adding them left the compiled modules above as they were
+    @wp.kernel(**opts)
+    def to_unit(x: wp.array2d(dtype=f32), cx: wp.float64, cy: wp.float64, cz: wp.float64, scale: wp.float64,
+                y: wp.array2d(dtype=f32), yt: wp.array2d(dtype=f32), v: wp.array(dtype=wp.vec3)):
+        """Thread i: ``unit_row`` with the frame as launch constants."""
+        unit_row(x, wp.tid(), cx, cy, cz, scale, y, yt, v)
+
+    # the captured encoder's ends (WarpGenNet.encode on CUDA replays a CUDA graph), in a small module of their own
     opts_io = {"enable_backward": False, "module": module + "_io"}
 
     @wp.kernel(**opts_io)
@@ -539,21 +543,7 @@ def _build() -> SimpleNamespace:
                       yt: wp.array2d(dtype=f32), v: wp.array(dtype=wp.vec3)):
         """to_unit with (cx, cy, cz, scale) read from the device array ``frame`` (not launch constants, which a
         CUDA graph would keep): the same arithmetic, so the same bits."""
-        i = wp.tid()
-        cx = frame[0]
-        cy = frame[1]
-        cz = frame[2]
-        scale = frame[3]
-        a = float((wp.float64(x[i, 0]) - cx) * scale)
-        b = float((wp.float64(x[i, 1]) - cy) * scale)
-        c = float((wp.float64(x[i, 2]) - cz) * scale)
-        y[i, 0] = a
-        y[i, 1] = b
-        y[i, 2] = c
-        yt[0, i] = a
-        yt[1, i] = b
-        yt[2, i] = c
-        v[i] = wp.vec3(a, b, c)
+        unit_row(x, wp.tid(), frame[0], frame[1], frame[2], frame[3], y, yt, v)
 
     @wp.kernel(**opts_io)
     def copy_encoded(x: wp.array2d(dtype=f32), v: wp.array(dtype=wp.vec3), f: wp.array2d(dtype=f32),
