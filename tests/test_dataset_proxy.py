@@ -112,3 +112,20 @@ def test_auto_proxy_sizes(V, limit, expect):
     if n:
         assert D.gpu_seconds_per_source(n) * min(2048, D.PROXY_SOURCES) <= D.PROXY_SHARE * limit or \
             n == D.PROXY_MIN_VERTICES
+
+
+@pytest.mark.filterwarnings("ignore::neurogf_warp.training.quality.ModelQualityWarning")  # 10 steps: of course
+def test_a_training_run_says_it_used_a_proxy(fine_blobs, tmp_path, capsys):
+    """The run's history (log.json) and its progress lines say which ground truth it trained on."""
+    import json
+
+    from neurogf_warp.training.api import train
+    from neurogf_warp.training.presets import preset
+
+    cfg = preset("cpu_small", querier_steps=5, epochs=1, iters_per_epoch=10, refine_dist_steps=0,
+                 refine_sdf_steps=0, refine_path_steps=0).set(proxy=700, n_sources=6, n_path_sources=2, n_test=4,
+                                                               n_spread=200)
+    train(fine_blobs, tmp_path / "m.ngf", config=cfg, device="cpu", progress=True)
+    log = json.loads((tmp_path / "m.train" / "log.json").read_text())
+    assert log["history"]["proxy"]["kept"] and log["history"]["proxy"]["vertices"] > 600
+    assert "-vertex proxy of the mesh (" in capsys.readouterr().err

@@ -316,6 +316,11 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
                           "test": int(len(ds.test_src)), "complete": bool(ds.meta.get("complete", True))}
     history["per_step"] = per
     history["dataset_s"] = dataset_s
+    history["proxy"] = proxy = ds.meta.get("proxy")  # training sources on a decimated copy (dataset/proxy.py)
+    if proxy and (proxy.get("error") or {}).get("mre") is not None:
+        off = f"{100 * proxy['error']['mre']:.3f}% off the mesh's own geodesics from the held-out sources"
+        say(progress, f"ground truth on a {proxy['vertices']:,}-vertex proxy of the mesh ({off})" if proxy["kept"]
+            else f"a {proxy['vertices']:,}-vertex proxy was {off}: ground truth on the mesh itself")
     history["threads"] = torch.get_num_threads() if dev.type == "cpu" else None  # chooser: per stage, below
     history["prep_s"] = time.perf_counter() - t_data
 
