@@ -5,8 +5,8 @@ On a 2.2M-vertex mesh the geodesic solver gives ~1.2 sources/s on an H100 (bench
 vertices is solved ~10x faster per source. The proxy lives in the fine mesh's normalized frame (same center and
 scale), so its rows [xs, ys, zs, xt, yt, zt, d] are training rows of the fine mesh's model as they are. Its
 vertices are QSlim's quadric optima moved to the closest point of the fine surface (not snapped to fine
-vertices: on the stanford bunny decimated 4x, snapped proxy distances were 1.0% off on average and 0.9% too long
-in the median, the QSlim positions' 0.57% off and unbiased; benchmarks/RESULTS.md, seventh session).
+vertices: on the stanford bunny decimated 4x, proxy vertices snapped to fine vertices gave distances 1.0% off on
+average and 0.9% too long in the median, the QSlim positions 0.11% off; benchmarks/RESULTS.md, seventh session).
 
 The proxy's distances are not the fine mesh's: decimation changes the surface. :func:`proxy_error` measures by
 how much, on rows both meshes solved (the held-out test sources, which are always solved on the fine mesh).
