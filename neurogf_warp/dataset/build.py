@@ -377,14 +377,6 @@ def sdf_truth(mesh_or_wp_mesh, points, device=None, watertight: bool | None = No
 
 
 # ---- builder ---------------------------------------------------------------------------------------
-def fine_proxy_of(proxy_src: np.ndarray, fine_src: np.ndarray, fine_of: np.ndarray) -> np.ndarray:
-    """The proxy vertex standing for each fine source: of ``proxy_src`` (whose fine vertices, deduplicated, are
-    ``fine_src``), the first mapped to each."""
-    first = {}
-    for p in np.asarray(proxy_src, np.int64):
-        first.setdefault(int(fine_of[p]), int(p))
-    return np.array([first[int(f)] for f in fine_src], np.int64)
-
 def _pick(rng, pool: np.ndarray, n: int) -> np.ndarray:
     if len(pool) == 0:
         return pool
@@ -703,10 +695,11 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     t0 = time.perf_counter()
     plan = _sample(g, st, rng, surface_mesh=m)
     timings["sampling_s"] = time.perf_counter() - t0
-    test_src = plan.test_src
-    if fine_of is not None:  # the held-out sources: fine vertices, where their proxy vertices are pinned
-        g = pin_vertices(g, where, plan.test_src, m)
-        test_src = np.unique(fine_of[plan.test_src])
+    test_src = proxy_test = plan.test_src
+    if fine_of is not None:  # the held-out sources: fine vertices (one proxy vertex each), pinned on the proxy
+        test_src, first = np.unique(fine_of[plan.test_src], return_index=True)
+        proxy_test = plan.test_src[first]
+        g = pin_vertices(g, where, proxy_test, m)
 
     def solver_for(mesh_):
         rows_cap = max(len(plan.gd_src), len(plan.test_src), 1)
@@ -732,8 +725,7 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
         timings["test_rows_s"] = time.perf_counter() - t0
     if fine_of is not None:
         t1 = time.perf_counter()
-        proxy_meta["error"] = proxy_error(solver.solve(fine_proxy_of(plan.test_src, test_src, fine_of)),
-                                          test_dist, where) if len(test_src) else None
+        proxy_meta["error"] = proxy_error(solver.solve(proxy_test), test_dist, where) if len(test_src) else None
         timings["proxy_check_s"] = time.perf_counter() - t1
         err = (proxy_meta["error"] or {}).get("mre")
         proxy_meta["kept"] = err is not None and err <= PROXY_MAX_MRE
