@@ -64,9 +64,11 @@ def test_train_loss_falls_and_beats_mre_bound(trained, tiny_dataset):
     assert sorted(os.listdir(out.parent / "m.train")) == ["checkpoint.pt", "log.json"]  # dataset given: no cache
 
 
-@pytest.mark.parametrize("resample_every,flag", [(1, "resume"), (5, "same call")])
-def test_interrupt_then_continue_bit_for_bit(tmp_path, ellipsoid, tiny_dataset, resample_every, flag):
-    cfg = small(val_every=0, resample_every=resample_every, epochs=1, iters_per_epoch=40)
+@pytest.mark.parametrize("resample_every,flag,hard", [(1, "resume", 0.0), (5, "same call", 0.0), (1, "resume", 0.25)])
+def test_interrupt_then_continue_bit_for_bit(tmp_path, ellipsoid, tiny_dataset, resample_every, flag, hard):
+    """hard: with a hard-pair pool re-ranked every 10 steps, the pool of step 10 travels in the checkpoint."""
+    cfg = small(val_every=0, resample_every=resample_every, epochs=1, iters_per_epoch=40, hard_share=hard,
+                hard_every=10)
     ref = train(ellipsoid, tmp_path / "ref.ngf", config=cfg, dataset=tiny_dataset, device="cpu", progress=False)
 
     out = tmp_path / "m.ngf"
@@ -322,3 +324,54 @@ def test_threads_0_run_records_the_counts_and_restores_torchs(tmp_path, ellipsoi
     assert set(log["history"]["threads"]) == {"joint", "refine_dist"} and torch.get_num_threads() == n
     with pytest.raises(ValueError, match="threads must be >= 0"):
         small(threads=-1)
+
+
+def test_hard_pairs_are_the_worst_candidates_and_fill_their_share(tiny_dataset):
+    """``hard_share``: the pool holds the candidates the eval-mode network gets most wrong (relative error), and
+    that share of each distance batch is drawn from it; the batch sizes do not change."""
+    cfg = small(hard_share=0.25)
+    data = TrainingData(tiny_dataset, "cpu")
+    t = Trainer(cfg, data, (torch.zeros(64, 3), torch.zeros(64)), "cpu")
+    t.set_modes("joint")
+    state = t.gen.get_state()
+    t.refresh_hard()
+    t.gen.set_state(state)
+    b = cfg.batches
+    for key, m in (("global", b.batch_g), ("local1", b.batch_l1), ("local2", b.batch_l2)):
+        n = len(data.gd[key])
+        cand = t._idx(n, min(n, 8 * m))  # the same candidates the refresh drew
+        pool = t._hard[key]
+        assert len(pool) == max(1, len(cand) // 8) and set(pool.tolist()) <= set(cand.tolist())
+        with torch.no_grad():
+            t.net.eval()
+            rows = data.gd[key]
+            e = t.net.embed(torch.cat([rows[:, :3], rows[:, 3:6]]))
+            err = (t.net.distance_from_embeddings(e[:n], e[n:], rows[:, :3], rows[:, 3:6]) - rows[:, 6]).abs() \
+                / rows[:, 6].clamp_min(1e-4)
+        rest = torch.as_tensor(sorted(set(cand.tolist()) - set(pool.tolist())), dtype=torch.long)
+        assert err[pool].min() >= err[rest].max()  # the worst eighth, exactly
+        assert err[pool].mean() > 2 * err.mean()   # and clearly worse than a random row
+    t.set_modes("joint")
+    idx = t.draw("joint")
+    for key, m in (("global", b.batch_g), ("local1", b.batch_l1), ("local2", b.batch_l2)):
+        h = round(0.25 * m)
+        assert len(idx[key]) == m and set(idx[key][m - h:].tolist()) <= set(t._hard[key].tolist())
+    assert len(idx["sdf"]) == min(b.batch_sdf, 64)
+
+
+def test_hard_share_is_checked():
+    for bad in (-0.1, 1.0, "x"):
+        with pytest.raises(ValueError, match="hard_share"):
+            small(hard_share=bad)
+
+
+def test_calibration_times_steps_not_rerankings(tiny_dataset, monkeypatch):
+    """The budget's calibration runs step 0 of each stage several times: the hard pool is ranked once per stage
+    there (not once per timed step), and the run starts without the calibration's pool."""
+    from neurogf_warp.training.budget import calibrate
+
+    t = Trainer(small(hard_share=0.25), TrainingData(tiny_dataset, "cpu"), (torch.zeros(64, 3), torch.zeros(64)), "cpu")
+    calls, real = [], t.refresh_hard
+    monkeypatch.setattr(t, "refresh_hard", lambda: (calls.append(1), real())[1])
+    calibrate(t, n=3, stages=("joint", "refine_dist"))
+    assert len(calls) == 2 and t._hard is None and t._hard_at is None

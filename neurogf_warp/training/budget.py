@@ -26,7 +26,7 @@ def calibrate(trainer, n: int = 6, stages=STAGES, give_up_s: float | None = None
     (In place rather than on a copy: compiled loss functions are then compiled once, for the real run.)
     """
     saved = (copy.deepcopy(trainer.net.state_dict()), copy.deepcopy(trainer.querier.state_dict()),
-             trainer.gen.get_state(), trainer._gen_at_batch)
+             trainer.gen.get_state(), trainer._gen_at_batch, trainer._hard, trainer._hard_at)
     # one untimed step makes the optimizer and touches every buffer; with CUDA graphs, also compile and capture
     warm = 2 + GRAPH_WARMUP + 1 if trainer.graphs else 1
     out = {}
@@ -47,7 +47,7 @@ def calibrate(trainer, n: int = 6, stages=STAGES, give_up_s: float | None = None
         trainer.net.load_state_dict(saved[0])
         trainer.querier.load_state_dict(saved[1])
         trainer.gen.set_state(saved[2])
-        trainer._gen_at_batch = saved[3]
+        trainer._gen_at_batch, trainer._hard, trainer._hard_at = saved[3:]
         trainer.reset_stage()
     return out
 

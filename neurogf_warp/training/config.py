@@ -78,11 +78,17 @@ class ScheduleConfig:
     dist_loss: str = "relative_global"
     loss_weights: dict = field(default_factory=dict)  # overrides of training.losses.WEIGHTS (the paper's)
     resample_every: int = 1                # steps between fresh batches
+    # hard pairs: this share of every distance batch (joint and refine_dist) is drawn from the pairs the
+    # network currently gets most wrong, re-ranked every ``hard_every`` steps (0: uniform batches only)
+    hard_share: float = 0.0
+    hard_every: int = 100
 
     def validate(self):
         from neurogf_warp.training.losses import WEIGHTS
 
-        for name in ("epochs", "iters_per_epoch", "resample_every"):
+        if not (_number(self.hard_share) and 0 <= self.hard_share < 1):
+            raise ValueError(f"hard_share must be a number in [0, 1), got {self.hard_share!r}")
+        for name in ("epochs", "iters_per_epoch", "resample_every", "hard_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         for stage in STAGES:

@@ -34,6 +34,9 @@ from neurogf_warp.training.data import TrainingData
 
 __all__ = ["Trainer", "fast_path", "cosine_lr"]
 
+HARD_CANDIDATES = 8  # rows scored per hard-pool refresh, in batches of each distance set
+HARD_KEEP = 1 / 8    # the worst share of them forms the pool
+
 
 def _bn(x, bn, training):
     if training and bn.num_batches_tracked is not None:
@@ -90,6 +93,8 @@ class Trainer:
         self._idx_now = None       # index vectors of the current batch
         self._gen_at_batch = None  # generator state when the current batch was drawn (for resume)
         self._graph = None         # GraphedStep of the current stage (CUDA graphs)
+        self._hard = None          # {distance set: (n,) row indices} of the hard-pair pool (``hard_share``)
+        self._hard_at = None       # (stage, step) of its last re-ranking
         cuda = self.device.type == "cuda"
         self.amp = cfg.runtime.amp and cuda
         self.graphs = cfg.runtime.cuda_graph and cuda
@@ -119,8 +124,37 @@ class Trainer:
         return [sdf(b.batch_sdf)] + dist + [("pg", len(d.pg), b.batch_paths_g), ("pl", len(d.pl), b.batch_paths_l)]
 
     def draw(self, stage):
-        """Fresh index vectors for one step of ``stage``: {name: (count,) long tensor}."""
-        return {k: self._idx(n, m) for k, n, m in self._draws(stage)}
+        """Fresh index vectors for one step of ``stage``: {name: (count,) long tensor}. With a hard-pair pool
+        (``hard_share``), that share of each distance set's rows comes from the pool (same counts, so a
+        captured graph's index shapes do not change)."""
+        out = {}
+        for k, n, m in self._draws(stage):
+            pool = self._hard.get(k) if self._hard else None
+            h = int(round(self.cfg.schedule.hard_share * m)) if pool is not None else 0
+            out[k] = torch.cat([self._idx(n, m - h), pool[self._idx(len(pool), h)]]) if h else self._idx(n, m)
+        return out
+
+    @torch.no_grad()
+    def refresh_hard(self):
+        """Re-rank the hard-pair pools: ``HARD_CANDIDATES`` x the batch of fresh rows per distance set, scored by
+        the eval-mode network's relative error (what the MRE measures); the worst ``HARD_KEEP`` of them stay.
+
+        Why: a uniform batch spends most of its rows on pairs the network already has within 0.1%, while the
+        error tail (p99) sits on few pairs: near the source, across thin parts, along cut loci."""
+        b, was = self.cfg.batches, self.net.training
+        self.net.eval()
+        pools = {}
+        for key, m in (("global", b.batch_g), ("local1", b.batch_l1), ("local2", b.batch_l2)):
+            n = len(self.data.gd[key])
+            c = min(n, HARD_CANDIDATES * m)
+            cand = self._idx(n, c)
+            rows = self.data.gd[key][cand]
+            p, q, d = rows[:, :3], rows[:, 3:6], rows[:, 6]
+            e = self.net.embed(torch.cat([p, q]))
+            err = (self.net.distance_from_embeddings(e[:c], e[c:], p, q) - d).abs() / d.clamp_min(1e-4)
+            pools[key] = cand[err.topk(max(1, int(c * HARD_KEEP))).indices]
+        self.net.train(was)
+        self._hard = pools
 
     def gather(self, idx):
         """The batch of index vectors ``idx``: SDF (points, values), distance (p, q, d) rows, (K, M, 3) paths."""
@@ -202,6 +236,12 @@ class Trainer:
         every = self.cfg.schedule.resample_every
         self._optimizer(stage)
         self._set_lr(self.lr_at(stage, step))
+        if self.cfg.schedule.hard_share > 0 and stage in ("joint", "refine_dist") and (self._hard is None or (
+                step % self.cfg.schedule.hard_every == 0 and (stage, step) != self._hard_at)):
+            # before the batch's generator state is kept: a resumed run redraws it alike. Once per (stage, step):
+            # the budget's calibration runs step 0 several times and must time steps, not re-rankings
+            self.refresh_hard()
+            self._hard_at = (stage, step)
         if self._idx_now is None or step % every == 0:
             if step % every == 0:
                 self._gen_at_batch = self.gen.get_state()
@@ -314,7 +354,7 @@ class Trainer:
         """Networks, optimizer, step counts and generator state (what a checkpoint needs to resume exactly)."""
         return {"steps": dict(self.steps), "net": self.net.state_dict(), "querier": self.querier.state_dict(),
                 "opt": self._opt_state(), "opt_stage": self.opt_stage, "gen": self.gen.get_state(),
-                "gen_at_batch": self._gen_at_batch}
+                "gen_at_batch": self._gen_at_batch, "hard": self._hard}
 
     def _opt_state(self):
         if self.opt is None:
@@ -332,6 +372,8 @@ class Trainer:
         self.gen.set_state(ck["gen"].cpu())
         g = ck.get("gen_at_batch")
         self._gen_at_batch = g.cpu() if g is not None else None
+        hard = ck.get("hard")
+        self._hard = {k: v.to(self.device) for k, v in hard.items()} if hard else None
         if ck["opt"] is not None and ck["opt_stage"] is not None and ck["opt_stage"] in STAGES:
             self.set_modes(ck["opt_stage"])
             opt = self._optimizer(ck["opt_stage"])
