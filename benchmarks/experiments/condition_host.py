@@ -3,7 +3,7 @@
     python benchmarks/experiments/condition_host.py [GenNeuroGF.pth] [--cloud stanford-bunny.npz] [--json out.json]
     python benchmarks/experiments/condition_host.py --device cpu          # dry run of the logic (~30 s, 2-core CPU)
 
-Defaults: the checkpoint and reference cloud under $NEUROGF_SHARED or ../shared (checkpoints/official/GenNeuroGF.pth,
+Defaults: the checkpoint and reference cloud under $NEUROGF_SHARED, ../shared, ./shared, ./.bench or ./.bm (checkpoints/official/GenNeuroGF.pth,
 reference/generalizable/stanford-bunny.npz ``points``, 2,048 points); JSON to --json, else $OUT/condition_host.json
 when OUT is set. On the CPU (a dry run: its timings mean nothing for the GPU) the fp32 fast encoder runs through
 Warp's CPU graphs (the encoder's test switch), 256 points, 3 repeats, 1,024 check pairs.
@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT))
 
 
 def shared_file(*parts):
-    for base in (os.environ.get("NEUROGF_SHARED"), ROOT.parent / "shared", ROOT / "shared", ROOT / ".bench"):
+    for base in (os.environ.get("NEUROGF_SHARED"), ROOT.parent / "shared", ROOT / "shared", ROOT / ".bench", ROOT / ".bm"):
         if base and Path(base, *parts).exists():
             return Path(base, *parts)
     return None
