@@ -19,7 +19,11 @@ from neurogf_warp.generalizable.network import GenNeuroGF
 
 from .conftest import shared_path
 
-DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
+# Warp's CPU device needs its CPU backend (warp-clang), which the GPU machines' Warp leaves out: without it every
+# CPU kernel build fails (an AttributeError on the missing library), so the CPU cases skip there
+CPU = wp.is_cpu_available()
+DEVICES = (["cpu"] if CPU else []) + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
+needs_cpu = pytest.mark.skipif(not CPU, reason="Warp's CPU backend (warp-clang) is not available")
 
 
 def blob(n, seed, axes):
@@ -47,7 +51,7 @@ def arrays(enc):
     return [enc.cloud, enc.feats, enc.fused, enc.points32, *enc.neighbours]
 
 
-CASES = [("cpu", None), ("cpu", "cpu-graph")] + ([("cuda:0", None)] if "cuda:0" in DEVICES else [])
+CASES = ([("cpu", None), ("cpu", "cpu-graph")] if CPU else []) + ([("cuda:0", None)] if "cuda:0" in DEVICES else [])
 
 
 @pytest.mark.parametrize("device,how", CASES)
@@ -102,6 +106,7 @@ def test_graph_matches_eager_launches_on_cuda(model):
     np.testing.assert_array_equal(cg.ssad(3), ce.ssad(3))
 
 
+@needs_cpu
 def test_graph_path_on_cpu_graphs(random_net):
     """The graph path itself (persistent inputs, frame read from the device, capture, replay, copies out, hash
     grid built on first use), with Warp's CPU graphs standing in for CUDA's: the eager fast encoder's bits."""
@@ -138,6 +143,7 @@ def test_graph_path_on_cpu_graphs(random_net):
     np.testing.assert_array_equal(again.fused.numpy(), want[2].fused.numpy())
 
 
+@needs_cpu
 def test_graph_cache_and_switches(random_net, monkeypatch):
     """One graph per point count, the least recently used dropped beyond GRAPHS_KEPT; use_graph / NGF_NO_GRAPH
     switch it off; a failed capture warns once and leaves eager launches (same numbers)."""
@@ -180,3 +186,77 @@ def test_graph_cache_and_switches(random_net, monkeypatch):
     for e in (e1, e2):
         np.testing.assert_array_equal(e.fused.numpy(), ref.fused.numpy())
         assert e.grid is not None  # the eager path builds the hash grid at conditioning, as before
+
+
+@needs_cpu
+def test_outputs_outlive_the_encoding(model):
+    """A conditioned shape's arrays are views into one allocation; each keeps it alive on its own."""
+    wn = model.warp_net("cpu", "fp32")
+    wn._graph_cpu = True
+    x = blob(256, 11, (1.0, 2.0, 3.0))
+    c = model.condition(x, device="cpu", mode="fp32")
+    feats, nbr, want_f, want_n = c.enc.feats, c.enc.neighbours[2], c.enc.feats.numpy().copy(), c.enc.neighbours[2].numpy().copy()
+    del c
+    for i in range(3):  # replays and fresh allocations in between
+        model.condition(blob(256, 20 + i, (1.0, 1.0, 1.0)), device="cpu", mode="fp32")
+    np.testing.assert_array_equal(feats.numpy(), want_f)
+    np.testing.assert_array_equal(nbr.numpy(), want_n)
+
+
+def test_normalization_matches_the_plain_formula():
+    """normalization() (reductions on a (3, N) copy) and its torch twin give the plain formula's bits; the input is
+    left alone."""
+    from neurogf_warp.generalizable.model import _frame_stats, normalization
+
+    rng = np.random.default_rng(12)
+    for i in range(200):
+        n = int(rng.integers(2, 3000))
+        size = 10 ** rng.uniform(-8, 8)
+        x = (rng.standard_normal((n, 3)) + rng.standard_normal(3) * 10 ** rng.uniform(-2, 3)) * size
+        if i % 4 == 1:
+            x = x.astype(np.float32)
+        if i % 4 == 2:
+            x = np.asfortranarray(x)
+        x0 = x.copy()
+        c = (x.min(axis=0) + x.max(axis=0)) / 2
+        r = float(np.sqrt(((x - c) ** 2).sum(axis=1)).max())
+        got_c, got_s = normalization(x)
+        np.testing.assert_array_equal(got_c, c)
+        assert got_s == 1.0 / r
+        np.testing.assert_array_equal(x, x0)
+        if x.dtype == np.float64:
+            st = _frame_stats(torch.from_numpy(np.ascontiguousarray(x))).numpy()
+            np.testing.assert_array_equal(st[:3], c)
+            assert 1.0 / float(np.sqrt(st[3])) == got_s
+
+
+@pytest.mark.skipif(wp.get_cuda_device_count() == 0 or not torch.cuda.is_available(), reason="needs torch on CUDA")
+def test_cloud_on_the_gpu_conditions_as_numpy(model):
+    """A CUDA torch tensor (float32 or float64) or a CUDA wp.array conditions as the same points from numpy: the
+    same frame and encoding bits, the same distances; clear errors for non-finite and too few points."""
+    x = blob(2048, 13, (2.0, 1.0, 1.5))
+    ref = model.condition(x, device="cuda:0")
+    rng = np.random.default_rng(14)
+    i, j = rng.integers(0, 2048, (2, 256))
+    want = ref.distance(x[i], x[j])
+    for given in (torch.tensor(x, device="cuda:0"), torch.tensor(x, device="cuda:0").float(),
+                  wp.array(x, dtype=wp.float64, device="cuda:0"), wp.array(x.astype(np.float32), dtype=wp.vec3,
+                                                                           device="cuda:0")):
+        c = model.condition(given, device="cuda:0")
+        x_in = x if (getattr(given, "dtype", None) in (torch.float64, wp.float64)) else x.astype(np.float32)
+        c_ref = ref if x_in is x else model.condition(x_in.astype(np.float64), device="cuda:0")
+        np.testing.assert_array_equal(c.center, c_ref.center)
+        assert c.scale == c_ref.scale
+        np.testing.assert_array_equal(c.points, c_ref.points)
+        for g, e in zip(arrays(c.enc), arrays(c_ref.enc)):
+            np.testing.assert_array_equal(g.numpy(), e.numpy())
+        if x_in is x:
+            np.testing.assert_array_equal(c.distance(x[i], x[j]), want)
+    bad = torch.tensor(x, device="cuda:0")
+    bad[17, 2] = float("nan")
+    with pytest.raises(ValueError, match="non-finite.*row 17"):
+        model.condition(bad, device="cuda:0")
+    with pytest.raises(ValueError, match="at least"):
+        model.condition(torch.zeros((5, 3), device="cuda:0"), device="cuda:0")
+    with pytest.raises(ValueError, match="coincide"):
+        model.condition(torch.ones((100, 3), device="cuda:0"), device="cuda:0")

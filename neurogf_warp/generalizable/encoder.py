@@ -12,6 +12,7 @@ kernels from Python instead (same numbers).
 """
 from __future__ import annotations
 
+import math
 import os
 import warnings
 from collections import OrderedDict
@@ -59,12 +60,43 @@ class Encoded:
 
 @dataclass
 class _EncodeGraph:
-    """The captured encoder of one point count: the inputs it reads, the state it writes, the graph."""
+    """The captured encoder of one point count: the inputs it reads, the state it writes, the graph.
+
+    ``cloud`` and ``frame`` are views into one device block (``inputs``) that one copy fills from a host block of
+    the same layout (``host``: pinned on CUDA, so the copy is a plain DMA; on the CPU the device block itself);
+    ``host_cloud`` / ``host_frame`` are numpy views of the host block. ``staged``: an event recorded after the
+    last copy out of the pinned block (CUDA), waited for before the block is written again."""
 
     cloud: wp.array  # (N, 3) float32: each call copies its cloud here
     frame: wp.array  # (4,) float64: center x, y, z and scale, copied here by each call
+    inputs: wp.array  # (words,) float64: the device block holding cloud and frame
+    host: wp.array  # the host block (the device block itself on the CPU)
+    host_cloud: np.ndarray  # (N, 3) float32 numpy view of the host block
+    host_frame: np.ndarray  # (4,) float64 numpy view of the host block
+    frame_word: int  # the frame's offset in the blocks, in float64 words
+    staged: object = None  # wp.Event (CUDA) recorded after the last copy from the pinned block
     state: Encoded | None = None  # the arrays the graph writes; never handed out (copied into each result)
     graph: object = None
+
+
+_ALIGN = 256  # byte alignment of the arrays carved out of one allocation (cudaMalloc's own)
+
+
+def _packed(device, specs, pinned: bool = False) -> list:
+    """Arrays of the given (dtype, shape) as views into one new allocation on ``device`` (each at a 256-byte
+    aligned offset): one allocation (and one free) instead of one per array. Each view keeps the block alive."""
+    offsets, total = [], 0
+    for dtype, shape in specs:
+        offsets.append(total)
+        nbytes = wp.types.type_size_in_bytes(dtype) * math.prod(shape)
+        total += -(-nbytes // _ALIGN) * _ALIGN
+    block = wp.empty(max(total, 1), dtype=wp.uint8, device=device, pinned=pinned)
+    out = []
+    for (dtype, shape), off in zip(specs, offsets):
+        a = wp.array(ptr=block.ptr + off, dtype=dtype, shape=shape, device=block.device)
+        a._ref = block  # Warp's own link from a view to its owner
+        out.append(a)
+    return out
 
 
 class WarpGenNet:
@@ -191,16 +223,18 @@ class WarpGenNet:
         host = None
         if not (isinstance(cloud, wp.array) and cloud.dtype == T and cloud.ndim == 2 and cloud.device == dev):
             host = np.asarray(cloud.numpy() if isinstance(cloud, wp.array) else cloud)
-            host = np.ascontiguousarray(np.asarray(host, dtype=np.float64).astype(self.np_dtype))  # as _arr
-        n = (host if host is not None else cloud).shape[0]
+            if host.dtype != np.float64 and host.dtype != np.float32:
+                host = host.astype(np.float64)  # as _arr: through float64 (float32 -> float64 -> float32 is exact)
+        shape = (host if host is not None else cloud).shape
+        n = shape[0]
         if n < self.kk:
             raise ValueError(f"the point cloud has {n} points; the encoder needs at least k={self.kk}")
-        if into is None and (host if host is not None else cloud).shape == (n, 3) and self._graph_usable(n):
+        if into is None and shape == (n, 3) and self._graph_usable(n):
             enc = self._encode_graph(cloud if host is None else host, center, scale)
             if enc is not None:
                 return enc
         if host is not None:
-            cloud = wp.array(host, dtype=T, device=dev)
+            cloud = wp.array(np.ascontiguousarray(host.astype(self.np_dtype, copy=False)), dtype=T, device=dev)
         if self._fast_encoder_fits(n):
             return self._encode_fast(cloud, center, scale, into)
         sc = into.scratch if into is not None else {}
@@ -350,18 +384,46 @@ class WarpGenNet:
             warnings.warn(f"the generalizable encoder runs without a CUDA graph on {self.device}: {reason}; its "
                           "kernels launch from Python (same results, slower)", RuntimeWarning, stacklevel=4)
 
+    def _graph_inputs(self, n: int) -> _EncodeGraph:
+        """The fixed inputs of the captured encoder of n points: cloud (float32) and frame (float64) in one device
+        block, filled by one copy from a host block of the same layout (pinned on CUDA)."""
+        dev = self.device
+        fw = -(-n * 3 // 2)  # float32 cloud, then the frame at the next float64 word
+        words = fw + 4
+        inputs = wp.empty(words, dtype=wp.float64, device=dev)
+        host = inputs if dev.is_cpu else wp.empty(words, dtype=wp.float64, device="cpu", pinned=True)
+        view = lambda dtype, shape, word: _view(inputs, dtype, shape, word)
+        hb = host.numpy()
+        return _EncodeGraph(view(wp.float32, (n, 3), 0), view(wp.float64, (4,), fw), inputs, host,
+                            hb.view(np.float32)[:n * 3].reshape(n, 3), hb[fw:fw + 4], fw)
+
     def _encode_graph(self, cloud, center, scale) -> Encoded | None:
         """encode() by replaying the captured encoder of this point count (captured here on its first cloud, after
         one eager run that loads the modules and allocates its arrays); the result holds copies of the graph's
-        outputs. cloud: numpy (N, 3) float32 or a device array. None where the capture failed (then remembered:
-        this device launches eagerly from now on)."""
+        outputs. cloud: numpy (N, 3) (float32, or float64: rounded to float32 here) or a device array. None where
+        the capture failed (then remembered: this device launches eagerly from now on)."""
         dev, n = self.device, cloud.shape[0]
         g = self._graphs.get(n)
         fresh = g is None
         if fresh:
-            g = _EncodeGraph(wp.empty((n, 3), dtype=wp.float32, device=dev), wp.empty(4, dtype=wp.float64, device=dev))
-        g.cloud.assign(cloud)  # a copy on the device's stream: after every earlier replay's reads
-        g.frame.assign(np.array([*(float(c) for c in center), float(scale)], dtype=np.float64))
+            g = self._graph_inputs(n)
+        if g.staged is not None:
+            wp.synchronize_event(g.staged)  # the last copy out of the pinned block is done (it is rewritten here)
+        hf = g.host_frame
+        hf[0], hf[1], hf[2] = center
+        hf[3] = scale
+        if isinstance(cloud, wp.array):
+            wp.copy(g.cloud, cloud)  # on the device's stream: after every earlier replay's reads
+            if g.host is not g.inputs:
+                wp.copy(g.inputs, g.host, dest_offset=g.frame_word, src_offset=g.frame_word, count=4)
+        else:
+            np.copyto(g.host_cloud, cloud)  # float64 -> float32 rounds as astype does
+            if g.host is not g.inputs:
+                wp.copy(g.inputs, g.host)  # one DMA for cloud and frame, after every earlier replay's reads
+        if g.host is not g.inputs:
+            if g.staged is None:
+                g.staged = wp.Event(dev)
+            dev.stream.record_event(g.staged)
         if fresh:
             g.state = self._encode_fast(g.cloud, None, None, None, frame=g.frame, build_grid=False)
             try:
@@ -382,14 +444,13 @@ class WarpGenNet:
         return self._copy_encoded(g.state)
 
     def _copy_encoded(self, st: Encoded) -> Encoded:
-        """A new Encoded holding device copies of st's cloud, features and neighbour lists (one launch); its hash
-        grid is built on first use (:meth:`_hash`), its nearest grid on the first query, over its own points."""
+        """A new Encoded holding device copies of st's cloud, features and neighbour lists (one launch, into views
+        of one allocation); its hash grid is built on first use (:meth:`_hash`), its nearest grid on the first
+        query, over its own points."""
         dev, n, f32 = self.device, st.cloud.shape[0], wp.float32
-        X = wp.empty((n, 3), dtype=f32, device=dev)
-        V = wp.empty(n, dtype=wp.vec3, device=dev)
-        F = wp.empty(st.feats.shape, dtype=f32, device=dev)
-        G = wp.empty(st.fused.shape, dtype=f32, device=dev)
-        nbrs = [wp.empty(a.shape, dtype=wp.int32, device=dev) for a in st.neighbours]
+        specs = [(f32, (n, 3)), (wp.vec3, (n,)), (f32, st.feats.shape), (f32, st.fused.shape),
+                 *((wp.int32, a.shape) for a in st.neighbours)]
+        X, V, F, G, *nbrs = _packed(dev, specs)
         wp.launch(self.fk.copy_encoded, (n, F.shape[1]), inputs=[st.cloud, st.points32, st.feats, st.fused,
                                                                   *st.neighbours, X, V, F, G, *nbrs], device=dev)
         sc = {"X": X, "V": V, "F": F, "G": G, "nbr1": nbrs[0], "nbr2": nbrs[1], "nbr3": nbrs[2]}
@@ -620,6 +681,13 @@ PRECISIONS = ("fp32", "fp16")
 def _grid_radius(n: int) -> float:
     """The hash grid's query radius for n points (unit frame), see WarpGenNet._grid."""
     return float(4.0 / np.sqrt(n))
+
+
+def _view(block: wp.array, dtype, shape, word: int) -> wp.array:
+    """A view of ``dtype`` and ``shape`` into the float64 block from its word ``word`` on (keeps the block alive)."""
+    a = wp.array(ptr=block.ptr + 8 * word, dtype=dtype, shape=shape, device=block.device)
+    a._ref = block
+    return a
 
 
 def check_precision(precision) -> None:
