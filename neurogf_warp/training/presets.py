@@ -19,7 +19,13 @@ _SMALL_BATCHES = dict(batch_sdf=2048, batch_g=4096, batch_l1=512, batch_l2=1024,
                       batch_paths_l=128, batch_surf=16, batch_querier=2048, sdf_pool=20000)
 
 PRESETS = {
-    "default": {},
+    # GPU: a quarter of each distance batch from the hard-pair pool and 4 refine_dist steps per joint step (H100,
+    # 60 s, one run each: spot 0.299% -> 0.268% MRE, p99 2.03% -> 1.47%; bunny 0.565% -> 0.489%, 2.79% -> 2.15%;
+    # fandisk 0.305% -> 0.296%, 1.89% -> 1.60%; 300 s fandisk 0.224% -> 0.212%, 1.56% -> 1.15%; RESULTS.md, eighth
+    # session). The longer refine_dist moves the lifting features further from the SDF head (60 s SDF L1 2.7e-3 ->
+    # 4.5e-3 in those runs), so refine_sdf gets 4x its steps too (0.4: as the CPU preset's 1.0 with refine_dist 10;
+    # chosen after those runs, not yet measured on a GPU; its steps cost ~1% of a 60 s budget)
+    "default": dict(hard_share=0.25, ratios={"refine_dist": 4.0, "refine_sdf": 0.4}),
     "paper": dict(fourier=0, euclid=False, path_residual=False, path_width=1, path_window=False, dist_loss="l1",
                   refine_dist_steps=0, refine_path_lr=1e-3, ratios={"refine_path": 0.1}),
     # CPU: a short joint stage and a long refine_dist (its steps cost a third to a fifth of a joint step); 4 x 100
