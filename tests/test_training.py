@@ -166,7 +166,8 @@ def test_stage_ratios_and_budget_fit():
 
 
 def test_budget_replans_to_the_time_left():
-    cfg = preset("default", epochs=10, iters_per_epoch=100)
+    # the stage ratios this test's numbers were worked out for (the GPU preset's are 1 : 4 since 2026-11-25)
+    cfg = preset("default", epochs=10, iters_per_epoch=100, ratios={"refine_dist": 1.0, "refine_sdf": 0.1})
     est = {s: 1e-3 for s in STAGES}
     b = Budget(cfg, deadline=100.0, estimate=est)
     plan = b.replan(cfg.stage_steps(), 0, 0, now=90.0)  # 10 s left at 1 ms/step
