@@ -352,6 +352,21 @@ def test_hard_pairs_are_the_worst_candidates_and_fill_their_share(tiny_dataset):
         rest = torch.as_tensor(sorted(set(cand.tolist()) - set(pool.tolist())), dtype=torch.long)
         assert err[pool].min() >= err[rest].max()  # the worst eighth, exactly
         assert err[pool].mean() > 2 * err.mean()   # and clearly worse than a random row
+    # scored in chunks (``HARD_CHUNK``): the same pool
+    from neurogf_warp.training import trainer as TR
+
+    whole = {k: v.clone() for k, v in t._hard.items()}
+    t.gen.set_state(state)
+    TR.HARD_CHUNK, chunk = 7, TR.HARD_CHUNK
+    try:
+        t.refresh_hard()
+    finally:
+        TR.HARD_CHUNK = chunk
+    for k in whole:  # the same rows, up to rows whose errors tie within rounding at the pool's edge
+        with torch.no_grad():
+            t.net.eval()
+            e1, e2 = (t._relative_errors(data.gd[k][p]).sort().values for p in (whole[k], t._hard[k]))
+        assert torch.allclose(e1, e2, rtol=1e-5, atol=1e-7)
     t.set_modes("joint")
     idx = t.draw("joint")
     for key, m in (("global", b.batch_g), ("local1", b.batch_l1), ("local2", b.batch_l2)):

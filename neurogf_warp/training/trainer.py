@@ -36,6 +36,7 @@ __all__ = ["Trainer", "fast_path", "cosine_lr"]
 
 HARD_CANDIDATES = 8  # rows scored per hard-pool refresh, in batches of each distance set
 HARD_KEEP = 1 / 8    # the worst share of them forms the pool
+HARD_CHUNK = 65536   # rows scored per forward pass (full GPU batches rank 524K rows: 1M points x 256 x 4 B per layer)
 
 
 def _bn(x, bn, training):
@@ -148,10 +149,7 @@ class Trainer:
             n = len(self.data.gd[key])
             c = min(n, HARD_CANDIDATES * m)
             cand = self._idx(n, c)
-            rows = self.data.gd[key][cand]
-            p, q, d = rows[:, :3], rows[:, 3:6], rows[:, 6]
-            e = self.net.embed(torch.cat([p, q]))
-            err = (self.net.distance_from_embeddings(e[:c], e[c:], p, q) - d).abs() / d.clamp_min(1e-4)
+            err = torch.cat([self._relative_errors(self.data.gd[key][part]) for part in cand.split(HARD_CHUNK)])
             pools[key] = cand[err.topk(max(1, int(c * HARD_KEEP))).indices]
         self.net.train(was)
         self._hard = pools
@@ -168,6 +166,12 @@ class Trainer:
                 rows = d.gd[k][i]
                 b[k] = (rows[:, :3], rows[:, 3:6], rows[:, 6])
         return b
+
+    def _relative_errors(self, rows):
+        """|pred - d| / d of (n, 7) distance rows under the network's current mode (targets floored at 1e-4)."""
+        p, q, d = rows[:, :3], rows[:, 3:6], rows[:, 6]
+        e = self.net.embed(torch.cat([p, q]))
+        return (self.net.distance_from_embeddings(e[: len(p)], e[len(p):], p, q) - d).abs() / d.clamp_min(1e-4)
 
     def _optimizer(self, stage):
         if self.opt_stage == stage:
