@@ -24,7 +24,9 @@ PRESETS = {
     # fandisk 0.305% -> 0.296%, 1.89% -> 1.60%; 300 s fandisk 0.224% -> 0.212%, 1.56% -> 1.15%; RESULTS.md, eighth
     # session). The longer refine_dist moves the lifting features further from the SDF head (60 s SDF L1 2.7e-3 ->
     # 4.5e-3 in those runs), so refine_sdf gets 4x its steps too (0.4: as the CPU preset's 1.0 with refine_dist 10;
-    # chosen after those runs, not yet measured on a GPU; its steps cost ~1% of a 60 s budget)
+    # chosen after those runs, not yet measured on a GPU; its steps cost ~1% of a 60 s budget). Without a budget
+    # this is 80,000 refine_dist steps instead of 20,000: about 3 more minutes on an H100 (3.2 ms per full-batch
+    # step, sixth session's profile); such a run has not been made with this recipe
     "default": dict(hard_share=0.25, ratios={"refine_dist": 4.0, "refine_sdf": 0.4}),
     "paper": dict(fourier=0, euclid=False, path_residual=False, path_width=1, path_window=False, dist_loss="l1",
                   refine_dist_steps=0, refine_path_lr=1e-3, ratios={"refine_path": 0.1}),
