@@ -8,17 +8,22 @@ falls fastest along the surface (hand-written backpropagation through the networ
 that direction (never past the target), then Newton steps back onto the network's SDF surface (a step that
 the projection would turn into a jump, e.g. over a sharp crease, is retried shorter). No mesh is
 touched during the simulation; the mesh is used only to pick start vertices and for the pictures.
-Frames (PNG) and an animated GIF go to --out; about a minute on a 2-core CPU with the defaults.
+Frames (PNG) and an animated GIF go to --out; 13 s on a 2-core CPU with the defaults (7 s with the walk kernel
+cached).
 Without --model/--mesh it uses the released fandisk checkpoint from ../shared (the test data beside the checkout).
 
-What it guarantees, and what not: every agent moves by at most one step per launch along the predicted field's
-direction of steepest descent and is put back on the network's SDF surface; an agent stops once its predicted
-distance is below half a step. Arrival is not guaranteed: the walk follows the network's field, and where that
-field has a false local minimum, or a crease the agent zigzags across, an agent can stall or lose ground (on the
-released fandisk model every agent arrives, tests/test_examples.py; on a user's CPU-trained torus 28 of 32 did, and
-one step raised an agent's distance by 139% of a step). The summary line counts the agents that arrived, names
-those that did not and gives the largest rise of an agent's distance in one step; ``--require-arrival`` makes
-the run exit with status 1 when any agent did not arrive.
+What it guarantees, and what not: every agent moves by at most one step per launch and is put back on the
+network's SDF surface; an agent stops once its predicted distance is below half a step. A step goes along the
+predicted field's direction of steepest descent; when that lowers the predicted distance by less than half a step
+(near a sharp crease the SDF's tangent plane is one sheet's, so the direction can point off the edge or across
+it), the 3D gradient and four directions turned from it are tried too, and the lowest predicted distance wins.
+Arrival is not guaranteed: the walk follows the network's field, and where that field has a false local minimum an
+agent can stall or lose ground. On the released fandisk model, 1,000 random draws of the test's case (12 agents, a
+reference source as target) had an agent that stalled at a crease in 4 draws with the steepest descent alone, in
+none of 2,000 with the other directions (benchmarks/RESULTS.md, 2026-11-25); on a user's CPU-trained torus 28 of
+32 arrived, and one step raised an agent's distance by 139% of a step (before the other directions). The summary
+line counts the agents that arrived, names those that did not and gives the largest rise of an agent's distance
+in one step; ``--require-arrival`` makes the run exit with status 1 when any agent did not arrive.
 """
 from __future__ import annotations
 
@@ -38,6 +43,20 @@ from neurogf_warp.pictures.render import View
 
 PROJECT_STEPS = 2  # Newton steps back onto the surface after each move; |sdf| falls ~10x per step
 MAX_HALVINGS = 4  # a step whose projection lands farther than 1.25 steps away is retried at half the length
+STALL = 0.5  # a move that lowers the predicted distance by less than this fraction of a step tries other directions
+TURNS = wp.constant(wp.types.vector(4, float)(0.7853982, -0.7853982, 1.5707963, -1.5707963))  # radians from t
+
+
+@wp.func
+def move(net: field.NeuroGFWeights, y: wp.vec3, direction: wp.vec3, h: float):
+    """y moved by h along direction and put back on the SDF surface; halved while the projection jumps."""
+    z = y
+    for _ in range(MAX_HALVINGS + 1):
+        z = field.project_to_surface(net, y + h * direction, PROJECT_STEPS)
+        if wp.length(z - y) <= 1.25 * h:
+            break
+        h = 0.5 * h  # the projection jumped (off a crease, onto another sheet): a shorter step
+    return z
 
 
 @wp.kernel(enable_backward=False)
@@ -51,12 +70,31 @@ def walk(net: field.NeuroGFWeights, target: field.SourceSet, fr: field.Frame, sp
     dist[i] = d
     if d > arrive:
         h = wp.min(speed, d) / fr.dscale
-        z = y
-        for _ in range(MAX_HALVINGS + 1):
-            z = field.project_to_surface(net, y + h * t, PROJECT_STEPS)
-            if wp.length(z - y) <= 1.25 * h:
-                break
-            h = 0.5 * h  # the projection jumped (off a crease, onto another sheet): a shorter step
+        z = move(net, y, t, h)
+        dz = field.distance_to_sources(net, target, z)
+        if dz * fr.dscale > d - STALL * h * fr.dscale:
+            # Too little progress: on or near a sharp crease the SDF's tangent plane is one sheet's, and its
+            # steepest descent can point off the edge (the projection puts the agent back) or across it (a
+            # zigzag). Try the 3D gradient (onto the other sheet) and directions turned from t in the tangent
+            # plane (along the crease); keep the move that lowers the predicted distance most.
+            d3, g, s = field.distance_to_sources_and_gradient(net, target, y)
+            sv, n = field.signed_distance_and_gradient(net, y)
+            nl = wp.length(n)
+            if nl > 1.0e-12:
+                n = n / nl
+            gl = wp.length(g)
+            for c in range(len(TURNS) + 1):
+                u = wp.vec3()
+                if c < len(TURNS):
+                    u = wp.cos(TURNS[c]) * t + wp.sin(TURNS[c]) * wp.cross(n, t)
+                elif gl > 1.0e-12:
+                    u = -g / gl
+                if wp.length(u) > 1.0e-6:
+                    zc = move(net, y, u, h)
+                    dc = field.distance_to_sources(net, target, zc)
+                    if dc < dz:
+                        z = zc
+                        dz = dc
         x[i] = field.from_net(fr, z)
 
 
