@@ -183,11 +183,12 @@ class Trainer:
                   "refine_sdf": lambda: self.net.sdf_head.parameters(),
                   "refine_path": lambda: list(self.net.cdw_fc.parameters()) + list(self.net.spf_head.parameters()),
                   }[stage]()
-        cuda = self.device.type == "cuda"
-        # fused: one kernel for the whole update on CUDA. Under CUDA graphs the learning rate is a device
-        # tensor (filled before each replay) and the step counter lives on the device (capturable).
+        # fused: one kernel for the whole update, on CUDA and on the CPU (there the cpu preset's small-batch steps
+        # take 10-14% less time than with torch's default per-parameter loop: RESULTS.md, ninth session). Under
+        # CUDA graphs the learning rate is a device tensor (filled before each replay) and the step counter lives
+        # on the device (capturable).
         lr = torch.tensor(s.lr, device=self.device) if self.graphs else s.lr
-        self.opt = torch.optim.AdamW(params, lr=lr, weight_decay=s.weight_decay, fused=cuda, capturable=self.graphs)
+        self.opt = torch.optim.AdamW(params, lr=lr, weight_decay=s.weight_decay, fused=True, capturable=self.graphs)
         self.opt_stage = stage
         self._idx_now = None
         self._graph = GraphedStep(lambda idx: self._update(stage, idx), self.opt.zero_grad, self.device) \
