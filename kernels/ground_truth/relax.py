@@ -163,6 +163,20 @@ def init_frontier(sources: wp.array(dtype=int), front: Frontier):
 
 
 @wp.kernel
+def add_seeds(seeds: wp.array(dtype=int), state: NodeState, front: Frontier):
+    """More sources for row 0 (after init_rows / init_frontier seeded it with seeds[0]): every seed at distance 0
+    and in the row's active list. A row with one seed per component of a mesh solves them all at once."""
+    i = wp.tid()
+    n = seeds[i]
+    state.key[0, n] = pack(0.0, n)
+    state.dist[0, n] = 0.0
+    state.rec.parent[0, n] = n
+    front.active[0, i] = n
+    if i == 0:
+        front.active_count[0] = seeds.shape[0]
+
+
+@wp.kernel
 def start_iteration(front: Frontier):
     """Per row: the threshold of this iteration; empty `next` and `touched` lists."""
     s = wp.tid()

@@ -278,11 +278,30 @@ class GeodesicSolver:
         else:
             program()
 
-    def _run_program(self):
+    def run_seeds(self, seeds: np.ndarray) -> None:
+        """Solve one row from several internal source vertex ids at once (distance to the nearest); the result is
+        row 0 of ``vertex_distances``. The paths of such a run are not traced."""
+        seeds = np.unique(np.asarray(seeds, dtype=np.int64).reshape(-1))
+        if len(seeds) == 0 or seeds.min() < 0 or seeds.max() >= self.nv:
+            raise IndexError("run_seeds takes 1 or more internal source ids in range")
+        seeds_w = wp.array(self._solver_id[seeds].astype(np.int32), dtype=int, device=self.device)
+        self.src_w.assign(np.full(self.batch, self._solver_id[seeds[0]], dtype=np.int32))
+        t0 = time.perf_counter()
+        self._run_program(seeds_w)
+        wp.synchronize_device(self.device)
+        self.timings["solve_s"] += time.perf_counter() - t0
+        self.timings["iterations"].append(int(self._front_shared["iteration"].numpy()[0]))
+        self.rows = seeds[:1]
+
+    def _run_program(self, extra_seeds=None):
         """Initialize, relax to convergence, make distances equal to path lengths. On the CPU the relaxation runs
-        in chunks of about CPU_CHUNK_SECONDS (between chunks Python sees Ctrl-C); on CUDA in one launch."""
+        in chunks of about CPU_CHUNK_SECONDS (between chunks Python sees Ctrl-C); on CUDA in one launch.
+        ``extra_seeds``: a device array of node ids that row 0 starts from as well (``run_seeds``)."""
         sh = self._front_shared
         self._launch("start", self._start)
+        if extra_seeds is not None:
+            wp.launch(_kernels().relax.add_seeds, dim=len(extra_seeds), inputs=[extra_seeds, self.state, self.fronts[0]],
+                      device=self.device)
         done = 0
         while True:
             step = self.max_iter if self.device.is_cuda else self._chunk

@@ -1,0 +1,114 @@
+"""A second, finer solve near each source: the solver's worst pairs are short ones.
+
+With one window per Steiner node, a beam of rays is lost where it passes close to a vertex; that costs a similar
+length anywhere (1-11% of a mean edge on the shared meshes), so the relative error is largest for targets close
+to the source: every pair above 0.5% at k = 3 lies within 13.4 mean edge lengths of its source (24 sources on six
+meshes, benchmarks/geodesics_notes.md). ``refine_near_sources`` re-solves, for each source, only the faces within
+``radius + 2`` mean edges of it, at a higher k, and keeps the shorter value per vertex. Both values are lengths of
+real surface paths, so the result is still an upper bound of the exact distance; a geodesic to a vertex at
+distance r stays within r of the source, so the patch holds it.
+
+The patches of many sources are copied into one mesh of disjoint components and solved as one row with one seed
+per component (``GeodesicSolver.run_seeds``): one solver set-up per chunk of sources, not per source.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from neurogf_warp.mesh.mesh import Mesh, load_mesh
+
+__all__ = ["refine_near_sources", "PATCH_RADIUS", "PATCH_K"]
+
+PATCH_RADIUS = 12.0  # mean edge lengths: beyond it the k = 3 worst pair was 0.38-0.44% on the tail meshes
+PATCH_K = 6  # k = 5 left the needle mesh's degenerate-face pair at 0.64%; k = 6 took every mesh to <= 0.45%
+NODE_CAP = 4_000_000  # nodes of one union solve (109 B each: ~0.44 GB of solver state)
+
+
+class VertexFaces:
+    """Vertex -> face lists of a face array (F, 3), for gathering the faces around a set of vertices in time
+    proportional to their count (a patch), not to the mesh."""
+
+    def __init__(self, faces: np.ndarray, n_vertices: int):
+        flat = np.asarray(faces, dtype=np.int64).ravel()
+        order = np.argsort(flat, kind="stable")
+        self.face_of = order // 3
+        self.start = np.searchsorted(flat[order], np.arange(n_vertices + 1))
+
+    def around(self, vertices: np.ndarray) -> np.ndarray:
+        """Sorted unique faces that hold any of ``vertices``."""
+        n = self.start[vertices + 1] - self.start[vertices]
+        at = np.repeat(self.start[vertices] - np.cumsum(n) + n, n) + np.arange(int(n.sum()))
+        return np.unique(self.face_of[at])
+
+
+def patch_faces(faces: np.ndarray, vf: VertexFaces, dist_row: np.ndarray, limit: float) -> np.ndarray:
+    """Indices of the faces whose three vertices all lie within ``limit`` (same units as ``dist_row``, (V,))."""
+    inside = np.isfinite(dist_row) & (dist_row <= limit)
+    near = vf.around(np.flatnonzero(inside))
+    return near[inside[faces[near]].all(axis=1)]
+
+
+def refine_near_sources(mesh: Mesh, sources: np.ndarray, dist: np.ndarray, k: int = PATCH_K,
+                        radius: float = PATCH_RADIUS, device=None) -> np.ndarray:
+    """Distances ``dist`` lowered near their sources by a solve at ``k`` of each source's patch.
+
+    Parameters
+    ----------
+    mesh : Mesh (internal numbering)
+    sources : (S,) int, internal vertex ids
+    dist : (S, V) float, distances from ``sources`` in the normalized frame (``GeodesicSolver.solve``)
+    k : Steiner points per edge in the patches
+    radius : patch radius in mean edge lengths (faces within radius + 2 of the source, by ``dist``)
+
+    Returns
+    -------
+    (S, V) float32, normalized frame: min(dist, patch distance) per vertex of each patch, ``dist`` elsewhere.
+    """
+    from neurogf_warp.ground_truth.solver import GeodesicSolver
+
+    src = np.asarray(sources, dtype=np.int64).reshape(-1)
+    out = np.array(dist, dtype=np.float32, copy=True)
+    if len(src) == 0:
+        return out
+    P = mesh.normalized_vertices
+    F = np.asarray(mesh.faces, dtype=np.int64)
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    limit = (radius + 2.0) * float(np.linalg.norm(P[e[:, 0]] - P[e[:, 1]], axis=1).mean())
+    vf = VertexFaces(F, len(P))
+    # chunks of sources whose patches together stay under NODE_CAP nodes (about V + 1.5 k F per patch)
+    chunk, size = [], 0
+    for r in range(len(src)):
+        faces = patch_faces(F, vf, out[r], limit)
+        n = int(len(faces) * (0.5 + 1.5 * k))
+        if chunk and size + n > NODE_CAP:
+            _solve_chunk(GeodesicSolver, P, F, src, out, chunk, k, device)
+            chunk, size = [], 0
+        chunk.append((r, faces))
+        size += n
+    _solve_chunk(GeodesicSolver, P, F, src, out, chunk, k, device)
+    return out
+
+
+def _solve_chunk(solver_cls, P, F, src, out, chunk, k, device):
+    """One union of patches (disjoint copies, numbered one after the other), one multi-seed solve, min into out."""
+    verts, faces, seeds, owners = [], [], [], []
+    base = 0
+    for r, fi in chunk:
+        used = np.unique(F[fi])
+        if len(fi) == 0 or not np.isin(src[r], used):
+            continue  # an isolated source vertex: nothing to refine
+        local = np.full(len(P), -1, dtype=np.int64)
+        local[used] = np.arange(len(used))
+        verts.append(P[used])
+        faces.append(local[F[fi]] + base)
+        seeds.append(local[src[r]] + base)
+        owners.append((r, used, base))
+        base += len(used)
+    if not owners:
+        return
+    union = load_mesh((np.concatenate(verts), np.concatenate(faces)), weld=False)
+    solver = solver_cls(union, k=k, device=device, max_rows=1)
+    solver.run_seeds(np.asarray(seeds))
+    d = solver.vertex_distances()[0] / np.float32(union.scale)  # units of P: the normalized frame
+    for r, used, b in owners:
+        out[r, used] = np.minimum(out[r, used], d[b: b + len(used)])
