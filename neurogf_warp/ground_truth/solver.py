@@ -300,8 +300,8 @@ class GeodesicSolver:
         sh = self._front_shared
         self._launch("start", self._start)
         if extra_seeds is not None:
-            wp.launch(_kernels().relax.add_seeds, dim=len(extra_seeds), inputs=[extra_seeds, self.state, self.fronts[0]],
-                      device=self.device)
+            wp.launch(_kernels().relax.add_seeds, dim=len(extra_seeds),
+                      inputs=[extra_seeds, self.state, self.fronts[0]], device=self.device)
         done = 0
         while True:
             step = self.max_iter if self.device.is_cuda else self._chunk
