@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from neurogf_warp.ground_truth.solver import GeodesicSolver
 from neurogf_warp.mesh.mesh import Mesh, load_mesh
 
 __all__ = ["refine_near_sources", "PATCH_RADIUS", "PATCH_K"]
@@ -64,8 +65,6 @@ def refine_near_sources(mesh: Mesh, sources: np.ndarray, dist: np.ndarray, k: in
     -------
     (S, V) float32, normalized frame: min(dist, patch distance) per vertex of each patch, ``dist`` elsewhere.
     """
-    from neurogf_warp.ground_truth.solver import GeodesicSolver
-
     src = np.asarray(sources, dtype=np.int64).reshape(-1)
     out = np.array(dist, dtype=np.float32, copy=True)
     if len(src) == 0:
@@ -81,33 +80,31 @@ def refine_near_sources(mesh: Mesh, sources: np.ndarray, dist: np.ndarray, k: in
         faces = patch_faces(F, vf, out[r], limit)
         n = int(len(faces) * (0.5 + 1.5 * k))
         if chunk and size + n > NODE_CAP:
-            _solve_chunk(GeodesicSolver, P, F, src, out, chunk, k, device)
+            _solve_chunk(P, F, src, out, chunk, k, device)
             chunk, size = [], 0
         chunk.append((r, faces))
         size += n
-    _solve_chunk(GeodesicSolver, P, F, src, out, chunk, k, device)
+    _solve_chunk(P, F, src, out, chunk, k, device)
     return out
 
 
-def _solve_chunk(solver_cls, P, F, src, out, chunk, k, device):
+def _solve_chunk(P, F, src, out, chunk, k, device):
     """One union of patches (disjoint copies, numbered one after the other), one multi-seed solve, min into out."""
     verts, faces, seeds, owners = [], [], [], []
     base = 0
     for r, fi in chunk:
-        used = np.unique(F[fi])
+        used = np.unique(F[fi])  # sorted: a patch vertex's number in the copy is its rank here
         if len(fi) == 0 or not np.isin(src[r], used):
             continue  # an isolated source vertex: nothing to refine
-        local = np.full(len(P), -1, dtype=np.int64)
-        local[used] = np.arange(len(used))
         verts.append(P[used])
-        faces.append(local[F[fi]] + base)
-        seeds.append(local[src[r]] + base)
+        faces.append(np.searchsorted(used, F[fi]) + base)
+        seeds.append(np.searchsorted(used, src[r]) + base)
         owners.append((r, used, base))
         base += len(used)
     if not owners:
         return
     union = load_mesh((np.concatenate(verts), np.concatenate(faces)), weld=False)
-    solver = solver_cls(union, k=k, device=device, max_rows=1)
+    solver = GeodesicSolver(union, k=k, device=device, max_rows=1)
     solver.run_seeds(np.asarray(seeds))
     d = solver.vertex_distances()[0] / np.float32(union.scale)  # units of P: the normalized frame
     for r, used, b in owners:
