@@ -68,7 +68,7 @@ def geodesic_distances(mesh, sources, device=None, k: int = DEFAULT_K, windows: 
     if near_source:
         from neurogf_warp.ground_truth.near_source import refine_near_sources
 
-        d = refine_near_sources(m, src, d, device=device)
+        d = refine_near_sources(solver, src, d)
     return m.to_input((d / np.float32(m.scale)).astype(np.float32))
 
 

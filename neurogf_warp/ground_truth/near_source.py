@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from neurogf_warp.ground_truth.solver import GeodesicSolver
-from neurogf_warp.mesh.mesh import Mesh, load_mesh
+from neurogf_warp.mesh.mesh import load_mesh
 
 __all__ = ["refine_near_sources", "PATCH_RADIUS", "PATCH_K"]
 
@@ -25,37 +25,28 @@ PATCH_K = 6  # k = 5 left the needle mesh's degenerate-face pair at 0.64%; k = 6
 NODE_CAP = 4_000_000  # nodes of one union solve (109 B each: ~0.44 GB of solver state)
 
 
-class VertexFaces:
-    """Vertex -> face lists of a face array (F, 3), for gathering the faces around a set of vertices in time
-    proportional to their count (a patch), not to the mesh."""
-
-    def __init__(self, faces: np.ndarray, n_vertices: int):
-        flat = np.asarray(faces, dtype=np.int64).ravel()
-        order = np.argsort(flat, kind="stable")
-        self.face_of = order // 3
-        self.start = np.searchsorted(flat[order], np.arange(n_vertices + 1))
-
-    def around(self, vertices: np.ndarray) -> np.ndarray:
-        """Sorted unique faces that hold any of ``vertices``."""
-        n = self.start[vertices + 1] - self.start[vertices]
-        at = np.repeat(self.start[vertices] - np.cumsum(n) + n, n) + np.arange(int(n.sum()))
-        return np.unique(self.face_of[at])
-
-
-def patch_faces(faces: np.ndarray, vf: VertexFaces, dist_row: np.ndarray, limit: float) -> np.ndarray:
-    """Indices of the faces whose three vertices all lie within ``limit`` (same units as ``dist_row``, (V,))."""
+def patch_faces(solver: GeodesicSolver, dist_row: np.ndarray, limit: float) -> np.ndarray:
+    """Rows of ``solver.topo.faces`` whose three vertices all lie within ``limit`` (same units as ``dist_row``,
+    (V,) in the mesh's internal numbering); gathered through the solver's vertex -> face table, in time
+    proportional to the patch."""
+    t = solver.topo
     inside = np.isfinite(dist_row) & (dist_row <= limit)
-    near = vf.around(np.flatnonzero(inside))
-    return near[inside[faces[near]].all(axis=1)]
+    v = solver._solver_id[np.flatnonzero(inside)]
+    n = t.vertex_face_start[v + 1] - t.vertex_face_start[v]
+    at = np.repeat(t.vertex_face_start[v] - np.cumsum(n) + n, n) + np.arange(int(n.sum()))
+    near = np.unique(t.vertex_faces[at])
+    inside_s = inside[solver._order]  # solver numbering
+    return near[inside_s[t.faces[near]].all(axis=1)]
 
 
-def refine_near_sources(mesh: Mesh, sources: np.ndarray, dist: np.ndarray, k: int = PATCH_K,
-                        radius: float = PATCH_RADIUS, device=None) -> np.ndarray:
+def refine_near_sources(solver: GeodesicSolver, sources: np.ndarray, dist: np.ndarray, k: int = PATCH_K,
+                        radius: float = PATCH_RADIUS) -> np.ndarray:
     """Distances ``dist`` lowered near their sources by a solve at ``k`` of each source's patch.
 
     Parameters
     ----------
-    mesh : Mesh (internal numbering)
+    solver : the GeodesicSolver that computed ``dist`` (its mesh, vertex -> face table and mean edge length are
+        used; the patch solves run on its device)
     sources : (S,) int, internal vertex ids
     dist : (S, V) float, distances from ``sources`` in the normalized frame (``GeodesicSolver.solve``)
     k : Steiner points per edge in the patches
@@ -69,22 +60,20 @@ def refine_near_sources(mesh: Mesh, sources: np.ndarray, dist: np.ndarray, k: in
     out = np.array(dist, dtype=np.float32, copy=True)
     if len(src) == 0:
         return out
-    P = mesh.normalized_vertices
-    F = np.asarray(mesh.faces, dtype=np.int64)
-    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    limit = (radius + 2.0) * float(np.linalg.norm(P[e[:, 0]] - P[e[:, 1]], axis=1).mean())
-    vf = VertexFaces(F, len(P))
+    P = solver.mesh.normalized_vertices
+    F = solver._order[solver.topo.faces]  # mesh numbering, in the solver's face order
+    limit = (radius + 2.0) * solver.mean_edge
     # chunks of sources whose patches together stay under NODE_CAP nodes (about V + 1.5 k F per patch)
     chunk, size = [], 0
     for r in range(len(src)):
-        faces = patch_faces(F, vf, out[r], limit)
+        faces = patch_faces(solver, out[r], limit)
         n = int(len(faces) * (0.5 + 1.5 * k))
         if chunk and size + n > NODE_CAP:
-            _solve_chunk(P, F, src, out, chunk, k, device)
+            _solve_chunk(P, F, src, out, chunk, k, solver.device)
             chunk, size = [], 0
         chunk.append((r, faces))
         size += n
-    _solve_chunk(P, F, src, out, chunk, k, device)
+    _solve_chunk(P, F, src, out, chunk, k, solver.device)
     return out
 
 

@@ -119,6 +119,7 @@ class GeodesicSolver:
         e = self.topo.edges
         nvx = self.mesh.normalized_vertices[self._order]
         mean_len = float(np.linalg.norm(nvx[e[:, 0]] - nvx[e[:, 1]], axis=1).mean()) if len(e) else 1.0
+        self.mean_edge = mean_len  # normalized frame
         self.delta = float(delta) * mean_len if delta > 0 else float("inf")
         # Steiner points: k per edge, more on long edges of thin faces (steiner_graph.steiner_counts)
         self.nodes = self.topo.steiner_nodes(self.k)
@@ -286,12 +287,16 @@ class GeodesicSolver:
             raise IndexError("run_seeds takes 1 or more internal source ids in range")
         seeds_w = wp.array(self._solver_id[seeds].astype(np.int32), dtype=int, device=self.device)
         self.src_w.assign(np.full(self.batch, self._solver_id[seeds[0]], dtype=np.int32))
+        self._timed_program(seeds_w)
+        self.rows = seeds[:1]
+
+    def _timed_program(self, extra_seeds=None):
+        """``_run_program`` to the end on the device, its time and iterations added to ``timings``."""
         t0 = time.perf_counter()
-        self._run_program(seeds_w)
+        self._run_program(extra_seeds)
         wp.synchronize_device(self.device)
         self.timings["solve_s"] += time.perf_counter() - t0
         self.timings["iterations"].append(int(self._front_shared["iteration"].numpy()[0]))
-        self.rows = seeds[:1]
 
     def _run_program(self, extra_seeds=None):
         """Initialize, relax to convergence, make distances equal to path lengths. On the CPU the relaxation runs
@@ -333,12 +338,8 @@ class GeodesicSolver:
             raise IndexError("internal source id out of range")
         padded = np.full(self.batch, self._solver_id[src[-1]], dtype=np.int32)
         padded[: len(src)] = self._solver_id[src]
-        t0 = time.perf_counter()
         self.src_w.assign(padded)
-        self._run_program()
-        wp.synchronize_device(self.device)
-        self.timings["solve_s"] += time.perf_counter() - t0
-        self.timings["iterations"].append(int(self._front_shared["iteration"].numpy()[0]))
+        self._timed_program()
         w = self._front_shared["work"].numpy()[: len(src)].sum(axis=0)
         self.timings.setdefault("work", []).append([int(v) for v in w])
         self.rows = src
