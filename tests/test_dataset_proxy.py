@@ -99,19 +99,30 @@ def test_proxy_error_reads_the_fine_rows_on_each_proxy_vertex(fine_blobs):
 
 
 @pytest.mark.parametrize("V,limit,expect", [
-    (2_223_321, 170.0, (400_000, 550_000)),  # the 2.2M bunny in a 520 s call: a ~460K proxy (RESULTS.md)
-    (2_223_321, 20.0, (100_000, 100_000)),   # never below PROXY_MIN_VERTICES
-    (436_076, 100.0, (0, 0)),                # 256 sources fit: the mesh itself
-    (134_345, 20.0, (0, 0)),                 # too small to decimate
-    (34_834, 20.0, (0, 0)),
+    (2_223_321, 170.0, (200_000, 550_000)),  # the 2.2M bunny in a 520 s call: a few hundred thousand vertices
+    (2_223_321, 20.0, (30_000, 40_000)),     # 66x smaller, near PROXY_MIN_VERTICES
+    (436_076, 100.0, (100_000, 218_038)),    # 1,024 of its own sources do not fit in 50 s: a proxy, at most half
+    (436_076, 2000.0, (0, 0)),               # they do: the mesh itself
+    (134_345, 15.0, (30_000, 40_000)),       # igea at 60 s: ~4x smaller (RESULTS.md, tenth session: 34K wins)
+    (134_345, 95.0, (0, 0)),                 # igea at 300 s: its own mesh
+    (50_000, 15.0, (0, 0)),                  # below 2 x PROXY_MIN_VERTICES: never decimated
+    (34_834, 15.0, (0, 0)),
     (2_223_321, None, (0, 0)),               # no time limit: the mesh itself
 ])
 def test_auto_proxy_sizes(V, limit, expect):
     n = D.auto_proxy(V, 2048, limit)
     assert expect[0] <= n <= expect[1]
+    def fits(v):  # PROXY_SOURCES of a mesh of v vertices solve in the build's share, at the dataset's rate
+        return D.gpu_seconds_per_source(v) * D.DATASET_SLOWDOWN * D.PROXY_SOURCES <= D.PROXY_SHARE * limit
+
     if n:
-        assert D.gpu_seconds_per_source(n) * min(2048, D.PROXY_SOURCES) <= D.PROXY_SHARE * limit or \
-            n == D.PROXY_MIN_VERTICES
+        assert not fits(V) and (fits(n) or n == D.PROXY_MIN_VERTICES) and 2 * n <= V
+        if n > D.PROXY_MIN_VERTICES + 1000 and 2 * (n + 1000) <= V:
+            assert not fits(n + 1000)  # the largest proxy that fits, within the bisection's step
+    elif limit is not None and V >= 2 * D.PROXY_MIN_VERTICES:
+        assert fits(V)
+    fewer = D.auto_proxy(V, 256, limit)  # fewer sources asked: the same mesh, a larger proxy, or none
+    assert fewer == 0 or (n and fewer >= n)
 
 
 @pytest.mark.filterwarnings("ignore::neurogf_warp.training.quality.ModelQualityWarning")  # 10 steps: of course

@@ -166,6 +166,33 @@ def test_a_budget_predicted_too_small_is_said_before_the_first_step(tmp_path, el
     assert "predicted too small" in log_of(out)["config"]["budget_warning"]
 
 
+def test_a_budget_that_ends_while_the_steps_are_timed_runs_the_floor_plan_in_time(tmp_path, ellipsoid, tiny_dataset,
+                                                                                   monkeypatch):
+    """A fresh GPU machine's 20 s call spent 2.8 s timing its steps and ended 1.6 s late: the timing now stops at
+    the deadline, and the run does the floor plan (one querier and one joint step), said before the steps."""
+    from neurogf_warp.training.trainer import Trainer
+
+    step = Trainer.step
+
+    def slow(self, stage, i):  # 0.3 s a step: timing every stage (3 steps each) would take 4.5 s of a 4 s budget
+        time.sleep(0.3)
+        return step(self, stage, i)
+
+    monkeypatch.setattr(Trainer, "step", slow)
+    out = tmp_path / "m.ngf"
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        t = time.perf_counter()
+        train(ellipsoid, out, config=SMALL, dataset=tiny_dataset, device="cpu", budget_seconds=4, progress=False)
+        took = time.perf_counter() - t
+    assert took <= 4 + 1.0, took
+    log = log_of(out)
+    assert log["config"]["steps"]["joint"] == 1 and log["config"]["steps"]["querier"] == 1, log["config"]["steps"]
+    assert sum(log["config"]["steps"].values()) == 2
+    assert "predicted too small" in log["config"]["budget_warning"]
+    assert any("predicted too small" in str(x.message) for x in w if x.category is ModelQualityWarning)
+
+
 def test_budget_verdict_names_each_reason():
     with pytest.warns(ModelQualityWarning, match="only 12 joint steps.*only 10% of the budget"):
         assert quality.budget_verdict(12, 0.1, 5, 256, progress=False)

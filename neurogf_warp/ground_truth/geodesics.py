@@ -35,7 +35,8 @@ def _vertices(mesh: Mesh, indices, name: str) -> np.ndarray:
 
 
 def geodesic_distances(mesh, sources, device=None, k: int = DEFAULT_K, windows: bool = True,
-                       batch: int | None = None, delta: float = DEFAULT_DELTA, near_source: bool = False) -> np.ndarray:
+                       batch: int | None = None, delta: float = DEFAULT_DELTA,
+                       near_source: bool | None = None) -> np.ndarray:
     """Geodesic distances from mesh vertices to every vertex.
 
     Parameters
@@ -50,7 +51,11 @@ def geodesic_distances(mesh, sources, device=None, k: int = DEFAULT_K, windows: 
     near_source : bool, also solve the faces within 14 mean edges of each source at k = 6 and keep the shorter
         value (``near_source.refine_near_sources``): the worst pairs, which lie near their source, go from up to
         1.4% too long to at most 0.45% on the shared meshes (24 sources each; benchmarks/geodesics_notes.md), for
-        about 12K more nodes of work per source. Off by default until its cost on a GPU is measured.
+        about 12K more nodes of work per source. On by default: on an H100 the 256-source call on the 436K-vertex
+        benchmark mesh took 34.0 s with it and 34.4 s without; on a 2-core CPU +3% on the bunny, 1.3-2x on meshes of
+        a few thousand vertices (benchmarks/RESULTS.md, tenth session). None (the default) means on with
+        ``windows`` and off for the plain Steiner graph (``windows=False``, which stays exactly that graph's
+        shortest paths); False gives the plain solve at ``k``, which is what the training datasets use.
 
     Returns
     -------
@@ -65,7 +70,7 @@ def geodesic_distances(mesh, sources, device=None, k: int = DEFAULT_K, windows: 
     solver = GeodesicSolver(m, k=k, windows=windows, device=device, batch=batch, max_rows=len(src),
                             delta=delta)
     d = solver.solve(src)
-    if near_source:
+    if windows if near_source is None else near_source:
         from neurogf_warp.ground_truth.near_source import refine_near_sources
 
         d = refine_near_sources(solver, src, d)

@@ -195,13 +195,14 @@ def _warn_again(model) -> None:
         warnings.warn(msg, ModelQualityWarning, stacklevel=4)
 
 
-def _calibrate(trainer, cfg: TrainConfig, dev, n: int) -> dict:
-    """Seconds per step of each stage, timed with the run's own TF32 setting."""
+def _calibrate(trainer, cfg: TrainConfig, dev, n: int, deadline: float | None = None) -> dict | None:
+    """Seconds per step of each stage, timed with the run's own TF32 setting; None when ``deadline`` (a
+    ``time.perf_counter()`` value) passed before the timing was done."""
     from neurogf_warp.training.acceleration import set_tf32
 
     tf32 = set_tf32(cfg.runtime.tf32) if dev.type == "cuda" else None
     try:
-        return calibrate(trainer, n=n)
+        return calibrate(trainer, n=n, give_up_s=None if deadline is None else max(0.0, deadline - time.perf_counter()))
     finally:
         if tf32 is not None:
             set_tf32(tf32)
@@ -272,11 +273,16 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
         history = {"loss": [], "val": []}
         if deadline is not None:
             t0 = time.perf_counter()
-            per = _calibrate(trainer, cfg, dev, n=20 if trainer.graphs else 2)
+            per = _calibrate(trainer, cfg, dev, n=20 if trainer.graphs else 2, deadline=deadline)
+            out_of_time = per is None
+            if out_of_time:  # the budget ended while the steps were timed (a fresh GPU machine's 20 s call took
+                # 2.8 s to time them, 1.6 s past its budget): the floor plan, one querier and one joint step
+                per = {s: float(budget_seconds) for s in STAGES}
+                compile_key = None
             left = deadline - time.perf_counter()
             fitted = fit_budget(cfg, per, max(left, 0.0))
             scale, history["batch_scale"] = short_budget_scale(fitted.joint_steps, dev.type), 1.0
-            shrunk = rescale and scale < 1
+            shrunk = rescale and scale < 1 and not out_of_time
             if shrunk:
                 batches = cfg.batches.scaled(scale, sdf_factor=max(scale, MIN_SDF_SCALE))
                 cfg = dataclasses.replace(cfg, batches=batches)
@@ -291,8 +297,8 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
                 t1 = time.perf_counter()
                 per = _calibrate(trainer, cfg, dev, n=20)
                 record_compile(compile_key, time.perf_counter() - t1)
-            elif shrunk:
-                per = _calibrate(trainer, cfg, dev, n=8 if trainer.graphs else 2)
+            elif shrunk:  # timed again at the smaller batches; the full batches' times if the budget ends first
+                per = _calibrate(trainer, cfg, dev, n=8 if trainer.graphs else 2, deadline=deadline) or per
             if shrunk or compile_key is not None:
                 left = deadline - time.perf_counter()
                 fitted = fit_budget(cfg, per, max(left, 0.0))
