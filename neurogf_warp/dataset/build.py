@@ -750,6 +750,8 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
         bar.refresh()
     timings["distances_s"] = time.perf_counter() - t0
     timings["distance_iterations"] = solver.timings["iterations"]
+    # Warp's modules compiled (a fresh machine) or read from its cache at the first solve, inside distances_s
+    timings["kernels_load_s"] = solver.timings.get("load_s", 0.0)
     del solver
 
     t0 = time.perf_counter()

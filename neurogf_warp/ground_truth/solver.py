@@ -29,6 +29,7 @@ PATH_ABS_TOLERANCE = 1e-6  # and by more than this (normalized units: float32 ro
 MAX_BATCH = 512
 REORDER = True  # number the solver's vertices along a Morton curve (memory locality; results in mesh order)
 CPU_CHUNK_SECONDS = 0.25  # one CPU launch of the relaxation loop; Ctrl-C is seen between launches
+LOAD_WORKERS = 16  # threads compiling Warp modules before the first capture (load_for_capture)
 
 
 def spatial_order(points: np.ndarray, bits: int = 16) -> np.ndarray:
@@ -65,6 +66,29 @@ def _kernels():
 def load_kernels(device=None) -> None:
     """Compile (or load from Warp's kernel cache) the solver's kernels for `device` ahead of the first solve."""
     _kernels().load(resolve_device(device))
+
+
+_LOAD_S = [0.0]  # seconds this process has spent in load_for_capture
+
+
+def load_seconds() -> float:
+    """Seconds this process has spent loading Warp modules for the solver (``load_for_capture``): a caller that
+    reads it before and after a piece of work knows what compiling cost that work."""
+    return _LOAD_S[0]
+
+
+def load_for_capture(device) -> None:
+    """Every imported module with Warp code, loaded on ``device`` in parallel threads (one per core, at most
+    ``LOAD_WORKERS``), ahead of the solver's first graph capture. The capture force-loads all of them itself, one
+    after another: on a fresh 2-core CPU that was ~7 s after the solver's own two modules (warp.utils 4.0 s, the
+    dataset's SDF kernel 2.8 s, Warp's coloring and math), all inside a 20 s budget's ground-truth share
+    (benchmarks/RESULTS.md, eleventh session). NVRTC and Warp's CPU compiler run outside the GIL."""
+    import os
+
+    _kernels()  # the solver's modules are among them
+    t0 = time.perf_counter()
+    wp.force_load(device, max_workers=max(1, min(os.cpu_count() or 1, LOAD_WORKERS)))
+    _LOAD_S[0] += time.perf_counter() - t0
 
 
 class GeodesicSolver:
@@ -256,11 +280,13 @@ class GeodesicSolver:
         # where capture is not available the same program runs from the host.
         graph = self._graphs.get(name)
         if graph is None:
-            # The solver's own modules load in parallel first (serially, at the capture, they took 5.3 of 9.5 s of
-            # a fresh H100's first solve). The capture still force-loads every other imported module: with
-            # force_module_load=False (6.2 s less on a fresh H100) 3 of 17 H100 training runs had the "start"
+            # Every imported module loads in parallel first (serially, at the capture, the solver's own two took
+            # 5.3 of 9.5 s of a fresh H100's first solve), so that the capture's own force-load finds them loaded:
+            # with force_module_load=False (6.2 s less on a fresh H100) 3 of 17 H100 training runs had the "start"
             # capture fail (CUDA error 906, a memset on the legacy stream) and ran the host loop; not understood.
-            load_kernels(self.device)
+            t0 = time.perf_counter()
+            load_for_capture(self.device)
+            self.timings["load_s"] = self.timings.get("load_s", 0.0) + time.perf_counter() - t0
             try:
                 with wp.ScopedCapture(device=self.device, force_module_load=True) as cap:
                     program()

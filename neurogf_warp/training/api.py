@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 
 from neurogf_warp.common.checks import InputError, number, say
 from neurogf_warp.dataset.build import check_trainable
+from neurogf_warp.ground_truth.solver import load_seconds
 from neurogf_warp.mesh.mesh import load_mesh
 from neurogf_warp.training.budget import (MIN_SDF_SCALE, Budget, ThreadChooser, calibrate, fit_budget,
                                          short_budget_scale)
@@ -220,6 +221,7 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     spent_before = float(ck.get("spent_s", 0.0)) if ck is not None else 0.0
     deadline = None if budget_seconds is None else t_call + budget_seconds - spent_before - SAVE_RESERVE_S
     t_data = time.perf_counter()
+    loaded_before = load_seconds()
     # the ground truth's share counts from the start of the call (the mesh was loaded and checked in it)
     limit = None if budget_seconds is None or ck is not None else \
         max(0.0, DATA_SHARE * budget_seconds - (t_data - t_call))
@@ -227,7 +229,8 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
                         time_limit_s=limit, partial_ok=ck is not None)
     dataset_s = time.perf_counter() - t_data
     # the dataset's own phases (sampling, distances, paths; a cached dataset's are those of its build)
-    timings = {"dataset_s": dataset_s, "dataset_phases": dict(ds.meta.get("timings") or {})}
+    timings = {"dataset_s": dataset_s, "dataset_phases": dict(ds.meta.get("timings") or {}),
+               "kernels_load_s": load_seconds() - loaded_before}  # Warp's modules, compiled or from its cache
     heat, heat_mre = None, None
     if ck is not None and "heat_mre" in ck["history"]:
         heat_mre = ck["history"]["heat_mre"]
@@ -273,10 +276,14 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
         history = {"loss": [], "val": []}
         if deadline is not None:
             t0 = time.perf_counter()
-            per = _calibrate(trainer, cfg, dev, n=20 if trainer.graphs else 2, deadline=deadline)
+            # the budget ended before the steps or while they were timed (a fresh GPU machine's 20 s call took 2.8 s
+            # to time them and ended 1.6-2.2 s late; timing a first step costs 2.4 s on a fresh 2-core CPU): no
+            # steps, the untrained model is saved, and the warnings say why
+            out_of_time = deadline <= time.perf_counter()
+            per = None if out_of_time else _calibrate(trainer, cfg, dev, n=20 if trainer.graphs else 2,
+                                                      deadline=deadline)
             out_of_time = per is None
-            if out_of_time:  # the budget ended while the steps were timed (a fresh GPU machine's 20 s call took
-                # 2.8 s to time them, 1.6 s past its budget): the floor plan, one querier and one joint step
+            if out_of_time:
                 per = {s: float(budget_seconds) for s in STAGES}
                 compile_key = None
             left = deadline - time.perf_counter()
@@ -313,10 +320,11 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
                     fitted = cfg
             cfg = fitted
             trainer.cfg = cfg
-            trainer.steps = cfg.stage_steps()
-            budget = Budget(cfg, deadline, per, cap=cap)
-            history["budget_warning"] = budget_verdict(cfg.joint_steps, max(left, 0.0) / budget_seconds,
-                                                       len(ds.gd_src), cfg.data.n_sources, progress)
+            trainer.steps = {s: 0 for s in STAGES} if out_of_time else cfg.stage_steps()
+            budget = None if out_of_time else Budget(cfg, deadline, per, cap=cap)  # its floor plan is one step
+            history["budget_warning"] = budget_verdict(trainer.steps["joint"], max(left, 0.0) / budget_seconds,
+                                                       len(ds.gd_src), cfg.data.n_sources, progress,
+                                                       kernels_s=timings["kernels_load_s"])
     history["heat_mre"] = heat_mre
     history["sources"] = {"distance": int(len(ds.gd_src)), "asked": int(cfg.data.n_sources),
                           "test": int(len(ds.test_src)), "complete": bool(ds.meta.get("complete", True))}

@@ -26,6 +26,7 @@ __all__ = ["ModelQualityWarning", "HeatBaseline", "validation_mre", "final_verdi
 # dataset and set-up; the 120 s teapot of issue 24, 16.9% MRE, had 37% left.
 MIN_JOINT_STEPS = 100
 MIN_TRAIN_SHARE = 0.4
+KERNELS_SAID_S = 2.0  # a kernel load slower than this was a compile (a cached load takes 0.1-0.3 s)
 # The held-out comparison uses a few sources (8 in the default and CPU presets), and the heat method's error
 # varies from source to source: a 120 s CPU bunny model scored 0.90% against the heat method's 1.12% on its 4
 # held-out sources, but 0.95% against 0.95% on 8 other sources with exact geodesics (benchmarks/RESULTS.md, sixth
@@ -95,11 +96,13 @@ def _emit(message: str, progress: bool) -> None:
 
 
 def budget_verdict(joint_steps: int, train_share: float, sources: int, sources_asked: int,
-                   progress: bool = True) -> str | None:
+                   progress: bool = True, kernels_s: float = 0.0) -> str | None:
     """Before the steps: a message (also warned) when the planned work is predicted too small, else None.
 
     joint_steps : the joint steps the budget plan holds; train_share : the part of the budget left for the steps
-    after the dataset and set-up; sources / sources_asked : distance sources the dataset has / was asked for.
+    after the dataset and set-up; sources / sources_asked : distance sources the dataset has / was asked for;
+    kernels_s : seconds the call spent loading Warp's kernels (compiling them, on a machine that has not run this
+    version before), named in the message when it is over KERNELS_SAID_S.
     """
     why = []
     if joint_steps < MIN_JOINT_STEPS:
@@ -110,6 +113,9 @@ def budget_verdict(joint_steps: int, train_share: float, sources: int, sources_a
         return None
     msg = ("the budget is predicted too small for a good model: " + "; ".join(why)
            + f" ({sources} of {sources_asked} ground-truth sources). Raise budget_seconds (--budget-seconds)")
+    if kernels_s > KERNELS_SAID_S:
+        msg += (f"; {kernels_s:.0f} s of it went to compiling Warp's kernels, which a first run on a machine does "
+                "once (they are cached: a later call has that time for training)")
     _emit(msg, progress)
     return msg
 
