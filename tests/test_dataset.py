@@ -253,3 +253,23 @@ def test_held_out_rows_are_exact_grade_when_training_rows_are_coarse(two_blobs):
     # under a time limit too (the distance batches are then asked for by the clock, with no test batch before them)
     timed = D.build_dataset(two_blobs, None, **{**SMALL, "k": 1, "batch": 2}, time_limit_s=60.0)
     assert timed.meta["settings"]["test_k"] == DEFAULT_K and len(timed.gd_src) == SMALL["n_sources"]
+
+
+def test_a_time_limit_the_held_out_rows_cannot_keep_is_refused_before_any_solve(monkeypatch):
+    # a 2.2M-vertex mesh on a 2-core CPU: the 8 held-out rows alone take ~13 minutes; a 120 s training budget
+    # gives the ground truth 25-40 s. Refused at once, with what would do, instead of a late call
+    from neurogf_warp.common.checks import InputError
+    from neurogf_warp.ground_truth import solver as S
+
+    def never(*a, **k):
+        raise AssertionError("no solve may start")
+
+    monkeypatch.setattr(S.GeodesicSolver, "__init__", never)
+    V, F = trimesh.creation.icosphere(subdivisions=2).vertices, trimesh.creation.icosphere(subdivisions=2).faces
+    # pretend this small mesh costs what 2.2M vertices cost on the CPU
+    monkeypatch.setattr(D, "CPU_S_PER_SOURCE", ((100, 100.0), (1000, 1000.0)))
+    with pytest.raises(InputError, match=r"held-out sources .* Give at least ~\d+ s .*decimate"):
+        D.build_dataset((V, F), None, device="cpu", time_limit_s=30.0, progress=False)
+    # a limit the estimate does not exceed by much goes ahead (here: to the solver, which the test stops)
+    with pytest.raises(AssertionError, match="no solve"):
+        D.build_dataset((V, F), None, device="cpu", time_limit_s=1e5, progress=False)

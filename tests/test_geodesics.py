@@ -354,3 +354,23 @@ def test_every_imported_module_is_loaded_before_the_first_capture():
     assert S.load_seconds() > before
     missing = [m.name for m in list(C.user_modules.values()) if not any(ctx is None for ctx, _ in m.execs)]
     assert not missing, missing
+
+
+def test_cpu_batch_is_held_to_the_memory_there_is(monkeypatch):
+    # the dataset's CPU batch of 8 rows was 19 GB on a 2.2M-vertex mesh: the process was killed (24 GB machine).
+    # On the CPU a batch is now lowered to what CPU_MEMORY_SHARE of the available memory holds, with the same rows,
+    # and one row that does not fit is a MemoryError before anything is allocated
+    from neurogf_warp.ground_truth import solver as S
+
+    V, F = cylinder(12, 5)
+    src = [0, 7, 30, 41]
+    full = S.GeodesicSolver((V, F), device="cpu", batch=4)
+    want = full.solve(src)
+    row = full.bytes_per_row
+    monkeypatch.setattr(S, "available_memory", lambda device: 2.6 * row / S.CPU_MEMORY_SHARE)
+    held = S.GeodesicSolver((V, F), device="cpu", batch=8)
+    assert held.batch == 2 and held.settings["batch"] == 2
+    np.testing.assert_array_equal(held.solve(src), want)
+    monkeypatch.setattr(S, "available_memory", lambda device: 0.5 * row)
+    with pytest.raises(MemoryError, match="one batch of 1 source rows needs .* GB available"):
+        S.GeodesicSolver((V, F), device="cpu", batch=8)

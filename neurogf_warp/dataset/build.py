@@ -439,10 +439,22 @@ GPU_S_PER_SOURCE = ((34_834, 5.0e-3), (134_345, 1.86e-2), (556_051, 0.100), (2_2
 MIN_LIMITED_BATCH = 16
 
 
-def gpu_seconds_per_source(n_vertices: int) -> float:
+# (vertices, seconds per distance source at k = 3) of one process on a 2-core CPU (the bunny, subdivided once and
+# twice; 2026-11-27, a machine about half as fast per training step as the one of 2026-11-25)
+CPU_S_PER_SOURCE = ((34_834, 1.0), (139_122, 4.06), (556_051, 19.9))
+# The held-out sources are solved before anything else, at k = 3 on the mesh itself, in one solver batch (one
+# process). A time limit that their estimated time exceeds by more than HELD_OUT_MARGIN x itself and by more than
+# HELD_OUT_SLACK_S cannot be kept: refused (the estimate may be 2x off on another machine; a limit of 0, "as little
+# as possible", is kept on every mesh whose held-out rows take seconds)
+HELD_OUT_MARGIN = 1.5
+HELD_OUT_SLACK_S = 10.0
+
+
+def gpu_seconds_per_source(n_vertices: int, table=GPU_S_PER_SOURCE) -> float:
     """Estimated GPU seconds per distance source on a mesh of ``n_vertices`` (an H100's measured rates,
-    interpolated log-log, extrapolated with the slope of the nearest two)."""
-    v, t = np.log([p[0] for p in GPU_S_PER_SOURCE]), np.log([p[1] for p in GPU_S_PER_SOURCE])
+    interpolated log-log, extrapolated with the slope of the nearest two); ``table=CPU_S_PER_SOURCE`` for one CPU
+    process at k = 3."""
+    v, t = np.log([p[0] for p in table]), np.log([p[1] for p in table])
     x = np.log(max(n_vertices, 1))
     i = int(np.clip(np.searchsorted(v, x) - 1, 0, len(v) - 2))
     return float(np.exp(t[i] + (t[i + 1] - t[i]) * (x - v[i]) / (v[i + 1] - v[i])))
@@ -689,6 +701,7 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     timings = {}
 
     batch = solver_batch(st.batch, device)
+    _check_held_out_time(m, st, device, time_limit_s)
     n_proxy = st.proxy if st.proxy is not None else \
         (auto_proxy(len(m.vertices), st.n_sources, time_limit_s) if batch is None else 0)
     g, fine_of, proxy_meta = m, None, None  # g: the mesh the training sources are solved on
@@ -776,6 +789,28 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     if out_path is not None:
         ds.save(out_path)
     return ds
+
+
+def _check_held_out_time(m: Mesh, st: DatasetSettings, device, time_limit_s: float | None) -> None:
+    """InputError, before any solve, when the held-out sources alone are estimated far over ``time_limit_s``
+    (HELD_OUT_MARGIN, HELD_OUT_SLACK_S; a 2.2M-vertex mesh on a 2-core CPU: ~13 minutes for 8 rows, against
+    25-40 s of a 120 s training budget)."""
+    if time_limit_s is None or st.n_test == 0:
+        return
+    cpu = resolve_device(device).is_cpu
+    n = len(m.vertices)
+    est = st.n_test * gpu_seconds_per_source(n, CPU_S_PER_SOURCE if cpu else GPU_S_PER_SOURCE)
+    if est <= time_limit_s + max(HELD_OUT_MARGIN * time_limit_s, HELD_OUT_SLACK_S):
+        return
+    from neurogf_warp.common.checks import InputError
+
+    where = "one CPU process" if cpu else "a GPU"
+    raise InputError(
+        f"this time limit cannot be kept: the {st.n_test} held-out sources that judge the model need about "
+        f"{est:.0f} s of ground truth on {where} for this {n:,}-vertex mesh, against {time_limit_s:.0f} s for all "
+        f"of the ground truth (a third of a training budget). Give at least ~{3 * est:.0f} s (budget_seconds / "
+        f"--budget-seconds){', train on a GPU' if cpu else ''}, or decimate the mesh (e.g. with "
+        "fast_simplification) to a size this budget can train")
 
 
 def _assemble(m: Mesh, st: DatasetSettings, seed: int, plan: _Plan, kept, rows, gd_src, n_path_sources, out_paths,

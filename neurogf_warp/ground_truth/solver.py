@@ -30,6 +30,8 @@ MAX_BATCH = 512
 REORDER = True  # number the solver's vertices along a Morton curve (memory locality; results in mesh order)
 CPU_CHUNK_SECONDS = 0.25  # one CPU launch of the relaxation loop; Ctrl-C is seen between launches
 LOAD_WORKERS = 16  # threads compiling Warp modules before the first capture (load_for_capture)
+CPU_MEMORY_SHARE = 0.4  # of the available memory, at most, for one CPU solver's state (worker processes each
+# build their own solver, which sees what the others left)
 
 
 def spatial_order(points: np.ndarray, bits: int = 16) -> np.ndarray:
@@ -61,6 +63,27 @@ def _kernels():
     from neurogf_warp.kernels import ground_truth as kg  # imported lazily so `import neurogf_warp` stays light
 
     return kg
+
+
+def available_memory(device) -> float | None:
+    """Bytes free on a CUDA ``device``, or the system's available memory for the CPU (``MemAvailable`` in
+    /proc/meminfo, else free pages); None where it cannot be told."""
+    if device.is_cuda:
+        free = getattr(device, "free_memory", None)
+        return float(free) if free else None
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024.0
+    except OSError:
+        pass
+    try:
+        import os
+
+        return float(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
 
 
 def load_kernels(device=None) -> None:
@@ -103,8 +126,11 @@ class GeodesicSolver:
         Exact unfolding windows (on: default accuracy; off: the plain Steiner graph). Upper bounds either way.
     device : str or warp.Device, optional
     batch : int, optional
-        Source rows solved together. Default: from a memory budget (25% of the free device memory on CUDA,
-        1 GB on CPU) at BYTES_PER_NODE per row and node, at most 512 (and at most `max_rows`).
+        Source rows solved together. Default: from a memory budget (25% of the free device memory on CUDA;
+        on the CPU 1 GB, or less where less memory is available) at BYTES_PER_NODE per row and node, at most 512
+        (and at most `max_rows`). On the CPU a given batch is lowered to the rows that fit in
+        ``CPU_MEMORY_SHARE`` of the available memory (the rows are the same; only their grouping changes).
+        MemoryError (before anything is allocated) where even one row does not fit.
     max_iter : int
         Safety cap on iterations.
     delta : float
@@ -150,22 +176,29 @@ class GeodesicSolver:
         self.n_nodes = self.nv + len(self.nodes[1])
         if self.n_nodes >= 2**31 - 1:
             raise ValueError(f"mesh too large for int32 node ids at k={self.k} ({self.n_nodes} nodes); lower k")
-        free = None
+        free = available_memory(self.device)
         if memory_budget is None:
-            memory_budget = 1e9
             if self.device.is_cuda:
-                free = getattr(self.device, "free_memory", None)
-                memory_budget = 0.25 * float(free) if free else 8e9
+                memory_budget = 0.25 * free if free else 8e9
+            else:
+                memory_budget = 1e9 if free is None else min(1e9, CPU_MEMORY_SHARE * free)
         if batch is None:
             batch = int(max(1, min(MAX_BATCH, memory_budget // self.bytes_per_row)))
             if max_rows:
                 batch = min(batch, int(max_rows))
-        self.batch = _count("batch", batch)
+        batch = _count("batch", batch)
+        if self.device.is_cpu and free is not None:
+            # the dataset's CPU batch of 8 rows was 19 GB of state on a 2.2M-vertex mesh at k=3: the process was
+            # killed by the kernel's out-of-memory killer (24 GB machine, benchmarks/RESULTS.md, eleventh session)
+            batch = min(batch, max(1, int(CPU_MEMORY_SHARE * free // self.bytes_per_row)))
+        self.batch = batch
         need = self.batch * self.bytes_per_row
-        if free is not None and need > free:
+        if free is not None and need > (free if self.device.is_cuda else CPU_MEMORY_SHARE * free) \
+                and (self.device.is_cuda or need > 0.9 * free):
             raise MemoryError(f"one batch of {self.batch} source rows needs {need / 1e9:.2f} GB of solver state "
-                              f"({self.bytes_per_row / 1e9:.3f} GB per row at k={self.k}) but {self.device} has "
-                              f"{free / 1e9:.2f} GB free; lower batch or k, or use a smaller mesh")
+                              f"({self.bytes_per_row / 1e9:.3f} GB per row at k={self.k}, {self.n_nodes:,} graph "
+                              f"nodes) but {self.device} has {free / 1e9:.2f} GB available; lower batch or k, "
+                              "or use a smaller (decimated) mesh")
         self.timings = {"setup_s": time.perf_counter() - t0, "solve_s": 0.0, "iterations": []}
         try:
             self._alloc()
