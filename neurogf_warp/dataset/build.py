@@ -450,10 +450,15 @@ HELD_OUT_MARGIN = 1.5
 HELD_OUT_SLACK_S = 10.0
 
 
-def gpu_seconds_per_source(n_vertices: int, table=GPU_S_PER_SOURCE) -> float:
-    """Estimated GPU seconds per distance source on a mesh of ``n_vertices`` (an H100's measured rates,
-    interpolated log-log, extrapolated with the slope of the nearest two); ``table=CPU_S_PER_SOURCE`` for one CPU
-    process at k = 3."""
+def gpu_seconds_per_source(n_vertices: int) -> float:
+    """Estimated GPU seconds per distance source on a mesh of ``n_vertices`` (an H100's measured rates)."""
+    return seconds_per_source(n_vertices, GPU_S_PER_SOURCE)
+
+
+def seconds_per_source(n_vertices: int, table) -> float:
+    """Seconds per distance source on a mesh of ``n_vertices`` from a rate ``table`` of (vertices, seconds)
+    (``GPU_S_PER_SOURCE``, ``CPU_S_PER_SOURCE``): interpolated log-log, extrapolated with the slope of the
+    nearest two."""
     v, t = np.log([p[0] for p in table]), np.log([p[1] for p in table])
     x = np.log(max(n_vertices, 1))
     i = int(np.clip(np.searchsorted(v, x) - 1, 0, len(v) - 2))
@@ -763,8 +768,6 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
         bar.refresh()
     timings["distances_s"] = time.perf_counter() - t0
     timings["distance_iterations"] = solver.timings["iterations"]
-    # Warp's modules compiled (a fresh machine) or read from its cache at the first solve, inside distances_s
-    timings["kernels_load_s"] = solver.timings.get("load_s", 0.0)
     del solver
 
     t0 = time.perf_counter()
@@ -799,7 +802,7 @@ def _check_held_out_time(m: Mesh, st: DatasetSettings, device, time_limit_s: flo
         return
     cpu = resolve_device(device).is_cpu
     n = len(m.vertices)
-    est = st.n_test * gpu_seconds_per_source(n, CPU_S_PER_SOURCE if cpu else GPU_S_PER_SOURCE)
+    est = st.n_test * seconds_per_source(n, CPU_S_PER_SOURCE if cpu else GPU_S_PER_SOURCE)
     if est <= time_limit_s + max(HELD_OUT_MARGIN * time_limit_s, HELD_OUT_SLACK_S):
         return
     from neurogf_warp.common.checks import InputError

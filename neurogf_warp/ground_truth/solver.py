@@ -193,8 +193,8 @@ class GeodesicSolver:
             batch = min(batch, max(1, int(CPU_MEMORY_SHARE * free // self.bytes_per_row)))
         self.batch = batch
         need = self.batch * self.bytes_per_row
-        if free is not None and need > (free if self.device.is_cuda else CPU_MEMORY_SHARE * free) \
-                and (self.device.is_cuda or need > 0.9 * free):
+        # (on the CPU a single row may take more than CPU_MEMORY_SHARE, not more than there is)
+        if free is not None and need > (free if self.device.is_cuda else 0.9 * free):
             raise MemoryError(f"one batch of {self.batch} source rows needs {need / 1e9:.2f} GB of solver state "
                               f"({self.bytes_per_row / 1e9:.3f} GB per row at k={self.k}, {self.n_nodes:,} graph "
                               f"nodes) but {self.device} has {free / 1e9:.2f} GB available; lower batch or k, "
