@@ -265,7 +265,8 @@ def test_a_time_limit_the_held_out_rows_cannot_keep_is_refused_before_any_solve(
         raise AssertionError("no solve may start")
 
     monkeypatch.setattr(S.GeodesicSolver, "__init__", never)
-    V, F = trimesh.creation.icosphere(subdivisions=2).vertices, trimesh.creation.icosphere(subdivisions=2).faces
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    V, F = sphere.vertices, sphere.faces
     # pretend this small mesh costs what 2.2M vertices cost on the CPU
     monkeypatch.setattr(D, "CPU_S_PER_SOURCE", ((100, 100.0), (1000, 1000.0)))
     with pytest.raises(InputError, match=r"held-out sources .* Give at least ~\d+ s .*decimate"):

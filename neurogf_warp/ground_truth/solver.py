@@ -313,13 +313,13 @@ class GeodesicSolver:
         # where capture is not available the same program runs from the host.
         graph = self._graphs.get(name)
         if graph is None:
-            # Every imported module loads in parallel first (serially, at the capture, the solver's own two took
-            # 5.3 of 9.5 s of a fresh H100's first solve), so that the capture's own force-load finds them loaded:
-            # with force_module_load=False (6.2 s less on a fresh H100) 3 of 17 H100 training runs had the "start"
-            # capture fail (CUDA error 906, a memset on the legacy stream) and ran the host loop; not understood.
-            t0 = time.perf_counter()
-            load_for_capture(self.device)
-            self.timings["load_s"] = self.timings.get("load_s", 0.0) + time.perf_counter() - t0
+            # Before this solver's first capture every imported module loads in parallel (serially, at the capture,
+            # the solver's own two took 5.3 of 9.5 s of a fresh H100's first solve), so that the capture's own
+            # force-load finds them loaded: with force_module_load=False (6.2 s less on a fresh H100) 3 of 17 H100
+            # training runs had the "start" capture fail (CUDA error 906, a memset on the legacy stream) and ran
+            # the host loop; not understood.
+            if not self._graphs:
+                load_for_capture(self.device)
             try:
                 with wp.ScopedCapture(device=self.device, force_module_load=True) as cap:
                     program()
