@@ -207,10 +207,41 @@ def test_time_limit_keeps_whole_solver_batches_in_order(two_blobs):
             D.build_dataset(two_blobs, None, time_limit_s=bad, **opts)
 
 
-def test_a_time_limit_covers_test_sources_and_paths_too():
+def test_paths_traced_in_the_distance_pass_are_geodesics_from_their_sources(two_blobs, monkeypatch):
+    """On a GPU the paths are traced from the distance pass's own runs (no second solve of the path sources): the
+    same layout as the separate path phase, every path from its source to a vertex of the same part, as long as
+    the geodesic distance there (resampling only cuts corners). Forced here on the CPU with one process."""
+    from neurogf_warp.ground_truth.solver import GeodesicSolver
+
+    monkeypatch.setattr(D, "trace_with_distances", lambda device: True)
+    opts = dict(SMALL, n_sources=8, batch=3, n_path_sources=5, workers=1)
+    d = D.build_dataset(two_blobs, None, **opts)
+    t = d.meta["timings"]
+    assert t["paths_traced_with_distances"] and t["path_iterations"] == [] and d.meta["complete"]
+    assert d.path_global.shape == (5 * 4, 128, 3) and d.path_local.shape == (5 * 3, 32, 3)  # across 2 batches
+    assert set(d.path_global_src) == set(d.path_local_src) == set(d.gd_src[:5])
+    V = d.vertices
+    sources = np.unique(d.path_global_src)
+    field = GeodesicSolver(two_blobs, device="cpu", batch=len(sources)).solve(sources)
+    for paths, src in ((d.path_global, d.path_global_src), (d.path_local, d.path_local_src)):
+        np.testing.assert_allclose(paths[:, 0], V[src], atol=1e-5)
+        end = np.argmin(np.linalg.norm(V[None] - paths[:, -1].reshape(-1, 1, 3), axis=2), axis=1)
+        np.testing.assert_allclose(paths[:, -1], V[end], atol=1e-5)  # each ends on its target vertex
+        length = np.linalg.norm(np.diff(paths.astype(np.float64), axis=1), axis=2).sum(1)
+        geo = field[np.searchsorted(sources, src), end]
+        assert np.all(np.isfinite(geo))  # never across parts
+        assert np.all(length <= geo * (1 + 1e-3) + 1e-6) and np.all(length >= 0.97 * geo), (length / geo).min()
+    with pytest.raises(RuntimeError, match="only when this process solves every row"):
+        D.build_dataset(two_blobs, None, **dict(opts, workers=2))
+
+
+@pytest.mark.parametrize("with_distances", [False, True], ids=["path phase", "paths in the distance pass"])
+def test_a_time_limit_covers_test_sources_and_paths_too(with_distances, monkeypatch):
     """The limit once stopped only the distance sources; the test sources and every path came after it, so a
     48K-vertex mesh's dataset took 54 s of its 40 s (issue 24). Now the whole build ends within the limit, give
-    or take one solver batch, and says it is incomplete."""
+    or take one solver batch, and says it is incomplete: with a path phase (CPU) and with the paths traced in the
+    distance pass (GPU; forced here)."""
+    monkeypatch.setattr(D, "trace_with_distances", lambda device: with_distances)
     tm = trimesh.creation.icosphere(subdivisions=4)
     opts = dict(n_sources=400, n_path_sources=400, n_global=64, n_local1=8, n_local2=32, n_path_global=16,
                 n_path_local=8, n_test=4, n_spread=2000, batch=8, workers=1)

@@ -418,21 +418,19 @@ def nearest_first(d: np.ndarray, s: int, n: int) -> np.ndarray:
     return idx[np.argsort(d[idx], kind="stable")][:n]
 
 
-# Under a time limit the paths get its last PATH_SHARE: the distance sources stop when their next batch would end
-# past the rest, and the path sources stop at the limit. (Estimating the paths' cost from the distance batches was
+# Under a time limit on the CPU the paths get its last PATH_SHARE: the distance sources stop when their next batch
+# would end past the rest, and the path sources stop at the limit (on a GPU the paths come with the distances). (Estimating the paths' cost from the distance batches was
 # tried first: on a loaded 2-core machine the first batch's start-up made it stop spot's distances after 8 sources)
 PATH_SHARE = 0.25
 
 # Under a time limit on a GPU, one solver batch must fit well inside its share of the limit: the solver's own batch
 # (a memory budget: 512 sources on the bunny) took ~4 s for distances and ~12 s for paths on an H100, a 20 s
-# budget's whole dataset share and more. The first distance batch is sized from an estimate (an H100's seconds
-# per source measured on meshes of four sizes, interpolated log-log); the path batch from the distance sources'
-# measured rate, a path source costing ~PATH_COST distance sources (solve with path records, trace, resample). A
+# budget's whole dataset share and more. The batch is sized from an estimate (an H100's seconds per distance source
+# measured on meshes of four sizes, interpolated log-log; the paths traced in the same pass cost ~0.7x more). A
 # batch smaller than the GPU can hold costs little per source on meshes of 30K+ vertices (each row is one
 # mesh-sized sweep), but much below ~64 rows the sweeps stop filling the GPU (igea: 31 sources/s in batches of 16,
 # 54 in batches of 64).
 DISTANCE_BATCH_SHARE = 0.12  # of the limit, per distance batch
-PATH_COST = 1.5  # cow 2.2 ms / 1.7, bunny 14 / 11 ms per source (H100, benchmarks/RESULTS.md, 2026-11-24)
 # (vertices, seconds per distance source) on an H100, batches of 64+ (benchmarks/RESULTS.md, 2026-11-24): the
 # bunny, igea, and the bunny subdivided twice and three times
 GPU_S_PER_SOURCE = ((34_834, 5.0e-3), (134_345, 1.86e-2), (556_051, 0.100), (2_223_321, 0.833))
@@ -552,12 +550,14 @@ def _sample(m: Mesh, st: DatasetSettings, rng, surface_mesh: Mesh | None = None,
 
 
 def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _Clock, bar,
-               test_dist: np.ndarray | None = None) -> tuple:
+               test_dist: np.ndarray | None = None, found: _PathSet | None = None) -> tuple:
     """Phase 2: the test sources' full rows (unless given as ``test_dist``), then distance sources in order, as
-    many as the time limit allows while keeping its last ``PATH_SHARE`` for the paths (at least one batch).
+    many as the time limit allows (at least one batch) while keeping its last ``PATH_SHARE`` for phase 3's paths.
+    With ``found`` (``trace_with_distances``) the paths of the first ``plan.n_path_sources`` sources are traced
+    from the same runs into it, and no time is kept for phase 3.
 
     Returns (kept source ids, {"global"|"local1"|"local2": [(n, 7) rows per kept source]}, sources solved,
-    (T, V) test distances, worker batches).
+    (T, V) test distances, worker batches, path sources traced).
     """
     xyz = m.normalized_vertices.astype(np.float32)
     step = solver.batch
@@ -569,7 +569,12 @@ def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _C
         test_dist = np.zeros((len(plan.test_src), len(m.vertices)), np.float32)
     # marks: (time, sources back) per batch back; started: batch start times (batch 0 starts now, unasked)
     solved, marks, started = [0], [], [time.perf_counter()]
+    traced = 0
+    keep = 0.0 if found is not None else PATH_SHARE  # of the limit, for phase 3
     with DistanceRows(solver, st.workers) as rows_of:
+        if found is not None and rows_of.workers != 1:  # a worker's rows would be traced on this solver's run
+            raise RuntimeError("paths are traced in the distance pass only when this process solves every row")
+
         def more(i):  # asked before batch i > 0 starts: tests and one distance batch always, then by the clock
             now = time.perf_counter()
             if i <= len(tests) or clock.limit is None:
@@ -579,7 +584,7 @@ def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _C
                 per = (now - marks[0][0]) / max(marks[-1][1] - marks[0][1], 1)
             else:  # asked (by a worker's feeder) before the second batch came back: since that batch started
                 per = (now - started[-1]) / step
-            if clock.left() - PATH_SHARE * clock.limit < step * per:
+            if clock.left() - keep * clock.limit < step * per:
                 return False
             started.append(now)
             return True
@@ -591,6 +596,7 @@ def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _C
                 bar.update(len(D))
                 continue
             src = batches[b]
+            first = solved[0]  # the batch's place among the distance sources
             solved[0] += len(src)
             for j, s in enumerate(src):
                 tg = _Targets(D[j], s, plan.target_set, plan.nball)
@@ -604,60 +610,90 @@ def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _C
                 rows["local1"].append(_rows(xyz, s, near, tg.d))
                 rows["local2"].append(_rows(xyz, s, _pick(rng, pool, st.n_local2), tg.d))
             bar.update(len(src))
+            n_trace = min(len(src), plan.n_path_sources - first) if found is not None else 0
+            if n_trace > 0:  # the solver still holds this batch's path records (DistanceRows yields before the next)
+                found.trace(solver, D[:n_trace], src[:n_trace], plan, st, rng)
+                traced += n_trace
+                bar.update(n_trace)
         worker_batches = rows_of.worker_batches
     if not kept:
         raise ValueError("no training source reaches any other vertex: the mesh has no usable connected part")
-    return kept, rows, solved[0], test_dist, worker_batches
+    return kept, rows, solved[0], test_dist, worker_batches, traced
+
+
+class _PathSet:
+    """Traced ground-truth paths as they come, per kind ("global": GLOBAL_PATH_POINTS points, "local":
+    LOCAL_PATH_POINTS), with their source ids and the count of paths the solver flagged."""
+
+    def __init__(self):
+        self.paths = {"global": [], "local": []}
+        self.src_of = {"global": [], "local": []}
+        self.stale = 0
+
+    def trace(self, solver, D: np.ndarray, src: np.ndarray, plan: "_Plan", st: "DatasetSettings", rng) -> None:
+        """Paths from the sources ``src`` of ``solver``'s last run (rows 0..len(src)-1, distances ``D``) to
+        ``st.n_path_global`` random reachable targets and ``st.n_path_local`` in the local ball of each."""
+        row_of, targets, count = [], [], []
+        for j, s in enumerate(src):
+            tg = _Targets(D[j], s, plan.target_set, plan.nball)
+            for kind, pool, n in (("global", tg.reach, st.n_path_global), ("local", tg.local, st.n_path_local)):
+                t = _pick(rng, pool, n)
+                targets.append(t)
+                row_of.append(np.full(len(t), j))
+                count.append((kind, s, len(t)))
+        pts, offs, flags = solver.trace(np.concatenate(row_of), np.concatenate(targets))
+        self.stale += int(np.sum(flags != 0))
+        n_of = [n for _, _, n in count]
+        kinds = np.repeat([kind == "global" for kind, _, _ in count], n_of).astype(bool)
+        src_of = np.repeat(np.array([s for _, s, _ in count], dtype=np.int64), n_of)
+        for kind, m_pts, sel in (("global", GLOBAL_PATH_POINTS, kinds), ("local", LOCAL_PATH_POINTS, ~kinds)):
+            if sel.any():  # the batch's paths of one kind in one launch
+                self.paths[kind].append(resample_polylines(pts, offs[:-1][sel], offs[1:][sel], m_pts, solver.device))
+                self.src_of[kind].append(src_of[sel])
+
+    def arrays(self) -> tuple:
+        """({kind: ((K, M, 3) float32 paths, (K,) source ids)}, paths dropped): a path with a non-finite point
+        (one the solver flagged) is left out and counted."""
+        dropped, out = 0, {}
+        for kind, m_pts in (("global", GLOBAL_PATH_POINTS), ("local", LOCAL_PATH_POINTS)):
+            p = np.concatenate(self.paths[kind]) if self.paths[kind] else np.zeros((0, m_pts, 3), np.float32)
+            src_of = np.concatenate(self.src_of[kind]) if self.src_of[kind] else np.zeros(0, np.int64)
+            ok = np.isfinite(p).all(axis=(1, 2))
+            dropped += int(np.sum(~ok))
+            out[kind] = (p[ok].astype(np.float32), src_of[ok])
+        return out, dropped
 
 
 def _paths(m: Mesh, st: DatasetSettings, plan: _Plan, path_src: np.ndarray, rng, batch, device, clock: _Clock,
-           bar, max_rows: int) -> tuple:
-    """Phase 3: ground-truth paths from ``path_src`` (near-Dijkstra order, so every traced polyline is as long as
-    its distance), batch by batch while the time limit allows (at least one batch).
+           bar, max_rows: int, found: _PathSet) -> tuple:
+    """Phase 3 (where phase 2 did not trace them): ground-truth paths from ``path_src`` (near-Dijkstra order, so
+    every traced polyline is as long as its distance) into ``found``, batch by batch while the time limit allows
+    (at least one batch).
 
-    Returns ({"global"|"local": ((K, M, 3) float32 paths, (K,) source ids)}, stale traces, dropped paths,
-    solver iterations, path sources done).
+    Returns (solver iterations, path sources done).
     """
-    paths = {"global": [], "local": []}
-    path_of = {"global": [], "local": []}
-    stale, iterations, done = 0, [], 0
+    iterations, done = [], 0
     if len(path_src):
         ps = GeodesicSolver(m, k=st.k, device=device, batch=batch, delta=PATH_DELTA, max_rows=max_rows)
         for i in range(0, len(path_src), ps.batch):
             t_batch = time.perf_counter()
             src = path_src[i: i + ps.batch]
             ps.run(src)
-            D = ps.vertex_distances()
-            row_of, targets, count = [], [], []
-            for j, s in enumerate(src):
-                tg = _Targets(D[j], s, plan.target_set, plan.nball)
-                for kind, pool, n in (("global", tg.reach, st.n_path_global), ("local", tg.local, st.n_path_local)):
-                    t = _pick(rng, pool, n)
-                    targets.append(t)
-                    row_of.append(np.full(len(t), j))
-                    count.append((kind, s, len(t)))
-            pts, offs, st_flags = ps.trace(np.concatenate(row_of), np.concatenate(targets))
-            stale += int(np.sum(st_flags != 0))
-            n_of = [n for _, _, n in count]
-            kinds = np.repeat([kind == "global" for kind, _, _ in count], n_of).astype(bool)
-            src_of = np.repeat(np.array([s for _, s, _ in count], dtype=np.int64), n_of)
-            for kind, m_pts, sel in (("global", GLOBAL_PATH_POINTS, kinds), ("local", LOCAL_PATH_POINTS, ~kinds)):
-                if sel.any():  # the batch's paths of one kind in one launch
-                    paths[kind].append(resample_polylines(pts, offs[:-1][sel], offs[1:][sel], m_pts, ps.device))
-                    path_of[kind].append(src_of[sel])
+            found.trace(ps, ps.vertex_distances(), src, plan, st, rng)
             bar.update(len(src))
             done += len(src)
             if clock.left() < time.perf_counter() - t_batch:  # the next batch would end past the limit
                 break
         iterations = ps.timings["iterations"]
-    dropped, out = 0, {}
-    for kind, m_pts in (("global", GLOBAL_PATH_POINTS), ("local", LOCAL_PATH_POINTS)):
-        p = np.concatenate(paths[kind]) if paths[kind] else np.zeros((0, m_pts, 3), np.float32)
-        src_of = np.concatenate(path_of[kind]) if path_of[kind] else np.zeros(0, np.int64)
-        ok = np.isfinite(p).all(axis=(1, 2))
-        dropped += int(np.sum(~ok))
-        out[kind] = (p[ok].astype(np.float32), src_of[ok])
-    return out, stale, dropped, iterations, done
+    return iterations, done
+
+
+def trace_with_distances(device) -> bool:
+    """Whether the distance pass traces the paths of its own runs (phase 2), instead of solving the path sources
+    again in phase 3: on a GPU, where one in-process solver makes every distance row. On the CPU the rows may come
+    from worker processes (``DistanceRows``), which return distances only; phase 3 keeps the dataset the same
+    with any number of workers."""
+    return not resolve_device(device).is_cpu
 
 
 def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, *, seed: int = 0, device=None,
@@ -675,10 +711,10 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
         processes, one per core by default; the result does not depend on how many: ``ground_truth/workers.py``)
     progress : a progress bar on stderr
     time_limit_s : seconds (from the start of the call) that the whole build may take: distance sources stop
-        between solver batches when the next batch would end in the last ``PATH_SHARE`` of it (at least one batch
-        is solved), and the path sources stop between batches at the limit (at least one). The dataset then has fewer than
-        ``n_sources`` distance sources or fewer path sources, and its meta says ``"complete": False``. The test
-        sources are always solved (first). None (default) solves them all.
+        between solver batches when the next batch would end past it (on the CPU: in its last ``PATH_SHARE``, and
+        the path sources stop between batches at the limit); at least one batch of each is solved. The dataset
+        then has fewer than ``n_sources`` distance sources or fewer path sources, and its meta says
+        ``"complete": False``. The test sources are always solved (first). None (default) solves them all.
 
     A mesh too large for ``time_limit_s`` on a GPU (``auto_proxy``), or any mesh with ``proxy=N`` set, has its
     distance and path sources solved on a QSlim proxy of about N vertices (``dataset/proxy.py``); the held-out
@@ -690,7 +726,8 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     Dataset
 
     Phases (one function each): ``_sample`` (sources, targets' pools, surface points), ``_distances`` (test and
-    distance sources with the solver, on every core), ``_paths`` (traced ground-truth paths), ``_assemble``.
+    distance sources with the solver, on every core; on a GPU also the paths, traced from the same runs),
+    ``_paths`` (on the CPU: the path sources solved again and traced), ``_assemble``.
     """
     settings = dataclasses.replace(settings or DatasetSettings(), **overrides).validate()
     if time_limit_s is not None:
@@ -761,24 +798,27 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
             plan = _sample(m, st, rng, test_src=test_src)
             timings["sampling_s"] += time.perf_counter() - t1
             solver = solver_for(m)
-    kept, rows, solved, test_dist, timings["worker_batches"] = _distances(g, st, plan, rng, solver, clock, bar,
-                                                                          test_dist)
+    found = _PathSet()
+    here = trace_with_distances(device)
+    kept, rows, solved, test_dist, timings["worker_batches"], n_path_done = _distances(
+        g, st, plan, rng, solver, clock, bar, test_dist, found if here else None)
     if solved < len(plan.gd_src):  # the time limit cut the sources short
         bar.total = solved + len(plan.test_src) + min(plan.n_path_sources, solved)
         bar.refresh()
-    timings["distances_s"] = time.perf_counter() - t0
+    timings["distances_s"] = time.perf_counter() - t0  # with the paths traced in the pass, when ``here``
     timings["distance_iterations"] = solver.timings["iterations"]
+    timings["paths_traced_with_distances"] = here
     del solver
 
     t0 = time.perf_counter()
     gd_src = plan.gd_src[:solved]
-    path_src = gd_src[:min(plan.n_path_sources, len(gd_src))]
-    path_rows = len(path_src)
-    if batch is None and time_limit_s is not None and solved:  # from the distance sources' measured rate
-        per = timings["distances_s"] / (solved + len(plan.test_src))
-        path_rows = min(path_rows, limited_batch(PATH_SHARE * time_limit_s / 2, PATH_COST * per))
-    out_paths, stale, dropped, timings["path_iterations"], n_path_done = _paths(g, st, plan, path_src, rng, batch,
-                                                                                 device, clock, bar, path_rows)
+    timings["path_iterations"] = []
+    if not here:  # the CPU: the path sources solved again, in the CPU's batches
+        path_src = gd_src[:min(plan.n_path_sources, len(gd_src))]
+        timings["path_iterations"], n_path_done = _paths(g, st, plan, path_src, rng, batch, device, clock, bar,
+                                                         len(path_src), found)
+    out_paths, dropped = found.arrays()
+    stale = found.stale
     if fine_of is not None:  # every id the dataset stores is the fine mesh's (rows and paths carry coordinates)
         kept, gd_src = fine_of[np.asarray(kept, np.int64)], fine_of[gd_src]
         out_paths = {k: (p, fine_of[src]) for k, (p, src) in out_paths.items()}
