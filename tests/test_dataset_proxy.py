@@ -1,5 +1,7 @@
 """Training sources on a QSlim proxy of a large mesh (dataset/proxy.py): rows in the fine mesh's frame and ids,
 held-out rows from the mesh itself, the proxy dropped when it is too far off, the automatic size rule."""
+import dataclasses
+
 import numpy as np
 import pytest
 import trimesh
@@ -123,6 +125,34 @@ def test_auto_proxy_sizes(V, limit, expect):
         assert fits(V)
     fewer = D.auto_proxy(V, 256, limit)  # fewer sources asked: the same mesh, a larger proxy, or none
     assert fewer == 0 or (n and fewer >= n)
+
+
+def test_the_cpu_rate_goes_through_its_tables_and_grows_with_k():
+    for (v, t1), (_, t3) in zip(D.CPU_S_PER_SOURCE_K1, D.CPU_S_PER_SOURCE):
+        assert abs(D.cpu_seconds_per_source(v, 1) / t1 - 1) < 1e-9 and abs(D.cpu_seconds_per_source(v, 3) / t3 - 1) < 1e-9
+    assert D.cpu_seconds_per_source(80_000, 1) < D.cpu_seconds_per_source(80_000, 2) < D.cpu_seconds_per_source(80_000, 3)
+
+
+@pytest.mark.parametrize("V,k,limit,workers,expect", [
+    (134_345, 1, 40.0, 2, (30_000, 30_000)),      # igea at 120 s (cpu_large): its own sources take ~1 s a process
+    (134_345, 1, 100.0, 2, (30_000, 30_000)),     # at 300 s still far from 768 of its own: the smallest proxy
+    (556_051, 1, 4000.0, 2, (100_000, 278_025)),  # a long budget: a larger proxy, at most half the mesh
+    (134_345, 1, 1e6, 2, (0, 0)),                 # a budget that fits its own sources: the mesh itself
+    (50_000, 1, 40.0, 2, (0, 0)),                 # below 2 x PROXY_MIN_VERTICES: never decimated
+    (134_345, 1, None, 2, (0, 0)),                # no time limit
+])
+def test_cpu_builds_get_a_proxy_from_the_cpu_rates(V, k, limit, workers, expect):
+    """On the CPU the proxy rule reads the CPU's rate tables at the build's k, shared by its processes; a batch
+    set by hand (the caller sizes the solves) or a GPU with a batch set by hand keeps the mesh."""
+    mesh = load_mesh(trimesh.creation.icosphere(subdivisions=1))
+    mesh = dataclasses.replace(mesh, vertices=np.zeros((V, 3)))  # only its size is read
+    st = D.DatasetSettings(k=k, n_sources=768, workers=workers)
+    n = D._auto_proxy(mesh, st, "cpu", D.solver_batch(None, "cpu"), limit)
+    assert expect[0] <= n <= expect[1]
+    if n:
+        per = D.PROXY_SHARE * limit / (768 * D.DATASET_SLOWDOWN)
+        assert D.cpu_seconds_per_source(V, k) / workers > per  # its own sources would not fit
+    assert D._auto_proxy(mesh, dataclasses.replace(st, batch=8), "cpu", 8, limit) == 0
 
 
 @pytest.mark.filterwarnings("ignore::neurogf_warp.training.quality.ModelQualityWarning")  # 10 steps: of course

@@ -16,7 +16,7 @@ how "local" was chosen):
 - local_2 and local path targets: random vertices among the `local_ball` (default 5% of V, at least
   4*n_local2) nearest to the source by geodesic distance;
 - a ground-truth path with a non-finite point (the solver could not trace it) is left out and counted.
-- a proxy (``proxy`` setting, or a large mesh under a time limit on a GPU): spread vertices, distance and path
+- a proxy (``proxy`` setting, or a mesh too large for its time limit): spread vertices, distance and path
   sources, targets and paths come from a QSlim proxy in the mesh's frame (``dataset/proxy.py``), stored ids are
   the fine vertices nearest to the proxy's; surface points and held-out rows are the mesh's own.
 """
@@ -36,7 +36,7 @@ from neurogf_warp.common.checks import integer, number
 from neurogf_warp.common.files import atomic_write
 from neurogf_warp.dataset.proxy import pin_vertices, proxy_error, proxy_mesh
 from neurogf_warp.ground_truth.geodesics import DEFAULT_K, PATH_DELTA, GeodesicSolver, resample_polylines
-from neurogf_warp.ground_truth.workers import DistanceRows
+from neurogf_warp.ground_truth.workers import MAX_WORKERS, DistanceRows, cpu_cores
 from neurogf_warp.mesh.mesh import Mesh, load_mesh
 
 __all__ = ["Dataset", "DatasetSettings", "build_dataset", "load_dataset", "check_trainable", "sdf_truth",
@@ -440,6 +440,7 @@ MIN_LIMITED_BATCH = 16
 # (vertices, seconds per distance source at k = 3) of one process on a 2-core CPU (the bunny, subdivided once and
 # twice; 2026-11-27, a machine about half as fast per training step as the one of 2026-11-25)
 CPU_S_PER_SOURCE = ((34_834, 1.0), (139_122, 4.06), (556_051, 19.9))
+CPU_S_PER_SOURCE_K1 = ((34_834, 0.26), (139_122, 1.00), (556_051, 4.94))  # the same runs at k = 1
 # The held-out sources are solved before anything else, at k = 3 on the mesh itself, in one solver batch (one
 # process). A time limit that their estimated time exceeds by more than HELD_OUT_MARGIN x itself and by more than
 # HELD_OUT_SLACK_S cannot be kept: refused (the estimate may be 2x off on another machine; a limit of 0, "as little
@@ -461,6 +462,14 @@ def seconds_per_source(n_vertices: int, table) -> float:
     x = np.log(max(n_vertices, 1))
     i = int(np.clip(np.searchsorted(v, x) - 1, 0, len(v) - 2))
     return float(np.exp(t[i] + (t[i + 1] - t[i]) * (x - v[i]) / (v[i + 1] - v[i])))
+
+
+def cpu_seconds_per_source(n_vertices: int, k: int) -> float:
+    """Estimated seconds per distance source of one CPU process at ``k`` Steiner points per edge (the tables at
+    k = 1 and k = 3; linear in k between and beyond them, as the graph's size is)."""
+    t1 = seconds_per_source(n_vertices, CPU_S_PER_SOURCE_K1)
+    t3 = seconds_per_source(n_vertices, CPU_S_PER_SOURCE)
+    return max(t1 + (k - 1) * (t3 - t1) / 2, 0.5 * t1)
 
 
 def limited_batch(seconds: float, per_source: float) -> int:
@@ -488,21 +497,22 @@ PROXY_MAX_MRE = 0.003
 DATASET_SLOWDOWN = 2.0
 
 
-def auto_proxy(n_vertices: int, n_sources: int, time_limit_s: float | None) -> int:
-    """Vertices of the proxy a GPU build under ``time_limit_s`` uses for ``n_sources`` asked on a mesh of
-    ``n_vertices`` (0: none, the fine mesh is affordable or no limit is set)."""
+def auto_proxy(n_vertices: int, n_sources: int, time_limit_s: float | None, rate=gpu_seconds_per_source) -> int:
+    """Vertices of the proxy a build under ``time_limit_s`` uses for ``n_sources`` asked on a mesh of
+    ``n_vertices`` (0: none, the fine mesh is affordable or no limit is set). ``rate(v)``: the estimated seconds a
+    distance source of a v-vertex mesh takes (default: an H100's; on the CPU, one process's over the processes)."""
     if time_limit_s is None or n_vertices < 2 * PROXY_MIN_VERTICES:
         return 0
     want = min(n_sources, PROXY_SOURCES)
     per = PROXY_SHARE * time_limit_s / (want * DATASET_SLOWDOWN)  # table seconds a source may take
-    if gpu_seconds_per_source(n_vertices) <= per:
+    if rate(n_vertices) <= per:
         return 0
     lo, hi = PROXY_MIN_VERTICES, n_vertices // 2  # the largest size whose estimated rate fits: bisection
-    if gpu_seconds_per_source(lo) > per:
+    if rate(lo) > per:
         return lo
     while hi - lo > 1000:
         mid = (lo + hi) // 2
-        lo, hi = (mid, hi) if gpu_seconds_per_source(mid) <= per else (lo, mid)
+        lo, hi = (mid, hi) if rate(mid) <= per else (lo, mid)
     return lo
 
 
@@ -716,7 +726,8 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
         then has fewer than ``n_sources`` distance sources or fewer path sources, and its meta says
         ``"complete": False``. The test sources are always solved (first). None (default) solves them all.
 
-    A mesh too large for ``time_limit_s`` on a GPU (``auto_proxy``), or any mesh with ``proxy=N`` set, has its
+    A mesh too large for ``time_limit_s`` (``auto_proxy``, from the GPU's or the CPU's rates), or any mesh with
+    ``proxy=N`` set, has its
     distance and path sources solved on a QSlim proxy of about N vertices (``dataset/proxy.py``); the held-out
     test sources are still solved on the mesh itself, on both, and the proxy is dropped (back to the mesh) when
     its distances from them are more than ``PROXY_MAX_MRE`` off. ``meta["proxy"]`` says what happened.
@@ -744,8 +755,7 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
 
     batch = solver_batch(st.batch, device)
     _check_held_out_time(m, st, device, time_limit_s)
-    n_proxy = st.proxy if st.proxy is not None else \
-        (auto_proxy(len(m.vertices), st.n_sources, time_limit_s) if batch is None else 0)
+    n_proxy = st.proxy if st.proxy is not None else _auto_proxy(m, st, device, batch, time_limit_s)
     g, fine_of, proxy_meta = m, None, None  # g: the mesh the training sources are solved on
     if n_proxy and 2 * n_proxy <= len(m.vertices):
         t0 = time.perf_counter()
@@ -832,6 +842,19 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     if out_path is not None:
         ds.save(out_path)
     return ds
+
+
+def _auto_proxy(m: Mesh, st: DatasetSettings, device, batch, time_limit_s: float | None) -> int:
+    """``auto_proxy`` for this build: on a GPU at the solver's own batch, from the H100 table; on the CPU at its
+    own batch, from the CPU tables at the build's k over its processes. On the CPU a 134K-vertex mesh at 120 s got
+    8 training sources on its own mesh, 768 asked (benchmarks/RESULTS.md, twelfth session)."""
+    if batch is None:
+        return auto_proxy(len(m.vertices), st.n_sources, time_limit_s)
+    if st.batch is not None or not resolve_device(device).is_cpu:
+        return 0
+    procs = min(MAX_WORKERS, cpu_cores() if st.workers is None else st.workers)
+    return auto_proxy(len(m.vertices), st.n_sources, time_limit_s,
+                      rate=lambda v: cpu_seconds_per_source(v, st.k) / procs)
 
 
 def _check_held_out_time(m: Mesh, st: DatasetSettings, device, time_limit_s: float | None) -> None:
