@@ -128,9 +128,10 @@ def test_auto_proxy_sizes(V, limit, expect):
 
 
 def test_the_cpu_rate_goes_through_its_tables_and_grows_with_k():
+    rate = D.cpu_seconds_per_source
     for (v, t1), (_, t3) in zip(D.CPU_S_PER_SOURCE_K1, D.CPU_S_PER_SOURCE):
-        assert abs(D.cpu_seconds_per_source(v, 1) / t1 - 1) < 1e-9 and abs(D.cpu_seconds_per_source(v, 3) / t3 - 1) < 1e-9
-    assert D.cpu_seconds_per_source(80_000, 1) < D.cpu_seconds_per_source(80_000, 2) < D.cpu_seconds_per_source(80_000, 3)
+        assert abs(rate(v, 1) / t1 - 1) < 1e-9 and abs(rate(v, 3) / t3 - 1) < 1e-9
+    assert rate(80_000, 1) < rate(80_000, 2) < rate(80_000, 3)
 
 
 @pytest.mark.parametrize("V,k,limit,workers,expect", [
@@ -147,12 +148,12 @@ def test_cpu_builds_get_a_proxy_from_the_cpu_rates(V, k, limit, workers, expect)
     mesh = load_mesh(trimesh.creation.icosphere(subdivisions=1))
     mesh = dataclasses.replace(mesh, vertices=np.zeros((V, 3)))  # only its size is read
     st = D.DatasetSettings(k=k, n_sources=768, workers=workers)
-    n = D._auto_proxy(mesh, st, "cpu", D.solver_batch(None, "cpu"), limit)
+    n = D._auto_proxy(mesh, st, "cpu", limit)
     assert expect[0] <= n <= expect[1]
     if n:
         per = D.PROXY_SHARE * limit / (768 * D.DATASET_SLOWDOWN)
         assert D.cpu_seconds_per_source(V, k) / workers > per  # its own sources would not fit
-    assert D._auto_proxy(mesh, dataclasses.replace(st, batch=8), "cpu", 8, limit) == 0
+    assert D._auto_proxy(mesh, dataclasses.replace(st, batch=8), "cpu", limit) == 0
 
 
 @pytest.mark.filterwarnings("ignore::neurogf_warp.training.quality.ModelQualityWarning")  # 10 steps: of course

@@ -419,8 +419,9 @@ def nearest_first(d: np.ndarray, s: int, n: int) -> np.ndarray:
 
 
 # Under a time limit on the CPU the paths get its last PATH_SHARE: the distance sources stop when their next batch
-# would end past the rest, and the path sources stop at the limit (on a GPU the paths come with the distances). (Estimating the paths' cost from the distance batches was
-# tried first: on a loaded 2-core machine the first batch's start-up made it stop spot's distances after 8 sources)
+# would end past the rest, and the path sources stop at the limit (on a GPU the paths come with the distances).
+# (Estimating the paths' cost from the distance batches was tried first: on a loaded 2-core machine the first
+# batch's start-up made it stop spot's distances after 8 sources)
 PATH_SHARE = 0.25
 
 # Under a time limit on a GPU, one solver batch must fit well inside its share of the limit: the solver's own batch
@@ -469,7 +470,7 @@ def cpu_seconds_per_source(n_vertices: int, k: int) -> float:
     k = 1 and k = 3; linear in k between and beyond them, as the graph's size is)."""
     t1 = seconds_per_source(n_vertices, CPU_S_PER_SOURCE_K1)
     t3 = seconds_per_source(n_vertices, CPU_S_PER_SOURCE)
-    return max(t1 + (k - 1) * (t3 - t1) / 2, 0.5 * t1)
+    return t1 + (k - 1) * (t3 - t1) / 2
 
 
 def limited_batch(seconds: float, per_source: float) -> int:
@@ -640,7 +641,7 @@ class _PathSet:
         self.src_of = {"global": [], "local": []}
         self.stale = 0
 
-    def trace(self, solver, D: np.ndarray, src: np.ndarray, plan: "_Plan", st: "DatasetSettings", rng) -> None:
+    def trace(self, solver, D: np.ndarray, src: np.ndarray, plan: _Plan, st: DatasetSettings, rng) -> None:
         """Paths from the sources ``src`` of ``solver``'s last run (rows 0..len(src)-1, distances ``D``) to
         ``st.n_path_global`` random reachable targets and ``st.n_path_local`` in the local ball of each."""
         row_of, targets, count = [], [], []
@@ -675,7 +676,7 @@ class _PathSet:
 
 
 def _paths(m: Mesh, st: DatasetSettings, plan: _Plan, path_src: np.ndarray, rng, batch, device, clock: _Clock,
-           bar, max_rows: int, found: _PathSet) -> tuple:
+           bar, found: _PathSet) -> tuple:
     """Phase 3 (where phase 2 did not trace them): ground-truth paths from ``path_src`` (near-Dijkstra order, so
     every traced polyline is as long as its distance) into ``found``, batch by batch while the time limit allows
     (at least one batch).
@@ -684,7 +685,7 @@ def _paths(m: Mesh, st: DatasetSettings, plan: _Plan, path_src: np.ndarray, rng,
     """
     iterations, done = [], 0
     if len(path_src):
-        ps = GeodesicSolver(m, k=st.k, device=device, batch=batch, delta=PATH_DELTA, max_rows=max_rows)
+        ps = GeodesicSolver(m, k=st.k, device=device, batch=batch, delta=PATH_DELTA, max_rows=len(path_src))
         for i in range(0, len(path_src), ps.batch):
             t_batch = time.perf_counter()
             src = path_src[i: i + ps.batch]
@@ -755,7 +756,7 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
 
     batch = solver_batch(st.batch, device)
     _check_held_out_time(m, st, device, time_limit_s)
-    n_proxy = st.proxy if st.proxy is not None else _auto_proxy(m, st, device, batch, time_limit_s)
+    n_proxy = st.proxy if st.proxy is not None else _auto_proxy(m, st, device, time_limit_s)
     g, fine_of, proxy_meta = m, None, None  # g: the mesh the training sources are solved on
     if n_proxy and 2 * n_proxy <= len(m.vertices):
         t0 = time.perf_counter()
@@ -826,7 +827,7 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     if not here:  # the CPU: the path sources solved again, in the CPU's batches
         path_src = gd_src[:min(plan.n_path_sources, len(gd_src))]
         timings["path_iterations"], n_path_done = _paths(g, st, plan, path_src, rng, batch, device, clock, bar,
-                                                         len(path_src), found)
+                                                         found)
     out_paths, dropped = found.arrays()
     stale = found.stale
     if fine_of is not None:  # every id the dataset stores is the fine mesh's (rows and paths carry coordinates)
@@ -844,14 +845,14 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     return ds
 
 
-def _auto_proxy(m: Mesh, st: DatasetSettings, device, batch, time_limit_s: float | None) -> int:
-    """``auto_proxy`` for this build: on a GPU at the solver's own batch, from the H100 table; on the CPU at its
-    own batch, from the CPU tables at the build's k over its processes. On the CPU a 134K-vertex mesh at 120 s got
-    8 training sources on its own mesh, 768 asked (benchmarks/RESULTS.md, twelfth session)."""
-    if batch is None:
-        return auto_proxy(len(m.vertices), st.n_sources, time_limit_s)
-    if st.batch is not None or not resolve_device(device).is_cpu:
+def _auto_proxy(m: Mesh, st: DatasetSettings, device, time_limit_s: float | None) -> int:
+    """``auto_proxy`` for this build: none where the solver's batch is set by hand; on a GPU from the H100 table;
+    on the CPU from the CPU tables at the build's k over its processes (a 134K-vertex mesh at 300 s had 8 training
+    sources on its own mesh, 768 asked: benchmarks/RESULTS.md, twelfth session)."""
+    if st.batch is not None:
         return 0
+    if not resolve_device(device).is_cpu:
+        return auto_proxy(len(m.vertices), st.n_sources, time_limit_s)
     procs = min(MAX_WORKERS, cpu_cores() if st.workers is None else st.workers)
     return auto_proxy(len(m.vertices), st.n_sources, time_limit_s,
                       rate=lambda v: cpu_seconds_per_source(v, st.k) / procs)
