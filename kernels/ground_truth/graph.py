@@ -34,6 +34,7 @@ class SteinerGraph:
     edge_node_start: wp.array(dtype=int)  # (E + 1,) Steiner node offsets (from nv) of each edge
     node_edge: wp.array(dtype=int)  # (N - V,) the edge of each Steiner node
     node_t: wp.array(dtype=float)  # (N - V,) its parameter along the edge from the lower vertex
+    node_xyz: wp.array(dtype=wp.vec3)  # (N,) every node's position (node_pos), one load where the formula is five
 
 
 @wp.func
@@ -57,14 +58,9 @@ def face_slots(graph: SteinerGraph, face: int) -> int:
 
 @wp.func
 def node_pos(graph: SteinerGraph, n: int) -> wp.vec3:
-    if n < graph.nv:
-        return graph.pos[n]
-    m = n - graph.nv
-    e = graph.node_edge[m]
-    t = graph.node_t[m]
-    a = graph.pos[graph.edges[e, 0]]
-    b = graph.pos[graph.edges[e, 1]]
-    return a + t * (b - a)
+    """Node n's position: a vertex's, or a Steiner point's a + t (b - a) on its edge (a: the lower vertex), in
+    float32 as the table was made (steiner_graph.node_positions)."""
+    return graph.node_xyz[n]
 
 
 @wp.func

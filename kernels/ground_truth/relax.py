@@ -11,7 +11,9 @@ others are carried to `next`. Near-distance order keeps parents from changing af
 and avoids most of plain Bellman-Ford's repeated improvements. Nodes whose key went down are appended once per
 iteration to `touched` (touched_stamp = iteration), decoded and committed from that list only; committed nodes
 join `next` unless already carried (queued = iteration). Launches are (rows, threads) with a grid-stride loop
-over the row's list, so their dims are fixed at graph-capture time and the work follows the list sizes.
+over the row's list, so their dims are fixed at graph-capture time and the work follows the list sizes; the relax
+launch has `lanes` threads per list entry. Each row's counters sit on their own 128-byte line (LINE), and the
+loop's go flag is set once per row (finish_iteration): every append is an atomic on its row's counter.
 """
 import warp as wp
 
@@ -69,21 +71,28 @@ class Frontier:
     """The worklists of one iteration (two instances swap `active` and `next`)."""
 
     active: wp.array2d(dtype=int)  # (S, N) nodes to relax
-    active_count: wp.array(dtype=int)  # (S,)
+    active_count: wp.array2d(dtype=int)  # (S, LINE): the row's count in column 0 (see LINE)
     next: wp.array2d(dtype=int)  # (S, N) nodes for the next iteration
-    next_count: wp.array(dtype=int)
+    next_count: wp.array2d(dtype=int)  # (S, LINE)
     queued: wp.array2d(dtype=int)  # (S, N) iteration in which the node joined `next`
     touched: wp.array2d(dtype=int)  # (S, N) nodes whose key went down in this iteration
-    touched_count: wp.array(dtype=int)
+    touched_count: wp.array2d(dtype=int)  # (S, LINE)
     touched_stamp: wp.array2d(dtype=int)  # (S, N) iteration in which the node joined `touched`
     threshold: wp.array(dtype=float)  # (S,) nodes closer than this relax
-    min_pending: wp.array(dtype=float)  # (S,) nearest distance left for later
+    min_pending: wp.array2d(dtype=int)  # (S, LINE) nearest distance left for later, as float bits (see pending)
     delta: float  # bucket width (normalized units; inf: plain Bellman-Ford)
     iteration: wp.array(dtype=int)  # (1,)
-    go: wp.array(dtype=int)  # (1,) 1 while any row has work (the capture_while condition)
+    go: wp.array(dtype=int)  # (1,) 1 while any row has work (the capture_while condition; finish_iteration)
     iteration_limit: wp.array(dtype=int)  # (1,) the loop stops after this iteration (work may remain)
-    work: wp.array2d(dtype=int)  # (S, 3) relaxed nodes, list entries read, decoded entries
-    threads: int  # threads per row of the list launches
+    work: wp.array2d(dtype=int)  # (S, LINE) relaxed nodes, list entries read, decoded entries (columns 0-2)
+    threads: int  # list entries a row's launch works on at once (the grid-stride of its loops)
+    lanes: int  # threads per entry in relax_frontier: they share a node's candidates (faces x slots)
+
+
+LINE = 32  # ints per row of the per-row counters: each row's counter on its own 128-byte line. Every append to a
+# row's list is an atomic on its counter; with the rows' counters side by side in one line, the appends of all rows
+# of an iteration queue at one L2 slice.
+INF_BITS = wp.constant(wp.int32(0x7F800000))  # float bits of +inf: min_pending when nothing is pending
 
 
 @wp.func
@@ -102,22 +111,6 @@ def unpack_parent(key: wp.uint64) -> int:
 
 
 @wp.func
-def face_candidate(graph: SteinerGraph, win: Windows, s: int, u: int, du: float, pu: wp.vec3, iu: int, j: int,
-                   face: int, through: bool, A: wp.vec3, eh: wp.vec3, elen: float, lo: float, hi: float):
-    """Candidate from node u (slot iu of `face`, distance du, position pu) to the node x in slot j: the graph
-    edge, or the straight ray of u's window when shorter (through: u's window continues into the face; A, eh,
-    elen: the frame of u's edge; [lo, hi]: the window's interval). Returns (x, d)."""
-    x = slot_node(graph, face, j)
-    px = node_pos(graph, x)
-    d = du + wp.length(px - pu)
-    if through and not slots_share_edge(graph, face, iu, j):
-        dw = ray_length(win.along[s, u], win.height[s, u], win.sigma[s, u], lo, hi, A, eh, elen, px)
-        if dw < d:
-            d = dw
-    return x, d
-
-
-@wp.func
 def propose(key: wp.array2d(dtype=wp.uint64), s: int, x: int, d: float, u: int) -> bool:
     """Offer node x distance d through parent u (packed atomic_min); True when this lowered x's key."""
     if d < unpack_dist(key[s, x]):
@@ -128,12 +121,15 @@ def propose(key: wp.array2d(dtype=wp.uint64), s: int, x: int, d: float, u: int) 
 
 
 @wp.func
-def pending(front: Frontier, s: int, d: float, it: int):
-    """Row s has a node left at distance d (inf: none): record the nearest, and go on unless at the limit."""
+def pending(front: Frontier, s: int, d: float):
+    """Row s has a node left at distance d (inf: none): record the nearest. Distances are >= 0, whose float
+    bits order as ints do, so this is one hardware atomic (Warp's float atomic_min is a compare-and-swap loop, and
+    every thread of the row meets at this address)."""
     if d < INF:
-        wp.atomic_min(front.min_pending, s, d)
-        if it < front.iteration_limit[0]:
-            front.go[0] = 1
+        bits = int(0)
+        if d > 0.0:
+            bits = wp.cast(d, int)
+        wp.atomic_min(front.min_pending, s, 0, bits)
 
 
 @wp.kernel
@@ -158,8 +154,8 @@ def init_rows(sources: wp.array(dtype=int), state: NodeState):
 def init_frontier(sources: wp.array(dtype=int), front: Frontier):
     s = wp.tid()
     front.active[s, 0] = sources[s]
-    front.active_count[s] = 1
-    front.min_pending[s] = 0.0
+    front.active_count[s, 0] = 1
+    front.min_pending[s, 0] = 0
 
 
 @wp.kernel
@@ -173,46 +169,66 @@ def add_seeds(seeds: wp.array(dtype=int), state: NodeState, front: Frontier):
     state.rec.parent[0, n] = n
     front.active[0, i] = n
     if i == 0:
-        front.active_count[0] = seeds.shape[0]
+        front.active_count[0, 0] = seeds.shape[0]
 
 
 @wp.kernel
 def start_iteration(front: Frontier):
     """Per row: the threshold of this iteration; empty `next` and `touched` lists."""
     s = wp.tid()
-    front.threshold[s] = front.min_pending[s] + front.delta
-    front.min_pending[s] = INF
-    front.next_count[s] = 0
-    front.touched_count[s] = 0
+    front.threshold[s] = wp.cast(front.min_pending[s, 0], float) + front.delta
+    front.min_pending[s, 0] = INF_BITS
+    front.next_count[s, 0] = 0
+    front.touched_count[s, 0] = 0
     if s == 0:
         front.iteration[0] = front.iteration[0] + 1
         front.go[0] = 0
 
 
 @wp.kernel
+def finish_iteration(front: Frontier):
+    """Per row: go on while something is pending, unless at the iteration limit (one store per row, where
+    storing from every thread with pending work made them all queue at one address)."""
+    s = wp.tid()
+    if front.min_pending[s, 0] < INF_BITS and front.iteration[0] < front.iteration_limit[0]:
+        front.go[0] = 1
+
+
+@wp.kernel
 def relax_frontier(graph: SteinerGraph, state: NodeState, front: Frontier):
-    """Relax the active nodes under the threshold over the faces around them; carry the others."""
+    """Relax the active nodes under the threshold over the faces around them; carry the others.
+
+    `lanes` threads work on each list entry: lane l proposes the node's candidates c = l, l + lanes, ... in
+    (face, slot) order. A thread's candidates are a chain of dependent loads and atomics, so the iteration's
+    time follows the longest chain (a vertex with many faces, or faces with many Steiner points on thin edges),
+    not the number of nodes; the lanes shorten it. Proposals are an atomic min, so the result does not depend
+    on which thread makes them."""
     s, t = wp.tid()
     it = front.iteration[0]
-    n = front.active_count[s]
+    n = front.active_count[s, 0]
     th = front.threshold[s]
+    L = front.lanes
+    lane = t % L
     nrel = int(0)
     nread = int(0)
     pmin = float(INF)
-    i = t
+    i = t // L
     while i < n:
         u = front.active[s, i]
         i += front.threads
-        nread += 1
         du = state.dist[s, u]
+        if lane == 0:
+            nread += 1
         if not (du < th):
-            # pending: carry to the next list
-            front.queued[s, u] = it
-            slot = wp.atomic_add(front.next_count, s, 1)
-            front.next[s, slot] = u
-            pmin = wp.min(pmin, du)
+            # pending: carry to the next list (once, by lane 0)
+            if lane == 0:
+                front.queued[s, u] = it
+                slot = wp.atomic_add(front.next_count, s, 0, 1)
+                front.next[s, slot] = u
+                pmin = wp.min(pmin, du)
             continue
-        nrel += 1
+        if lane == 0:
+            nrel += 1
         pu = node_pos(graph, u)
         f0 = int(0)
         f1 = int(0)
@@ -230,6 +246,9 @@ def relax_frontier(graph: SteinerGraph, state: NodeState, front: Frontier):
         elen = float(0.0)
         lo = float(0.0)
         hi = float(0.0)
+        wa = float(0.0)
+        wh = float(0.0)
+        wsg = float(0.0)
         f_in = int(-1)
         if graph.windows != 0 and u >= graph.nv:
             f_in = state.win.face[s, u]
@@ -237,24 +256,40 @@ def relax_frontier(graph: SteinerGraph, state: NodeState, front: Frontier):
                 has_window = True
                 A, eh, elen = edge_frame(graph, ue)
                 lo, hi = window_interval(graph, state.win, s, u, elen)
+                wa = state.win.along[s, u]
+                wh = state.win.height[s, u]
+                wsg = state.win.sigma[s, u]
+        c = int(0)  # candidates of the faces before this one
         for fi in range(f0, f1):
             face = int(0)
             if u < graph.nv:
                 face = graph.vertex_faces[fi]
             else:
                 face = graph.edge_face_list[fi]
-            iu = slot_of(graph, face, u)
-            through = has_window and f_in != face and graph.window_face[face] != wp.int8(0)
-            for j in range(face_slots(graph, face)):
-                if j == iu:
-                    continue
-                x, d = face_candidate(graph, state.win, s, u, du, pu, iu, j, face, through, A, eh, elen, lo, hi)
-                if propose(state.key, s, x, d, u):
-                    # first improvement of x this iteration: append it to the decode list
-                    if wp.atomic_max(front.touched_stamp, s, x, it) < it:
-                        slot = wp.atomic_add(front.touched_count, s, 1)
-                        front.touched[s, slot] = x
-    pending(front, s, pmin, it)
+            ns = face_slots(graph, face)
+            j = (lane + L - c % L) % L  # this lane's first slot of the face
+            c += ns
+            if j < ns:
+                iu = slot_of(graph, face, u)
+                through = has_window and f_in != face and graph.window_face[face] != wp.int8(0)
+                while j < ns:
+                    if j != iu:
+                        # candidate: the graph edge u-x, or u's window's straight ray when shorter (through: the
+                        # window continues into this face; not along an edge that u lies on)
+                        x = slot_node(graph, face, j)
+                        px = node_pos(graph, x)
+                        d = du + wp.length(px - pu)
+                        if through and not slots_share_edge(graph, face, iu, j):
+                            dw = ray_length(wa, wh, wsg, lo, hi, A, eh, elen, px)
+                            if dw < d:
+                                d = dw
+                        if propose(state.key, s, x, d, u):
+                            # first improvement of x this iteration: append it to the decode list
+                            if wp.atomic_max(front.touched_stamp, s, x, it) < it:
+                                slot = wp.atomic_add(front.touched_count, s, 0, 1)
+                                front.touched[s, slot] = x
+                    j += L
+    pending(front, s, pmin)
     if nread > 0:
         wp.atomic_add(front.work, s, 0, nrel)
         wp.atomic_add(front.work, s, 1, nread)
@@ -350,7 +385,7 @@ def decode_node(graph: SteinerGraph, state: NodeState, staged: Staging, s: int, 
 @wp.kernel
 def decode_touched(graph: SteinerGraph, state: NodeState, staged: Staging, front: Frontier):
     s, t = wp.tid()
-    n = front.touched_count[s]
+    n = front.touched_count[s, 0]
     i = t
     while i < n:
         x = front.touched[s, i]
@@ -375,7 +410,7 @@ def commit_touched(state: NodeState, staged: Staging, front: Frontier):
     """Make the decoded winners current and queue them for the next iteration."""
     s, t = wp.tid()
     it = front.iteration[0]
-    n = front.touched_count[s]
+    n = front.touched_count[s, 0]
     i = t
     dmin = float(INF)
     while i < n:
@@ -393,6 +428,6 @@ def commit_touched(state: NodeState, staged: Staging, front: Frontier):
         dmin = wp.min(dmin, d)
         if front.queued[s, x] != it:
             front.queued[s, x] = it
-            slot = wp.atomic_add(front.next_count, s, 1)
+            slot = wp.atomic_add(front.next_count, s, 0, 1)
             front.next[s, slot] = x
-    pending(front, s, dmin, it)
+    pending(front, s, dmin)

@@ -28,6 +28,8 @@ PATH_TOLERANCE = 1e-3  # a traced path longer than its distance by more than thi
 PATH_ABS_TOLERANCE = 1e-6  # and by more than this (normalized units: float32 rounding of short paths)
 MAX_BATCH = 512
 REORDER = True  # number the solver's vertices along a Morton curve (memory locality; results in mesh order)
+ROW_THREADS = (32, 16384, 1 << 20)  # CUDA list launches: entries per row, at least, at most, over all rows
+RELAX_LANES = 4  # CUDA threads per list entry in relax_frontier (kernels/ground_truth/relax.py)
 CPU_CHUNK_SECONDS = 0.25  # one CPU launch of the relaxation loop; Ctrl-C is seen between launches
 LOAD_WORKERS = 16  # threads compiling Warp modules before the first capture (load_for_capture)
 CPU_MEMORY_SHARE = 0.4  # of the available memory, at most, for one CPU solver's state (worker processes each
@@ -246,15 +248,18 @@ class GeodesicSolver:
             z(int), z(int)
         self.src_w = wp.zeros(b, dtype=int, device=d)
         # threads per row of the list launches (a grid-stride loop covers longer lists)
-        self.row_threads = max(32, min(4096, (1 << 18) // b)) if d.is_cuda else 1
+        lo, hi, total = ROW_THREADS
+        self.row_threads = max(lo, min(hi, total // b)) if d.is_cuda else 1
+        self.lanes = RELAX_LANES if d.is_cuda else 1
         lists = [z(int), z(int)]
-        counts = [wp.zeros(b, dtype=int, device=d), wp.zeros(b, dtype=int, device=d)]
-        shared = dict(queued=z(int), touched=z(int), touched_count=wp.zeros(b, dtype=int, device=d),
+        line = lambda: wp.zeros((b, kg.relax.LINE), dtype=int, device=d)  # noqa: E731 - a row's counter per line
+        counts = [line(), line()]
+        shared = dict(queued=z(int), touched=z(int), touched_count=line(),
                       touched_stamp=z(int), threshold=wp.zeros(b, dtype=float, device=d),
-                      min_pending=wp.zeros(b, dtype=float, device=d), delta=self.delta,
+                      min_pending=line(), delta=self.delta,
                       iteration=wp.zeros(1, dtype=int, device=d), go=wp.zeros(1, dtype=int, device=d),
-                      iteration_limit=wp.zeros(1, dtype=int, device=d), work=wp.zeros((b, 3), dtype=int, device=d),
-                      threads=self.row_threads)
+                      iteration_limit=wp.zeros(1, dtype=int, device=d), work=line(),
+                      threads=self.row_threads, lanes=self.lanes)
         # two iterations per loop body, ping-pong: the second swaps `active` and `next`
         self.fronts = []
         for c in (0, 1):
@@ -270,9 +275,10 @@ class GeodesicSolver:
         kg = _kernels()
         d, b, T = self.device, self.batch, self.row_threads
         wp.launch(kg.relax.start_iteration, dim=b, inputs=[front], device=d)
-        wp.launch(kg.relax.relax_frontier, dim=(b, T), inputs=[self.graph, self.state, front], device=d)
+        wp.launch(kg.relax.relax_frontier, dim=(b, T * self.lanes), inputs=[self.graph, self.state, front], device=d)
         wp.launch(kg.relax.decode_touched, dim=(b, T), inputs=[self.graph, self.state, self.staged, front], device=d)
         wp.launch(kg.relax.commit_touched, dim=(b, T), inputs=[self.state, self.staged, front], device=d)
+        wp.launch(kg.relax.finish_iteration, dim=b, inputs=[front], device=d)
 
     def _loop_body(self):
         # two iterations per body so the ping-pong lists need no copy (the second one is empty once done)
@@ -299,7 +305,7 @@ class GeodesicSolver:
         wp.launch(kg.relax.init_rows, dim=(self.batch, self.n_nodes), inputs=[self.src_w, self.state],
                   device=self.device)
         sh["iteration"].zero_()
-        sh["min_pending"].zero_()  # the sources sit at distance 0
+        sh["min_pending"].zero_()  # the sources sit at distance 0 (float bits 0)
         sh["work"].zero_()
         sh["queued"].zero_()
         sh["touched_stamp"].zero_()
@@ -375,7 +381,7 @@ class GeodesicSolver:
             self._launch("loop", self._loop)
             self.timings["loop_launches"] = self.timings.get("loop_launches", 0) + 1
             done = int(sh["iteration"].numpy()[0])
-            if not self.fronts[0].active_count.numpy().any():
+            if not self.fronts[0].active_count.numpy()[:, 0].any():
                 break
             if done >= self.max_iter:
                 raise RuntimeError(f"the geodesic solver did not converge in max_iter={self.max_iter} iterations; "
@@ -399,7 +405,7 @@ class GeodesicSolver:
         padded[: len(src)] = self._solver_id[src]
         self.src_w.assign(padded)
         self._timed_program()
-        w = self._front_shared["work"].numpy()[: len(src)].sum(axis=0)
+        w = self._front_shared["work"].numpy()[: len(src), :3].sum(axis=0)
         self.timings.setdefault("work", []).append([int(v) for v in w])
         self.rows = src
 

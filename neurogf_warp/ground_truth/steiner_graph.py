@@ -95,6 +95,7 @@ class Topology:
         g.node_t = wp.array(node_t if len(node_t) else np.zeros(1, np.float32), dtype=float, device=device)
         g.windows = int(bool(windows))
         g.pos = wp.array(np.asarray(positions, dtype=np.float32), dtype=wp.vec3, device=device)
+        g.node_xyz = wp.array(node_positions(positions, self.edges, node_edge, node_t), dtype=wp.vec3, device=device)
         g.faces = wp.array(self.faces, dtype=int, device=device)
         g.edges = wp.array(self.edges, dtype=int, device=device)
         g.face_edges = wp.array(self.face_edges, dtype=int, device=device)
@@ -104,6 +105,17 @@ class Topology:
         g.edge_face_start = wp.array(self.edge_face_start, dtype=int, device=device)
         g.edge_face_list = wp.array(self.edge_faces, dtype=int, device=device)
         return g
+
+
+def node_positions(positions: np.ndarray, edges: np.ndarray, node_edge: np.ndarray, node_t: np.ndarray) -> np.ndarray:
+    """(V + S, 3) float32: the vertices, then each Steiner point at a + t (b - a) on its edge (a: the edge's lower
+    vertex), each operation rounded to float32 as the kernels once computed it per use (no fused multiply-add:
+    the solver's modules are built with fuse_fp off), so the table gives the same bits."""
+    p = np.asarray(positions, dtype=np.float32)
+    e = np.asarray(edges, dtype=np.int64)[np.asarray(node_edge, dtype=np.int64)]
+    a, b = p[e[:, 0]], p[e[:, 1]]
+    t = np.asarray(node_t, dtype=np.float32)[:, None]
+    return np.concatenate([p, a + t * (b - a)]).astype(np.float32)
 
 
 def face_geometry(vertices: np.ndarray, faces: np.ndarray):
