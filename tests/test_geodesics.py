@@ -410,3 +410,30 @@ def test_lanes_share_a_nodes_candidates_without_losing_any(lanes, threads):
     mk = np.isfinite(ex) & (ex > 0)
     rel = (d[mk] - ex[mk]) / ex[mk]
     assert rel.min() > -1e-5 and rel.mean() < 5e-4 and rel.max() < 5e-3
+
+
+def test_face_slot_table_lists_each_faces_boundary_nodes_in_slot_order():
+    # a mesh whose thin faces get more Steiner points on some edges (counts differ per edge)
+    from neurogf_warp.ground_truth.steiner_graph import Topology, face_slot_table, node_positions
+
+    s = trimesh.creation.icosphere(subdivisions=1)
+    V = s.vertices * np.array([1.0, 0.01, 0.01])
+    topo = Topology(V.astype(np.float32), s.faces)
+    start, node_edge, node_t = topo.steiner_nodes(3)
+    counts = np.diff(start)
+    assert counts.min() == 3 and counts.max() > 3
+    nv = len(V)
+    slot_start, codes = face_slot_table(topo.faces, topo.face_edges, start, nv)
+    node, bits = codes >> 3, codes & 7
+    for f in range(len(topo.faces)):
+        n, b = node[slot_start[f]: slot_start[f + 1]], bits[slot_start[f]: slot_start[f + 1]]
+        assert list(n[:3]) == list(topo.faces[f])
+        assert list(b[:3]) == [0b101, 0b011, 0b110]  # vertex i lies on local edges i and (i + 2) % 3
+        expect = np.concatenate([nv + start[e] + np.arange(counts[e]) for e in topo.face_edges[f]])
+        np.testing.assert_array_equal(n[3:], expect)
+        np.testing.assert_array_equal(b[3:], np.repeat([1, 2, 4], counts[topo.face_edges[f]]))
+    # positions: vertices, then a + t (b - a) from each edge's lower vertex
+    xyz = node_positions(V.astype(np.float32), topo.edges, node_edge, node_t)
+    e = topo.edges[node_edge]
+    np.testing.assert_allclose(xyz[nv:], V[e[:, 0]] + node_t[:, None] * (V[e[:, 1]] - V[e[:, 0]]), atol=1e-6)
+    assert np.all(topo.edges[:, 0] < topo.edges[:, 1])

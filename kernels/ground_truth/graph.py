@@ -3,9 +3,11 @@
 Nodes: the V mesh vertices, then the Steiner points of each unique edge e: count(e) = edge_node_start[e + 1] -
 edge_node_start[e] points (k on a well-shaped mesh, more on edges much longer than their faces are wide: see
 steiner_graph.steiner_counts), node V + edge_node_start[e] + j at t = (j+1)/(count(e)+1) from the edge's lower
-vertex to its higher one. The graph is never stored: all boundary nodes of a face are joined to each other, so
-relaxing face by face visits every graph edge. A face's boundary nodes are its "slots": 0..2 its vertices, then
-the Steiner points of its local edges 0, 1, 2 in turn (local edge le joins its vertices le and (le + 1) % 3).
+vertex to its higher one. The graph's edges are never stored: all boundary nodes of a face are joined to each
+other, so relaxing face by face visits every graph edge. A face's boundary nodes are its "slots": 0..2 its
+vertices, then the Steiner points of its local edges 0, 1, 2 in turn (local edge le joins its vertices le and
+(le + 1) % 3), listed per face in `face_slot` (steiner_graph.face_slot_table); every node's position is in
+`node_xyz`.
 """
 import warp as wp
 
@@ -35,6 +37,8 @@ class SteinerGraph:
     node_edge: wp.array(dtype=int)  # (N - V,) the edge of each Steiner node
     node_t: wp.array(dtype=float)  # (N - V,) its parameter along the edge from the lower vertex
     node_xyz: wp.array(dtype=wp.vec3)  # (N,) every node's position (node_pos), one load where the formula is five
+    face_slot_start: wp.array(dtype=int)  # (F + 1,) CSR offsets into face_slot
+    face_slot: wp.array(dtype=int)  # every face's slots in slot order, coded node << 3 | local edges (slot_code)
 
 
 @wp.func
@@ -50,13 +54,6 @@ def edge_count(graph: SteinerGraph, e: int) -> int:
 
 
 @wp.func
-def face_slots(graph: SteinerGraph, face: int) -> int:
-    """Boundary nodes of a face: its 3 vertices and the Steiner points of its 3 edges."""
-    return (3 + edge_count(graph, graph.face_edges[face, 0]) + edge_count(graph, graph.face_edges[face, 1])
-            + edge_count(graph, graph.face_edges[face, 2]))
-
-
-@wp.func
 def node_pos(graph: SteinerGraph, n: int) -> wp.vec3:
     """Node n's position: a vertex's, or a Steiner point's a + t (b - a) on its edge (a: the lower vertex), in
     float32 as the table was made (steiner_graph.node_positions)."""
@@ -64,18 +61,11 @@ def node_pos(graph: SteinerGraph, n: int) -> wp.vec3:
 
 
 @wp.func
-def slot_node(graph: SteinerGraph, face: int, i: int) -> int:
-    """The node in slot i of a face."""
-    if i < 3:
-        return graph.faces[face, i]
-    r = i - 3
-    for le in range(3):
-        e = graph.face_edges[face, le]
-        c = edge_count(graph, e)
-        if r < c:
-            return graph.nv + graph.edge_node_start[e] + r
-        r -= c
-    return -1
+def slot_code(graph: SteinerGraph, base: int, i: int):
+    """Slot i of the face whose slots start at `base` (face_slot_start[face]): (node, local-edge bits; bit le set
+    when the slot lies on local edge le: a vertex slot i on i and (i + 2) % 3)."""
+    code = graph.face_slot[base + i]
+    return code >> 3, code & 7
 
 
 @wp.func
@@ -96,29 +86,6 @@ def slot_of(graph: SteinerGraph, face: int, n: int) -> int:
             return off + m - graph.edge_node_start[e]
         off += edge_count(graph, fe)
     return -1
-
-
-@wp.func
-def slot_edges(graph: SteinerGraph, face: int, i: int):
-    """The local edges slot i of a face lies on: a vertex slot on two (i and (i + 2) % 3), a Steiner slot on one
-    (returned twice)."""
-    if i < 3:
-        return i, (i + 2) % 3
-    r = i - 3
-    for le in range(3):
-        c = edge_count(graph, graph.face_edges[face, le])
-        if r < c:
-            return le, le
-        r -= c
-    return -1, -1
-
-
-@wp.func
-def slots_share_edge(graph: SteinerGraph, face: int, i: int, j: int) -> bool:
-    """Whether slots i and j of a face lie on one of its edges (a vertex slot lies on two)."""
-    ei0, ei1 = slot_edges(graph, face, i)
-    ej0, ej1 = slot_edges(graph, face, j)
-    return ei0 == ej0 or ei0 == ej1 or ei1 == ej0 or ei1 == ej1
 
 
 @wp.func

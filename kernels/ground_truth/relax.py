@@ -22,11 +22,9 @@ from .graph import (
     SteinerGraph,
     common_face,
     edge_frame,
-    face_slots,
     node_pos,
-    slot_node,
+    slot_code,
     slot_of,
-    slots_share_edge,
     steiner_edge,
 )
 from .unfolding import Windows, crossing_param, edge_coords, ray_length, unfold_source, window_interval
@@ -194,7 +192,9 @@ def finish_iteration(front: Frontier):
         front.go[0] = 1
 
 
-@wp.kernel
+# 96 registers gave 25% occupancy for a kernel that waits on loads; 64 measured fastest (H200, 436K: 17.2 -> 20.9
+# sources/s; 80: 18.6, 48 with decode capped too: 19.5; benchmarks/RESULTS.md, 2026-11-27). The CPU ignores it.
+@wp.kernel(cuda_max_registers=64)
 def relax_frontier(graph: SteinerGraph, state: NodeState, front: Frontier):
     """Relax the active nodes under the threshold over the faces around them; carry the others.
 
@@ -266,20 +266,22 @@ def relax_frontier(graph: SteinerGraph, state: NodeState, front: Frontier):
                 face = graph.vertex_faces[fi]
             else:
                 face = graph.edge_face_list[fi]
-            ns = face_slots(graph, face)
+            base = graph.face_slot_start[face]
+            ns = graph.face_slot_start[face + 1] - base
             j = (lane + L - c % L) % L  # this lane's first slot of the face
             c += ns
             if j < ns:
                 iu = slot_of(graph, face, u)
+                _un, ubits = slot_code(graph, base, iu)
                 through = has_window and f_in != face and graph.window_face[face] != wp.int8(0)
                 while j < ns:
                     if j != iu:
                         # candidate: the graph edge u-x, or u's window's straight ray when shorter (through: the
                         # window continues into this face; not along an edge that u lies on)
-                        x = slot_node(graph, face, j)
+                        x, xbits = slot_code(graph, base, j)
                         px = node_pos(graph, x)
                         d = du + wp.length(px - pu)
-                        if through and not slots_share_edge(graph, face, iu, j):
+                        if through and (ubits & xbits) == 0:
                             dw = ray_length(wa, wh, wsg, lo, hi, A, eh, elen, px)
                             if dw < d:
                                 d = dw

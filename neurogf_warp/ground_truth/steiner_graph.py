@@ -96,6 +96,9 @@ class Topology:
         g.windows = int(bool(windows))
         g.pos = wp.array(np.asarray(positions, dtype=np.float32), dtype=wp.vec3, device=device)
         g.node_xyz = wp.array(node_positions(positions, self.edges, node_edge, node_t), dtype=wp.vec3, device=device)
+        slot_start, slots = face_slot_table(self.faces, self.face_edges, start, len(positions))
+        g.face_slot_start = wp.array(slot_start, dtype=int, device=device)
+        g.face_slot = wp.array(slots, dtype=int, device=device)
         g.faces = wp.array(self.faces, dtype=int, device=device)
         g.edges = wp.array(self.edges, dtype=int, device=device)
         g.face_edges = wp.array(self.face_edges, dtype=int, device=device)
@@ -105,6 +108,41 @@ class Topology:
         g.edge_face_start = wp.array(self.edge_face_start, dtype=int, device=device)
         g.edge_face_list = wp.array(self.edge_faces, dtype=int, device=device)
         return g
+
+
+SLOT_EDGE_BITS = 3  # face_slot_table: the low bits of a slot code, one per local edge the slot lies on
+
+
+def face_slot_table(faces: np.ndarray, face_edges: np.ndarray, edge_node_start: np.ndarray, nv: int):
+    """Every face's slots (graph.py: its 3 vertices, then the Steiner points of its local edges 0, 1, 2 in turn) as
+    one CSR table: (slot_start (F + 1,) int32, slots (F, ...) int32), each slot coded node << 3 | edges, where bit le
+    of edges is set when the slot lies on local edge le (a vertex slot i on i and (i + 2) % 3). The relax loop reads
+    one code per candidate where walking the face's edge tables took a chain of dependent loads."""
+    f = np.asarray(faces, dtype=np.int64)
+    fe = np.asarray(face_edges, dtype=np.int64)
+    start = np.asarray(edge_node_start, dtype=np.int64)
+    n_nodes = nv + int(start[-1]) if len(start) else nv
+    if n_nodes >= 1 << (31 - SLOT_EDGE_BITS):
+        raise ValueError(f"mesh too large for the solver's face slot codes ({n_nodes:,} graph nodes, at most "
+                         f"{(1 << (31 - SLOT_EDGE_BITS)) - 1:,}); lower k or decimate the mesh")
+    F = len(f)
+    c = start[fe + 1] - start[fe]  # (F, 3) Steiner points per local edge
+    per_face = 3 + c.sum(axis=1)
+    slot_start = np.r_[0, np.cumsum(per_face)]
+    codes = np.empty(int(slot_start[-1]), dtype=np.int64)
+    first = slot_start[:-1]
+    for i in range(3):  # vertex slots
+        codes[first + i] = (f[:, i] << SLOT_EDGE_BITS) | (1 << i) | (1 << ((i + 2) % 3))
+    # Steiner slots, local edge by local edge: a ragged arange per (face, le)
+    off = first + 3
+    for le in range(3):
+        n = c[:, le]
+        rows = np.repeat(np.arange(F), n)
+        r = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+        node = nv + start[fe[rows, le]] + r
+        codes[off[rows] + r] = (node << SLOT_EDGE_BITS) | (1 << le)
+        off = off + n
+    return slot_start.astype(np.int32), codes.astype(np.int32)
 
 
 def node_positions(positions: np.ndarray, edges: np.ndarray, node_edge: np.ndarray, node_t: np.ndarray) -> np.ndarray:
