@@ -235,6 +235,30 @@ def test_paths_traced_in_the_distance_pass_are_geodesics_from_their_sources(two_
         D.build_dataset(two_blobs, None, **dict(opts, workers=2))
 
 
+def test_the_next_batch_started_early_gives_the_same_dataset(two_blobs, monkeypatch):
+    """On a GPU the distance pass starts each batch before the rows of the one before are drawn
+    (``DistanceRows.prefetch``), so that the host's work overlaps the solve. Forced here on the CPU (where ``start``
+    solves before it returns): the same dataset, bit for bit, and every batch was started early."""
+    from neurogf_warp.ground_truth.solver import GeodesicSolver
+
+    monkeypatch.setattr(D, "trace_with_distances", lambda device: True)
+    opts = dict(SMALL, n_sources=8, batch=3, n_path_sources=5, workers=1, n_test=2)
+    plain = D.build_dataset(two_blobs, None, **opts)
+    starts = []
+    original = GeodesicSolver.start
+
+    def start(self, sources):
+        starts.append(len(sources))
+        original(self, sources)
+
+    monkeypatch.setattr(GeodesicSolver, "can_start", property(lambda self: True))
+    monkeypatch.setattr(GeodesicSolver, "start", start)
+    early = D.build_dataset(two_blobs, None, **opts)
+    assert starts == [3, 3, 2]  # every batch after the held-out one (2 test rows, then 8 sources in 3 batches)
+    for name in D.Dataset.array_names():
+        np.testing.assert_array_equal(getattr(early, name), getattr(plain, name), err_msg=name)
+
+
 @pytest.mark.parametrize("with_distances", [False, True], ids=["path phase", "paths in the distance pass"])
 def test_a_time_limit_covers_test_sources_and_paths_too(with_distances, monkeypatch):
     """The limit once stopped only the distance sources; the test sources and every path came after it, so a

@@ -214,6 +214,7 @@ class GeodesicSolver:
         self._graphs = {}
         self._chunk = 16  # loop iterations per CPU launch, adapted to CPU_CHUNK_SECONDS
         self.rows = None
+        self._started = None  # (sources, start time) of a batch begun by start()
 
     @property
     def captured(self) -> bool:
@@ -394,8 +395,7 @@ class GeodesicSolver:
                 self._chunk = max(self._chunk // 2, 2)
         self._launch("finish", self._consistent)
 
-    def run(self, sources: np.ndarray) -> None:
-        """Solve for up to `batch` internal source vertex ids; results stay on the device (rows 0..len-1)."""
+    def _set_sources(self, sources: np.ndarray) -> np.ndarray:
         src = np.asarray(sources, dtype=np.int64).reshape(-1)
         if len(src) == 0 or len(src) > self.batch:
             raise ValueError(f"run() takes 1..{self.batch} sources, got {len(src)}")
@@ -404,10 +404,52 @@ class GeodesicSolver:
         padded = np.full(self.batch, self._solver_id[src[-1]], dtype=np.int32)
         padded[: len(src)] = self._solver_id[src]
         self.src_w.assign(padded)
-        self._timed_program()
+        return src
+
+    def _record_work(self, src: np.ndarray) -> None:
         w = self._front_shared["work"].numpy()[: len(src), :3].sum(axis=0)
         self.timings.setdefault("work", []).append([int(v) for v in w])
         self.rows = src
+
+    def run(self, sources: np.ndarray) -> None:
+        """Solve for up to `batch` internal source vertex ids; results stay on the device (rows 0..len-1)."""
+        src = self._set_sources(sources)
+        self._timed_program()
+        self._record_work(src)
+
+    @property
+    def can_start(self) -> bool:
+        """Whether ``start`` runs a batch without waiting: CUDA, with the programs captured (by a first ``run``)."""
+        return self.device.is_cuda and all(self._graphs.get(n) for n in ("start", "loop", "finish"))
+
+    def start(self, sources: np.ndarray) -> None:
+        """Begin ``run(sources)`` on the device and return at once (where ``can_start``; elsewhere, as on the CPU,
+        the batch is solved before it returns); ``wait`` ends it. Between the two the solver's state is the new
+        batch's, half done: read nothing from it."""
+        src = self._set_sources(sources)
+        self._started = (src, time.perf_counter())
+        if not self.can_start:
+            self._run_program()
+            return
+        sh = self._front_shared
+        self._launch("start", self._start)
+        sh["iteration_limit"].fill_(self.max_iter)  # the whole loop in one launch, as run() does on CUDA
+        sh["go"].fill_(1)
+        self._launch("loop", self._loop)
+        self._launch("finish", self._consistent)
+
+    def wait(self) -> None:
+        """The end of the batch ``start`` began: as after ``run``."""
+        src, t0 = self._started
+        self._started = None
+        wp.synchronize_device(self.device)
+        self.timings["solve_s"] += time.perf_counter() - t0
+        self.timings["loop_launches"] = self.timings.get("loop_launches", 0) + 1
+        self.timings["iterations"].append(int(self._front_shared["iteration"].numpy()[0]))
+        if self.fronts[0].active_count.numpy()[:, 0].any():
+            raise RuntimeError(f"the geodesic solver did not converge in max_iter={self.max_iter} iterations; "
+                               "raise max_iter")
+        self._record_work(src)
 
     def work_stats(self) -> dict:
         """Work of the last run per source: iterations, relaxed nodes, node visits (list entries read + 2 x

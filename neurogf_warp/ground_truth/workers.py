@@ -15,6 +15,7 @@ end of the pipe closes, so none outlives it. A worker that fails is reported and
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import pickle
 import queue
@@ -142,6 +143,7 @@ class DistanceRows:
         self.workers = min(MAX_WORKERS, cpu_cores() if workers is None else int(workers))
         self._pool: list[_Worker] = []
         self.worker_batches = 0  # batches the worker processes solved
+        self._prefetch = None
 
     def __enter__(self):
         return self
@@ -154,10 +156,18 @@ class DistanceRows:
             w.close()
         self._pool = []
 
+    def prefetch(self) -> bool:
+        """Start the next batch of the running ``rows`` on the GPU now (asking ``more`` as usual), so that it solves
+        while the caller works on the batch just yielded; the caller must be done with the solver's state (paths
+        traced) and hold its rows. False where nothing was started: the CPU, no further batch, or the solver's
+        programs not captured yet."""
+        return bool(self._prefetch and self._prefetch())
+
     def rows(self, batches: list, more=None):
         """Yield ``(i, D)`` for batch ``i`` of ``batches`` (arrays of internal source ids), in order, with ``D``
         the (len(batches[i]), V) float32 normalized distances. ``more(i)``, if given, is asked before batch
-        ``i > 0`` is started; once it says False no further batch starts (those started are still yielded)."""
+        ``i > 0`` is started; once it says False no further batch starts (those started are still yielded). On a
+        GPU the caller may start the next batch early (``prefetch``)."""
         n = len(batches)
         lock = threading.Lock()
         state = {"next": 0, "stop": False}
@@ -182,6 +192,20 @@ class DistanceRows:
             ready[i] = self.solver.vertex_distances()
             return time.perf_counter() - t0
 
+        started: dict = {}  # the batch prefetch began on the GPU
+
+        def prefetch():
+            if started or self.workers > 1 or not self.solver.can_start:
+                return False
+            i = claim()
+            if i is None:
+                return False
+            self.solver.start(batches[i])
+            started["i"] = i
+            return True
+
+        self._prefetch = prefetch
+
         def collect(block: bool):
             while True:
                 try:
@@ -200,6 +224,11 @@ class DistanceRows:
                 while want in ready:
                     yield want, ready.pop(want)
                     want += 1
+                if started:  # prefetched: wait for it
+                    i = started.pop("i")
+                    self.solver.wait()
+                    ready[i] = self.solver.vertex_distances()
+                    continue
                 i = claim()
                 if i is None:
                     break
@@ -213,6 +242,11 @@ class DistanceRows:
                 else:
                     collect(block=True)
         finally:
+            self._prefetch = None
+            if started:  # left with a batch running (an error, the caller stopped): let it end, result unused
+                started.clear()
+                with contextlib.suppress(Exception):  # do not hide the error that brought us here
+                    self.solver.wait()
             with lock:
                 state["stop"] = True
             early = want < state["next"]  # left early (an error, Ctrl-C, the caller stopped): stop the workers
