@@ -360,13 +360,22 @@ class GeodesicSolver:
         """``_run_program`` to the end on the device, its time and iterations added to ``timings``."""
         t0 = time.perf_counter()
         self._run_program(extra_seeds)
+        self._end_program(t0)
+
+    def _end_program(self, t0: float) -> None:
+        """Wait for the program started at ``t0``; add its time and iterations to ``timings``; raise if it stopped
+        at max_iter with work left."""
         wp.synchronize_device(self.device)
         self.timings["solve_s"] += time.perf_counter() - t0
         self.timings["iterations"].append(int(self._front_shared["iteration"].numpy()[0]))
+        if self.fronts[0].active_count.numpy()[:, 0].any():
+            raise RuntimeError(f"the geodesic solver did not converge in max_iter={self.max_iter} iterations; "
+                               "raise max_iter")
 
-    def _run_program(self, extra_seeds=None):
+    def _run_program(self, extra_seeds=None, block: bool = True):
         """Initialize, relax to convergence, make distances equal to path lengths. On the CPU the relaxation runs
-        in chunks of about CPU_CHUNK_SECONDS (between chunks Python sees Ctrl-C); on CUDA in one launch.
+        in chunks of about CPU_CHUNK_SECONDS (between chunks Python sees Ctrl-C); on CUDA in one launch, which
+        with ``block=False`` is only queued (``_end_program`` waits and checks it).
         ``extra_seeds``: a device array of node ids that row 0 starts from as well (``run_seeds``)."""
         sh = self._front_shared
         self._launch("start", self._start)
@@ -381,12 +390,11 @@ class GeodesicSolver:
             t0 = time.perf_counter()
             self._launch("loop", self._loop)
             self.timings["loop_launches"] = self.timings.get("loop_launches", 0) + 1
-            done = int(sh["iteration"].numpy()[0])
-            if not self.fronts[0].active_count.numpy()[:, 0].any():
+            if not block and self.device.is_cuda:
                 break
-            if done >= self.max_iter:
-                raise RuntimeError(f"the geodesic solver did not converge in max_iter={self.max_iter} iterations; "
-                                   "raise max_iter")
+            done = int(sh["iteration"].numpy()[0])
+            if not self.fronts[0].active_count.numpy()[:, 0].any() or done >= self.max_iter:
+                break  # done, or stopped at max_iter (_end_program raises)
             # keep each CPU chunk near the target time
             took = time.perf_counter() - t0
             if took < 0.5 * CPU_CHUNK_SECONDS:
@@ -428,27 +436,13 @@ class GeodesicSolver:
         batch's, half done: read nothing from it."""
         src = self._set_sources(sources)
         self._started = (src, time.perf_counter())
-        if not self.can_start:
-            self._run_program()
-            return
-        sh = self._front_shared
-        self._launch("start", self._start)
-        sh["iteration_limit"].fill_(self.max_iter)  # the whole loop in one launch, as run() does on CUDA
-        sh["go"].fill_(1)
-        self._launch("loop", self._loop)
-        self._launch("finish", self._consistent)
+        self._run_program(block=not self.can_start)
 
     def wait(self) -> None:
         """The end of the batch ``start`` began: as after ``run``."""
         src, t0 = self._started
         self._started = None
-        wp.synchronize_device(self.device)
-        self.timings["solve_s"] += time.perf_counter() - t0
-        self.timings["loop_launches"] = self.timings.get("loop_launches", 0) + 1
-        self.timings["iterations"].append(int(self._front_shared["iteration"].numpy()[0]))
-        if self.fronts[0].active_count.numpy()[:, 0].any():
-            raise RuntimeError(f"the geodesic solver did not converge in max_iter={self.max_iter} iterations; "
-                               "raise max_iter")
+        self._end_program(t0)
         self._record_work(src)
 
     def work_stats(self) -> dict:
