@@ -71,14 +71,14 @@ def test_rows_and_paths_stay_in_their_component(built):
 
 def test_untraceable_paths_are_left_out_and_counted(two_blobs, monkeypatch):
     """A path the solver reports as NaN rows (untraceable or stale) never reaches the training data."""
-    real = D.resample_polylines
+    real = D.GeodesicSolver.trace_resampled
 
-    def some_nan(points, starts, ends, m, device):
-        out = real(points, starts, ends, m, device)
+    def some_nan(self, rows, targets, m, max_steps=None):
+        out, flags = real(self, rows, targets, m, max_steps)
         out[::2] = np.nan  # every other path of each batch and kind
-        return out
+        return out, flags
 
-    monkeypatch.setattr(D, "resample_polylines", some_nan)
+    monkeypatch.setattr(D.GeodesicSolver, "trace_resampled", some_nan)
     d = D.build_dataset(two_blobs, None, **dict(SMALL, n_sources=4, n_test=0))
     n_src = 2  # path sources, one batch: 4 global and 3 local paths each, resampled per kind
     kept_g, kept_l = (4 * n_src) // 2, (3 * n_src) // 2

@@ -5,6 +5,7 @@ import trimesh
 import warp as wp
 
 from neurogf_warp.ground_truth import geodesics as G
+from neurogf_warp.ground_truth import solver as solver_module
 from neurogf_warp.mesh.mesh import load_mesh
 from tests.conftest import shared_path
 from tests.geodesic_meshes import cylinder, grid_square, squashed_square
@@ -178,6 +179,40 @@ def test_paths_from_distance_run_match_distances():
     ok = dt > 0
     assert np.max(np.abs(L[ok] - dt[ok]) / dt[ok]) < 2e-5
 
+
+
+def test_paths_resampled_on_the_device_equal_the_host_resampling(monkeypatch):
+    """``trace_resampled`` (walk, check and resampling on the solver's device; only the samples come back) gives
+    ``resample_polylines`` of ``trace``'s polylines bit for bit: traced, truncated (flag -1), too long (flag 1)
+    and unreachable (another component: no points) paths alike."""
+    V, F = grid_square(8)
+    far = V[:3] + np.array([5.0, 0, 0])  # a second component
+    msh = load_mesh((np.concatenate([V, far]), np.concatenate([F, len(V) + np.array([[0, 1, 2]])])))
+    solver = G.GeodesicSolver(msh, device="cpu", batch=2)
+    solver.run(msh.vertex(np.array([0, 40])))
+    rng = np.random.default_rng(5)
+    rows = rng.integers(0, 2, 300)
+    tg = np.r_[rng.integers(0, len(V), 297), msh.vertex(np.arange(len(V), len(V) + 3))]
+
+    def both(m, **kw):
+        pts, offs, flags = solver.trace(rows, tg, **kw)
+        want = G.resample_polylines(pts, offs[:-1], offs[1:], m, "cpu")
+        got, got_flags = solver.trace_resampled(rows, tg, m, **kw)
+        np.testing.assert_array_equal(got_flags, flags)
+        np.testing.assert_array_equal(got, want)  # NaN rows in the same places
+        return got, flags
+
+    got, flags = both(16)
+    assert np.all(flags == 0) and np.isfinite(got[:297]).all() and np.isnan(got[297:]).all()
+    np.testing.assert_allclose(got[:297, 0], msh.normalized_vertices[msh.vertex(np.array([0, 40]))[rows[:297]]],
+                               atol=1e-6)  # from the source
+    got, flags = both(5, max_steps=2)  # walks cut short
+    assert np.sum(flags == -1) > 50 and np.isnan(got[flags == -1]).all()
+    monkeypatch.setattr(solver_module, "PATH_TOLERANCE", -0.5)  # every path with a length is "too long"
+    got, flags = both(8)
+    assert np.sum(flags == 1) > 250 and np.isnan(got[flags == 1]).all()
+    with pytest.raises(ValueError, match="points per resampled path"):
+        solver.trace_resampled(rows, tg, 1)
 
 # ---- degenerate meshes: zero-area faces, needles, coincident vertices, QSlim slivers ---------------------------
 def _check_paths(solver, msh, rows, tg, tol_len=1e-5, flat=False):

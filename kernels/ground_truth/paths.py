@@ -299,39 +299,98 @@ def walk_paths(graph: SteinerGraph, rec: PathRecords, dist: wp.array2d(dtype=flo
     q.stale[t] = nstale
 
 
-@wp.kernel
-def resample_by_length(points: wp.array(dtype=wp.vec3), starts: wp.array(dtype=int), ends: wp.array(dtype=int),
-                       out: wp.array2d(dtype=wp.vec3)):
-    """Thread i: polyline points[starts[i]:ends[i]] resampled to m = out.shape[1] points equally spaced by arc
-    length (float64 arc lengths accumulated point by point; sample k at k / (m - 1) of the length, on the last
-    segment whose start is at or before it). No points or a non-finite one: a NaN row; one point: that point m
-    times. One walk along the polyline serves all m samples (they come in order)."""
-    i = wp.tid()
-    a = starts[i]
-    b = ends[i]
-    m = out.shape[1]
+@wp.func
+def polyline_point(points: wp.array(dtype=wp.vec3), a: int, b: int, k: int, reverse: int) -> wp.vec3:
+    """Point k (a <= k < b) of the polyline points[a:b], read backwards when ``reverse`` (the walk writes
+    target -> source; datasets want source -> target)."""
+    if reverse != 0:
+        return points[a + b - 1 - k]
+    return points[k]
+
+
+@wp.func
+def polyline_length64(points: wp.array(dtype=wp.vec3), a: int, b: int, reverse: int) -> wp.float64:
+    """Float64 length of points[a:b], summed segment by segment in reading order."""
     length = wp.float64(0.0)
     for k in range(a + 1, b):
-        length += wp.length(wp.vec3d(points[k]) - wp.vec3d(points[k - 1]))
-    if b <= a or not wp.isfinite(length) or not wp.isfinite(points[a]):
+        length += wp.length(wp.vec3d(polyline_point(points, a, b, k, reverse))
+                            - wp.vec3d(polyline_point(points, a, b, k - 1, reverse)))
+    return length
+
+
+@wp.func
+def resample_one(points: wp.array(dtype=wp.vec3), a: int, b: int, reverse: int, out: wp.array2d(dtype=wp.vec3),
+                 i: int):
+    """Row i of ``out``: polyline points[a:b] (backwards when ``reverse``) resampled to m = out.shape[1] points
+    equally spaced by arc length (float64 arc lengths accumulated point by point; sample k at k / (m - 1) of the
+    length, on the last segment whose start is at or before it). No points or a non-finite one: a NaN row; one
+    point: that point m times. One walk along the polyline serves all m samples (they come in order)."""
+    m = out.shape[1]
+    length = polyline_length64(points, a, b, reverse)
+    if b <= a:
+        for k in range(m):
+            out[i, k] = wp.vec3(wp.nan, wp.nan, wp.nan)
+        return
+    first = polyline_point(points, a, b, a, reverse)
+    if not wp.isfinite(length) or not wp.isfinite(first):
         for k in range(m):
             out[i, k] = wp.vec3(wp.nan, wp.nan, wp.nan)
         return
     if b - a == 1:
         for k in range(m):
-            out[i, k] = points[a]
+            out[i, k] = first
         return
     j = a  # segment j -> j + 1, starting at arc length s
     s = wp.float64(0.0)
-    seg = wp.length(wp.vec3d(points[a + 1]) - wp.vec3d(points[a]))
+    seg = wp.length(wp.vec3d(polyline_point(points, a, b, a + 1, reverse)) - wp.vec3d(first))
     for k in range(m):
         t = length * (wp.float64(k) / wp.float64(m - 1))
         while j < b - 2 and s + seg <= t:
             s += seg
             j += 1
-            seg = wp.length(wp.vec3d(points[j + 1]) - wp.vec3d(points[j]))
+            seg = wp.length(wp.vec3d(polyline_point(points, a, b, j + 1, reverse))
+                            - wp.vec3d(polyline_point(points, a, b, j, reverse)))
         w = wp.float64(0.0)
         if seg > wp.float64(0.0):
             w = (t - s) / seg
-        p = wp.vec3d(points[j])
-        out[i, k] = wp.vec3(p + w * (wp.vec3d(points[j + 1]) - p))
+        p = wp.vec3d(polyline_point(points, a, b, j, reverse))
+        out[i, k] = wp.vec3(p + w * (wp.vec3d(polyline_point(points, a, b, j + 1, reverse)) - p))
+
+
+@wp.kernel
+def resample_by_length(points: wp.array(dtype=wp.vec3), starts: wp.array(dtype=int), ends: wp.array(dtype=int),
+                       out: wp.array2d(dtype=wp.vec3)):
+    """Thread i: polyline points[starts[i]:ends[i]] resampled to out.shape[1] points (``resample_one``)."""
+    i = wp.tid()
+    resample_one(points, starts[i], ends[i], 0, out, i)
+
+
+@wp.kernel
+def check_walks(q: PathQuery, dist: wp.array2d(dtype=float), rel_tol: wp.float64, abs_tol: wp.float64,
+                flags: wp.array(dtype=int)):
+    """Thread t: path t of a written walk (``walk_paths``) flagged -1 when truncated at max_steps, 1 when its
+    float64 length exceeds its node's distance by more than rel_tol (relative) and abs_tol, else 0."""
+    t = wp.tid()
+    flag = int(0)
+    if q.stale[t] < 0:
+        flag = -1
+    else:
+        a = q.offsets[t]
+        d = wp.float64(dist[q.rows[t], q.targets[t]])
+        length = polyline_length64(q.points, a, a + q.counts[t], 1)
+        if wp.isfinite(d) and length > d * (wp.float64(1.0) + rel_tol) + abs_tol:
+            flag = 1
+    flags[t] = flag
+
+
+@wp.kernel
+def resample_walks(q: PathQuery, flags: wp.array(dtype=int), out: wp.array2d(dtype=wp.vec3)):
+    """Row t: path t of a written walk, source first, resampled by ``resample_one``; a flagged path gives a NaN
+    row."""
+    t = wp.tid()
+    if flags[t] != 0:
+        for k in range(out.shape[1]):
+            out[t, k] = wp.vec3(wp.nan, wp.nan, wp.nan)
+        return
+    a = q.offsets[t]
+    resample_one(q.points, a, a + q.counts[t], 1, out, t)

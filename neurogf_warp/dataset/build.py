@@ -35,7 +35,7 @@ from neurogf_warp.common.arrays import resolve_device
 from neurogf_warp.common.checks import integer, number
 from neurogf_warp.common.files import atomic_write
 from neurogf_warp.dataset.proxy import pin_vertices, proxy_error, proxy_mesh
-from neurogf_warp.ground_truth.geodesics import DEFAULT_K, PATH_DELTA, GeodesicSolver, resample_polylines
+from neurogf_warp.ground_truth.geodesics import DEFAULT_K, PATH_DELTA, GeodesicSolver
 from neurogf_warp.ground_truth.workers import MAX_WORKERS, DistanceRows, cpu_cores
 from neurogf_warp.mesh.mesh import Mesh, load_mesh
 
@@ -652,23 +652,21 @@ class _PathSet:
         """Paths from the sources ``src`` of ``solver``'s last run (rows 0..len(src)-1, distances ``D``) to
         ``st.n_path_global`` random reachable targets and ``st.n_path_local`` in the local ball of each
         (``targets_of``: their ``_Targets``, when already made)."""
-        row_of, targets, count = [], [], []
+        picked = {"global": ([], [], []), "local": ([], [], [])}  # kind -> (rows, targets, source ids)
         for j, s in enumerate(src):
             tg = targets_of[j] if targets_of is not None else _Targets(D[j], s, plan.target_set, plan.nball)
             for kind, pool, n in (("global", tg.reach, st.n_path_global), ("local", tg.local, st.n_path_local)):
                 t = _pick(rng, pool, n)
-                targets.append(t)
-                row_of.append(np.full(len(t), j))
-                count.append((kind, s, len(t)))
-        pts, offs, flags = solver.trace(np.concatenate(row_of), np.concatenate(targets))
-        self.stale += int(np.sum(flags != 0))
-        n_of = [n for _, _, n in count]
-        kinds = np.repeat([kind == "global" for kind, _, _ in count], n_of).astype(bool)
-        src_of = np.repeat(np.array([s for _, s, _ in count], dtype=np.int64), n_of)
-        for kind, m_pts, sel in (("global", GLOBAL_PATH_POINTS, kinds), ("local", LOCAL_PATH_POINTS, ~kinds)):
-            if sel.any():  # the batch's paths of one kind in one launch
-                self.paths[kind].append(resample_polylines(pts, offs[:-1][sel], offs[1:][sel], m_pts, solver.device))
-                self.src_of[kind].append(src_of[sel])
+                picked[kind][0].append(np.full(len(t), j))
+                picked[kind][1].append(t)
+                picked[kind][2].append(np.full(len(t), s, dtype=np.int64))
+        for kind, m_pts in (("global", GLOBAL_PATH_POINTS), ("local", LOCAL_PATH_POINTS)):
+            rows, targets, src_of = (np.concatenate(a) for a in picked[kind])
+            if len(targets):  # the batch's paths of one kind: walked and resampled on the solver's device
+                paths, flags = solver.trace_resampled(rows, targets, m_pts)
+                self.stale += int(np.sum(flags != 0))
+                self.paths[kind].append(paths)
+                self.src_of[kind].append(src_of)
 
     def arrays(self) -> tuple:
         """({kind: ((K, M, 3) float32 paths, (K,) source ids)}, paths dropped): a path with a non-finite point

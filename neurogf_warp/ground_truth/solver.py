@@ -488,12 +488,51 @@ class GeodesicSolver:
         origin node), so a path's length equals the node's distance up to float rounding. Flagged paths are
         counted in ``timings["paths_flagged"]``.
         """
+        q, c, offsets, flags = self._walk(rows, targets, max_steps)
+        if q is None:
+            return np.zeros((0, 3), np.float32), np.zeros(1, np.int64), np.zeros(0, np.int32)
+        T = len(c)
+        p = q.points.numpy()[: offsets[-1]]
+        # written target->source: reverse each path so it starts at the source
+        seg = np.repeat(np.arange(T), c)
+        local = np.arange(len(p)) - offsets[seg]
+        p = p[offsets[seg] + (c[seg] - 1 - local)]
+        flags = flags.numpy()
+        self._count_paths(flags)
+        p[np.repeat(flags != 0, c)] = np.nan
+        return p, offsets, flags
+
+    def trace_resampled(self, rows: np.ndarray, targets: np.ndarray, m: int, max_steps: int | None = None):
+        """The paths of ``trace``, resampled to ``m`` points each on the device (only those come back).
+
+        Returns
+        -------
+        paths : (T, m, 3) float32, normalized frame, from the source, equally spaced by arc length
+            (``geodesics.resample_polylines`` of ``trace``'s polylines, bit for bit); a flagged or unreachable
+            path is a NaN row
+        flags : (T,) int32, as ``trace``'s
+        """
+        if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 2:
+            raise ValueError(f"m (points per resampled path) must be an integer >= 2 (both ends), got {m!r}")
+        q, c, offsets, flags = self._walk(rows, targets, max_steps)
+        if q is None:
+            return np.zeros((0, m, 3), np.float32), np.zeros(0, np.int32)
+        T = len(c)
+        out = wp.empty((T, int(m)), dtype=wp.vec3, device=self.device)
+        wp.launch(_kernels().paths.resample_walks, dim=T, inputs=[q, flags], outputs=[out], device=self.device)
+        flags = flags.numpy()
+        self._count_paths(flags)
+        return out.numpy().reshape(T, m, 3), flags
+
+    def _walk(self, rows, targets, max_steps):
+        """Walk the paths on the device: (PathQuery with the written points, (T,) int64 point counts, (T + 1,)
+        int64 offsets, (T,) device flags as ``trace``'s), or Nones for no paths."""
         kg = _kernels()
         rows = np.asarray(rows, dtype=np.int32).reshape(-1)
         targets = self._solver_id[np.asarray(targets, dtype=np.int64).reshape(-1)].astype(np.int32)
         T = len(targets)
         if T == 0:
-            return np.zeros((0, 3), np.float32), np.zeros(1, np.int64), np.zeros(0, np.int32)
+            return None, None, None, None
         if max_steps is None:
             max_steps = 4 * (max(self.timings["iterations"][-1], 1) + 16) * (self.graph.kmax + 1)
             max_steps = max(max_steps, int(64 * np.sqrt(len(self.topo.faces))) + 1024)
@@ -518,27 +557,13 @@ class GeodesicSolver:
         q.points = wp.zeros(max(int(offsets[-1]), 1), dtype=wp.vec3, device=d)
         q.write = 1
         wp.launch(kg.paths.walk_paths, dim=T, inputs=inputs, device=d)
-        p = q.points.numpy()[: offsets[-1]]
-        # written target->source: reverse each path so it starts at the source
-        seg = np.repeat(np.arange(T), c)
-        local = np.arange(len(p)) - offsets[seg]
-        p = p[offsets[seg] + (c[seg] - 1 - local)]
-        flags = self._check_paths(p, offsets, q.stale.numpy(), self.state.dist.numpy()[rows, targets])
-        p[np.repeat(flags != 0, c)] = np.nan
-        return p, offsets, flags
+        # a truncated walk, or a path longer than its distance by more than PATH_TOLERANCE (a ray walk that
+        # failed and bent at its parent, or went through the wrong faces)
+        flags = wp.empty(T, dtype=int, device=d)
+        wp.launch(kg.paths.check_walks, dim=T, inputs=[q, self.state.dist, wp.float64(PATH_TOLERANCE),
+                                                       wp.float64(PATH_ABS_TOLERANCE)], outputs=[flags], device=d)
+        return q, c, offsets, flags
 
-    def _check_paths(self, points, offsets, walk_status, dist) -> np.ndarray:
-        """Per-path flags (see trace): a truncated walk, or a path longer than its distance by more than
-        PATH_TOLERANCE (a ray walk that failed and bent at its parent, or went through the wrong faces)."""
-        length = np.zeros(len(dist))
-        if len(points) > 1:
-            step = np.linalg.norm(np.diff(points.astype(np.float64), axis=0), axis=1)
-            cum = np.r_[0.0, np.cumsum(step)]
-            n = np.diff(offsets) > 0
-            length[n] = cum[offsets[1:][n] - 1] - cum[offsets[:-1][n]]
-        d = dist.astype(np.float64)
-        too_long = np.isfinite(d) & (length > d * (1.0 + PATH_TOLERANCE) + PATH_ABS_TOLERANCE)
-        flags = np.where(walk_status < 0, -1, np.where(too_long, 1, 0)).astype(np.int32)
+    def _count_paths(self, flags: np.ndarray) -> None:
         self.timings["paths_traced"] = self.timings.get("paths_traced", 0) + len(flags)
         self.timings["paths_flagged"] = self.timings.get("paths_flagged", 0) + int(np.sum(flags != 0))
-        return flags
