@@ -113,11 +113,20 @@ def proxy_error(proxy_rows: np.ndarray, fine_rows: np.ndarray, where: Surface) -
     each proxy vertex by linear interpolation on its fine face. Pairs nearer than ``PROXY_MIN_PAIR`` or unreachable
     on either mesh are left out.
 
-    Returns {"pairs", "mre", "p99", "max", "bias"}: relative errors |proxy - fine| / fine (fractions, not %),
-    ``bias`` the median of proxy / fine - 1 (negative: the proxy's geodesics are shorter).
+    Returns ``row_error`` of the two.
     """
-    a = np.asarray(proxy_rows, np.float64)
-    b = where.values(fine_rows)
+    return row_error(proxy_rows, where.values(fine_rows))
+
+
+def row_error(rows: np.ndarray, reference: np.ndarray) -> dict:
+    """Relative errors of distance rows against reference rows of the same shape, over the pairs both reach and
+    the reference puts at least ``PROXY_MIN_PAIR`` apart.
+
+    Returns {"pairs", "mre", "p99", "max", "bias"}: |rows - reference| / reference (fractions, not %), ``bias``
+    the median of rows / reference - 1 (negative: ``rows`` are shorter); Nones when no pair counts.
+    """
+    a = np.asarray(rows, np.float64)
+    b = np.asarray(reference, np.float64)
     ok = np.isfinite(a) & np.isfinite(b) & (b > PROXY_MIN_PAIR)
     if not ok.any():
         return {"pairs": 0, "mre": None, "p99": None, "max": None, "bias": None}
