@@ -875,7 +875,7 @@ def _coarse_correction(solver, test_src: np.ndarray, test_dist: np.ndarray, prox
     if proxy_meta is not None:
         err = dict(proxy_meta.get("error") or {})
     else:
-        err = row_error(solver.solve(test_src), test_dist) if len(test_src) else {"pairs": 0, "bias": None}
+        err = row_error(solver.solve(test_src), test_dist)
     bias = err.get("bias")
     usable = bias is not None and err.get("pairs", 0) >= COARSE_MIN_PAIRS and abs(bias) <= COARSE_MAX_BIAS
     return {"k": int(solver.k), **err, "scale": float(1.0 / (1.0 + bias)) if usable else 1.0}

@@ -17,6 +17,7 @@ from neurogf_warp.ground_truth.solver import (
     PATH_TOLERANCE,
     GeodesicSolver,
     load_kernels,
+    points_per_path,
 )
 from neurogf_warp.mesh.mesh import Mesh, load_mesh
 
@@ -106,7 +107,7 @@ def resample_polylines(points: np.ndarray, starts: np.ndarray, ends: np.ndarray,
     from neurogf_warp.kernels.ground_truth import paths as kp
 
     device = resolve_device(device)
-    m = _points_per_path(m)
+    m = points_per_path(m)
     starts, ends = np.asarray(starts, dtype=np.int64), np.asarray(ends, dtype=np.int64)
     T = len(starts)
     if T == 0:
@@ -123,14 +124,6 @@ def resample_polylines(points: np.ndarray, starts: np.ndarray, ends: np.ndarray,
                                                           dtype=int, device=device)],
               outputs=[out], device=device)
     return out.numpy().reshape(T, m, 3)
-
-
-def _points_per_path(m) -> int:
-    if isinstance(m, bool) or not isinstance(m, (int, np.integer)):
-        raise TypeError(f"m (points per resampled path) must be an integer, got {m!r}")
-    if m < 2:
-        raise ValueError(f"m (points per resampled path) must be >= 2 (both ends), got {m}")
-    return int(m)
 
 
 def geodesic_paths(mesh, source, targets, m: int | None = None, device=None, k: int = DEFAULT_K,
@@ -154,7 +147,7 @@ def geodesic_paths(mesh, source, targets, m: int | None = None, device=None, k: 
     and is counted in the warning it raises. An empty `targets` gives [] (a (0, m, 3) array with m).
     """
     if m is not None:
-        m = _points_per_path(m)
+        m = points_per_path(m)
     msh = load_mesh(mesh)
     s = _vertices(msh, source, "source")
     if len(s) != 1:

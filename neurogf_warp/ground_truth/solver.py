@@ -36,6 +36,15 @@ CPU_MEMORY_SHARE = 0.4  # of the available memory, at most, for one CPU solver's
 # build their own solver, which sees what the others left)
 
 
+def points_per_path(m) -> int:
+    """``m`` (points per resampled path) as an int; TypeError / ValueError unless an integer >= 2."""
+    if isinstance(m, bool) or not isinstance(m, (int, np.integer)):
+        raise TypeError(f"m (points per resampled path) must be an integer, got {m!r}")
+    if m < 2:
+        raise ValueError(f"m (points per resampled path) must be >= 2 (both ends), got {m}")
+    return int(m)
+
+
 def spatial_order(points: np.ndarray, bits: int = 16) -> np.ndarray:
     """(n,) int64: the points sorted along a Morton (Z-order) curve of 2^bits cells per axis, ties in input
     order. Nearby points get nearby ranks, so per-node state of neighbouring nodes shares cache lines."""
@@ -512,13 +521,12 @@ class GeodesicSolver:
             path is a NaN row
         flags : (T,) int32, as ``trace``'s
         """
-        if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 2:
-            raise ValueError(f"m (points per resampled path) must be an integer >= 2 (both ends), got {m!r}")
+        m = points_per_path(m)
         q, c, offsets, flags = self._walk(rows, targets, max_steps)
         if q is None:
             return np.zeros((0, m, 3), np.float32), np.zeros(0, np.int32)
         T = len(c)
-        out = wp.empty((T, int(m)), dtype=wp.vec3, device=self.device)
+        out = wp.empty((T, m), dtype=wp.vec3, device=self.device)
         wp.launch(_kernels().paths.resample_walks, dim=T, inputs=[q, flags], outputs=[out], device=self.device)
         flags = flags.numpy()
         self._count_paths(flags)
