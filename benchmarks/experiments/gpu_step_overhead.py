@@ -8,7 +8,7 @@ after 30 warm-up steps, milliseconds per step, wall, synchronized at the end of 
   replay    the stage's captured graph replayed alone (no index draws, learning rate or bookkeeping)
   kernels   GPU kernel time per replay (torch.profiler, summed over the graph's kernels) and kernel count
 If step >> replay the host (index draws, copies, Python) limits the step; if replay >> kernels the GPU idles between
-the graph's small kernels. Prints one JSON line per stage.
+the graph's small kernels. Prints one JSON line per stage (with ``--top N``, then its N costliest kernels by name).
 """
 import argparse
 import dataclasses
@@ -46,10 +46,12 @@ def main(argv=None):
     ap.add_argument("--mesh", required=True)
     ap.add_argument("--scale", type=float, default=0.25)
     ap.add_argument("--steps", type=int, default=400)
+    ap.add_argument("--eager", action="store_true", help="no torch.compile (what a budget too short to compile runs)")
+    ap.add_argument("--top", type=int, default=0, help="also print the N kernels (by name) taking most time per replay")
     a = ap.parse_args(argv)
     dev = torch.device("cuda:0")
     mesh = load_mesh(a.mesh)
-    cfg = preset("default")
+    cfg = preset("default", compile=not a.eager)
     cfg = dataclasses.replace(cfg, batches=cfg.batches.scaled(a.scale, sdf_factor=max(a.scale, MIN_SDF_SCALE)))
     ds = build_dataset(mesh, None, cfg.data, seed=cfg.seed, device="cuda:0", progress=False, time_limit_s=10.0)
     data = TrainingData(ds, dev)
@@ -81,6 +83,13 @@ def main(argv=None):
                    replay_ms=round(ms_replay, 4), kernels_ms=round(gpu_us / 1e3, 4), kernels=len(ev) // 50,
                    device=torch.cuda.get_device_name(dev))
         print(json.dumps(row), flush=True)
+        if a.top:
+            by = {}
+            for e in ev:
+                t, n = by.get(e.name, (0.0, 0))
+                by[e.name] = (t + e.device_time / 50, n + 1)
+            for name, (us, n) in sorted(by.items(), key=lambda kv: -kv[1][0])[: a.top]:
+                print(f"  {us:8.1f} us {100 * us / gpu_us:5.1f}%  x{n // 50:<3d} {name[:110]}", flush=True)
 
 
 if __name__ == "__main__":

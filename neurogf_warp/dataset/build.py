@@ -910,8 +910,9 @@ def _check_held_out_time(m: Mesh, st: DatasetSettings, device, time_limit_s: flo
     where = "one CPU process" if cpu else "a GPU"
     raise InputError(
         f"this time limit cannot be kept: the {st.n_test} held-out sources that judge the model need about "
-        f"{est:.0f} s of ground truth on {where} for this {n:,}-vertex mesh, against {time_limit_s:.0f} s for all "
-        f"of the ground truth (a third of a training budget). Give at least ~{3 * est:.0f} s (budget_seconds / "
+        f"{est:.0f} s of ground truth on {where} for this {n:,}-vertex mesh, against {time_limit_s:.0f} s left for "
+        f"all of the ground truth (a training call gives it a third of the budget, less what loading the mesh "
+        f"took). Give at least ~{3 * est:.0f} s (budget_seconds / "
         f"--budget-seconds){', train on a GPU' if cpu else ''}, or decimate the mesh (e.g. with "
         "fast_simplification) to a size this budget can train")
 
