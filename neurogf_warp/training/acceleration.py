@@ -15,7 +15,7 @@ import tempfile
 import torch
 
 __all__ = ["set_tf32", "sync", "CompiledLosses", "GraphedStep", "GRAPH_WARMUP", "compile_key", "compile_pays",
-           "record_compile"]
+           "compile_cached", "compile_estimate", "record_compile"]
 
 GRAPH_WARMUP = 3  # eager steps per stage before its CUDA graph is captured
 
@@ -65,12 +65,16 @@ class CompiledLosses:
 
 # torch.compile under a budget. Compiling the five stages' losses took 62 s on a fresh H100 (cold inductor and
 # Triton caches: querier 18.6 s with the compiler's own start-up, joint 26.4, refine_dist 4.9, refine_sdf 3.6,
-# refine_path 8.7) and makes the steps 1.2-1.6x faster (joint 9.0 -> 6.25 ms on the bunny; benchmarks/RESULTS.md).
+# refine_path 8.7) and makes the steps 1.2-1.7x faster (joint 9.0 -> 6.25 ms on the bunny; benchmarks/RESULTS.md).
 # It pays off only when the training time left is over COMPILE_PAYOFF x the compile time; a budget too short for
-# that runs eagerly (under CUDA graphs). A run that compiled records how long it took in the inductor cache's own
-# folder, so a later run of the same configuration on the same machine plans with its (cached, shorter) time.
+# that runs eagerly (under CUDA graphs). A run that compiled records how long it took, and whether the cache held
+# its shapes already, in the inductor cache's own folder; a later run of the same shapes on the same machine plans
+# with that: a warm compile's time as it was, a cold one's times WARM_SHARE, as the caches it filled serve the next
+# compile (H200, quarter batches, 2026-11-27: the compiling calibration took 47 s on a fresh machine and 11-13 s in
+# the next runs of the same shapes; the five stages alone 62.3 s cold, 8.2 s warm; RESULTS.md, fifteenth session)
 COLD_COMPILE_S = 65.0
 COMPILE_PAYOFF = 3.3  # 1.45 / (1.45 - 1): the joint step's speed-up
+WARM_SHARE = 0.25
 _RECORD = "neurogf_warp_compile.json"
 
 
@@ -92,18 +96,35 @@ def compile_key(cfg, device) -> str:
                        rt.amp, rt.tf32, rt.cuda_graph], sort_keys=True)
 
 
-def compile_estimate(key: str) -> float:
-    """Seconds the compilation of a run with ``key`` is expected to take here: what the last such run took, while
-    the inductor cache it filled is still there, else a fresh machine's time."""
+def _cached_record(key: str):
+    """(seconds, warm) of the last compile recorded for ``key`` while the inductor cache it filled is still there,
+    else None (a bare number, as files before the warm flag hold, is a cold compile's)."""
     folder = _inductor_cache()
     try:
         with open(os.path.join(folder, _RECORD)) as f:
             seen = json.load(f).get(key)
-        if seen is not None and any(os.scandir(os.path.join(folder, "fxgraph"))):
-            return float(seen)
-    except (OSError, ValueError, TypeError, AttributeError):
-        pass
-    return COLD_COMPILE_S
+        if seen is None or not any(os.scandir(os.path.join(folder, "fxgraph"))):
+            return None
+        if isinstance(seen, dict):
+            return float(seen["s"]), bool(seen["warm"])
+        return float(seen), False
+    except (OSError, ValueError, TypeError, AttributeError, KeyError):
+        return None
+
+
+def compile_cached(key: str) -> bool:
+    """Whether this machine's inductor cache holds a compile of ``key``'s shapes (the next one is warm)."""
+    return _cached_record(key) is not None
+
+
+def compile_estimate(key: str) -> float:
+    """Seconds the compilation of a run with ``key`` is expected to take here: a warm compile's recorded time, a
+    cold one's times ``WARM_SHARE`` (its caches serve this one), or a fresh machine's time without a record."""
+    rec = _cached_record(key)
+    if rec is None:
+        return COLD_COMPILE_S
+    seconds, warm = rec
+    return seconds if warm else WARM_SHARE * seconds
 
 
 def compile_pays(key: str, seconds_left: float) -> tuple:
@@ -112,8 +133,9 @@ def compile_pays(key: str, seconds_left: float) -> tuple:
     return seconds_left > COMPILE_PAYOFF * est, est
 
 
-def record_compile(key: str, seconds: float) -> None:
-    """Keep how long this run's compilation took, next to the inductor cache (best effort, atomic)."""
+def record_compile(key: str, seconds: float, *, warm: bool) -> None:
+    """Keep how long this run's compilation took, and whether the cache held its shapes before (``warm``), next
+    to the inductor cache (best effort, atomic)."""
     folder = _inductor_cache()
     path = os.path.join(folder, _RECORD)
     try:
@@ -122,7 +144,7 @@ def record_compile(key: str, seconds: float) -> None:
                 seen = json.load(f)
         except (OSError, ValueError):
             seen = {}
-        seen[key] = round(float(seconds), 2)
+        seen[key] = {"s": round(float(seconds), 2), "warm": bool(warm)}
         os.makedirs(folder, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=folder, prefix=".neurogf_compile")
         with os.fdopen(fd, "w") as f:

@@ -209,6 +209,18 @@ def _calibrate(trainer, cfg: TrainConfig, dev, n: int, deadline: float | None = 
             set_tf32(tf32)
 
 
+def _plan_compile(cfg: TrainConfig, dev, deadline: float, timings: dict) -> bool:
+    """Whether a budgeted CUDA run with ``cfg``'s batches compiles its losses, from the time left to ``deadline``
+    (``acceleration.compile_pays``); the decision and its expected cost go into ``timings["compile"]``."""
+    from neurogf_warp.training.acceleration import compile_cached, compile_key, compile_pays
+
+    key = compile_key(cfg, dev)
+    use, expected = compile_pays(key, deadline - time.perf_counter())
+    # "cached": this machine had compiled these shapes before (a run's speed then depends on its history)
+    timings["compile"] = {"used": use, "expected_s": round(expected, 1), "cached": compile_cached(key)}
+    return use
+
+
 def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, dev, progress, callback,
          t_call: float, key):
     """Dataset, set-up, budget, the stages and the model file of a run (new, or continued from ``ck``).
@@ -247,22 +259,17 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     if dev.type == "cpu" and cfg.runtime.threads == 0:
         chooser = ThreadChooser()  # the thread count is chosen on the first steps of the main stages
         torch.set_num_threads(1)  # calibrated at one thread; the budget re-plans from the measured steps
-    compile_key = None
-    if deadline is not None and dev.type == "cuda" and cfg.runtime.compile:
-        from neurogf_warp.training.acceleration import compile_key as key_of, compile_pays
-
-        compile_key = key_of(cfg, dev)
-        use, expected = compile_pays(compile_key, deadline - time.perf_counter())
-        trainer.compile_losses(use)  # a budget too short to win back the compile time runs eagerly
-        timings["compile"] = {"used": use, "expected_s": round(expected, 1)}
-        if not use:
-            compile_key = None
-    # a new budgeted run may shrink its batches (short_budget_scale); a compiled one decides that on eager steps
-    # first, so that it compiles once, for the shapes it trains on
-    rescale = ck is None and deadline is not None and cfg.batches.short_budget_batches and cfg.runtime.fill_budget
-    if ck is None and compile_key is not None:
+    # torch.compile under a budget: decided for the batch shapes the run trains on (a new run may shrink its
+    # batches, short_budget_scale, on eager steps first), so that it compiles once and plans with the time a run
+    # of those shapes took here (acceleration.compile_estimate); a budget too short to win it back runs eagerly
+    plan_compile = deadline is not None and dev.type == "cuda" and cfg.runtime.compile
+    if plan_compile:
         trainer.compile_losses(False)
+    rescale = ck is None and deadline is not None and cfg.batches.short_budget_batches and cfg.runtime.fill_budget
     if ck is not None:
+        if plan_compile:  # the checkpoint's batches: the shapes the run goes on with
+            use = _plan_compile(cfg, dev, deadline, timings)
+            trainer.compile_losses(use)
         trainer.load_state(ck)
         stage_i, step, history, elapsed = ck["stage"], ck["step"], ck["history"], ck["elapsed"]
         say(progress, f"continuing the run in {files.folder}: stage {STAGES[stage_i]}, step {step}")
@@ -285,7 +292,6 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
             out_of_time = per is None
             if out_of_time:
                 per = {s: float(budget_seconds) for s in STAGES}
-                compile_key = None
             left = deadline - time.perf_counter()
             fitted = fit_budget(cfg, per, max(left, 0.0))
             scale, history["batch_scale"] = short_budget_scale(fitted.joint_steps, dev.type), 1.0
@@ -296,17 +302,21 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
                 trainer = Trainer(cfg, data, pool, dev)  # its CUDA graphs are captured for the new shapes
                 trainer.compile_losses(False)
                 history["batch_scale"] = scale
-            if compile_key is not None:  # compile every stage now, timed: a later run here plans with that
-                from neurogf_warp.training.acceleration import compile_key as key_of, record_compile
+            compiled = plan_compile and not out_of_time and _plan_compile(cfg, dev, deadline, timings)
+            if plan_compile and out_of_time:
+                timings["compile"] = {"used": False, "expected_s": None, "cached": None}
+            if compiled:  # compile every stage now, timed: a later run of these shapes here plans with that
+                from neurogf_warp.training.acceleration import compile_cached, compile_key, record_compile
 
-                compile_key = key_of(cfg, dev)
+                key = compile_key(cfg, dev)
+                warm = compile_cached(key)
                 trainer.compile_losses(True)
                 t1 = time.perf_counter()
                 per = _calibrate(trainer, cfg, dev, n=20)
-                record_compile(compile_key, time.perf_counter() - t1)
+                record_compile(key, time.perf_counter() - t1, warm=warm)
             elif shrunk:  # timed again at the smaller batches; the full batches' times if the budget ends first
                 per = _calibrate(trainer, cfg, dev, n=8 if trainer.graphs else 2, deadline=deadline) or per
-            if shrunk or compile_key is not None:
+            if shrunk or compiled:
                 left = deadline - time.perf_counter()
                 fitted = fit_budget(cfg, per, max(left, 0.0))
             if shrunk:
