@@ -121,9 +121,20 @@ def _phases(r: dict) -> str:
     return f"{ph['distances_s']:.1f} s ({src.get('distance', '?')}) / {ph.get('paths_s', 0):.1f} s"
 
 
+def _compiled(r: dict) -> str:
+    """The run's torch.compile: "no" (eager), "cold" or "warm" (this machine had compiled its shapes before: such a
+    row's speed depends on the machine's history), "-" where no budgeted GPU run decided it."""
+    c = r["timings"].get("compile")
+    if not c:
+        return "-"
+    if not c.get("used"):
+        return "no"
+    return {True: "warm", False: "cold"}.get(c.get("cached"), "yes")
+
+
 def _table(rows: list) -> str:
     head = ("mesh", "budget", "call", "MRE", "p99", "max", "heat", "Chamfer", "refined", "SDF L1", "dataset",
-            "distances/paths", "steps joint/rd")
+            "distances/paths", "steps joint/rd", "compile")
     lines = [head]
     pct = lambda x: "-" if x is None else f"{100 * x:.3f}%"  # noqa: E731
     sci = lambda x: "-" if x is None else f"{x:.3e}"  # noqa: E731
@@ -132,7 +143,7 @@ def _table(rows: list) -> str:
         lines.append((r["mesh"], f"{r['budget_s']:g} s", f"{r['call_s']:.1f} s", pct(r["mre"]), pct(r["p99"]),
                       pct(r["max"]), pct(r["heat_mre"]), sci(r["chamfer"]), sci(r["chamfer_refined"]),
                       sci(r["sdf_l1"]), f"{r['timings'].get('dataset_s', 0):.1f} s", _phases(r),
-                      f"{st.get('joint', '?')}/{st.get('refine_dist', '?')}"))
+                      f"{st.get('joint', '?')}/{st.get('refine_dist', '?')}", _compiled(r)))
     w = [max(len(x[i]) for x in lines) for i in range(len(head))]
     return "\n".join("  ".join(c.rjust(w[i]) for i, c in enumerate(x)) for x in lines)
 
