@@ -310,7 +310,6 @@ def test_held_out_rows_are_exact_grade_when_training_rows_are_coarse(two_blobs):
     assert timed.meta["settings"]["test_k"] == DEFAULT_K and len(timed.gd_src) == SMALL["n_sources"]
 
 
-
 def test_coarse_training_rows_are_scaled_by_the_bias_the_held_out_rows_measure():
     """k=1 rows are longer than exact-grade ones by a near-constant factor (median +0.11-0.23% on the shared
     meshes): the build measures it on the held-out sources, solved at both accuracies, and divides the training
@@ -337,6 +336,7 @@ def test_coarse_training_rows_are_scaled_by_the_bias_the_held_out_rows_measure()
         was.append(rough[i, t] / exact[i, t] - 1)
     assert abs(np.median(np.concatenate(got))) < 0.5 * np.median(np.concatenate(was))  # the bias mostly gone
     assert D.build_dataset(mesh, None, **kw).meta["coarse_rows"] is None  # default accuracy: nothing to correct
+
 
 def test_a_time_limit_the_held_out_rows_cannot_keep_is_refused_before_any_solve(monkeypatch):
     # a 2.2M-vertex mesh on a 2-core CPU: the 8 held-out rows alone take ~13 minutes; a 120 s training budget

@@ -209,16 +209,17 @@ def _calibrate(trainer, cfg: TrainConfig, dev, n: int, deadline: float | None = 
             set_tf32(tf32)
 
 
-def _plan_compile(cfg: TrainConfig, dev, deadline: float, timings: dict) -> bool:
-    """Whether a budgeted CUDA run with ``cfg``'s batches compiles its losses, from the time left to ``deadline``
-    (``acceleration.compile_pays``); the decision and its expected cost go into ``timings["compile"]``."""
+def _plan_compile(cfg: TrainConfig, dev, deadline: float, timings: dict) -> str | None:
+    """The compile key of ``cfg``'s batches if a budgeted CUDA run compiles its losses, from the time left to
+    ``deadline`` (``acceleration.compile_pays``), else None; the decision, its expected cost and whether the cache
+    holds these shapes go into ``timings["compile"]``."""
     from neurogf_warp.training.acceleration import compile_cached, compile_key, compile_pays
 
     key = compile_key(cfg, dev)
     use, expected = compile_pays(key, deadline - time.perf_counter())
     # "cached": this machine had compiled these shapes before (a run's speed then depends on its history)
     timings["compile"] = {"used": use, "expected_s": round(expected, 1), "cached": compile_cached(key)}
-    return use
+    return key if use else None
 
 
 def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, dev, progress, callback,
@@ -268,8 +269,7 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     rescale = ck is None and deadline is not None and cfg.batches.short_budget_batches and cfg.runtime.fill_budget
     if ck is not None:
         if plan_compile:  # the checkpoint's batches: the shapes the run goes on with
-            use = _plan_compile(cfg, dev, deadline, timings)
-            trainer.compile_losses(use)
+            trainer.compile_losses(_plan_compile(cfg, dev, deadline, timings) is not None)
         trainer.load_state(ck)
         stage_i, step, history, elapsed = ck["stage"], ck["step"], ck["history"], ck["elapsed"]
         say(progress, f"continuing the run in {files.folder}: stage {STAGES[stage_i]}, step {step}")
@@ -302,21 +302,19 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
                 trainer = Trainer(cfg, data, pool, dev)  # its CUDA graphs are captured for the new shapes
                 trainer.compile_losses(False)
                 history["batch_scale"] = scale
-            compiled = plan_compile and not out_of_time and _plan_compile(cfg, dev, deadline, timings)
+            compiling = _plan_compile(cfg, dev, deadline, timings) if plan_compile and not out_of_time else None
             if plan_compile and out_of_time:
                 timings["compile"] = {"used": False, "expected_s": None, "cached": None}
-            if compiled:  # compile every stage now, timed: a later run of these shapes here plans with that
-                from neurogf_warp.training.acceleration import compile_cached, compile_key, record_compile
+            if compiling is not None:  # compile every stage now, timed: later runs of these shapes plan with that
+                from neurogf_warp.training.acceleration import record_compile
 
-                key = compile_key(cfg, dev)
-                warm = compile_cached(key)
                 trainer.compile_losses(True)
                 t1 = time.perf_counter()
                 per = _calibrate(trainer, cfg, dev, n=20)
-                record_compile(key, time.perf_counter() - t1, warm=warm)
+                record_compile(compiling, time.perf_counter() - t1, warm=timings["compile"]["cached"])
             elif shrunk:  # timed again at the smaller batches; the full batches' times if the budget ends first
                 per = _calibrate(trainer, cfg, dev, n=8 if trainer.graphs else 2, deadline=deadline) or per
-            if shrunk or compiled:
+            if shrunk or compiling is not None:
                 left = deadline - time.perf_counter()
                 fitted = fit_budget(cfg, per, max(left, 0.0))
             if shrunk:
