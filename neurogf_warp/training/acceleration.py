@@ -70,8 +70,9 @@ class CompiledLosses:
 # that runs eagerly (under CUDA graphs). A run that compiled records how long it took, and whether the cache held
 # its shapes already, in the inductor cache's own folder; a later run of the same shapes on the same machine plans
 # with that: a warm compile's time as it was, a cold one's times WARM_SHARE, as the caches it filled serve the next
-# compile (H200, quarter batches, 2026-11-27: the compiling calibration took 47 s on a fresh machine and 11-13 s in
-# the next runs of the same shapes; the five stages alone 62.3 s cold, 8.2 s warm; RESULTS.md, fifteenth session)
+# compile (H200, quarter batches, 2026-11-27: the calibration, compile included, took 48.6 s on a fresh machine and
+# 11.3-12.9 s in the next runs of the same shapes; the five stages alone 62.2 s cold, 8.2 s warm; RESULTS.md,
+# fifteenth session)
 COLD_COMPILE_S = 65.0
 COMPILE_PAYOFF = 3.3  # 1.45 / (1.45 - 1): the joint step's speed-up
 WARM_SHARE = 0.25
