@@ -146,6 +146,9 @@ def test_refine_dist_trains_only_the_distance_network_in_eval_mode(ellipsoid, ti
     for i in range(3):
         terms = t.step("refine_dist", i)
     assert set(terms) == {"dist_g", "dist_l1", "dist_l2"}
+    # a step's terms come back without their autograd graph: kept terms held the step's AccumulateGrad nodes, and
+    # torch warned on every GPU run when the next step ran on another stream
+    assert all(v.grad_fn is None and not v.requires_grad for v in terms.values())
     after = t.net.state_dict()
     moved = {k for k in before if not torch.equal(before[k], after[k])}
     assert moved and all(k.startswith(("lifting.", "gdf_head.")) for k in moved), moved

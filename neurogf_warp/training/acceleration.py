@@ -104,8 +104,11 @@ def _cached_record(key: str):
     try:
         with open(os.path.join(folder, _RECORD)) as f:
             seen = json.load(f).get(key)
-        if seen is None or not any(os.scandir(os.path.join(folder, "fxgraph"))):
+        if seen is None:
             return None
+        with os.scandir(os.path.join(folder, "fxgraph")) as entries:
+            if not any(entries):
+                return None
         if isinstance(seen, dict):
             return float(seen["s"]), bool(seen["warm"])
         return float(seen), False
@@ -161,6 +164,7 @@ class GraphedStep:
 
     def __init__(self, update, zero_grad, device: torch.device):
         self.update, self.zero_grad, self.device = update, zero_grad, device
+        self.side = torch.cuda.Stream(device)  # the warm-up steps' stream, one for all of them
         self.eager_steps = 0
         self.graph = None  # (CUDAGraph, static index vectors, static loss terms)
 
@@ -173,7 +177,7 @@ class GraphedStep:
                 static_idx[k].copy_(v)
             graph.replay()
             return terms
-        side = torch.cuda.Stream(self.device)
+        side = self.side
         side.wait_stream(torch.cuda.current_stream(self.device))
         with torch.cuda.stream(side):
             self.zero_grad(set_to_none=True)

@@ -234,7 +234,10 @@ class Trainer:
         loss = L.weighted_sum(terms, self.weights) if stage in ("joint", "refine_dist") else sum(terms.values())
         loss.backward()
         self.opt.step()
-        return terms
+        # detached: terms kept after the step (the loop's last ones, a captured graph's static ones) would keep this
+        # step's autograd nodes alive, and the next step, on another stream, made torch warn on every GPU run
+        # ("The AccumulateGrad node's stream does not match ...")
+        return {k: v.detach() for k, v in terms.items()}
 
     def step(self, stage, step):
         """One step of ``stage`` at index ``step`` of it; returns the loss terms (tensors)."""
