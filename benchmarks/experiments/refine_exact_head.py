@@ -115,6 +115,8 @@ def main():
             row["solver_length_over_exact_median"] = float(np.median(np.asarray(L_gt) / exact))
             row["refined_length_over_exact_median"] = float(np.median(np.asarray(L_ref) / exact))
             row["refined_shorter_than_exact"] = int((np.asarray(L_ref) < exact * (1 - 1e-4)).sum())
+            row["refined_length_over_exact_min"] = float(np.min(np.asarray(L_ref) / exact))
+            row["solver_length_over_exact_max"] = float(np.max(np.asarray(L_gt) / exact))
             row["refined_closer_to_exact_than_solver"] = int((np.abs(np.asarray(L_ref) - exact)
                                                              < np.abs(np.asarray(L_gt) - exact)).sum())
         if raw is not None:
