@@ -1,15 +1,15 @@
 """Does importing torch._dynamo in a background thread while the ground truth is solved shorten a training call?
 
 Every training call imports torch._dynamo (torch.optim's add_param_group is wrapped by torch._disable_dynamo,
-which imports it on first use): ~2.1 s on the 2-core CPU, ~4.5 s inside a GPU call's calibration (RESULTS.md,
-sixteenth session). This measures, in one fresh process per row, `build_dataset(mesh, time_limit_s=T)` with and
+which imports it on first use): ~2.1 s on the 2-core CPU in a bare process, ~4-6 s inside a GPU call's
+calibration (RESULTS.md, sixteenth session). This measures, in one fresh process per row, `build_dataset(mesh, time_limit_s=T)` with and
 without that import running in a thread started just before it, then the wait for the import to finish.
 
     python benchmarks/experiments/import_overlap.py MESH --device cuda:0 --limit 20 --repeats 3
 
 Prints one line per row and a JSON list at the end (row, dataset seconds, sources solved, wait for the import).
 Found (sixteenth session): on the 2-core CPU the thread took ~20% of a 20 s build's sources (its worker processes
-use both cores); on the GPU machine, tried inside `train()`, the bunny's 60 s call spent the import's ~4.5 s in a
+use both cores); on the GPU machine, tried inside `train()`, the bunny's 60 s call spent the import's seconds in a
 longer ground-truth build instead (the GIL): not adopted.
 """
 import argparse

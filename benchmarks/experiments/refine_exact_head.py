@@ -15,16 +15,6 @@ import json
 import numpy as np
 
 
-def resample(paths: np.ndarray, k: int) -> np.ndarray:
-    """(N, m, 3) polylines -> (N, k, 3) at equal arc length."""
-    out = np.empty((len(paths), k, 3))
-    for i, p in enumerate(paths):
-        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
-        t = np.linspace(0.0, s[-1], k)
-        out[i] = np.stack([np.interp(t, s, p[:, j]) for j in range(3)], axis=1)
-    return out
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("model")
@@ -41,7 +31,7 @@ def main():
 
     import neurogf_warp as ngf
     from neurogf_warp.evaluation.metrics import chamfer_l1
-    from neurogf_warp.ground_truth.geodesics import geodesic_paths
+    from neurogf_warp.ground_truth.geodesics import geodesic_paths, resample_polyline
     from neurogf_warp.inference import paths as paths_mod
     from neurogf_warp.mesh.mesh import load_mesh
 
@@ -89,7 +79,9 @@ def main():
             src = gt if fwd else gt[:, ::-1]
             shift = P - src[:, 0]  # the query frame is the mesh frame moved by a translation
             assert np.abs(Q - src[:, -1] - shift).max() < 1e-4 * np.abs(gt).max(), "not a translation"
-            x = resample(src, out.shape[1]) + shift[:, None]
+            n, m = src.shape[:2]
+            x = resample_polyline(src.reshape(-1, 3), np.arange(n + 1) * m, out.shape[1], device="cpu")
+            x = x + shift[:, None].astype(np.float32)
             out.assign(wp.array(x.astype(np.float32), dtype=wp.vec3, device=out.device))
 
     def exact_backend_of(state, precision):
