@@ -733,6 +733,8 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
         then has fewer than ``n_sources`` distance sources or fewer path sources, and its meta says
         ``"complete": False``. The test sources are always solved (first). None (default) solves them all.
 
+    Notes
+    -----
     A mesh too large for ``time_limit_s`` (``auto_proxy``, from the GPU's or the CPU's rates), or any mesh with
     ``proxy=N`` set, has its
     distance and path sources solved on a QSlim proxy of about N vertices (``dataset/proxy.py``); the held-out

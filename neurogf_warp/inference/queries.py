@@ -167,6 +167,8 @@ def distance_matrix(model: Model, sources, targets=None, device=None, output: st
         None: every mesh vertex (rows in the file's numbering, NaN columns for unused vertices). Otherwise
         vertex indices or points; each target is embedded once and shared by all sources.
 
+    Notes
+    -----
     The (S, V) form of S sources costs about S single-source queries of the distance head but one pass over the
     vertex embeddings; memory is 4 S V bytes for the result.
     """

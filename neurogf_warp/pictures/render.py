@@ -480,6 +480,8 @@ def write_ply(path, mesh, values, *, vrange=None) -> str:
     values : (V,) per-vertex values in the mesh's numbering (e.g. ``ssad``'s result); NaN is drawn grey
     vrange : (low, high) at the colour map's ends (default: the values' min and max)
 
+    Notes
+    -----
     The file holds the mesh's referenced vertices (those some face uses, in their order in the mesh as given;
     unreferenced vertices are left out) as float32 x, y, z, uchar red, green, blue, alpha and float32 quality
     (the value itself, which MeshLab shows as vertex quality), and the faces in their given order.

@@ -107,6 +107,8 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
     callback : ``callback(stage, step, terms)`` after every step (raise KeyboardInterrupt there to stop like Ctrl-C)
     **settings : any TrainConfig setting by name, e.g. ``D=128, lr=3e-3, n_sources=256, epochs=20``
 
+    Notes
+    -----
     Without ``resume`` or ``force``, a call that finds a run of the same settings continues it (interrupted) or
     returns its model (finished), and one that finds a run of other settings, or a model file with no run, raises
     ValueError. Ctrl-C writes a checkpoint and raises ``TrainingInterrupted``. A second process training to the
