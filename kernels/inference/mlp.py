@@ -367,6 +367,7 @@ def make_frame(center, xscale: float, dscale: float | None = None, limit: float 
 
 @wp.func
 def to_net(frame: Frame, x: wp.vec3) -> wp.vec3:
+    """A point in mesh coordinates -> the network's frame: (x - centre) * xscale, computed in float64."""
     c = frame.center
     s = wp.float64(frame.xscale)
     return wp.vec3(wp.float32((wp.float64(x[0]) - c[0]) * s), wp.float32((wp.float64(x[1]) - c[1]) * s),
@@ -375,6 +376,7 @@ def to_net(frame: Frame, x: wp.vec3) -> wp.vec3:
 
 @wp.func
 def from_net(frame: Frame, y: wp.vec3) -> wp.vec3:
+    """A point in the network's frame -> mesh coordinates: y * dscale + centre, computed in float64."""
     c = frame.center
     u = y * frame.dscale
     return wp.vec3(wp.float32(wp.float64(u[0]) + c[0]), wp.float32(wp.float64(u[1]) + c[1]),
