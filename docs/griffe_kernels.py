@@ -7,8 +7,12 @@
    package uses for short entries) are rendered as descriptions, not as types. An entry counts as such when the
    text after the colon is more than a few words, or when its indented text continues that line (starts in lower
    case) instead of starting a sentence of its own. The type then comes from the signature's annotation.
+3. Sphinx roles in docstrings (``:class:`Conditioned```, ``:meth:`~x.y```) render as code, the way the rest of the
+   docstrings mark names.
 """
 from __future__ import annotations
+
+import re
 
 import griffe
 
@@ -41,13 +45,23 @@ def _reword_parameters(obj) -> None:
             p.annotation = signature[name].annotation if signature is not None and name in signature else None
 
 
+SPHINX_ROLE = re.compile(r":(?:py:)?(?:meth|class|func|attr|mod|data|exc|obj|const):`~?([^`]+)`")
+
+
+def _plain_roles(obj) -> None:
+    if obj.docstring is not None and ":`" in obj.docstring.value:
+        obj.docstring.value = SPHINX_ROLE.sub(r"``\1``", obj.docstring.value)
+
+
 def _walk(obj, seen) -> None:
     if id(obj) in seen:
         return
     seen.add(id(obj))
+    _plain_roles(obj)
     for member in list(obj.members.values()):
         if member.is_alias:
             continue
+        _plain_roles(member)
         if member.is_function or member.is_class:
             _reword_parameters(member)
         if member.is_module or member.is_class:
