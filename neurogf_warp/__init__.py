@@ -31,6 +31,8 @@ _EXPORTS = {
     "train": "training", "ModelQualityWarning": "training", "TrainConfig": "training", "preset": "training", "TrainingInterrupted": "training",
     "evaluate": "evaluation.evaluate",
     "render": "pictures.render", "write_ply": "pictures.render",
+    "reconstruct": "inference.reconstruct",
+    **{name: "inference.sampling" for name in ("farthest_point_sampling", "voronoi", "nearest_seeds", "isolines")},
 }
 
 __all__ = list(_EXPORTS) + ["__version__", "load"]
@@ -79,6 +81,8 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time the names load lazi
         warmup,
         warp_weights,
     )
+    from neurogf_warp.inference.reconstruct import reconstruct
+    from neurogf_warp.inference.sampling import farthest_point_sampling, isolines, nearest_seeds, voronoi
     from neurogf_warp.mesh.mesh import Mesh, load_mesh
     from neurogf_warp.model.checkpoint_match import MeshMismatchWarning
     from neurogf_warp.model.files import load_querier, save

@@ -45,6 +45,8 @@ import torch
 import warp as wp
 
 from neurogf_warp.common.arrays import Output, resolve_device
+from neurogf_warp.inference import autograd
+from neurogf_warp.inference.autograd import wants_grad
 from neurogf_warp.inference.backends import PerThread, backend_of, bind
 from neurogf_warp.inference.inputs import DOMAIN, pair_components, pair_inputs, points_in, single_answer, sources_in
 from neurogf_warp.inference.paths import PROJECT_STEPS, path, project  # noqa: F401  (public through this module)
@@ -141,6 +143,8 @@ def ssad(model: Model, source, device=None, output: str = "numpy", precision: st
         Distances in mesh units, in the file's vertex numbering: NaN for vertices no face uses, +inf for vertices
         on another connected component, exactly 0 at the source vertex.
     """
+    if wants_grad(source):
+        return autograd.ssad(model, source, device=device, precision=precision, cache=cache, raw=raw)
     return _vertex_distances(model, source, "source", device, output, precision, cache, False, one=True, raw=raw)
 
 
@@ -152,6 +156,8 @@ def msad(model: Model, sources, device=None, output: str = "numpy", precision: s
     one point is [[x, y, z]]: a flat list of floats is refused, never read as a point or as indices).
     Returns (n_input,) float32, as ``ssad``.
     """
+    if wants_grad(sources):
+        return autograd.msad(model, sources, device=device, precision=precision, cache=cache, raw=raw)
     return _vertex_distances(model, sources, "sources", device, output, precision, cache, True, raw=raw)
 
 
@@ -200,6 +206,8 @@ def distance(model: Model, p, q, device=None, precision: str = "auto", check: bo
     and out-of-domain points (one device-side pass and a synchronization); with False such rows give NaN.
     ``raw``: the network's own values (not raised to |p - q|, no exact 0 for identical points).
     """
+    if wants_grad(p, q):
+        return autograd.distance(model, p, q, device=device, precision=precision, check=check, raw=raw)
     dev, P, Q, kind, single, frame = pair_inputs(model, p, q, device, check)
     be = backend_of(query_state(model, dev), precision)
     out = Output(kind, dev)
@@ -217,6 +225,8 @@ def sdf(model: Model, x, device=None, precision: str = "auto", check: bool = Tru
     """Signed distance from the network's SDF head: (N, 3) -> (N,) float32 mesh units, negative inside; (3,) -> ().
 
     ``check``: refuse non-finite and out-of-domain points; with False their rows are NaN."""
+    if wants_grad(x):
+        return autograd.sdf(model, x, device=device, precision=precision, check=check)
     dev = resolve_device(device, like=x)
     X, kind, single, frame = points_in(model, x, "x", dev, check)
     be = backend_of(query_state(model, dev), precision)

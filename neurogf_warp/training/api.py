@@ -83,7 +83,7 @@ def resolve_config(config=None, device=None, n_vertices: int = 0, **settings) ->
 
 def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = None, device=None, dataset=None,
           resume: bool = False, force: bool = False, budget_seconds: float | None = None, progress: bool = True,
-          callback=None, **settings) -> "Model":
+          callback=None, allow_vertex_joins: bool = False, **settings) -> "Model":
     """Train a NeuroGF for ``mesh`` and write it to ``out``; returns the saved Model.
 
     Parameters
@@ -105,6 +105,8 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
         measured step times. A run interrupted and continued by a later call gets what the earlier calls left.
     progress : progress bars and messages on stderr
     callback : ``callback(stage, step, terms)`` after every step (raise KeyboardInterrupt there to stop like Ctrl-C)
+    allow_vertex_joins : train a mesh whose patches meet only at single vertices (refused by default, before any
+        work: geodesics through such vertices are fitted poorly; the error says how to weld seams stored twice)
     **settings : any TrainConfig setting by name, e.g. ``D=128, lr=3e-3, n_sources=256, epochs=20``
 
     Notes
@@ -133,7 +135,7 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
         if model is not None:
             return model
         return _train_locked(mesh, files, config, device, dataset, resume, force, budget_seconds, progress,
-                             callback, settings, key, t_call)
+                             callback, settings, key, t_call, allow_vertex_joins)
     except BaseException:
         if created and os.path.isdir(files.folder) and not os.listdir(files.folder):
             os.rmdir(files.folder)  # refused before anything was written: leave no empty run folder
@@ -143,14 +145,14 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
 
 
 def _train_locked(mesh, files, config, device, dataset, resume, force, budget_seconds, progress, callback,
-                  settings, key, t_call):
+                  settings, key, t_call, allow_vertex_joins=False):
     import torch
 
     dev = torch_device(device)
     if dev.type == "cuda" and dev.index is None:  # generators and tensors must agree on the index
         dev = torch.device("cuda", torch.cuda.current_device())
     mesh = load_mesh(mesh)
-    check_trainable(mesh)
+    check_trainable(mesh, allow_vertex_joins)
     cfg = resolve_config(config, dev.type, len(mesh.vertices), **settings)
     request = {"config": cfg.to_dict(), "budget_seconds": budget_seconds,
                "dataset": None if dataset is None else os.path.abspath(dataset) if isinstance(dataset, (str, os.PathLike))
