@@ -165,7 +165,16 @@ def nearest_seeds(model: Model, seeds, k: int = 1, device=None, precision: str =
     dev = resolve_device(device)
     best_d = best_l = None
     for off, rows in _rows(model, ids, dev, precision):
-        d = torch.nan_to_num(rows.T, nan=float("inf"))  # (n_input, s); unused vertices sorted last
+        rows = torch.nan_to_num(rows, nan=float("inf"))  # (s, n_input); unused vertices sort last
+        if k == 1:  # a running minimum: no sort, no transposed copy
+            d, lab = torch.min(rows, dim=0)
+            d, lab = d[:, None], lab[:, None] + off
+            if best_d is not None:
+                better = d < best_d  # strict: a tie keeps the earlier seed
+                d, lab = torch.where(better, d, best_d), torch.where(better, lab, best_l)
+            best_d, best_l = d, lab
+            continue
+        d = rows.T
         lab = torch.arange(off, off + rows.shape[0], device=d.device).expand_as(d)
         if best_d is not None:  # earlier seeds first, so a stable sort keeps ties with the earlier seed
             d, lab = torch.cat([best_d, d], 1), torch.cat([best_l, lab], 1)
