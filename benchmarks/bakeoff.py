@@ -217,13 +217,13 @@ def plot(rows: list, path: Path) -> bool:
     fig, axes = plt.subplots(1, len(names), figsize=(4.4 * len(names), 3.8), squeeze=False)
     for ax, name in zip(axes[0], names):
         for v in VARIANTS:
-            rs = [r for r in ok if r["mesh"] == name and r["variant"] == v]
+            rs = sorted((r for r in ok if r["mesh"] == name and r["variant"] == v), key=lambda r: r["budget_s"])
             if rs:
-                ax.plot([r["call_s"] for r in rs], [100 * r["mre"] for r in rs], "o", label=v)
+                ax.semilogy([r["call_s"] for r in rs], [100 * r["mre"] for r in rs], "o--", label=v, alpha=0.8)
         ax.set_title(name)
         ax.set_xlabel("seconds, whole train() call")
         ax.set_ylabel("MRE vs exact (%)")
-        ax.grid(True, alpha=0.3)
+        ax.grid(True, which="both", alpha=0.3)
         ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -40,7 +40,7 @@ class NetworkConfig:
     path_residual: bool = True     # path head outputs offsets from the straight line
     path_width: int = 1            # path head hidden widths x1 or x2
     path_window: bool = True       # path offsets x sin(pi t): exact end points (needs path_residual)
-    # training-time designs (benchmarks/bakeoff.py); their models are not yet readable by the inference engine
+    # training-time designs (benchmarks/bakeoff.py): model files and the inference engine read only the defaults
     norm: str = "batch"            # "batch" or "none" (biases + He init, no BatchNorm outside the path head)
     hash_levels: int = 0           # levels of a hash-grid encoding appended to the lifting's inputs (0: none)
 
