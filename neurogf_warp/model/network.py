@@ -5,14 +5,19 @@ Every layer is a bias-free linear map, optionally followed by BatchNorm and ReLU
 Widths scale with D; D=256 is the released layout (lifting 3-64-128-256, heads 256-64-64-1,
 guidance 512-256, path head 259-128-64-32-3).
 
-Five options (not in the paper; all off reproduces it exactly, and released checkpoints load that way):
+Seven options (not in the paper; all off reproduces it exactly, and released checkpoints load that way):
   fourier=L     the lifting sees [x, sin(2^k pi x), cos(2^k pi x)], k < L (3 + 6L inputs) instead of x;
   euclid=True   distance = |p - q| + gdf_head(|e_p - e_q|): the head learns only the excess over the
                 straight line, so it needs the query points as well as their embeddings;
   path_residual=True  the path head outputs offsets from the straight line instead of absolute points;
   path_window=True  (with path_residual) the offsets are scaled by sin(pi t), t in [0, 1] along the line, so a
                 path starts exactly at p and ends exactly at q;
-  path_width=2  the path head's hidden layers twice as wide (D/2, D/4, D/8 -> D, D/2, D/4).
+  path_width=2  the path head's hidden layers twice as wide (D/2, D/4, D/8 -> D, D/2, D/4);
+  norm="none"   the lifting, the distance and SDF heads and the guidance layer without BatchNorm: each layer
+                gets a bias instead and He initialization (a leaner training step; the path head keeps BatchNorm);
+  hash_levels=n the lifting also sees a multiresolution hash-grid encoding of the point (``HashGrid``: n levels
+                of trainable features, trilinearly interpolated), appended to its Fourier inputs.
+The last two are training-time designs: model files and the Warp inference engine support only the first five.
 """
 from __future__ import annotations
 
@@ -23,20 +28,29 @@ from torch import nn
 
 from neurogf_warp.common.checks import InputError
 
-__all__ = ["FC", "PointMLP", "NeuroGFNet", "SdfQuerier", "widths", "fourier_features"]
+__all__ = ["FC", "PointMLP", "NeuroGFNet", "SdfQuerier", "HashGrid", "widths", "fourier_features", "NORMS"]
 
 SUPPORTED_D = (64, 128, 256, 512)
 MAX_FOURIER = 8
+NORMS = ("batch", "none")
+MAX_HASH_LEVELS = 16
 
 
 class FC(nn.Module):
-    """Bias-free Linear -> optional BatchNorm1d -> optional ReLU (state-dict keys ``linear.*``, ``bn.*``)."""
+    """Bias-free Linear -> optional BatchNorm1d -> optional ReLU (state-dict keys ``linear.*``, ``bn.*``).
 
-    def __init__(self, ic: int, oc: int, bn: bool = True, relu: bool = True):
+    ``norm="none"`` drops the BatchNorm of a normalized layer: the Linear then has a bias (BatchNorm's shift
+    was the only offset) and He-normal weights, so that activations keep their scale through the ReLUs."""
+
+    def __init__(self, ic: int, oc: int, bn: bool = True, relu: bool = True, norm: str = "batch"):
         super().__init__()
-        self.linear = nn.Linear(ic, oc, bias=False)
-        self.bn = nn.BatchNorm1d(oc) if bn else None
+        plain = bn and norm == "none"
+        self.linear = nn.Linear(ic, oc, bias=plain)
+        self.bn = nn.BatchNorm1d(oc) if bn and not plain else None
         self.act = nn.ReLU(inplace=True) if relu else None
+        if plain:
+            nn.init.kaiming_normal_(self.linear.weight, nonlinearity="relu" if relu else "linear")
+            nn.init.zeros_(self.linear.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, ic) -> (B, oc)."""
@@ -84,9 +98,71 @@ def widths(D: int, path_width: int = 1) -> dict:
     }
 
 
-def _head(ws):
-    layers = [FC(a, b) for a, b in zip(ws[:-2], ws[1:-1])]
+def _head(ws, norm="batch"):
+    layers = [FC(a, b, norm=norm) for a, b in zip(ws[:-2], ws[1:-1])]
     return nn.Sequential(*layers, FC(ws[-2], ws[-1], bn=False, relu=False))
+
+
+class HashGrid(nn.Module):
+    """Multiresolution hash-grid encoding of points in [-1, 1]^3 (instant-NGP style), in plain torch.
+
+    Level l is a grid of resolution ``base * g**l`` (g fills the span up to ``finest``) over the cube; each
+    corner owns ``features`` trainable numbers, stored densely while the level's corners fit the table and
+    hashed into ``2**log2_size`` rows past that. A point gets, per level, the trilinear blend of its cell's 8
+    corners. Gathers use ``index_select`` so that the backward pass is an atomic ``index_add`` (no host
+    synchronization: the step stays capturable as a CUDA graph).
+
+    Parameters: levels >= 1; features per level; log2_size of each level's table; base and finest resolutions.
+    Input (N, 3) points (normalized frame, coordinates clamped to [-1, 1]) -> (N, levels * features).
+    """
+
+    PRIMES = (1, 2654435761, 805459861)
+
+    def __init__(self, levels: int, features: int = 2, log2_size: int = 18, base: int = 16, finest: int = 1024):
+        super().__init__()
+        if not (isinstance(levels, int) and 1 <= levels <= MAX_HASH_LEVELS):
+            raise InputError(f"hash_levels must be an integer in 1..{MAX_HASH_LEVELS}, got {levels!r}")
+        self.levels, self.features, self.size = levels, features, 1 << log2_size
+        g = math.exp((math.log(finest) - math.log(base)) / max(levels - 1, 1))
+        res = [int(math.floor(base * g ** i)) for i in range(levels)]
+        # buffers, not lists: a captured graph must not copy host data; non-persistent: rebuilt from the options
+        self.register_buffer("res", torch.tensor(res, dtype=torch.float32), persistent=False)
+        self.register_buffer("stride", torch.tensor([r + 1 for r in res], dtype=torch.long), persistent=False)
+        self.register_buffer("dense", torch.tensor([(r + 1) ** 3 <= self.size for r in res]), persistent=False)
+        self.register_buffer("offset", torch.arange(levels, dtype=torch.long) * self.size, persistent=False)
+        self.register_buffer("corners", torch.tensor([[(c >> k) & 1 for k in range(3)] for c in range(8)]),
+                             persistent=False)
+        self.register_buffer("primes", torch.tensor(self.PRIMES, dtype=torch.long), persistent=False)
+        # small uniform start, as instant-NGP: the lifting first sees its Fourier inputs, the grid grows in
+        self.table = nn.Parameter(torch.empty(levels * self.size, features).uniform_(-1e-4, 1e-4))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, 3) -> (N, levels * features)."""
+        n = x.shape[0]
+        u = ((x.clamp(-1.0, 1.0) + 1.0) * 0.5).unsqueeze(1) * self.res.view(1, -1, 1)  # (N, L, 3) grid units
+        i0 = torch.minimum(u.floor(), self.res.view(1, -1, 1) - 1)  # a point at +1 blends its last cell's corners
+        f = u - i0
+        c = i0.long().unsqueeze(2) + self.corners.view(1, 1, 8, 3)  # (N, L, 8, 3)
+        s = self.stride.view(1, -1, 1)
+        dense = c[..., 0] + s * (c[..., 1] + s * c[..., 2])
+        h = c * self.primes
+        hashed = (h[..., 0] ^ h[..., 1] ^ h[..., 2]) & (self.size - 1)
+        idx = torch.where(self.dense.view(1, -1, 1), dense, hashed) + self.offset.view(1, -1, 1)
+        cw = self.corners.view(1, 1, 8, 3).to(f.dtype)
+        w = (cw * f.unsqueeze(2) + (1 - cw) * (1 - f.unsqueeze(2))).prod(-1)  # (N, L, 8) trilinear weights
+        v = self.table.index_select(0, idx.reshape(-1)).view(n, self.levels, 8, self.features)
+        return (w.unsqueeze(-1) * v).sum(2).reshape(n, self.levels * self.features)
+
+
+class _HashInput(nn.Module):
+    """Appends ``HashGrid`` features of the point (the first 3 input columns) to the lifting's inputs."""
+
+    def __init__(self, grid: HashGrid):
+        super().__init__()
+        self.grid = grid
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        return torch.cat([h, self.grid(h[:, :3])], dim=-1)
 
 
 def fourier_features(x: torch.Tensor, L: int) -> torch.Tensor:
@@ -101,20 +177,30 @@ class NeuroGFNet(nn.Module):
     """Overfitted NeuroGF: shared point lifting, distance head, SDF head and path head."""
 
     def __init__(self, D: int = 256, fourier: int = 0, euclid: bool = False, path_residual: bool = False,
-                 path_width: int = 1, path_window: bool = False):
+                 path_width: int = 1, path_window: bool = False, norm: str = "batch", hash_levels: int = 0):
         super().__init__()
         w = widths(D, path_width)
         if not (isinstance(fourier, int) and 0 <= fourier <= MAX_FOURIER):
             raise InputError(f"fourier must be an integer in 0..{MAX_FOURIER}, got {fourier!r}")
+        if norm not in NORMS:
+            raise InputError(f"norm must be one of {NORMS}, got {norm!r}")
+        if not (isinstance(hash_levels, int) and 0 <= hash_levels <= MAX_HASH_LEVELS):
+            raise InputError(f"hash_levels must be an integer in 0..{MAX_HASH_LEVELS} (0: no hash grid), "
+                             f"got {hash_levels!r}")
         self.D, self.fourier, self.euclid, self.path_residual = D, fourier, bool(euclid), bool(path_residual)
         self.path_width, self.path_window = path_width, bool(path_window)
+        self.norm, self.hash_levels = norm, hash_levels
         if self.path_window and not self.path_residual:
             raise InputError("path_window scales the path offsets: it needs path_residual=True")
         lw = [3 + 6 * fourier] + w["lifting"][1:]
-        self.lifting = nn.Sequential(*[FC(a, b) for a, b in zip(lw[:-1], lw[1:])])
-        self.sdf_head = _head(w["head"])
-        self.gdf_head = _head(w["head"])
-        self.cdw_fc = FC(*w["guidance"])
+        encode = []
+        if hash_levels:
+            grid = HashGrid(hash_levels)
+            encode, lw[0] = [_HashInput(grid)], lw[0] + grid.levels * grid.features
+        self.lifting = nn.Sequential(*encode, *[FC(a, b, norm=norm) for a, b in zip(lw[:-1], lw[1:])])
+        self.sdf_head = _head(w["head"], norm)
+        self.gdf_head = _head(w["head"], norm)
+        self.cdw_fc = FC(*w["guidance"], norm=norm)
         pw = w["path"]
         self.spf_head = nn.Sequential(
             *[PointMLP(a, b) for a, b in zip(pw[:-2], pw[1:-1])], PointMLP(pw[-2], pw[-1], bn=False, relu=False)
@@ -123,8 +209,14 @@ class NeuroGFNet(nn.Module):
     @property
     def options(self) -> dict:
         """What a model file must record besides the weights to rebuild this network."""
-        return {"fourier": self.fourier, "euclid": self.euclid, "path_residual": self.path_residual,
-                "path_width": self.path_width, "path_window": self.path_window}
+        out = {"fourier": self.fourier, "euclid": self.euclid, "path_residual": self.path_residual,
+               "path_width": self.path_width, "path_window": self.path_window}
+        # recorded only when set: files of the default design stay readable by every version
+        if self.norm != "batch":
+            out["norm"] = self.norm
+        if self.hash_levels:
+            out["hash_levels"] = self.hash_levels
+        return out
 
     def path_output(self, out: torch.Tensor, lines: torch.Tensor) -> torch.Tensor:
         """Path points from the head's output: absolute (paper), or offsets from the lines (optionally windowed)."""

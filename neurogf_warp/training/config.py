@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 from neurogf_warp.common.checks import integer
 from neurogf_warp.dataset.build import DatasetSettings
-from neurogf_warp.model.network import MAX_FOURIER, SUPPORTED_D, NeuroGFNet
+from neurogf_warp.model.network import MAX_FOURIER, MAX_HASH_LEVELS, NORMS, SUPPORTED_D, NeuroGFNet
 
 __all__ = ["TrainConfig", "NetworkConfig", "ScheduleConfig", "BatchConfig", "RuntimeConfig", "DatasetSettings",
            "STAGES", "RATIOS", "QUERIER_MAX", "DIST_LOSSES", "parse_assignments"]
@@ -40,6 +40,9 @@ class NetworkConfig:
     path_residual: bool = True     # path head outputs offsets from the straight line
     path_width: int = 1            # path head hidden widths x1 or x2
     path_window: bool = True       # path offsets x sin(pi t): exact end points (needs path_residual)
+    # training-time designs (benchmarks/bakeoff.py): model files and the inference engine read only the defaults
+    norm: str = "batch"            # "batch" or "none" (biases + He init, no BatchNorm outside the path head)
+    hash_levels: int = 0           # levels of a hash-grid encoding appended to the lifting's inputs (0: none)
 
     def validate(self):
         if self.D not in SUPPORTED_D:
@@ -50,10 +53,15 @@ class NetworkConfig:
             raise ValueError(f"path_width must be 1 or 2 (2 only for D <= 256), got {self.path_width} with D={self.D}")
         if self.path_window and not self.path_residual:
             raise ValueError("path_window scales the path offsets: it needs path_residual=True")
+        if self.norm not in NORMS:
+            raise ValueError(f"norm must be one of {NORMS}, got {self.norm!r}")
+        if not 0 <= self.hash_levels <= MAX_HASH_LEVELS:
+            raise ValueError(f"hash_levels must be an integer in 0..{MAX_HASH_LEVELS} (0: none), got {self.hash_levels}")
 
     def build(self) -> NeuroGFNet:
         """A freshly initialized ``NeuroGFNet`` of this shape (draws from torch's global RNG)."""
-        return NeuroGFNet(self.D, self.fourier, self.euclid, self.path_residual, self.path_width, self.path_window)
+        return NeuroGFNet(self.D, self.fourier, self.euclid, self.path_residual, self.path_width, self.path_window,
+                          self.norm, self.hash_levels)
 
 
 @dataclass

@@ -1,0 +1,116 @@
+"""The training-time network designs ``norm="none"`` and ``hash_levels``: shapes, the default layout untouched,
+the hash grid's interpolation against a float64 reference, and the settings' checks."""
+import itertools
+
+import pytest
+import torch
+
+from neurogf_warp.common.checks import InputError
+from neurogf_warp.model.network import FC, HashGrid, NeuroGFNet
+from neurogf_warp.training.config import TrainConfig
+
+OPTS = dict(fourier=2, euclid=True, path_residual=True, path_window=True)
+
+
+def test_default_layout_and_options_unchanged():
+    torch.manual_seed(0)
+    net = NeuroGFNet(64, **OPTS)
+    assert set(net.options) == {"fourier", "euclid", "path_residual", "path_width", "path_window"}
+    keys = list(net.state_dict())
+    assert "lifting.0.bn.running_mean" in keys and not any(".linear.bias" in k for k in keys)
+    assert not any(k.startswith("lifting.0.grid") for k in keys)
+
+
+def test_no_norm_has_biases_and_no_batch_statistics():
+    torch.manual_seed(0)
+    net = NeuroGFNet(64, norm="none", **OPTS)
+    assert net.options["norm"] == "none"
+    for part in (net.lifting, net.gdf_head, net.sdf_head):
+        assert not any(isinstance(m, torch.nn.BatchNorm1d) for m in part.modules())
+    assert all(m.linear.bias is not None for m in net.lifting)
+    p, q = torch.rand(40, 3) * 2 - 1, torch.rand(40, 3) * 2 - 1
+    train = net.train().distance(p, q)
+    with torch.no_grad():
+        ev = net.eval().distance(p, q)
+    # without batch statistics a pair's distance does not depend on the rest of the batch or on the mode
+    torch.testing.assert_close(train.detach(), ev)
+    torch.testing.assert_close(net.distance(p[:5], q[:5]).detach(), ev[:5])
+
+
+def test_no_norm_keeps_activation_scale():
+    torch.manual_seed(1)
+    fc = FC(256, 256, norm="none")
+    x = torch.randn(4096, 256)
+    # He init: E[relu(Wx)^2] = E[x^2] for unit inputs, so the mean square stays near 1 (the PyTorch default
+    # init would shrink it to about a sixth)
+    ms = fc(x).pow(2).mean().item()
+    assert 0.7 < ms < 1.3
+
+
+def _trilinear_reference(grid: HashGrid, x: torch.Tensor, level: int) -> torch.Tensor:
+    """Float64 trilinear blend of one dense level, corner by corner from its definition."""
+    res = int(grid.res[level])
+    s = res + 1
+    u = (x.clamp(-1, 1) + 1) / 2 * res
+    i0 = torch.minimum(u.floor(), torch.full_like(u, res - 1))
+    f = u - i0
+    out = torch.zeros(len(x), grid.features, dtype=torch.float64)
+    table = grid.table.detach().double()
+    for n in range(len(x)):
+        for bits in itertools.product((0, 1), repeat=3):
+            c = [int(i0[n, k]) + bits[k] for k in range(3)]
+            w = 1.0
+            for k in range(3):
+                w *= float(f[n, k]) if bits[k] else 1.0 - float(f[n, k])
+            out[n] += w * table[level * grid.size + c[0] + s * (c[1] + s * c[2])]
+    return out
+
+
+def test_hash_grid_matches_float64_trilinear_reference():
+    torch.manual_seed(2)
+    grid = HashGrid(3, features=2, log2_size=12, base=4, finest=64).double()
+    with torch.no_grad():
+        grid.table.normal_()
+    x = torch.rand(30, 3, dtype=torch.float64) * 2.2 - 1.1  # some outside [-1, 1]: clamped onto the cube
+    x[0] = torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)  # the +1 faces blend their last cell
+    out = grid(x)
+    assert out.shape == (30, 6)
+    dense = [lv for lv in range(grid.levels) if bool(grid.dense[lv])]
+    assert dense and len(dense) < grid.levels  # both kinds of level are exercised
+    for lv in dense:
+        torch.testing.assert_close(out[:, 2 * lv: 2 * lv + 2], _trilinear_reference(grid, x, lv))
+
+
+def test_hash_grid_gradients_and_index_range():
+    torch.manual_seed(3)
+    grid = HashGrid(4, features=2, log2_size=10, base=4, finest=200).double()
+    with torch.no_grad():
+        grid.table.normal_()
+    x = (torch.rand(20, 3, dtype=torch.float64) * 1.8 - 0.9).requires_grad_()
+    assert torch.autograd.gradcheck(grid, (x,), eps=1e-7, atol=1e-5)
+    grid(x.detach()).sum().backward()
+    # every point touches 8 corners on every level: the table's gradient is non-zero on at most that many rows
+    touched = (grid.table.grad.abs().sum(1) > 0).sum().item()
+    assert 0 < touched <= 20 * 8 * 4
+
+
+def test_hash_network_forward_and_options():
+    torch.manual_seed(4)
+    net = NeuroGFNet(64, hash_levels=4, **OPTS)
+    assert net.options["hash_levels"] == 4
+    p, q = torch.rand(16, 3) * 2 - 1, torch.rand(16, 3) * 2 - 1
+    d = net.distance(p, q)
+    assert d.shape == (16,) and torch.isfinite(d).all()
+    d.sum().backward()
+    assert net.lifting[0].grid.table.grad is not None
+
+
+def test_settings_reach_the_network_and_bad_values_are_refused():
+    net = TrainConfig().set(norm="none", hash_levels="3", D=64).network.build()
+    assert net.norm == "none" and net.hash_levels == 3
+    with pytest.raises(ValueError, match="norm"):
+        TrainConfig().set(norm="layer")
+    with pytest.raises(ValueError, match="hash_levels"):
+        TrainConfig().set(hash_levels=99)
+    with pytest.raises(InputError, match="norm"):
+        NeuroGFNet(64, norm="group")
