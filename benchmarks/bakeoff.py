@@ -46,6 +46,7 @@ VARIANTS = {
     "hash": {"hash_levels": 12},
 }
 COMMON = {"compile": False}
+os.environ["NEUROGF_BAKEOFF_DESIGNS"] = "1"  # the designs the package refuses for users (no inference backend reads them)
 MESHES = {"spot": "spot.obj", "cow": "cow.obj", "alligator": "alligator.obj", "homer": "homer.obj",
           "fandisk": "fandisk.obj", "cheburashka": "cheburashka.obj", "rocker-arm": "rocker-arm.obj",
           "bunny": "stanford-bunny.obj", "igea": "igea.ply"}

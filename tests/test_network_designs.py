@@ -105,7 +105,10 @@ def test_hash_network_forward_and_options():
     assert net.lifting[0].grid.table.grad is not None
 
 
-def test_settings_reach_the_network_and_bad_values_are_refused():
+def test_settings_reach_the_network_and_bad_values_are_refused(monkeypatch):
+    with pytest.raises(ValueError, match="training-time designs"):
+        TrainConfig().set(norm="none", D=64)
+    monkeypatch.setenv("NEUROGF_BAKEOFF_DESIGNS", "1")
     net = TrainConfig().set(norm="none", hash_levels="3", D=64).network.build()
     assert net.norm == "none" and net.hash_levels == 3
     with pytest.raises(ValueError, match="norm"):

@@ -11,6 +11,7 @@ import dataclasses
 import difflib
 import json
 import math
+import os
 from dataclasses import dataclass, field
 
 from neurogf_warp.common.checks import integer
@@ -57,6 +58,11 @@ class NetworkConfig:
             raise ValueError(f"norm must be one of {NORMS}, got {self.norm!r}")
         if not 0 <= self.hash_levels <= MAX_HASH_LEVELS:
             raise ValueError(f"hash_levels must be an integer in 0..{MAX_HASH_LEVELS} (0: none), got {self.hash_levels}")
+        if (self.norm != "batch" or self.hash_levels) and not os.environ.get("NEUROGF_BAKEOFF_DESIGNS"):
+            # their models train, but no model file or inference backend reads them: refuse rather than lose a run
+            raise ValueError(f"norm={self.norm!r} / hash_levels={self.hash_levels} are training-time designs measured "
+                             "by benchmarks/bakeoff.py; model files and the inference kernels support only the default "
+                             "(norm='batch', hash_levels=0)")
 
     def build(self) -> NeuroGFNet:
         """A freshly initialized ``NeuroGFNet`` of this shape (draws from torch's global RNG)."""
