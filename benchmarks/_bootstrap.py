@@ -15,18 +15,26 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _origin(module) -> Path:
+    return Path(getattr(module, "__file__", None) or "/").resolve()
+
+
 def _use_checkout() -> None:
     mods = sys.modules
-    if "neurogf_warp" in mods:
-        if Path(mods["neurogf_warp"].__file__).resolve().parent == ROOT / "neurogf_warp":
-            return
+    if "neurogf_warp" in mods and _origin(mods["neurogf_warp"]) != ROOT / "neurogf_warp" / "__init__.py":
         for name in [n for n in mods if n == "neurogf_warp" or n.startswith("neurogf_warp.")]:
             del mods[name]  # a copy from another folder, imported before this module: replace it
-    sys.path.insert(0, str(ROOT))
+    if str(ROOT) in sys.path:
+        sys.path.remove(str(ROOT))
+    sys.path.insert(0, str(ROOT))  # first, ahead of any install
     import neurogf_warp
 
+    if "neurogf_warp.kernels" in mods and _origin(mods["neurogf_warp.kernels"]) == ROOT / "kernels" / "__init__.py":
+        return
     # registered by hand: a finder of an install elsewhere must not supply the kernels or their submodules,
     # which are then found through this module's __path__ (ROOT/kernels)
+    for name in [n for n in mods if n == "neurogf_warp.kernels" or n.startswith("neurogf_warp.kernels.")]:
+        del mods[name]
     spec = importlib.util.spec_from_file_location("neurogf_warp.kernels", ROOT / "kernels" / "__init__.py",
                                                   submodule_search_locations=[str(ROOT / "kernels")])
     kernels = importlib.util.module_from_spec(spec)

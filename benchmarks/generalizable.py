@@ -33,8 +33,6 @@ and prints a table (and writes --json). Exit status 1 when a result disagrees wi
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import platform
 import sys
 import time

@@ -396,7 +396,7 @@ def main(argv=None) -> int:
         p.add_argument("--work", type=Path, default=Path("/tmp/gencoll"), help="scratch: collection, ground truth")
         p.add_argument("--shared", default=None, help="shared data folder (meshes/, reference/, checkpoints/) or a "
                                                       "pack-shared .tar.xz; default $NEUROGF_SHARED, ../shared, "
-                                                      "shared, .bench")
+                                                      "./shared")
         p.add_argument("--device", default="cuda:0")
         p.add_argument("--shapes", type=int, default=540)
         p.add_argument("--seed", type=int, default=0)

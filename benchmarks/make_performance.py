@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "results"
+RESULTS_DIR = ROOT / "benchmarks" / "results"
 PAGE = ROOT / "docs" / "performance.md"
 
 FORMATTERS: dict = {}  # benchmark name -> (title, function(runs) -> list of Markdown lines)
@@ -35,7 +35,7 @@ def formatter(name: str, title: str):
     return register
 
 
-# ---- small helpers ---------------------------------------------------------------------------------------------
+# ---- formatting -------------------------------------------------------------------------------------------------
 
 def pct(x, digits=3) -> str:
     return "-" if x is None else f"{100 * x:.{digits}f}%"
@@ -350,7 +350,7 @@ def fmt_generalizable_scaling(runs):
 
 # ---- the page ---------------------------------------------------------------------------------------------------
 
-def build(results: Path = RESULTS) -> str:
+def build(results: Path = RESULTS_DIR) -> str:
     files = sorted(results.glob("*.json"))
     docs = []
     for f in files:
@@ -384,7 +384,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--check", action="store_true",
                     help="compare docs/performance.md with a regeneration; exit 1 (with a diff) when they differ")
-    ap.add_argument("--results", default=str(RESULTS), help="folder of result JSON files (default: benchmarks/results)")
+    ap.add_argument("--results", default=str(RESULTS_DIR), help="folder of result JSON files (default: benchmarks/results)")
     ap.add_argument("-o", "--output", default=str(PAGE), help="the page (default: docs/performance.md)")
     a = ap.parse_args(argv)
     text = build(Path(a.results))

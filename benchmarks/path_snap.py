@@ -18,9 +18,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import platform
-import sys
 import time
 from pathlib import Path
 

@@ -1,6 +1,6 @@
 """Every NeuroGF query, Warp against every PyTorch variant, on the same inputs in one run.
 
-    python benchmarks/queries.py --device cuda:0                  # the GPU machine: full sizes
+    python benchmarks/queries.py --device cuda:0                  # a GPU: full sizes
     python benchmarks/queries.py --device cpu --quick             # small sizes: a smoke test on a CPU
 
 For each query (SSAD on a bound model, SSAD cold from a point, MSAD with 8 sources, a 64-source distance
@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import os
 import platform
 import statistics
@@ -26,7 +25,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
