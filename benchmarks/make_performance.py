@@ -6,8 +6,10 @@
 A result file is one benchmark's JSON (``{"benchmark": NAME, "provenance": {...}, ...}``, as ``common.write_json``
 writes it) or several runs of one benchmark (``{"benchmark": NAME, "runs": [{"provenance": {...}, ...}, ...]}``).
 Each table is headed by its command, device, driver / Warp / torch versions, date and commit, taken from the
-provenance blocks. A new benchmark adds one function to ``FORMATTERS`` (``@formatter("name")``): it gets the list of
-runs and returns the table (Markdown lines). Needs only the standard library.
+provenance blocks. A new benchmark adds one function to ``FORMATTERS`` (``@formatter("name", "title")``): it gets the
+list of runs and returns the table (Markdown lines). Where a curve says more than the table (``PLOTTERS``), the page
+links a figure in docs/performance/, redrawn with matplotlib when it is installed; ``--check`` compares the text only.
+The page itself needs only the standard library.
 """
 from __future__ import annotations
 
@@ -23,6 +25,7 @@ RESULTS_DIR = ROOT / "benchmarks" / "results"
 PAGE = ROOT / "docs" / "performance.md"
 
 FORMATTERS: dict = {}  # benchmark name -> (title, function(runs) -> list of Markdown lines)
+PLOTTERS: dict = {}  # benchmark name -> function(runs, png path): a figure beside the table (matplotlib)
 ORDER = ["queries", "released", "kernel_api", "path_snap", "geodesics", "time_to_accuracy", "generalizable",
          "generalizable_collection", "generalizable_eval", "generalizable_scaling"]
 
@@ -348,9 +351,45 @@ def fmt_generalizable_scaling(runs):
                     rows))
 
 
+def plot_time_to_accuracy(runs, path: Path) -> None:
+    """MRE against the budget, one line per mesh (log scale), the heat method's MRE as a dotted line of its colour."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for run in runs for r in run["rows"]]
+    meshes = sorted({r["mesh"] for r in rows}, key=lambda m: min(r["mre"] for r in rows if r["mesh"] == m))
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    for i, m in enumerate(meshes):
+        rs = sorted((r for r in rows if r["mesh"] == m), key=lambda r: r["budget_s"])
+        color = f"C{i % 10}"
+        ax.plot([r["budget_s"] for r in rs], [100 * r["mre"] for r in rs], "o-", color=color, label=m)
+        if rs[0].get("heat_mre"):
+            ax.axhline(100 * rs[0]["heat_mre"], color=color, ls=":", lw=0.8)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    budgets = sorted({r["budget_s"] for r in rows})
+    ax.set_xticks(budgets, [f"{b:g} s" for b in budgets])
+    ax.set_xticks([], minor=True)
+    ax.set_xlabel("budget of the whole train() call")
+    ax.set_ylabel("MRE against exact geodesics (%)")
+    ax.set_title("dotted: the heat method on the same pairs", fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90, metadata={"Software": None})
+    plt.close(fig)
+
+
+PLOTTERS["time_to_accuracy"] = plot_time_to_accuracy
+
+
 # ---- the page ---------------------------------------------------------------------------------------------------
 
-def build(results: Path = RESULTS_DIR) -> str:
+def build(results: Path = RESULTS_DIR, plots: list | None = None) -> str:
+    """The page's text; the figures it links are appended to ``plots`` as (function, runs, file name)."""
+    plots = [] if plots is None else plots
     files = sorted(results.glob("*.json"))
     docs = []
     for f in files:
@@ -377,6 +416,10 @@ def build(results: Path = RESULTS_DIR) -> str:
         anchor = re.sub(r"[^a-z0-9 -]", "", heading.lower()).replace(" ", "-")
         toc.append(f"- [{heading}](#{anchor})")
         body += [f"## {heading}", ""] + header(provs, [fname]) + [""] + fn(runs) + [""]
+        if name in PLOTTERS and len({r["budget_s"] for run in runs for r in run.get("rows", [])}) > 1:
+            png = Path(fname).with_suffix(".png").name
+            body += [f"![{title}, {dev}](performance/{png})", ""]
+            plots.append((PLOTTERS[name], runs, png))
     return "\n".join(lines + toc + [""] + body).rstrip() + "\n"
 
 
@@ -386,8 +429,10 @@ def main(argv=None) -> int:
                     help="compare docs/performance.md with a regeneration; exit 1 (with a diff) when they differ")
     ap.add_argument("--results", default=str(RESULTS_DIR), help="folder of result JSON files (default: benchmarks/results)")
     ap.add_argument("-o", "--output", default=str(PAGE), help="the page (default: docs/performance.md)")
+    ap.add_argument("--no-plots", action="store_true", help="write the page only, not its figures")
     a = ap.parse_args(argv)
-    text = build(Path(a.results))
+    plots = []
+    text = build(Path(a.results), plots)
     out = Path(a.output)
     if a.check:
         old = out.read_text() if out.exists() else ""
@@ -401,6 +446,17 @@ def main(argv=None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text)
     print(f"wrote {out}")
+    if plots and not a.no_plots:
+        try:
+            import matplotlib  # noqa: F401
+        except ImportError:
+            print("matplotlib is not installed: the figures were not redrawn")
+            return 0
+        folder = out.parent / "performance"
+        folder.mkdir(exist_ok=True)
+        for fn, runs, png in plots:
+            fn(runs, folder / png)
+            print(f"wrote {folder / png}")
     return 0
 
 
