@@ -1,4 +1,4 @@
-"""Shared benchmark helpers: where the test data is, the large benchmark meshes, and the provenance block that
+"""Code the benchmarks share: where the test data is, the large benchmark meshes, and the provenance block that
 every benchmark writes into its JSON (command, device, driver, Warp / torch versions, date, commit)."""
 from __future__ import annotations
 

@@ -145,7 +145,8 @@ def main(argv=None) -> int:
     p.add_argument("--path-refine", type=int, default=50, help="shortening sweeps for the refined Chamfer (0: none)")
     p.add_argument("--no-heat", dest="heat", action="store_false", help="skip the heat method")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a training setting, repeatable")
-    p.add_argument("--out", default=os.environ.get("OUT", str(ROOT / "benchmarks" / "results")))
+    p.add_argument("--out", default=os.environ.get("OUT", "time_to_accuracy_out"),
+                   help="folder for time_to_accuracy.json and .png (default: $OUT, else ./time_to_accuracy_out)")
     p.add_argument("--work", default="/tmp/neurogf-time-to-accuracy", help="model files and run folders")
     p.add_argument("-q", "--quiet", action="store_true")
     a = p.parse_args(argv)

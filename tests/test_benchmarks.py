@@ -64,9 +64,9 @@ def test_help_runs_from_a_plain_checkout_with_this_checkouts_package(name, tmp_p
 
 
 def test_every_maintained_benchmark_is_covered():
-    """A new benchmark script joins SCRIPTS (its --help is then checked) or is a helper module of the folder."""
-    helpers = {"_bootstrap", "common", "make_performance"}
-    assert {p.stem for p in BENCH.glob("*.py")} - helpers == set(SCRIPTS)
+    """A new benchmark script joins SCRIPTS (its --help is then checked) or is one of the modules they share."""
+    shared = {"_bootstrap", "common", "make_performance"}
+    assert {p.stem for p in BENCH.glob("*.py")} - shared == set(SCRIPTS)
 
 
 def test_performance_page_matches_the_kept_results():
