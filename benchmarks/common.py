@@ -1,7 +1,14 @@
-"""Shared benchmark helpers: where the test data is, and the ~436K-vertex benchmark mesh."""
+"""Code the benchmarks share: where the test data is, the large benchmark meshes, and the provenance block that
+every benchmark writes into its JSON (command, device, driver, Warp / torch versions, date, commit)."""
 from __future__ import annotations
 
+import datetime
+import json
 import os
+import platform
+import shlex
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -9,33 +16,87 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("NEUROGF_SHARED", ROOT.parent / "shared"))
 
-# training benchmarks: mesh and exact-reference files, and the issue's accuracy targets
-MESHES = {"bunny": ("stanford-bunny.obj", "stanford-bunny.npz"), "fandisk": ("fandisk.obj", "fandisk.npz")}
-TARGETS = {"bunny": 0.0040, "fandisk": 0.0027, "chamfer_l1": 1.25e-2}
-
-
-def parse_data_options(items) -> dict:
-    """--data KEY=VALUE items -> {name: text} of dataset settings (DatasetSettings); other names are an error."""
-    import dataclasses
-
-    from neurogf_warp import DatasetSettings
-    from neurogf_warp.training.config import parse_assignments
-
-    out = parse_assignments(items, flag="--data")
-    names = {f.name for f in dataclasses.fields(DatasetSettings)}
-    bad = [k for k in out if k.split(".")[-1] not in names]
-    if bad:
-        raise ValueError(f"--data {bad[0]}: not a dataset setting; known: {', '.join(sorted(names))}")
-    return out
-
 
 def find_shared(*parts) -> Path:
-    """A file of ../shared, or of ./.bench (the copy carried to the GPU machine, where ../shared is absent)."""
-    for base in (SHARED, ROOT / "shared", ROOT / ".bench", ROOT / ".bench2"):
+    """A file of the shared data folder: ``$NEUROGF_SHARED``, else ``../shared`` beside the checkout, else
+    ``./shared`` inside it."""
+    for base in (SHARED, ROOT / "shared"):
         p = base.joinpath(*parts)
         if p.exists():
             return p
-    raise FileNotFoundError(f"{Path(*parts)} not found under {SHARED}, ./shared or ./.bench")
+    raise FileNotFoundError(f"{Path(*parts)} not found under {SHARED} or {ROOT / 'shared'}: set NEUROGF_SHARED to "
+                            "the folder that holds meshes/, reference/ and checkpoints/")
+
+
+def _git(*args) -> str | None:
+    try:
+        r = subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return r.stdout.strip() if r.returncode == 0 else None
+
+
+def _cpu_name() -> str | None:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or None
+
+
+def provenance(device: str | None = None, argv: list[str] | None = None) -> dict:
+    """Where a result comes from: the command as typed, the device and its name, the CUDA driver, the Warp /
+    torch / Python versions, the date (UTC) and the checkout's commit (``dirty`` when files differ from it).
+
+    Parameters
+    ----------
+    device : str, optional
+        ``"cpu"`` or ``"cuda:N"``; ``None`` for a benchmark that spans several devices (names them all).
+    argv : list of str, optional
+        The arguments after the script name (default ``sys.argv[1:]``).
+    """
+    import torch
+    import warp as wp
+
+    script = Path(sys.argv[0]).resolve()
+    try:
+        script_name = script.relative_to(ROOT).as_posix()
+    except ValueError:
+        script_name = script.name
+    args = sys.argv[1:] if argv is None else list(argv)
+    driver = wp.get_cuda_driver_version() if wp.is_cuda_available() else None
+    if device is not None and str(device).startswith("cuda"):
+        name = torch.cuda.get_device_name(torch.device(device)) if torch.cuda.is_available() else None
+    elif device is None and torch.cuda.is_available():
+        name = ", ".join(torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count()))
+    else:
+        name = _cpu_name()
+    return {
+        "command": shlex.join(["python", script_name, *args]),
+        "device": device,
+        "device_name": name,
+        "driver": ".".join(map(str, driver)) if driver else None,
+        "warp": wp.__version__,
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "date_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M:%S"),
+        "commit": _git("rev-parse", "--short", "HEAD"),
+        "dirty": bool(_git("status", "--porcelain", "--untracked-files=no")),
+        "cpu_cores": os.cpu_count(),
+    }
+
+
+def write_json(path, result: dict, benchmark: str, device: str | None = None) -> Path:
+    """Write ``result`` as JSON with ``benchmark`` and a ``provenance`` block (see :func:`provenance`) added.
+
+    ``benchmarks/make_performance.py`` reads such files into ``docs/performance.md``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    doc = {"benchmark": benchmark, "provenance": provenance(device), **result}
+    path.write_text(json.dumps(doc, indent=1, default=float) + "\n")
+    return path
 
 
 def subdivided_bunny(target: int = 436_000):
@@ -48,6 +109,10 @@ def subdivided_bunny(target: int = 436_000):
 
     tm = trimesh.load(find_shared("meshes", "stanford-bunny.obj"), process=False, force="mesh")
     v, f = np.asarray(tm.vertices), np.asarray(tm.faces)
+    used = np.unique(f)  # drop vertices no face uses
+    remap = np.full(len(v), -1)
+    remap[used] = np.arange(len(used))
+    v, f = v[used], remap[f]
     while len(v) < target:
         v, f = trimesh.remesh.subdivide(v, f)
     if len(v) > 1.02 * target:

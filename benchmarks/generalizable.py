@@ -28,13 +28,11 @@ What it does, on one device and arithmetic mode (default: fp32 on CUDA, fp64 on 
 6. the nearest-cloud-point lookups of 4 and 5 alone (2 x --pairs points): Warp's hash grid and the dense
    candidate grid (--nearest picks the one the pair timings use, default grid), the grid's build time (it is
    built on a cloud's first query, not at conditioning) and the indices' agreement (grid = hash = brute force);
-and prints a table (and writes --json). Targets from issue 23: conditioning <= 1 ms, 1M pairs <= 1 ms (GPU).
+and prints a table (and writes --json). Exit status 1 when a result disagrees with float64 torch.
 """
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import platform
 import sys
 import time
@@ -43,18 +41,17 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+import _bootstrap  # noqa: F401  (this checkout's neurogf_warp, installed or not)
+from common import find_shared, write_json
 
 
 def find_weights(arg):
     if arg:
         return Path(arg)
-    shared = Path(os.environ.get("NEUROGF_SHARED", ROOT.parent / "shared"))
-    for base in (shared, ROOT / "shared", ROOT / ".bench", ROOT / ".bench2"):
-        p = base / "checkpoints" / "official" / "GenNeuroGF.pth"
-        if p.exists():
-            return p
-    return None
+    try:
+        return find_shared("checkpoints", "official", "GenNeuroGF.pth")
+    except FileNotFoundError:
+        return None
 
 
 def random_shape(n, seed):
@@ -119,7 +116,6 @@ def main(argv=None):
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING
-    sys.path.insert(0, str(ROOT))
     from neurogf_warp.generalizable.encoder import WarpGenNet, default_mode
     from neurogf_warp.generalizable.model import GeneralizableModel, normalization
     from neurogf_warp.generalizable.network import GenNeuroGF, load_network
@@ -417,7 +413,7 @@ def main(argv=None):
     for k, v in rows:
         print(f"  {k:<{wd}}  {v}")
     if a.json:
-        Path(a.json).write_text(json.dumps(result, indent=1))
+        write_json(a.json, result, "generalizable", a.device)
     ok16 = all(r.get("ok", False) for r in fp16.values()) and nearest["grid_vs_hash_mismatches"] == 0 and \
         not any(nearest["vs_brute_force_mismatches"].values())
     return 0 if check["ok"] and (pair_check is None or pair_check <= 1e-3) and ok16 else 1

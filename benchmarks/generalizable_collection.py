@@ -1,24 +1,14 @@
-"""Issue 23 items 2 and 4: a generalizable model trained on our own shape collection, and its accuracy table.
+"""A generalizable model trained on a generated shape collection, and its accuracy against the released network
+and the heat method on unseen shapes.
 
-Two calls on one GPU machine (each self-contained, each under 10 minutes), then a merge anywhere:
+    python benchmarks/generalizable_collection.py run      --out OUT   # collection, ground truth, training, evaluation
+    python benchmarks/generalizable_collection.py per-mesh --out OUT   # 60 s per-mesh models on 3 + 3 shapes
+    python benchmarks/generalizable_collection.py merge OUT/eval.json OUT2/eval_per_mesh.json -o merged
+    python benchmarks/generalizable_collection.py pack-shared SHARED shared.tar.xz   # the data for another machine
 
-    python benchmarks/generalizable_collection.py run      --out $OUT          # collection, ground truth, train, eval
-    python benchmarks/generalizable_collection.py per-mesh --out $OUT          # 60 s per-mesh models, 3 + 3 shapes
-    python benchmarks/generalizable_collection.py merge RUN/eval.json PM/eval_per_mesh.json -o merged   # CPU
-
-On the GPU machine (shared/gpu/README.md: Warp travels in two parts; the checkout is not installed there, so
-this script links ``neurogf_warp/kernels`` itself): first, here, in the checkout, ``python
-benchmarks/generalizable_collection.py pack-shared ../shared .gpu/genshared.tar.xz`` (5.0 MiB: all 9 meshes,
-since 6 are the 'deformed' family's sources, the 3 exact references and GenNeuroGF.pth; as a folder it would be
-12 MiB, and call 2 must stay under 64 MiB beside Warp's second part: ~55 MiB with the archive), then
-- call 1, carry [.gpu/warp.so.xz.part-aa, .gpu/on-device]: ``bash .gpu/on-device stage``
-- call 2 (at once), carry [.gpu/warp.so.xz.part-ab, .gpu/warp-rest.tar.xz, .gpu/wheels, .gpu/on-device,
-  .gpu/SHA256SUMS, .gpu/genshared.tar.xz], timeout 600: ``bash .gpu/on-device stage >/dev/null && bash
-  .gpu/on-device install && source .gpu/on-device env && NEUROGF_SHARED=.gpu/genshared.tar.xz python3
-  benchmarks/generalizable_collection.py run --out $OUT``
-- call 3 (within 30 s), carry [.gpu/on-device, .gpu/genshared.tar.xz], timeout 600: ``source .gpu/on-device env
-  && NEUROGF_SHARED=.gpu/genshared.tar.xz python3 benchmarks/generalizable_collection.py per-mesh --out $OUT``
-- here: ``python benchmarks/generalizable_collection.py merge CALL2/eval.json CALL3/eval_per_mesh.json -o merged``
+Each of ``run`` and ``per-mesh`` fits in 10 minutes on one GPU; ``merge`` runs anywhere. ``--shared`` (or
+``$NEUROGF_SHARED``) is the shared data folder or a ``pack-shared`` archive (meshes, the exact references and
+GenNeuroGF.pth), unpacked once into the work folder.
 
 ``run`` (default: --time-limit 540 s from its start, so that it ends inside a 600 s call):
 1. collection: 540 shapes (``shapes.write_collection``, seed 0, 6 families x 90), split by family instance:
@@ -44,31 +34,11 @@ the heat method and a per-mesh NeuroGF trained for --per-mesh-seconds (60) on ea
 name only). Writes eval_per_mesh.json, table_per_mesh.txt, per_mesh.log. ``merge`` joins the two JSONs by shape
 into one table (and checks that the heat-method MRE of a shape is identical in both: the same pairs).
 
-Estimated times on one H100 (measured there 2026-11-24 with the predecessor code plus the nearest-point fix as a
-patch, since this branch's files cannot travel to the device from a helper's worktree; and on this 2-core CPU):
-- start-up and imports ~10 s; collection ~5-10 s (16 workers; 120 shapes took 2.7 s with 2 workers on this CPU);
-- solver kernels, cold cache: ~9 s; ground truth: 0.30 s per shape in one process (20 shapes 5.7 s, 220 shapes
-  66.8 s; 4 processes on the one GPU were no faster), so ~155 s for 486 training + 32 validation shapes;
-- training: the rest, ~270 s. A step of 16 shapes x 8,192 pairs: 54 ms on the GPU alone (210 ms before the
-  nearest-point fix, with a quarter of the pairs), 70 ms in the predecessor's loop (a host sync every step and the
-  batch built in between; this loop overlaps them), 86 ms with rotations: so ~3,500-5,000 steps;
-- evaluation: ~30-45 s (30 unseen + 3 shared meshes; first conditioning ~3.3 s, then ~20 ms a shape);
-- total ~500-540 s (--time-limit 540 holds it: the ground truth stops at a deadline, training gets the rest less
-  --eval-reserve, the evaluation is killed 25 s after the limit and keeps the rows it finished);
-- ``per-mesh`` call: ~7-8 min (6 x 60 s of per-mesh training, the first maybe ~80 s with torch.compile's first
-  compilation, plus ground truth and heat for 6 shapes; --time-limit 560 keeps finished rows if it runs over).
-Quality to expect (same H100 runs, 198 training shapes, 100 s of training, 22 unseen shapes, step-based cosine cut
-short by the budget): validation MRE 8.4% -> 5.1% -> 4.8% -> 3.7% -> final 4.2% without rotations (1,428 steps);
-6.1% -> 4.5% -> 5.1% -> 4.9% -> final 3.7% with rotations (1,157 steps). Released network on the same kind of
-shapes: 3.7-8.1% (CPU dry run below); heat method 1.1-2.6%.
-
-CPU dry run (this 2-core machine, 2026-11-24; ~5 min): ``run --device cpu --shapes 24 --test-every 4
---gen-workers 2 --sources 32 --targets 128 --shapes-per-step 2 --step-sources 8 --step-targets 16 --val-every 50
---val-shapes 4 --log-every 50 --time-limit 420 --min-train-seconds 60 --eval-reserve 150 --eval-shapes 3``:
-collection 1.3 s, ground truth 2.4 s per shape at 32 sources (one core: ~11-17 s per shape at 256), 113 steps in
-207 s (1.8 s per step), validation 10.9% -> 7.6% -> 7.1%, evaluation 41 s; then ``per-mesh --device cpu --shapes
-24 --test-every 4 --eval-shapes 1 --per-mesh-seconds 10`` in 54 s (same released/heat MRE on the shared shape as
-the run: the same pairs), and ``merge``.
+Times on one H100 (2026-11-24): ``run`` 479 s in all (collection 5 s, ground truth 149 s at 0.29 s a shape,
+5,248 training steps in 296 s, evaluation 19 s); ``per-mesh`` 7-8 minutes. On a 2-core CPU a reduced run (``run
+--device cpu --shapes 24 --test-every 4 --gen-workers 2 --sources 32 --targets 128 --shapes-per-step 2
+--step-sources 8 --step-targets 16 --val-every 50 --val-shapes 4 --time-limit 420 --min-train-seconds 60
+--eval-reserve 150 --eval-shapes 3``) takes about 5 minutes.
 """
 from __future__ import annotations
 
@@ -80,23 +50,10 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+import _bootstrap  # noqa: F401  (this checkout's neurogf_warp, installed or not)
+from common import ROOT, provenance
+
 T0 = time.perf_counter()
-
-
-def _ensure_importable():
-    """Run from a plain checkout (PYTHONPATH=the checkout, as on the GPU machine): the package's kernels live in
-    ``kernels/`` at the top and are mapped to ``neurogf_warp.kernels`` only by an install; link them if needed."""
-    sys.path.insert(0, str(ROOT))
-    os.environ["PYTHONPATH"] = str(ROOT) + (os.pathsep + os.environ["PYTHONPATH"] if os.environ.get("PYTHONPATH")
-                                            else "")
-    try:
-        import neurogf_warp.kernels  # noqa: F401
-    except ImportError:
-        link = ROOT / "neurogf_warp" / "kernels"
-        if not link.exists() and (ROOT / "kernels").is_dir():
-            link.symlink_to(Path("..") / "kernels")
-            print(f"linked {link} -> ../kernels (not installed: running from the checkout)", flush=True)
 
 
 class Log:
@@ -131,7 +88,7 @@ def unpack_shared(arg, work: Path):
 
 def find_shared(arg=None) -> Path | None:
     env = arg or os.environ.get("NEUROGF_SHARED")
-    for base in ([Path(env)] if env else []) + [ROOT.parent / "shared", ROOT / "shared", ROOT / ".bench"]:
+    for base in ([Path(env)] if env else []) + [ROOT.parent / "shared", ROOT / "shared"]:
         if (base / "meshes").is_dir():
             return base.resolve()
     return None
@@ -225,7 +182,8 @@ def cmd_run(a) -> int:
     a.work.mkdir(parents=True, exist_ok=True)
     log = Log(a.out / "run.log")
     deadline = T0 + a.time_limit
-    summary = {"args": {k: str(v) for k, v in vars(a).items()}, "phases": {}}
+    summary = {"benchmark": "generalizable_collection", "provenance": provenance(a.device),
+               "args": {k: str(v) for k, v in vars(a).items()}, "phases": {}}
 
     def save():
         tmp = a.out / "summary.json.tmp"
@@ -394,8 +352,7 @@ def cmd_merge(a) -> int:
 
 def cmd_pack_shared(a) -> int:
     """Copy what these calls read from the shared data (all 9 meshes: 3 to evaluate, 6 as 'deformed' sources;
-    the 3 exact references; GenNeuroGF.pth), 12.0 MiB, so that it fits beside Warp's parts in one call's carry;
-    a destination ending in ``.tar.xz`` gets an archive of them instead (5.0 MiB), which --shared and
+    the 3 exact references; GenNeuroGF.pth), 12.0 MiB, to take to another machine; a destination ending in ``.tar.xz`` gets an archive of them instead (5.0 MiB), which --shared and
     $NEUROGF_SHARED accept as they are."""
     import shutil
     import tarfile
@@ -439,7 +396,7 @@ def main(argv=None) -> int:
         p.add_argument("--work", type=Path, default=Path("/tmp/gencoll"), help="scratch: collection, ground truth")
         p.add_argument("--shared", default=None, help="shared data folder (meshes/, reference/, checkpoints/) or a "
                                                       "pack-shared .tar.xz; default $NEUROGF_SHARED, ../shared, "
-                                                      "shared, .bench")
+                                                      "./shared")
         p.add_argument("--device", default="cuda:0")
         p.add_argument("--shapes", type=int, default=540)
         p.add_argument("--seed", type=int, default=0)
@@ -483,7 +440,6 @@ def main(argv=None) -> int:
     a.out, a.work = a.out.resolve(), a.work.resolve()
     a.work.mkdir(parents=True, exist_ok=True)
     a.shared = unpack_shared(a.shared, a.work)
-    _ensure_importable()
     return cmd_run(a) if a.cmd == "run" else cmd_per_mesh(a)
 
 

@@ -34,14 +34,15 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+import _bootstrap  # noqa: F401  (this checkout's neurogf_warp, installed or not)
+from common import ROOT, write_json
+
 SHARED_EVAL = ("stanford-bunny.obj", "fandisk.obj", "spot.obj")
 
 
 def find_shared():
     env = os.environ.get("NEUROGF_SHARED")
-    for base in ([Path(env)] if env else []) + [ROOT.parent / "shared", ROOT / "shared", ROOT / ".bench"]:
+    for base in ([Path(env)] if env else []) + [ROOT.parent / "shared", ROOT / "shared"]:
         if (base / "meshes").is_dir():
             return base
     return None
@@ -97,7 +98,7 @@ def main(argv=None):
     ap.add_argument("--max-shapes", type=int, default=30)
     ap.add_argument("--no-heat", action="store_true")
     ap.add_argument("--per-mesh-seconds", type=float, default=None,
-                    help="also train a per-mesh model for each shape with this budget (the issue: 60)")
+                    help="also train a per-mesh model for each shape with this budget (e.g. 60)")
     ap.add_argument("--per-mesh-shapes", type=int, default=None,
                     help="per-mesh models only for the first K collection shapes (and every shared mesh)")
     ap.add_argument("--no-shared", action="store_true", help="skip the shared meshes")
@@ -202,8 +203,8 @@ def main(argv=None):
     if a.table:
         Path(a.table).write_text(text + "\n")
     if a.json:
-        Path(a.json).write_text(json.dumps({"rows": rows, "summary": summary, "device": str(dev),
-                                            "args": vars(a)}, indent=1))
+        write_json(a.json, {"rows": rows, "summary": summary, "device": str(dev), "args": vars(a)},
+                   "generalizable_eval", str(dev))
     return 0
 
 

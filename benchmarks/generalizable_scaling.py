@@ -8,7 +8,7 @@ For each world size W (fresh ground-truth cache per W):
 2. training: ``--steps N --val-every 0`` on that cache; shapes/s = steps x shapes_per_step x W / training time
    (from the written checkpoint; ground truth, start-up and saving excluded). The per-rank batch is fixed, so
    W ranks process W times the shapes per step (data-parallel, weak scaling), as DDP is used.
-Prints the table and the W-vs-1 speed-ups (the issue's goal: >= 1.8x on 2 GPUs). If the collection folder does
+Prints the table and the W-vs-1 speed-ups (ideal: W x). If the collection folder does
 not exist, ``--shapes`` shapes are generated first (``generalizable.shapes``).
 """
 from __future__ import annotations
@@ -22,7 +22,8 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+import _bootstrap  # noqa: F401  (this checkout's neurogf_warp, installed or not)
+from common import ROOT, write_json
 
 
 def main(argv=None):
@@ -41,7 +42,6 @@ def main(argv=None):
     a = ap.parse_args(argv)
     coll = Path(a.collection)
     if not coll.exists():
-        sys.path.insert(0, str(ROOT))
         from neurogf_warp.generalizable.shapes import write_collection
 
         write_collection(coll, n=a.shapes)
@@ -55,9 +55,10 @@ def main(argv=None):
         if cache.exists():
             for p in cache.iterdir():
                 p.unlink()
+        # each rank runs the training module through _bootstrap: this checkout's package, installed or not
         run = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", str(w), "--master_port",
-               str(29700 + w), "-m", "neurogf_warp.generalizable.train", str(coll), "-o", str(work / f"m_w{w}.pt"),
-               "--cache", str(cache)] + common
+               str(29700 + w), str(ROOT / "benchmarks" / "_bootstrap.py"), "neurogf_warp.generalizable.train",
+               str(coll), "-o", str(work / f"m_w{w}.pt"), "--cache", str(cache)] + common
         t0 = time.perf_counter()
         r = subprocess.run(run + ["--gt-only"], check=False, env=env, capture_output=True, text=True)
         wall_gt = time.perf_counter() - t0
@@ -100,7 +101,7 @@ def main(argv=None):
         print(f"{r['world']:>6}{r['gt_shapes_per_s']:>14.2f}{r['gt_speedup']:>9.2f}x"
               f"{r['train_shapes_per_s']:>16.1f}{r['train_speedup']:>9.2f}x")
     if a.json:
-        Path(a.json).write_text(json.dumps({"results": results, "args": vars(a)}, indent=1))
+        write_json(a.json, {"results": results, "args": vars(a)}, "generalizable_scaling", a.device)
     return 0
 
 

@@ -1,8 +1,8 @@
 """Ground-truth geodesic benchmark: sources/second as the mesh grows, and accuracy against exact MMP per mesh class.
 
-GPU (lead's machine, under 8 minutes on an H200):
+GPU (under 8 minutes on an H200):
     python benchmarks/geodesics.py --device cuda:0 --shared PATH --json out.json
-CPU smoke run (here):
+CPU smoke run (a few minutes on 2 cores):
     python benchmarks/geodesics.py --device cpu --small --json out.json
 
 Accuracy runs first (it is quick), then the scaling stages from the smallest mesh up.
@@ -12,8 +12,7 @@ Accuracy runs first (it is quick), then the scaling stages from the smallest mes
    sources (distances to every vertex, copied to the host): sources/s, iterations, nodes, batch rows. The cost
    exponent is fitted (log-log) from 139K to 2.2M. On the 436K mesh also the public call
    `ngf.geodesic_distances(mesh, 256 sources)` end to end (solver set-up included: the figure a user gets).
-   Also the regular bumpy torus of 660 x 660 = 435,600 vertices that README / RESULTS.md's "1,024 sources in
-   60 s" was measured on (the issue's 11.1 sources/s came from the QSlim bunny through the public call).
+   Also a regular bumpy torus of 660 x 660 = 435,600 vertices (well-shaped triangles, no slivers).
    Rows: the 556K mesh with the solver's memory budget at 12.5% and 50% of the free memory (the default is 25%):
    whether a batch of more source rows costs more per source tells if the iterations are latency-bound.
 2. Accuracy: every mesh class of `tests/geodesic_meshes.mesh_classes` (stretched, needles, slivers, duplicated
@@ -32,9 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import common  # noqa: E402
+import _bootstrap  # noqa: F401  (this checkout's neurogf_warp, installed or not)
+import common
 
 
 def bunny(subdivisions: int):
@@ -179,7 +177,7 @@ def main(argv=None) -> int:
 
     def stage(key, fn, *args):
         if time.perf_counter() - t_start > a.time_limit:
-            out.setdefault("skipped", []).append(key)  # keeps the whole run inside the lead's time slot
+            out.setdefault("skipped", []).append(key)  # keeps the whole run inside a fixed time slot
             print(f"skipped {key}: past --time-limit {a.time_limit:.0f} s", flush=True)
             return
         try:
@@ -221,9 +219,9 @@ def main(argv=None) -> int:
             if "public" not in skip:
                 stage("public", public_call, V436, F436, dev, a.public_sources, out)
             del V436, F436
-            # the mesh of README / RESULTS.md's "1,024 sources in 60 s" (a regular torus, no slivers), for comparison
+            # a regular torus of the same size without slivers: how much the bunny's triangle shapes cost
             n = int(round(np.sqrt(a.bench_vertices)))
-            stage("scaling-torus", lambda: rate(f"bumpy torus {n}x{n} (RESULTS.md)", *common.bumpy_torus(n), dev,
+            stage("scaling-torus", lambda: rate(f"bumpy torus {n}x{n}", *common.bumpy_torus(n), dev,
                                                 a.max_sources, out))
         if not a.small and "rows" not in skip:
             # does a batch of more rows cost more per source? (latency-bound iterations: no; throughput-bound: yes)
@@ -242,9 +240,8 @@ def main(argv=None) -> int:
     out["total_s"] = time.perf_counter() - t_start
     if out["errors"]:
         print("errors:", json.dumps(out["errors"], indent=1))
-    path = a.json or str(common.ROOT / "benchmarks" / f"geodesics_{'small' if a.small else 'full'}_"
-                                                      f"{dev.alias.replace(':', '')}.json")
-    Path(path).write_text(json.dumps(out, indent=1, default=float))
+    path = common.write_json(a.json or f"geodesics_{'small' if a.small else 'full'}_{dev.alias.replace(':', '')}.json",
+                             out, "geodesics", a.device)
     print(f"wrote {path}")
     return 1 if out["errors"] else 0
 

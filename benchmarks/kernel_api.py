@@ -1,6 +1,6 @@
 """Cost per call of the in-kernel API (``neurogf_warp.kernels.field``) and its gradient errors, one command.
 
-    python benchmarks/kernel_api.py --device cpu --points 2048        # this machine
+    python benchmarks/kernel_api.py --device cpu --points 2048        # a CPU
     python benchmarks/kernel_api.py --device cuda:0 --points 1048576  # a GPU
 
 Each function runs in a kernel of one thread per point (points near the released bunny's surface, normalized
@@ -13,21 +13,19 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import platform
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import warp as wp  # noqa: E402
-from common import find_shared  # noqa: E402
+import _bootstrap  # noqa: F401  (this checkout's neurogf_warp, installed or not)
+import warp as wp
+from common import find_shared, write_json
 
-from neurogf_warp.kernels import field  # noqa: E402
+from neurogf_warp.kernels import field
 
 N_SOURCES = 5
 
@@ -209,7 +207,7 @@ def main(argv=None):
     res = {"date": datetime.date.today().isoformat(), "device": str(wp.get_device(dev)), "host": platform.node(),
            "points": n, "D": model.D, "module_load_s": compile_s, "calls": rows, "gradient_errors": errs}
     if a.json:
-        Path(a.json).write_text(json.dumps(res, indent=1))
+        write_json(a.json, res, "kernel_api", a.device)
     return res
 
 

@@ -8,7 +8,7 @@ For random vertex pairs (``--sources`` sources x targets, seed 0) our geodesic s
 ``neurogf_warp.geodesic_paths``) are the reference. Variants, 128 points each: ``project=None`` (the path head's
 own points), the default (``project="auto"``: snapped to the mesh), ``refine=R`` (shortened on the mesh, the best
 of five candidates by ``surface_fit``), and on ``--sdf-pairs`` of the pairs ``refine=R`` on a copy of the model
-without its mesh (shortened on the SDF head's surface: the method the README's GPU figure times; slow on a CPU).
+without its mesh (shortened on the SDF head's surface: the method ``queries.py``'s refine row times on a GPU; slow on a CPU).
 Chamfer-L1 as ``evaluate`` computes it (normalized unit-sphere frame); "worse" counts pairs whose refined path has
 a Chamfer distance more than 10% above the same pair's head path; "off mesh" is the mean distance of the points
 from the mesh (normalized units); "len/solver" the median of the length along the surface (``surface_fit``) over
@@ -18,16 +18,14 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import platform
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import find_shared  # noqa: E402
+import _bootstrap  # noqa: F401  (this checkout's neurogf_warp, installed or not)
+from common import find_shared, write_json
 
 
 def lengths(x):
@@ -117,7 +115,7 @@ def main(argv=None):
                   f"{np.median(ls):10.4f} {off:9.2e} {t:8.2f} {1e3 * t / len(sel):8.1f}")
         res["models"][name] = {"vertices": len(mesh.vertices), "variants": rows}
     if a.json:
-        Path(a.json).write_text(json.dumps(res, indent=1))
+        write_json(a.json, res, "path_snap", a.device)
     return res
 
 

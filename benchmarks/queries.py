@@ -1,7 +1,7 @@
 """Every NeuroGF query, Warp against every PyTorch variant, on the same inputs in one run.
 
-    python benchmarks/queries.py --device cuda:0                  # the GPU machine: full sizes
-    python benchmarks/queries.py --device cpu --quick             # small sizes (CI smoke test, this CPU)
+    python benchmarks/queries.py --device cuda:0                  # a GPU: full sizes
+    python benchmarks/queries.py --device cpu --quick             # small sizes: a smoke test on a CPU
 
 For each query (SSAD on a bound model, SSAD cold from a point, MSAD with 8 sources, a 64-source distance
 matrix, point-pair distances, SDF, paths) it times the library's call (``neurogf_warp.ssad`` etc., device
@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import os
 import platform
 import statistics
@@ -26,13 +25,13 @@ import subprocess
 import sys
 import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-SHARED_CANDIDATES = [Path(os.environ.get("NEUROGF_SHARED", ROOT.parent / "shared")), ROOT / "shared", ROOT / ".bench"]
+import _bootstrap  # noqa: F401  (this checkout's neurogf_warp, installed or not)
+from common import ROOT, find_shared as shared, subdivided_bunny as benchmark_mesh, write_json
+from released import released_mre as _released_rows
 
 # multiply-accumulates of the D=256, 2-octave network (the released layout plus Fourier inputs: F = 15)
 def macs(D=256, F=15):
@@ -41,32 +40,6 @@ def macs(D=256, F=15):
     point = 3 * D // 2 + D // 2 * D // 4 + D // 4 * D // 8 + D // 8 * 3
     per_path = 2 * lift + 2 * D * D + D * D // 2
     return {"lift": lift, "head": head, "point": point, "per_path": per_path}
-
-
-def shared(*parts) -> Path:
-    for base in SHARED_CANDIDATES:
-        p = base.joinpath(*parts)
-        if p.exists():
-            return p
-    raise FileNotFoundError(f"{Path(*parts)} not found under {', '.join(map(str, SHARED_CANDIDATES))}")
-
-
-def benchmark_mesh(target: int):
-    """A conforming ~target-vertex bunny: midpoint-subdivide the shared bunny, then QSlim back down."""
-    import fast_simplification
-    import trimesh
-
-    tm = trimesh.load(shared("meshes", "stanford-bunny.obj"), process=False, force="mesh")
-    v, f = np.asarray(tm.vertices), np.asarray(tm.faces)
-    used = np.unique(f)
-    remap = np.full(len(v), -1)
-    remap[used] = np.arange(len(used))
-    v, f = v[used], remap[f]
-    while len(v) < target:
-        v, f = trimesh.remesh.subdivide(v, f)
-    if len(v) > 1.02 * target:
-        v, f = fast_simplification.simplify(v.astype(np.float32), f.astype(np.int32), 1.0 - target / len(v))
-    return np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64)
 
 
 # ---- timing ---------------------------------------------------------------------------------------------------------
@@ -253,7 +226,7 @@ def device_bytes_in_use(dev) -> dict:
 
 def bind_memory(ngf, model, src, device) -> dict:
     """Memory before ``bind``, after it and one bound SSAD (tables and recorded launches made), and after
-    ``unbind`` (issue 20: unbind returns the bound memory); on the CPU only the bytes kept."""
+    ``unbind`` (unbind returns the bound memory); on the CPU only the bytes kept."""
     import gc
 
     import warp as wp
@@ -307,14 +280,9 @@ def run(a) -> dict:
     for kv in a.size:
         k, v = kv.split("=")
         sizes[k] = int(v)
-    res = {"benchmark": "queries", "date": datetime.date.today().isoformat(), "device": device,
+    res = {"date": datetime.date.today().isoformat(), "device": device,
            "device_name": torch.cuda.get_device_name(tdev) if cuda else platform.processor() or platform.machine(),
            "warp": wp.config.version, "torch": torch.__version__, "sizes": sizes, "rows": [], "compile_s": {}}
-    try:  # NEUROGF_COMMIT: the commit of a copied tree (the GPU machine gets the files, not the history)
-        res["commit"] = os.environ.get("NEUROGF_COMMIT") or subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-    except OSError:
-        res["commit"] = "unknown"
     res["ceilings"] = ceil = ceilings(device)
     print(f"device {res['device_name']}: fp16 GEMM {ceil['fp16_flops'] / 1e12:.0f} TFLOP/s, "
           f"copy {ceil['bandwidth'] / 1e12:.2f} TB/s", flush=True)
@@ -341,7 +309,8 @@ def run(a) -> dict:
     t = time.perf_counter()
     ngf.warmup(model, device)
     res["compile_s"]["warp cold (every query's kernels)"] = time.perf_counter() - t
-    code = ("import time,warp as wp,neurogf_warp as ngf;wp.config.log_level=wp.LOG_WARNING;wp.init();"
+    code = (f"import sys;sys.path.insert(0,{str(ROOT / 'benchmarks')!r});import _bootstrap;"
+            "import time,warp as wp,neurogf_warp as ngf;wp.config.log_level=wp.LOG_WARNING;wp.init();"
             f"m=ngf.load({str(ckpt)!r});t=time.perf_counter();ngf.warmup(m,{device!r});"
             "print(time.perf_counter()-t)")
     if a.network == "released":
@@ -593,7 +562,7 @@ def run(a) -> dict:
         with torch.no_grad():
             ref_path = path_build(net64, torch.float64)(Pn, Qn).cpu().numpy()
         # the path head's own points (project=None), what the PyTorch variants compute (the default also snaps
-        # every point onto the mesh: RESULTS.md, issue 21 section)
+        # every point onto the mesh)
         v7 = {"warp path": lambda: ngf.path(model, Pt, Qt, m=m, device=device, project=None),
               "warp path, check=False": lambda: ngf.path(model, Pt, Qt, m=m, device=device, check=False,
                                                         project=None)}
@@ -601,7 +570,7 @@ def run(a) -> dict:
         add(f"path {N} pairs x {m} points", v7, ref_path, 2 * (M["per_path"] + m * M["point"]) * N, (24 + 12 * m) * N)
 
 
-    # path refinement (no PyTorch form exists): time at the issue's size, agreement with the fp32 method
+    # path refinement (no PyTorch form exists): time at --size refine_pairs, agreement with the fp32 method
     if "refine" in want:
         N, m, sweeps = sizes["refine_pairs"], sizes["m"], sizes["refine"]
         vi = rng.integers(0, n, (N, 2))
@@ -657,29 +626,13 @@ def run(a) -> dict:
 
 def released_mre(device: str, cuda: bool) -> dict:
     """MRE of the released checkpoints against the exact references, per precision (fp16 on CUDA only)."""
-    import neurogf_warp as ngf
-    from neurogf_warp.evaluation.evaluate import load_reference
-
-    out = {}
-    for name, ck, mesh_file, ref_file in (("bunny", "bunny", "stanford-bunny.obj", "stanford-bunny.npz"),
-                                          ("fandisk", "fandisk", "fandisk.obj", "fandisk.npz")):
-        model = ngf.load(shared("checkpoints", "official", f"NeuroGF_Pretrainer__{ck}_final.pth"),
-                         mesh=shared("meshes", mesh_file))
-        vids, sids, gt = load_reference(shared("reference", "exact", ref_file), model.mesh)
-        for prec in (("fp16", "fp32") if cuda else ("fp32",)):
-            rel = []
-            for i, s in enumerate(sids):
-                d = ngf.ssad(model, int(model.mesh.index[s]), device=device, precision=prec)
-                pred = d[model.mesh.index[vids]]  # mesh units, as load_reference gives the exact distances
-                ok = np.isfinite(gt[i]) & (gt[i] > 0)
-                rel.append(np.abs(pred[ok] - gt[i][ok]) / gt[i][ok])
-            out[f"{name} {prec}"] = float(np.concatenate(rel).mean())
-            print(f"  released {name}, {prec}: MRE {out[f'{name} {prec}']:.4%}", flush=True)
-    return out
+    precs = ("fp16", "fp32") if cuda else ("fp32",)
+    rows = _released_rows(device, {"bunny": precs, "fandisk": precs})
+    return {f"{r['mesh']} {r['precision']}": r["mre"] for r in rows}
 
 
 def table(res: dict) -> str:
-    lines = [f"{res['device_name']} ({res['device']}), {res['date']}, commit {res.get('commit')}, Warp {res['warp']}, "
+    lines = [f"{res['device_name']} ({res['device']}), {res['date']}, Warp {res['warp']}, "
              f"torch {res['torch']}; ceilings: fp16 {res['ceilings']['fp16_flops'] / 1e12:.0f} TFLOP/s, "
              f"copy {res['ceilings']['bandwidth'] / 1e12:.2f} TB/s",
              f"{'query':34s} {'variant':52s} {'ms/call':>9s} {'device ms':>9s} {'vs best torch':>13s} {'floor ms':>9s} "
@@ -727,12 +680,11 @@ def main(argv=None) -> int:
                          "heat")
     ap.add_argument("--tune", action="store_true", help="also time the Warp queries under other tile settings")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--json", default=None, help="output JSON (default: $OUT/queries.json or benchmarks/queries.json)")
+    ap.add_argument("--json", default=None, help="output JSON (default: $OUT/queries.json, else ./queries.json)")
     a = ap.parse_args(argv)
     res = run(a)
     text = table(res)
-    out = Path(a.json or os.path.join(os.environ.get("OUT", str(ROOT / "benchmarks")), "queries.json"))
-    out.write_text(json.dumps(res, indent=1))
+    out = write_json(a.json or os.path.join(os.environ.get("OUT", "."), "queries.json"), res, "queries", a.device)
     print("\n" + text + f"\nJSON: {out}")
     bad = [r for r in res["rows"] if "rel_err" in r and r["variant"].startswith("warp") and not r["rel_err"] <= 1e-3]
     return 1 if bad else 0

@@ -1,7 +1,7 @@
 """Time to accuracy: train meshes at several budgets, each call timed whole, and score every model.
 
-One command; the package is imported from this checkout (nothing to install), and the meshes and exact references
-come from ``--shared`` (a folder with ``meshes/`` and ``reference/exact/``, as in ../shared):
+The package is imported from this checkout (installed or not); the meshes and exact references come from
+``--shared`` (a folder with ``meshes/`` and ``reference/exact/``; default ../shared):
 
     python benchmarks/time_to_accuracy.py --device cuda:0 --shared /path/to/shared          # 20, 60, 120, 300 s
     python benchmarks/time_to_accuracy.py --device cpu --meshes spot fandisk                 # 60, 180 s
@@ -16,7 +16,6 @@ timings say where the call went (dataset, set-up, steps). Writes ``<out>/time_to
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import os
 import platform
@@ -25,24 +24,8 @@ import time
 import warnings
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _import_from_checkout():
-    """Import ``neurogf_warp`` from this checkout; map ``kernels/`` to ``neurogf_warp.kernels`` as the installed
-    package does (pyproject's package-dir), when no install provides it."""
-    sys.path.insert(0, str(ROOT))
-    import neurogf_warp
-
-    if importlib.util.find_spec("neurogf_warp.kernels") is None:
-        spec = importlib.util.spec_from_file_location("neurogf_warp.kernels", ROOT / "kernels" / "__init__.py",
-                                                      submodule_search_locations=[str(ROOT / "kernels")])
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules["neurogf_warp.kernels"] = mod
-        spec.loader.exec_module(mod)
-        neurogf_warp.kernels = mod
-    return neurogf_warp
-
+import _bootstrap  # noqa: F401  (this checkout's neurogf_warp, installed or not)
+from common import ROOT, write_json
 
 MESHES = {"spot": "spot.obj", "cow": "cow.obj", "alligator": "alligator.obj", "homer": "homer.obj",
           "fandisk": "fandisk.obj", "cheburashka": "cheburashka.obj", "rocker-arm": "rocker-arm.obj",
@@ -162,13 +145,15 @@ def main(argv=None) -> int:
     p.add_argument("--path-refine", type=int, default=50, help="shortening sweeps for the refined Chamfer (0: none)")
     p.add_argument("--no-heat", dest="heat", action="store_false", help="skip the heat method")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a training setting, repeatable")
-    p.add_argument("--out", default=os.environ.get("OUT", str(ROOT / "benchmarks" / "results")))
+    p.add_argument("--out", default=os.environ.get("OUT", "time_to_accuracy_out"),
+                   help="folder for time_to_accuracy.json and .png (default: $OUT, else ./time_to_accuracy_out)")
     p.add_argument("--work", default="/tmp/neurogf-time-to-accuracy", help="model files and run folders")
     p.add_argument("-q", "--quiet", action="store_true")
     a = p.parse_args(argv)
 
-    ngf = _import_from_checkout()
     import torch
+
+    import neurogf_warp as ngf
 
     from neurogf_warp.training.config import parse_assignments
 
@@ -195,11 +180,11 @@ def main(argv=None) -> int:
             print(_table(rows[-1:]), flush=True)
     text = _table(rows)
     print("\n" + text)
-    meta = {"device": a.device, "gpu": torch.cuda.get_device_name(0) if gpu else None, "host": platform.node(),
+    meta = {"device": a.device, "gpu": torch.cuda.get_device_name(a.device) if gpu else None, "host": platform.node(),
             "cpu_cores": os.cpu_count(), "date_utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()),
             "torch": torch.__version__, "argv": sys.argv[1:], "settings": a.settings,
             "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
-    (out / "time_to_accuracy.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    write_json(out / "time_to_accuracy.json", {"meta": meta, "rows": rows}, "time_to_accuracy", a.device)
     plotted = _plot(rows, out / "time_to_accuracy.png")
     print(f"wrote {out / 'time_to_accuracy.json'}" + (f" and {out / 'time_to_accuracy.png'}" if plotted else ""))
     return 0
