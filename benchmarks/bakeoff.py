@@ -38,6 +38,8 @@ import traceback
 import warnings
 from pathlib import Path
 
+import _bootstrap  # noqa: E402,F401  (this checkout's neurogf_warp, installed or not)
+
 ROOT = Path(__file__).resolve().parents[1]
 
 VARIANTS = {
@@ -52,19 +54,13 @@ MESHES = {"spot": "spot.obj", "cow": "cow.obj", "alligator": "alligator.obj", "h
           "bunny": "stanford-bunny.obj", "igea": "igea.ply"}
 
 
-def _import_from_checkout():
-    """``neurogf_warp`` from this checkout, ``kernels/`` mapped to ``neurogf_warp.kernels`` when no install has it."""
-    sys.path.insert(0, str(ROOT))
-    import neurogf_warp
-
-    if importlib.util.find_spec("neurogf_warp.kernels") is None:
-        spec = importlib.util.spec_from_file_location("neurogf_warp.kernels", ROOT / "kernels" / "__init__.py",
-                                                      submodule_search_locations=[str(ROOT / "kernels")])
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules["neurogf_warp.kernels"] = mod
-        spec.loader.exec_module(mod)
-        neurogf_warp.kernels = mod
-    return neurogf_warp
+def _run_doc(meta: dict, rows: list) -> dict:
+    """One process's rows with the provenance block that benchmarks/make_performance.py reads."""
+    prov = {"command": "python benchmarks/bakeoff.py " + " ".join(meta["argv"]), "device": meta["device"],
+            "device_name": meta["gpu"], "driver": None, "warp": meta["warp"], "torch": meta["torch"],
+            "python": meta["python"], "date_utc": meta["date_utc"], "commit": meta["commit"], "dirty": False,
+            "cpu_cores": meta["cpu_cores"]}
+    return {"provenance": prov, "meta": meta, "rows": rows}
 
 
 def _reference(shared: Path, name: str) -> Path:
@@ -249,18 +245,19 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     if a.merge:
         parts = [json.loads(Path(f).read_text()) for f in a.merge]
-        rows = [r for d in parts for r in d["rows"]]
+        runs = [run for d in parts for run in (d["runs"] if "runs" in d else [_run_doc(d["meta"], d["rows"])])]
+        rows = [r for run in runs for r in run["rows"]]
         out = Path(a.out)
         out.mkdir(parents=True, exist_ok=True)
         decision = decide(rows)
-        (out / "bakeoff.json").write_text(json.dumps({"meta": [d["meta"] for d in parts], "rows": rows,
-                                                       "decision": decision}, indent=1))
+        (out / "bakeoff.json").write_text(json.dumps({"benchmark": "bakeoff", "runs": runs, "decision": decision},
+                                                     indent=1))
         plot(rows, out / "bakeoff.png")
         print(table(rows))
         print(json.dumps(decision, indent=1))
         return 0
 
-    ngf = _import_from_checkout()
+    import neurogf_warp as ngf
     import torch
     import warp
 
@@ -293,10 +290,12 @@ def main(argv=None) -> int:
                 r = run_row(ngf, shared, name, budget, v, a, work, k)
                 rows.append(r)
                 print(table([r]).splitlines()[-1], flush=True)
-                (out / "bakeoff.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+                (out / "bakeoff.json").write_text(json.dumps({"benchmark": "bakeoff", "runs": [_run_doc(meta, rows)]},
+                                                             indent=1))
     decision = decide(rows)
     meta["end_utc"] = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime())
-    (out / "bakeoff.json").write_text(json.dumps({"meta": meta, "rows": rows, "decision": decision}, indent=1))
+    (out / "bakeoff.json").write_text(json.dumps({"benchmark": "bakeoff", "runs": [_run_doc(meta, rows)],
+                                                 "decision": decision}, indent=1))
     plot(rows, out / "bakeoff.png")
     print("\n" + table(rows))
     print(json.dumps(decision, indent=1))

@@ -9,21 +9,9 @@ and the shared 35K bunny, where the heat method does the same (one heat solve pe
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
-import os
-import platform
-import subprocess
-import sys
 import time
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
-try:
-    import _bootstrap  # noqa: E402,F401  (this checkout's neurogf_warp, installed or not)
-except ImportError:
-    sys.path.insert(0, str(ROOT))
+import _bootstrap  # noqa: F401  (this checkout's neurogf_warp, installed or not)
 
 import numpy as np  # noqa: E402
 
@@ -65,12 +53,11 @@ def main(argv=None):
     if a.quick:
         a.vertices, a.samples, a.heat_samples, a.resolution = 6_000, 16, 16, 32
 
-    import torch
     import warp as wp
 
     import neurogf_warp as ngf
     from neurogf_warp.inference.reconstruct import surface_distances
-    from queries import benchmark_mesh, shared
+    from common import find_shared as shared, subdivided_bunny as benchmark_mesh, write_json
 
     dev = a.device
     cuda = dev.startswith("cuda")
@@ -80,12 +67,7 @@ def main(argv=None):
             wp.synchronize_device(dev)
 
     ckpt = shared("checkpoints", "official", "NeuroGF_Pretrainer__bunny_final.pth")
-    res = {"benchmark": "geodesic_tools", "date": datetime.date.today().isoformat(), "device": dev,
-           "device_name": torch.cuda.get_device_name(torch.device(dev)) if cuda else platform.machine(),
-           "warp": wp.config.version, "torch": torch.__version__, "rows": [],
-           "command": "python benchmarks/geodesic_tools.py " + " ".join(argv if argv is not None else sys.argv[1:])}
-    res["commit"] = os.environ.get("NEUROGF_COMMIT") or subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip() or None
+    res = {"rows": []}
 
     def row(mesh, V, what, tool, seconds, **kw):
         r = {"mesh": mesh, "vertices": V, "what": what, "tool": tool, "seconds": seconds, **kw}
@@ -135,7 +117,7 @@ def main(argv=None):
     print(f"reconstruction: Chamfer-L1 {m['chamfer_l1']:.3g}, Hausdorff {m['hausdorff']:.3g} "
           f"(bounding-box diagonal {extent:.3g})")
     if a.json:
-        Path(a.json).write_text(json.dumps(res, indent=1))
+        write_json(a.json, res, "geodesic_tools", dev)
     return res
 
 

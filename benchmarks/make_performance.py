@@ -26,7 +26,8 @@ PAGE = ROOT / "docs" / "performance.md"
 
 FORMATTERS: dict = {}  # benchmark name -> (title, function(runs) -> list of Markdown lines)
 PLOTTERS: dict = {}  # benchmark name -> function(runs, png path): a figure beside the table (matplotlib)
-ORDER = ["queries", "released", "kernel_api", "path_snap", "geodesics", "time_to_accuracy", "generalizable",
+ORDER = ["queries", "released", "kernel_api", "path_snap", "geodesic_tools", "geodesics", "time_to_accuracy",
+         "bakeoff", "generalizable",
          "generalizable_collection", "generalizable_eval", "generalizable_scaling"]
 
 
@@ -234,6 +235,60 @@ def fmt_path_snap(runs):
              "over the solver path's length (median); mean distance of the points from the mesh; time per pair.", ""]
             + table(["model", "vertices", "variant", "pairs", "Chamfer-L1", "length / solver", "off mesh",
                      "ms per pair"], rows))
+
+
+@formatter("geodesic_tools", "Geodesic tools: sampling, Voronoi cells, reconstruction")
+def fmt_geodesic_tools(runs):
+    out = []
+    for run in runs:
+        rows = [(r["mesh"], f"{r['vertices']:,}", r["what"], "neurogf_warp" if r["tool"] == "neurogf" else
+                 "heat method (potpourri3d)", f"{r['seconds'] * 1e3:.1f} ms") for r in run["rows"]]
+        out += ["Whole public calls, each made once before it is timed (compile and binding apart). The heat method "
+                "does the same with one heat solve per sample or seed (its set-up apart).", ""]
+        out += table(["mesh", "vertices", "task", "tool", "time"], rows)
+        rec = [r for r in run["rows"] if "chamfer_l1" in r]
+        for r in rec:
+            out += ["", f"Reconstruction of the released bunny's SDF head at {r['what'].split()[-1]}: "
+                        f"{r['triangles']:,} triangles, Chamfer-L1 {r['chamfer_l1']:.3g} and Hausdorff "
+                        f"{r['hausdorff']:.3g} against the mesh (bounding-box diagonal {r['diagonal']:.3g})."]
+        agree = run.get("voronoi_label_agreement_vs_heat")
+        if agree is not None:
+            out += ["", f"Voronoi labels from the released bunny's field and from the heat method agree on "
+                        f"{agree:.1%} of the vertices (the heat method's own error is larger than the field's)."]
+    return out
+
+
+@formatter("bakeoff", "Field designs: accuracy per second")
+def fmt_bakeoff(runs):
+    rows = []
+    for run in runs:
+        for r in run["rows"]:
+            if "mre" not in r:
+                continue
+            ms = r.get("ms_per_step", {})
+            rows.append((r["mesh"], f"{r['budget_s']:.0f} s", r["variant"] + (" (2nd run)" if r.get("repeat") else ""),
+                         f"{r['call_s']:.1f} s", pct(r["mre"]), pct(r["p99"], 2), pct(r["max"], 1),
+                         f"{r['steps'].get('joint', 0):,}/{r['steps'].get('refine_dist', 0):,}",
+                         f"{ms.get('joint', float('nan')):.2f}/{ms.get('refine_dist', float('nan')):.2f}",
+                         f"{r.get('params', 0):,}"))
+    out = ["Each design trained by `ngf.train(mesh, out, budget_seconds=B)` in one process per row and scored "
+           "against exact geodesics (every exact source to every vertex). Designs: `default` (today's network), "
+           "`no_bn` (no BatchNorm outside the path head), `hash` (a 12-level hash-grid encoding appended to the "
+           "lifting's inputs). A design is kept only if its MRE is below the default's by more than the spread of "
+           "two default runs, on every mesh and budget.", ""]
+    out += table(["mesh", "budget", "design", "call", "MRE", "p99", "max", "joint/refine steps",
+                  "ms per step", "parameters"], rows)
+    from bakeoff import decide  # the benchmark's own rule, applied to the kept rows
+
+    decision = decide([r for run in runs for r in run["rows"]])
+    out += ["", "Decision:", ""]
+    for v, d in decision.items():
+        if v != "spread":
+            out.append(f"- `{v}`: {'kept' if d['keep'] else 'not kept'} ({'; '.join(d['why'])})")
+    out += ["", "A row of 35% is a call that compiled Warp's ground-truth kernels for 26 s and trained no step; it "
+                "says nothing of its design.", "",
+            "![MRE against the call's seconds per mesh and design](performance/bakeoff_h200_2026-11-28.png)"]
+    return out
 
 
 @formatter("geodesics", "Ground truth: the geodesic solver")
