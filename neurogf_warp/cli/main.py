@@ -8,9 +8,13 @@ line's own terms (its flags, not the Python API's arguments); ``-q`` keeps only 
 
 Exit codes: 0 success; 2 bad input (``common.checks.InputError``, and for now the plain ``ValueError`` and
 file errors that the other stages raise for bad input, see ``USER_ERRORS``); 1 a failure (a full disk, a
-device error) or a bug of ours, reported as such with how to report it; 130 interrupted. A closed stdout
-(``neurogf-warp info --json | head``) ends the command quietly. Warp's banner, module-compile lines and the
-CUDA-driver warning of a GPU-less machine are shown only with ``--verbose``.
+device error) or a bug of ours, reported as such with what to report; 130 interrupted. A closed stdout
+(``neurogf-warp info --json | head``) ends the command quietly; a process started without stdout (``>&-``) that has
+results to print fails saying so, and one started without stderr runs with its messages discarded. Warp's banner,
+module-compile lines and the CUDA-driver warning of a GPU-less machine are shown only with ``--verbose``.
+
+The generalizable network's commands (``gen-shapes``, ``gen-train``, ``gen-per-mesh``, see ``cli/gen.py``) are
+listed in the help and share the exit codes and error messages, with their own parsers.
 """
 from __future__ import annotations
 
