@@ -65,6 +65,8 @@ def test_gen_commands_print_their_usage_under_this_program(capsys):
         out = capsys.readouterr().out
         assert e.value.code == 0 and out.startswith(f"usage: neurogf-warp {name} "), out[:80]
         assert "python -m" not in out
+        if name != "gen-shapes":  # the line that runs it on several GPUs
+            assert f"torchrun --nproc_per_node N --no-python neurogf-warp {name} FOLDER" in " ".join(out.split())
 
 
 def test_no_numeric_option_takes_nan_or_inf(monkeypatch):

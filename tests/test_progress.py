@@ -121,7 +121,8 @@ def test_dataset_and_training_progress_into_a_file_are_plain_lines(ellipsoid, ti
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ModelQualityWarning)  # 20 steps make no model to speak of
             cfg = preset("cpu_small", querier_steps=5, epochs=1, iters_per_epoch=20)
-            train(ellipsoid, tmp_path / "m.ngf", config=cfg, dataset=tiny_dataset, device="cpu", progress=True)
+            model = train(ellipsoid, tmp_path / "m.ngf", config=cfg, dataset=tiny_dataset, device="cpu",
+                          progress=True)
     finally:
         torch.set_num_threads(n)
     err = capsys.readouterr().err
@@ -129,3 +130,7 @@ def test_dataset_and_training_progress_into_a_file_are_plain_lines(ellipsoid, ti
     assert "\r" not in err and 1 <= len(lines) <= 10, err
     done, total = lines[-1].split()[1].split("/")
     assert done == total, lines[-1]  # the last line: every step done, of a total that is the steps done
+    steps = model.config["steps"]
+    assert int(done.replace(",", "")) == sum(steps.values())
+    saved = next(ln for ln in err.splitlines() if ln.startswith("saved "))
+    assert f"{steps['joint']:,} joint steps, {sum(steps.values()):,} in all" in saved, saved  # the steps that ran

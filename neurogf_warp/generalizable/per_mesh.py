@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from neurogf_warp.common.shards import balanced_shard, file_sizes
-from neurogf_warp.generalizable.train import MESH_EXTENSIONS, _finite
+from neurogf_warp.generalizable.train import MESH_EXTENSIONS, _finite, torchrun_command
 
 
 def _value(text: str):
@@ -94,7 +94,8 @@ def train_folder(folder, outdir, budget_seconds=None, config=None, device=None, 
 
 def main(argv=None, prog: str = "python -m neurogf_warp.generalizable.per_mesh"):
     ap = argparse.ArgumentParser(prog=prog,
-                                 description="one per-mesh NeuroGF per mesh file, spread over torchrun ranks")
+                                 description="one per-mesh NeuroGF per mesh file, spread over torchrun ranks",
+                                 epilog="on N GPUs of one machine: " + torchrun_command(prog, "FOLDER -o OUTDIR"))
     ap.add_argument("folder", help="folder of mesh files (searched recursively)")
     ap.add_argument("-o", "--outdir", required=True, help="output folder: one model per mesh and summary.json")
     ap.add_argument("--budget-seconds", type=_finite, default=None, help="per mesh (ngf.train's budget)")

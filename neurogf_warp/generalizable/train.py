@@ -467,6 +467,13 @@ def _flag(text: str) -> bool:
     raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
 
 
+def torchrun_command(prog: str, args: str) -> str:
+    """The torchrun line that runs command ``prog`` (``python -m MODULE`` or an installed program) on N ranks."""
+    if prog.startswith("python -m "):
+        return f"torchrun --nproc_per_node N -m {prog[len('python -m '):]} {args}"
+    return f"torchrun --nproc_per_node N --no-python {prog} {args}"
+
+
 def _finite(text: str) -> float:
     try:
         v = float(text)
@@ -503,7 +510,8 @@ OPTION_HELP = {
 def main(argv=None, prog: str = "python -m neurogf_warp.generalizable.train"):
     ap = argparse.ArgumentParser(prog=prog,
                                  description="Train a generalizable NeuroGF network on a folder of meshes "
-                                             "(also under torchrun).")
+                                             "(also under torchrun).",
+                                 epilog="on N GPUs of one machine: " + torchrun_command(prog, "FOLDER -o model.pt"))
     ap.add_argument("folder", help="meshes (train/ and test/ subfolders, or every 10th file held out)")
     ap.add_argument("-o", "--output", required=True, help="model file to write (and resume from)")
     ap.add_argument("--budget-seconds", type=_finite, default=None, help="training time limit")
