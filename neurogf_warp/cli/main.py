@@ -230,7 +230,8 @@ def _add_ssad(sub, common):
     g = s.add_mutually_exclusive_group()
     g.add_argument("--source", type=int, default=None, help="source vertex index, 0-based, the mesh's own numbering "
                    "(default 0)")
-    g.add_argument("--point", type=_finite("--point"), nargs=3, metavar=("X", "Y", "Z"), help="source point in mesh coordinates")
+    g.add_argument("--point", type=_finite("--point"), nargs=3, metavar=("X", "Y", "Z"),
+                   help="source point in mesh coordinates")
     _values_output(s)
     s.set_defaults(run=_cmd_ssad)
 
