@@ -1,6 +1,7 @@
 """The command line a new user meets: results only where asked (stdout without -o), refusing another mesh unless
 told, paths on the surface by default, messages in the command line's terms, exit codes that tell bad input (2)
-from failures and bugs (1), a closed stdout ending quietly, and quiet library calls (issues 20, 21, 22)."""
+from failures and bugs (1), a closed stdout or stderr handled, the generalizable commands' messages, and quiet
+library calls."""
 import errno
 import os
 import subprocess
@@ -82,12 +83,12 @@ def test_path_project_matches_the_api_and_defaults_to_the_mesh(trained, tmp_path
     assert np.abs(on - pts).max() < 1e-5  # the default output lies on the mesh
 
 
-def test_path_and_eval_help_say_refine_is_costly_on_a_cpu(capsys):
+def test_path_and_eval_help_say_what_refinement_costs(capsys):
     for cmd in ("path", "render", "eval"):
         with pytest.raises(SystemExit):
             cli.main([cmd, "-h"])
         text = " ".join(capsys.readouterr().out.split())
-        assert "costly on a CPU" in text and "H200" in text, cmd
+        assert "slower on a CPU" in text and "fast on a GPU" in text and "per pair" not in text, cmd
 
 
 # --- another mesh -----------------------------------------------------------------------------------------------------
@@ -134,6 +135,7 @@ def test_ngf_with_another_mesh_names_the_flag_not_the_python_argument(tmp_path, 
     (lambda: OSError(errno.EIO, "Input/output error"), 1, "failed: [Errno 5] Input/output error"),
 ])
 def test_exit_codes_tell_bad_input_from_failures_and_bugs(error, code, words, trained, capsys, monkeypatch):
+    import neurogf_warp
     import neurogf_warp.common.checks  # noqa: F401 - for the InputError lambda
 
     def boom(args):
@@ -145,6 +147,9 @@ def test_exit_codes_tell_bad_input_from_failures_and_bugs(error, code, words, tr
     assert got == code and words in err and "Traceback" not in err, err
     if code == 1 and "failed" not in words:
         assert "internal error" in err and "report it" in err
+        # what to report: the command line, the versions (quoted), the traceback; no address made up
+        assert "command line" in err and f"neurogf-warp {neurogf_warp.__version__}" in err and "Python 3." in err
+        assert "traceback" in err and "tracker" not in err and "http" not in err
 
 
 def test_full_disk_during_output_says_so_and_keeps_the_old_file(trained, tmp_path, capsys, monkeypatch):
@@ -197,6 +202,32 @@ def test_a_closed_stdout_ends_quietly(trained, tmp_path):
         proc.stdout.close()  # what head does after its lines
         err = proc.stderr.read().decode()
         assert proc.wait(timeout=300) == 0 and err == "", (argv[0], err)
+
+
+def _closing(fd):
+    return lambda: os.close(fd)
+
+
+@pytest.mark.parametrize("closed", [1, 2])
+def test_a_command_started_with_stdout_or_stderr_closed(closed, trained, tmp_path):
+    """`neurogf-warp info M >&-`: a failure said on stderr (exit 1), no "internal error"; `2>&-`: the results as
+    usual on stdout and the exit code of the command; `ssad -o FILE >&-` works, and the file gets no stray text."""
+    env = dict(os.environ, NEUROGF_DEBUG="")
+    cmd = [sys.executable, "-m", "neurogf_warp.cli.main"]
+    res = subprocess.run([*cmd, "info", str(trained[1])], capture_output=True, text=True, env=env, timeout=300,
+                         preexec_fn=_closing(closed))
+    if closed == 1:
+        assert res.returncode == 1 and "standard output is closed" in res.stderr, res.stderr
+        assert "internal error" not in res.stderr and "Traceback" not in res.stderr
+    else:
+        assert res.returncode == 0 and "NeuroGF, D=" in res.stdout
+    res = subprocess.run([*cmd, "ssad", str(trained[1]), "--source", "3", "-o", str(tmp_path / "d.csv")],
+                         capture_output=True, text=True, env=env, timeout=300, preexec_fn=_closing(closed))
+    assert res.returncode == 0, res.stderr
+    assert (tmp_path / "d.csv").read_text().startswith("vertex,distance\n0,")
+    res = subprocess.run([*cmd, "info", str(tmp_path / "missing.ngf")], capture_output=True, text=True, env=env,
+                         timeout=300, preexec_fn=_closing(closed))
+    assert res.returncode == 2 and "internal error" not in res.stdout + res.stderr
 
 
 def test_source_messages_say_what_is_wrong(trained):
@@ -254,3 +285,56 @@ def test_warnings_are_one_line_and_silent_with_quiet(quiet, capsys):
         assert err == ""
     else:
         assert err == "neurogf-warp data: warning: a ground-truth worker process failed: ImportError: x\n"
+
+
+# --- gen-shapes ---------------------------------------------------------------------------------------------------
+
+def test_gen_shapes_refuses_no_shapes_and_a_file(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.main(["gen-shapes", str(tmp_path / "coll"), "-n", "0"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "-n" in err and "at least 1" in err and "Traceback" not in err
+    assert not (tmp_path / "coll").exists()
+    (tmp_path / "f").write_text("x")
+    code, _, err = run(["gen-shapes", tmp_path / "f", "-n", "2"], capsys)
+    assert code == 2 and "is a file" in err and (tmp_path / "f").read_text() == "x"
+
+
+def test_gen_shapes_says_what_it_made_and_why_there_is_no_test_split(tmp_path, capsys):
+    from neurogf_warp.generalizable.shapes import FAMILIES
+
+    code, out, err = run(["gen-shapes", tmp_path / "a", "-n", 12], capsys)
+    assert code == 0 and "12 shapes" in err and "12 in train/, 0 in test/" in err, err
+    first = 9 * len(FAMILIES)  # the 10th instance of the first family
+    assert "no test split" in err and f"first is shape {first}" in err and f"-n {first + 1}" in err
+    assert len(os.listdir(tmp_path / "a" / "train")) == 12 and not (tmp_path / "a" / "test").exists()
+    code, out, err = run(["gen-shapes", tmp_path / "b", "-n", 12, "--test-every", 2], capsys)
+    n_test = len(os.listdir(tmp_path / "b" / "test"))
+    assert code == 0 and n_test > 0 and f"{12 - n_test} in train/, {n_test} in test/" in err, err
+    assert "no test split" not in err
+
+
+# --- heat field ---------------------------------------------------------------------------------------------------
+
+def test_heat_field_leaves_parts_without_a_source_unreached():
+    """`render --heat`: the heat method's numbers on a part that no source reaches are not distances; they are
+    inf, drawn in the no-value colour as the model's and the solver's fields are."""
+    pytest.importorskip("potpourri3d")
+    import trimesh
+
+    import neurogf_warp as ngf
+    from neurogf_warp.evaluation.fields import heat_field
+    from neurogf_warp.pictures.render import colorize
+
+    a = trimesh.creation.icosphere(subdivisions=2)
+    b = trimesh.creation.icosphere(subdivisions=2)
+    b.apply_translation([3.0, 0, 0])
+    mesh = ngf.load_mesh(trimesh.util.concatenate([a, b]))
+    n = len(a.vertices)
+    d = heat_field(mesh, [0])
+    assert np.isfinite(d[:n]).all() and d[0] == pytest.approx(0, abs=1e-6) and d[1:n].max() > 1.0
+    assert np.isinf(d[n:]).all()
+    grey = colorize(np.array([np.nan]))[0]
+    assert (colorize(d)[n:] == grey).all()
+    d2 = heat_field(mesh, [0, n + 5])  # a source on each part: every vertex reached
+    assert np.isfinite(d2).all()

@@ -133,6 +133,28 @@ def test_bad_inputs(tmp_path):
         ngf.render(ngf.Model(net=random_net(64, 0)), size=(8, 8), device=DEV)
 
 
+@pytest.mark.parametrize("view, words", [
+    ((float("nan"), 0), "view.azimuth must be finite"),
+    ((0, float("inf")), "view.elevation must be finite"),
+    ({"zoom": float("nan")}, "view.zoom must be finite"),
+    ({"center": (0, float("nan"), 0)}, "view.center must be a finite point"),
+])
+def test_non_finite_views_are_refused(view, words, tmp_path):
+    """A NaN camera used to draw an empty picture without a word."""
+    V, F = grid(4)
+    with pytest.raises(ValueError, match=words):
+        ngf.render((V, F), view=view, size=(8, 8), out=tmp_path / "x.png", device=DEV)
+    assert not (tmp_path / "x.png").exists()
+
+
+@pytest.mark.parametrize("name, value", [("path_radius", float("nan")), ("marker_radius", 0.0),
+                                         ("path_radius", -1.0)])
+def test_radii_must_be_positive_numbers(name, value):
+    V, F = grid(4)
+    with pytest.raises(ValueError, match=name):
+        ngf.render((V, F), size=(8, 8), device=DEV, **{name: value})
+
+
 def test_write_ply_round_trip(tmp_path):
     """Vertex colours and values survive trimesh's PLY reader; the file's vertices are the referenced ones in
     order, so values given in the file's numbering land on the right vertices."""

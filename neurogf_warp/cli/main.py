@@ -8,42 +8,51 @@ line's own terms (its flags, not the Python API's arguments); ``-q`` keeps only 
 
 Exit codes: 0 success; 2 bad input (``common.checks.InputError``, and for now the plain ``ValueError`` and
 file errors that the other stages raise for bad input, see ``USER_ERRORS``); 1 a failure (a full disk, a
-device error) or a bug of ours, reported as such with how to report it; 130 interrupted. A closed stdout
-(``neurogf-warp info --json | head``) ends the command quietly. Warp's banner, module-compile lines and the
-CUDA-driver warning of a GPU-less machine are shown only with ``--verbose``.
+device error) or a bug of ours, reported as such with what to report; 130 interrupted. A closed stdout
+(``neurogf-warp info --json | head``) ends the command quietly; a process started without stdout (``>&-``) that has
+results to print fails saying so, and one started without stderr runs with its messages discarded. Warp's banner,
+module-compile lines and the CUDA-driver warning of a GPU-less machine are shown only with ``--verbose``.
+
+The generalizable network's commands (``gen-shapes``, ``gen-train``, ``gen-per-mesh``, see ``cli/gen.py``) are
+listed in the help and share the exit codes and error messages, with their own parsers.
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
 import sys
 import time
 import warnings
 
 from neurogf_warp import __version__
+from neurogf_warp.cli.gen import GEN_COMMANDS
 from neurogf_warp.common.checks import InputError, number, say
+from neurogf_warp.training.presets import DESCRIPTIONS, describe
 
 __all__ = ["main", "build_parser", "BadInput", "model_summary"]
 
 PROG = "neurogf-warp"
-PRESET_HELP = ("training preset: default (the GPU recipe), paper (the published network and recipe), cpu (a few "
-               "minutes on a CPU), cpu_large (cpu for meshes above 15,000 vertices), cpu_small (a seconds-long smoke "
-               "run); default: chosen by the device and the mesh size")
+PRESET_HELP = ("training preset, one of " + "; ".join(describe(n) for n in DESCRIPTIONS)
+               + ". Default: chosen by the device and the mesh size (default on a GPU, cpu or cpu_large on a CPU)")
 VALUE_FORMATS = (".npy", ".csv", ".ply")
-ISSUES = "the neurogf-warp issue tracker"
-# `path --refine` cost, measured: on an H200 (README, benchmarks/RESULTS.md) and on the shared 2-core CPU of
-# issue 21 (200 pairs of a D=128 CPU-preset model in 174 s) and 2026-11-24 (20 pairs of the released fandisk,
-# D=256, in 484 s with other jobs running)
-REFINE_COST = ("costly on a CPU: every sweep re-evaluates the SDF network at every point (measured on a shared "
-               "2-core CPU: {cpu}); on an H200, 1,000 pairs of 128 points with 50 sweeps take 50 ms")
-REFINE_CPU = "0.9 to 24 s per pair of 128 points with 50 sweeps"
+MIN_SIZE, MAX_SIZE = 16, 16384  # render --size, pixels per side
+# what refinement does and what it costs, without a figure: its time depends on the network's width, the number
+# of pairs and points, the sweeps and the device, and is fast on a GPU
+REFINE_COST = ("each sweep moves every path point along the network's SDF surface to shorten the path, evaluating the "
+               "SDF network at every point: fast on a GPU, slower on a CPU, growing with pairs x points x sweeps")
 
 BadInput = InputError  # the name this module used before common.checks had the type
+_STARTED_WITHOUT_STDOUT = False  # set by main(): stdout was closed when the process started
 
 
 class _StdoutClosed(Exception):
     """The reader of our stdout went away (a pipe into ``head``): stop quietly."""
+
+
+class _NoStdout(Exception):
+    """The process was started with stdout closed (``>&-``) and has results to print: a failure, said so."""
 
 
 # ------------------------------------------------------------------------------------------ parser
@@ -96,6 +105,21 @@ def _budget(text: str) -> float:
         raise argparse.ArgumentTypeError(str(e).replace("--budget-seconds ", "")) from None
 
 
+def _finite(flag: str):
+    """An argparse type: a finite number (nan and inf refused, naming ``flag``)."""
+    def convert(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+        return value
+
+    convert.__name__ = f"finite number for {flag}"
+    return convert
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The whole command line (``neurogf-warp COMMAND ...``)."""
     common = _common()
@@ -109,6 +133,9 @@ def build_parser() -> argparse.ArgumentParser:
     for add in (_add_demo, _add_data, _add_train, _add_eval, _add_ssad, _add_msad, _add_distance, _add_path,
                 _add_info, _add_render):
         add(sub, common)
+    # listed here; main() hands their arguments to their own parsers (`neurogf-warp gen-train -h`)
+    for name, line in GEN_COMMANDS.items():
+        sub.add_parser(name, help=line, add_help=False)
     return p
 
 
@@ -162,7 +189,7 @@ def _add_train(sub, common):
     t.add_argument("--D", type=int, default=None, help="embedding width: 64, 128, 256 or 512 (default: the preset's)")
     t.add_argument("--epochs", type=int, default=None, help="joint-training epochs (default: the preset's)")
     t.add_argument("--iters-per-epoch", type=int, default=None, help="steps per epoch (default: the preset's)")
-    t.add_argument("--lr", type=float, default=None, help="learning rate of the querier and joint stages")
+    t.add_argument("--lr", type=_finite("--lr"), default=None, help="learning rate of the querier and joint stages")
     t.add_argument("--n-sources", type=int, default=None, help="distance sources of the dataset")
     t.add_argument("--seed", type=int, default=None, help="random seed (dataset, initialization, batches)")
     t.add_argument("--no-amp", action="store_true", help="float32 path head (default: bf16 on CUDA)")
@@ -189,7 +216,7 @@ def _add_eval(sub, common):
     e.add_argument("--no-sdf", action="store_true", help="skip the SDF comparison")
     e.add_argument("--path-refine", type=int, default=0, metavar="N",
                    help="also score the paths after N shortening sweeps per level (e.g. 50; "
-                        + REFINE_COST.format(cpu=REFINE_CPU) + ")")
+                        + REFINE_COST + ")")
     e.add_argument("--seed", type=int, default=0, help="random seed of the solver sources and path pairs")
     e.add_argument("--json", default=None, help="also write the results to this .json file")
     e.set_defaults(run=_cmd_eval)
@@ -203,7 +230,8 @@ def _add_ssad(sub, common):
     g = s.add_mutually_exclusive_group()
     g.add_argument("--source", type=int, default=None, help="source vertex index, 0-based, the mesh's own numbering "
                    "(default 0)")
-    g.add_argument("--point", type=float, nargs=3, metavar=("X", "Y", "Z"), help="source point in mesh coordinates")
+    g.add_argument("--point", type=_finite("--point"), nargs=3, metavar=("X", "Y", "Z"),
+                   help="source point in mesh coordinates")
     _values_output(s)
     s.set_defaults(run=_cmd_ssad)
 
@@ -238,7 +266,7 @@ def _add_path(sub, common):
     s.add_argument("--m", type=int, default=128, help="points per path, ends included (default 128)")
     s.add_argument("--refine", type=int, default=0, metavar="N",
                    help="N shortening sweeps per level on the network's SDF surface (e.g. 50; default 0: the path "
-                        "head's path); " + REFINE_COST.format(cpu=REFINE_CPU))
+                        "head's path); " + REFINE_COST)
     s.add_argument("--project", choices=("none", "sdf", "mesh"), default=None,
                    help="where the points go: mesh (each snapped to the closest point of the mesh; the default "
                         "when the model has a mesh), sdf (Newton steps onto the network's SDF surface; the default "
@@ -270,24 +298,24 @@ def _add_render(sub, common):
     s.add_argument("--paths", type=int, nargs="+", default=None, metavar="V",
                    help="also draw the shortest paths from the first source to these vertices")
     s.add_argument("--refine", type=int, default=0, metavar="N",
-                   help="shortening sweeps for the model's paths (default 0: the path head's); "
-                        + REFINE_COST.format(cpu=REFINE_CPU))
+                   help="shortening sweeps for the model's paths (default 0: the path head's); " + REFINE_COST)
     field = s.add_mutually_exclusive_group()
     field.add_argument("--exact", metavar="REF.npz", help="draw the exact field of this reference file (positions, "
                        "file_index or orig_index, sources, dist) instead of the model's; paths from the geodesic solver")
     field.add_argument("--heat", action="store_true", help="draw the heat method's field (potpourri3d) instead of the "
                        "model's; paths from potpourri3d's edge-flip solver")
     s.add_argument("--isolines", type=int, default=20, help="number of isolines (default 20; 0: none)")
-    s.add_argument("--vrange", type=float, nargs=2, default=None, metavar=("LOW", "HIGH"),
+    s.add_argument("--vrange", type=_finite("--vrange"), nargs=2, default=None, metavar=("LOW", "HIGH"),
                    help="the colour scale's range in mesh units (default: the field's), to compare pictures")
-    s.add_argument("--view", type=float, nargs=2, default=None, metavar=("AZIMUTH", "ELEVATION"),
+    s.add_argument("--view", type=_finite("--view"), nargs=2, default=None, metavar=("AZIMUTH", "ELEVATION"),
                    help="camera direction in degrees: azimuth around the up axis (0: from the axis after it in x, y, "
                         "z order, e.g. +z for up y) and elevation above the plane across it (default: facing the "
                         "source, or several sources when they lie mostly on one side; elevation within 60 degrees)")
     s.add_argument("--up", default="auto", choices=("auto", "x", "y", "z", "-x", "-y", "-z"),
                    help="the mesh axis drawn upward (default auto: z when the mesh is at least 1.2 times taller "
                         "along z than along y, else y)")
-    s.add_argument("--size", type=int, nargs=2, default=(1024, 1024), metavar=("W", "H"), help="picture size in pixels")
+    s.add_argument("--size", type=int, nargs=2, default=(1024, 1024), metavar=("W", "H"),
+                   help=f"picture size in pixels, each {MIN_SIZE} to {MAX_SIZE} (default 1024 1024)")
     s.add_argument("-o", "--output", required=True, help="picture file (.png)")
     s.set_defaults(run=_cmd_render)
 
@@ -312,6 +340,8 @@ def _plural(n: int, word: str, plural: str | None = None) -> str:
 
 def _stdout_write(text: str):
     """Write to stdout; a reader that went away (``| head``) ends the command quietly."""
+    if _STARTED_WITHOUT_STDOUT:
+        raise _NoStdout()
     try:
         sys.stdout.write(text)
         sys.stdout.flush()
@@ -423,9 +453,13 @@ def _points(values, flag: str):
 
     if len(values) == 3:
         try:
-            return np.array([[float(v) for v in values]])
+            a = np.array([[float(v) for v in values]])
         except ValueError:
-            pass
+            a = None
+        if a is not None:
+            if not np.isfinite(a).all():
+                raise InputError(f"{flag} {' '.join(values)}: coordinates must be finite numbers")
+            return a
     if len(values) == 1:
         path = values[0]
         if not os.path.isfile(path):
@@ -441,6 +475,10 @@ def _points(values, flag: str):
         a = np.asarray(a, dtype=np.float64)
         if a.ndim != 2 or a.shape[1] != 3:
             raise InputError(f"{flag} {path}: expected (N, 3) points, got shape {a.shape}")
+        bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
+        if len(bad):
+            raise InputError(f"{flag} {path}: point {bad[0]} (row {bad[0]}, 0-based) is not finite: {a[bad[0]]}; "
+                             f"{len(bad)} such point(s)")
         return a
     raise InputError(f"{flag} takes three numbers X Y Z or one file, got {' '.join(values)}")
 
@@ -785,8 +823,11 @@ def _cmd_info(args) -> int:
 
 def _cmd_render(args) -> int:
     _check_output(args.output, (".png",), "picture")
-    if args.isolines < 0 or min(args.size) < 16 or args.refine < 0:
-        raise InputError("--isolines and --refine must be >= 0 and --size at least 16 x 16 pixels")
+    _nonnegative(args, "isolines", "refine")
+    if not all(MIN_SIZE <= x <= MAX_SIZE for x in args.size):
+        raise InputError(f"--size {args.size[0]} {args.size[1]}: each side must be {MIN_SIZE} to {MAX_SIZE} pixels")
+    if args.vrange is not None and not args.vrange[0] < args.vrange[1]:
+        raise InputError(f"--vrange {args.vrange[0]:g} {args.vrange[1]:g}: LOW must be below HIGH")
     if args.heat:
         _require_heat()
     import numpy as np
@@ -863,27 +904,78 @@ def _quiet_stdout_exit():
         pass
 
 
+def _closed_std_streams() -> set:
+    """The standard streams the process was started without (``>&-``, ``2>&-``): each is opened on /dev/null, so
+    that no file this command opens later takes its descriptor (and gets the output meant for it); returns their
+    names."""
+    global _STARTED_WITHOUT_STDOUT
+    closed = set()
+    for fd, name in ((0, "stdin"), (1, "stdout"), (2, "stderr")):
+        try:
+            os.fstat(fd)
+            continue
+        except OSError:
+            closed.add(name)
+        null = os.open(os.devnull, os.O_RDWR)  # the lowest free descriptor: this one, as the lower ones are open
+        if null != fd:
+            os.dup2(null, fd)
+            os.close(null)
+    if "stderr" in closed or sys.stderr is None:  # messages go nowhere; the exit code still tells
+        sys.stderr = open(os.devnull, "w")
+    _STARTED_WITHOUT_STDOUT = "stdout" in closed or sys.stdout is None
+    if sys.stdout is None:  # Python's stand-in for a closed stdout; libraries that print expect a stream
+        sys.stdout = open(os.devnull, "w")
+    return closed
+
+
+def _versions() -> str:
+    """Versions to quote in a bug report: this package, Python, and torch and Warp when loaded."""
+    import platform
+
+    out = [f"{PROG} {__version__}", f"Python {platform.python_version()}"]
+    for mod, name in (("torch", "torch"), ("warp", "warp-lang")):
+        m = sys.modules.get(mod)
+        v = getattr(m, "__version__", None) or getattr(getattr(m, "config", None), "version", None)
+        if v:
+            out.append(f"{name} {v}")
+    return ", ".join(out)
+
+
 def main(argv=None) -> int:
     """Run ``neurogf-warp`` with ``argv`` (default: sys.argv[1:]); returns the exit code."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    if argv and argv[0].startswith("gen-"):  # generalizable NeuroGF: gen-train, gen-shapes, gen-per-mesh
-        from neurogf_warp.generalizable.hooks import CLI_COMMANDS
+    _closed_std_streams()
+    if argv and argv[0] in GEN_COMMANDS:  # generalizable NeuroGF: their own parsers
+        from neurogf_warp.cli.gen import run_gen
 
-        if argv[0] in CLI_COMMANDS:
-            return CLI_COMMANDS[argv[0]](argv[1:])
+        args = argparse.Namespace(command=argv[0], verbose=False, quiet=False)
+        return _run_guarded(args, lambda: run_gen(argv[0], argv[1:]))
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help(sys.stderr)
         return 2
+
+    def run():
+        start_warp(args.verbose)
+        return args.run(args)
+
+    return _run_guarded(args, run)
+
+
+def _run_guarded(args, run) -> int:
+    """``run()``'s exit code, with every failure turned into a message on stderr and its exit code."""
     debug = args.verbose or os.environ.get("NEUROGF_DEBUG", "") not in ("", "0")
     try:
         with _one_line_warnings(args):
-            start_warp(args.verbose)
-            return args.run(args)
+            return run()
     except _StdoutClosed:
         _quiet_stdout_exit()
         return 0
+    except _NoStdout:
+        print(f"{PROG} {args.command}: failed: standard output is closed, so the results cannot be printed; "
+              "redirect it to a file (or give -o FILE where the command has it)", file=sys.stderr)
+        return 1
     except KeyboardInterrupt as e:  # TrainingInterrupted says where its checkpoint is
         msg = str(e) or "interrupted"
         print(f"{PROG} {args.command}: {msg}", file=sys.stderr)
@@ -901,9 +993,11 @@ def main(argv=None) -> int:
     except Exception as e:  # noqa: BLE001 - the one place that turns failures into an exit code
         if debug:
             raise
+        again = "with NEUROGF_DEBUG=1" if args.command in GEN_COMMANDS else "with --verbose"
         print(f"{PROG} {args.command}: internal error: {type(e).__name__}: {e}\n"
-              f"This is a bug in neurogf-warp, not a problem with your input. Please report it to {ISSUES} with "
-              f"the command line and the traceback that the same command prints with --verbose.", file=sys.stderr)
+              f"This is a bug in neurogf-warp, not a problem with your input. Please report it to the maintainers "
+              f"with the command line, these versions ({_versions()}) and the traceback that the same command "
+              f"prints {again}.", file=sys.stderr)
         return 1
 
 

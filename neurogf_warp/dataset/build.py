@@ -775,7 +775,7 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     settings = dataclasses.replace(settings or DatasetSettings(), **overrides).validate()
     if time_limit_s is not None:
         number("time_limit_s", time_limit_s, minimum=0)
-    from tqdm.auto import tqdm
+    from neurogf_warp.common.progress import Progress
 
     t_start = time.perf_counter()
     clock = _Clock(t_start, time_limit_s)
@@ -813,8 +813,8 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
         return GeodesicSolver(mesh_, k=st.k, device=device, batch=batch, max_rows=rows_cap)
 
     solver = solver_for(g)
-    bar = tqdm(total=len(plan.gd_src) + len(plan.test_src) + plan.n_path_sources, desc="ground truth",
-               disable=not progress, unit="source", dynamic_ncols=True)
+    bar = Progress(len(plan.gd_src) + len(plan.test_src) + plan.n_path_sources, "ground truth", unit="source",
+                   on=progress)
     t0 = time.perf_counter()
     test_dist, test_k = None, st.k
     if (st.k < DEFAULT_K or fine_of is not None) and len(test_src):
@@ -850,8 +850,7 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     kept, rows, solved, test_dist, timings["worker_batches"], n_path_done = _distances(
         g, st, plan, rng, solver, clock, bar, test_dist, found if here else None)
     if solved < len(plan.gd_src):  # the time limit cut the sources short
-        bar.total = solved + len(plan.test_src) + min(plan.n_path_sources, solved)
-        bar.refresh()
+        bar.set_total(solved + len(plan.test_src) + min(plan.n_path_sources, solved))
     timings["distances_s"] = time.perf_counter() - t0  # with the paths traced in the pass, when ``here``
     if coarse is not None and coarse["scale"] != 1.0:
         for part in rows.values():

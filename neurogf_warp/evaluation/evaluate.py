@@ -79,9 +79,9 @@ def _with_mesh(model, mesh):
 
 
 def _bar(total: int, desc: str, on: bool, unit: str = "source"):
-    from tqdm.auto import tqdm
+    from neurogf_warp.common.progress import Progress
 
-    return tqdm(total=total, desc=desc, disable=not on, unit=unit, dynamic_ncols=True, leave=False)
+    return Progress(total, desc, unit=unit, on=on, leave=False)
 
 
 def _solver_truth(mesh: Mesh, sids, k, device, progress):

@@ -48,12 +48,16 @@ def exact_field(reference: "str | os.PathLike", mesh: Mesh, sources) -> np.ndarr
 
 def heat_field(mesh: Mesh, sources) -> np.ndarray:
     """The heat method's distance (potpourri3d, its default time step) to the nearest of ``sources`` (vertex
-    indices, the mesh file's numbering): (mesh.n_input,) float64, mesh units, NaN at unused vertices."""
+    indices, the mesh file's numbering): (mesh.n_input,) float64, mesh units, NaN at unused vertices and inf on
+    the parts of the mesh that hold no source (as the solver's and the model's fields)."""
     import potpourri3d as pp3d
 
     solver = pp3d.MeshHeatMethodDistanceSolver(mesh.vertices, mesh.faces.astype(np.int64))
     ids = mesh.vertex(np.asarray(sources).reshape(-1))
-    return mesh.to_input(solver.compute_distance_multisource([int(i) for i in ids]))
+    d = np.asarray(solver.compute_distance_multisource([int(i) for i in ids]), dtype=np.float64)
+    # the heat method's values on a part that no source reaches are numbers without meaning
+    comp = mesh.components
+    return mesh.to_input(np.where(np.isin(comp, comp[ids]), d, np.inf))
 
 
 def heat_paths(mesh: Mesh, source: int, targets) -> list:

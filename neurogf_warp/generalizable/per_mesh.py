@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from neurogf_warp.common.shards import balanced_shard, file_sizes
-from neurogf_warp.generalizable.train import MESH_EXTENSIONS
+from neurogf_warp.generalizable.train import MESH_EXTENSIONS, _finite, torchrun_command
 
 
 def _value(text: str):
@@ -92,14 +92,15 @@ def train_folder(folder, outdir, budget_seconds=None, config=None, device=None, 
     return summary
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(prog="python -m neurogf_warp.generalizable.per_mesh",
-                                 description="one per-mesh NeuroGF per mesh file, spread over torchrun ranks")
-    ap.add_argument("folder")
-    ap.add_argument("-o", "--outdir", required=True)
-    ap.add_argument("--budget-seconds", type=float, default=None, help="per mesh (ngf.train's budget)")
+def main(argv=None, prog: str = "python -m neurogf_warp.generalizable.per_mesh"):
+    ap = argparse.ArgumentParser(prog=prog,
+                                 description="one per-mesh NeuroGF per mesh file, spread over torchrun ranks",
+                                 epilog="on N GPUs of one machine: " + torchrun_command(prog, "FOLDER -o OUTDIR"))
+    ap.add_argument("folder", help="folder of mesh files (searched recursively)")
+    ap.add_argument("-o", "--outdir", required=True, help="output folder: one model per mesh and summary.json")
+    ap.add_argument("--budget-seconds", type=_finite, default=None, help="per mesh (ngf.train's budget)")
     ap.add_argument("--preset", default=None, help="ngf.train config preset (default: by device and mesh)")
-    ap.add_argument("--device", default=None)
+    ap.add_argument("--device", default=None, help="cpu, cuda (this rank's GPU) or cuda:N (default: auto)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a TrainConfig setting for every mesh (repeatable), e.g. --set epochs=2")
     a = ap.parse_args(argv)

@@ -467,13 +467,54 @@ def _flag(text: str) -> bool:
     raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(prog="python -m neurogf_warp.generalizable.train",
+def torchrun_command(prog: str, args: str) -> str:
+    """The torchrun line that runs command ``prog`` (``python -m MODULE`` or an installed program) on N ranks."""
+    if prog.startswith("python -m "):
+        return f"torchrun --nproc_per_node N -m {prog[len('python -m '):]} {args}"
+    return f"torchrun --nproc_per_node N --no-python {prog} {args}"
+
+
+def _finite(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return v
+
+
+# the command line's help of each GenTrainConfig setting (its default is appended)
+OPTION_HELP = {
+    "sources": "ground truth: source vertices per shape",
+    "targets": "ground truth: target vertices per source",
+    "cloud_points": "points sampled on each shape, the encoder's input",
+    "shapes_per_step": "shapes per training step and rank",
+    "step_sources": "sources per shape and step",
+    "step_targets": "targets per source and step",
+    "steps": "length of the cosine learning-rate schedule, and the last step",
+    "lr": "learning rate at the start of the cosine schedule",
+    "lr_min": "learning rate at its end",
+    "weight_decay": "AdamW weight decay",
+    "rotate": "augmentation: turn every drawn shape by a random rotation (true or false)",
+    "checkpoint_seconds": "seconds between checkpoints of the output file",
+    "val_every": "steps between validations",
+    "val_shapes": "held-out shapes used per validation (the first ones)",
+    "val_sources": "sources per held-out shape in a validation",
+    "val_targets": "targets per source in a validation",
+    "seed": "random seed of the ground truth's sources and targets and of the batches",
+    "log_every": "steps between log lines",
+}
+
+
+def main(argv=None, prog: str = "python -m neurogf_warp.generalizable.train"):
+    ap = argparse.ArgumentParser(prog=prog,
                                  description="Train a generalizable NeuroGF network on a folder of meshes "
-                                             "(also under torchrun).")
+                                             "(also under torchrun).",
+                                 epilog="on N GPUs of one machine: " + torchrun_command(prog, "FOLDER -o model.pt"))
     ap.add_argument("folder", help="meshes (train/ and test/ subfolders, or every 10th file held out)")
     ap.add_argument("-o", "--output", required=True, help="model file to write (and resume from)")
-    ap.add_argument("--budget-seconds", type=float, default=None, help="training time limit")
+    ap.add_argument("--budget-seconds", type=_finite, default=None, help="training time limit")
     ap.add_argument("--resume", action="store_true", help="continue the output file's training")
     ap.add_argument("--cache", default=None, help="ground-truth cache folder (default: <output>.gt)")
     ap.add_argument("--device", default=None, help="cpu, cuda (this rank's GPU) or cuda:N (default: auto)")
@@ -481,8 +522,9 @@ def main(argv=None):
     for f in dataclasses.fields(GenTrainConfig):
         if f.name == "budget_seconds":
             continue
-        kind = _flag if isinstance(f.default, bool) else type(f.default)
-        ap.add_argument("--" + f.name.replace("_", "-"), type=kind, default=None)
+        kind = _flag if isinstance(f.default, bool) else _finite if isinstance(f.default, float) else type(f.default)
+        ap.add_argument("--" + f.name.replace("_", "-"), type=kind, default=None,
+                        help=f"{OPTION_HELP[f.name]} (default {f.default})")
     a = ap.parse_args(argv)
     cfg = GenTrainConfig(**{f.name: getattr(a, f.name) for f in dataclasses.fields(GenTrainConfig)
                             if f.name != "budget_seconds" and getattr(a, f.name) is not None},

@@ -20,7 +20,7 @@ import numpy as np
 import warp as wp
 
 from neurogf_warp.common.arrays import resolve_device
-from neurogf_warp.common.checks import InputError, integer
+from neurogf_warp.common.checks import InputError, integer, number
 from neurogf_warp.common.files import atomic_write
 from neurogf_warp.kernels.pictures import raycast
 from neurogf_warp.mesh.surface import as_mesh, as_numpy, points_of
@@ -158,10 +158,14 @@ def _camera(vertices: np.ndarray, view: View, width: int, height: int, extent: n
     enough that the sphere around that centre holding ``extent`` (every point drawn, default ``vertices``),
     enlarged by ``FRAME_MARGIN``, fits in both the vertical and the horizontal field of view."""
     up, front, right = _axes(choose_up(vertices) if str(view.up).strip().lower() == "auto" else view.up)
+    for name in ("azimuth", "elevation", "fov", "zoom"):  # a NaN camera draws an empty picture
+        number(f"view.{name}", getattr(view, name))
     if not (0.0 < view.fov < 179.0) or not view.zoom > 0:
         raise InputError(f"view.fov must lie in (0, 179) degrees and view.zoom be > 0, got {view.fov}, {view.zoom}")
     lo, hi = vertices.min(0), vertices.max(0)
     center = (lo + hi) / 2 if view.center is None else np.asarray(view.center, dtype=np.float64).reshape(3)
+    if not np.isfinite(center).all():
+        raise InputError(f"view.center must be a finite point, got {view.center!r}")
     pts = vertices if extent is None else extent
     radius = max(float(np.linalg.norm(pts - center, axis=1).max()), 1e-12) * (1.0 + FRAME_MARGIN)
     az, el = math.radians(view.azimuth), math.radians(view.elevation)
@@ -328,6 +332,9 @@ class Style:
         out = cls(**base)
         out.isolines = integer("isolines", out.isolines, minimum=0)
         out.supersample = integer("supersample", out.supersample, minimum=1, maximum=8)
+        for name in ("path_radius", "marker_radius"):
+            if getattr(out, name) is not None:
+                setattr(out, name, number(name, getattr(out, name), above=0.0))
         return out
 
 

@@ -322,7 +322,8 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
                 left = deadline - time.perf_counter()
                 fitted = fit_budget(cfg, per, max(left, 0.0))
             if shrunk:
-                say(progress, f"short budget: batches x{scale:g} for more steps ({fitted.joint_steps:,} joint steps)")
+                say(progress, f"short budget: batches x{scale:g} for more steps (about {fitted.joint_steps:,} joint "
+                              "steps planned at the measured step time; the count follows the actual speed)")
             timings["calibrate_s"] = time.perf_counter() - t0
             cap = None
             if not cfg.runtime.fill_budget:  # the preset's own steps, the budget only a cap
@@ -390,7 +391,8 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     timings.update(call_s=call_s, spent_s=spent_before + call_s, budget_seconds=budget_seconds,
                    calibrated_s_per_step=per)
     _write_log(files, info, history, timings, key)
-    say(progress, f"saved {files.model} ({call_s:.0f} s)")
+    say(progress, f"saved {files.model} ({call_s:.0f} s; {trainer.steps['joint']:,} joint steps, "
+                  f"{sum(trainer.steps.values()):,} in all)")
     return model
 
 

@@ -6,11 +6,11 @@ a second one stops at once. With a ``Budget`` the remaining step counts are re-p
 from __future__ import annotations
 
 import signal
-import sys
 import time
 
 import torch
 
+from neurogf_warp.common.progress import Progress
 from neurogf_warp.training import losses as L
 from neurogf_warp.training.acceleration import set_tf32
 from neurogf_warp.training.config import STAGES
@@ -50,11 +50,10 @@ class Runner:
         t, rt = self.t, self.t.cfg.runtime
         bar = None
         if self.progress:
-            from tqdm.auto import tqdm
-
             done = sum(t.steps[s] for s in STAGES[:stage_i]) + step
-            bar = tqdm(total=sum(t.steps.values()), initial=done, unit="step", dynamic_ncols=True, file=sys.stderr,
-                       desc="training")
+            # the budget re-plans the step counts every few seconds; the shown total follows only changes of
+            # more than a tenth, so that it does not jump at every re-plan
+            bar = Progress(sum(t.steps.values()), "training", unit="step", initial=done, total_tolerance=0.1)
         old = None
         try:
             old = signal.signal(signal.SIGINT, self._on_sigint)
@@ -99,7 +98,7 @@ class Runner:
                                                 "loss": total_loss, **row})
                         acc, acc_n = None, 0
                         if bar is not None:
-                            bar.set_postfix_str(f"{stage} loss {total_loss:.4g} lr {t.lr_at(stage, step - 1):.2e}"
+                            bar.set_postfix(f"{stage} loss {total_loss:.4g} lr {t.lr_at(stage, step - 1):.2e}"
                                                 + (f" valMRE {history['val'][-1]['mre']:.3%}" if history["val"] else ""))
                     if stage in ("joint", "refine_dist") and ((rt.val_every and step % rt.val_every == 0) or step == n):
                         history["val"].append({"stage": stage, "step": step, "mre": t.validate()})
@@ -127,6 +126,8 @@ class Runner:
                 stage_i, step = stage_i + 1, 0
                 self.save(stage_i, step, history, elapsed)
                 last_save = time.perf_counter()
+            if bar is not None:  # every stage ran to its end: the steps done are the run's total
+                bar.finish()
         finally:
             if tf32 is not None:
                 set_tf32(tf32)
@@ -142,5 +143,4 @@ class Runner:
         t = self.t
         t.steps = self.budget.replan(t.steps, stage_i, step)
         if bar is not None:
-            bar.total = sum(t.steps.values())
-            bar.refresh()
+            bar.set_total(sum(t.steps.values()))

@@ -11,9 +11,12 @@ their first steps show to be fastest (``threads=0``); ``cpu_small`` trains with 
 """
 from __future__ import annotations
 
-from neurogf_warp.training.config import TrainConfig
+from typing import TYPE_CHECKING
 
-__all__ = ["PRESETS", "preset", "choose_preset", "LARGE_MESH"]
+if TYPE_CHECKING:  # imported when a preset is built, so that the command line's help does not load torch
+    from neurogf_warp.training.config import TrainConfig
+
+__all__ = ["PRESETS", "DESCRIPTIONS", "preset", "choose_preset", "describe", "LARGE_MESH"]
 
 _SMALL_BATCHES = dict(batch_sdf=2048, batch_g=4096, batch_l1=512, batch_l2=1024, batch_paths_g=128,
                       batch_paths_l=128, batch_surf=16, batch_querier=2048, sdf_pool=20000)
@@ -48,8 +51,7 @@ PRESETS = {
     # CPU, meshes above LARGE_MESH vertices: a source's ground truth costs ~0.25 s or more there, so k=1 Steiner
     # points (the solver's MRE 0.2% instead of 0.02%) and as many sources as a third of the budget solves (the
     # training call's time limit on the dataset), up to 768; without a budget all 768 (minutes). The distance
-    # refinement, most of such a run, at lr 5e-3 (chosen on the bunny, benchmarks/RESULTS.md); it moves the shared
-    # lifting features further, so the SDF head gets 10x the refinement steps to follow them (2 ms each)
+    # refinement, most of such a run, at lr 5e-3 (chosen on the bunny); the SDF refinement as in "cpu"
     "cpu_large": {},  # filled in below from "cpu"
     # a smoke run: 100 joint steps, 265 in all (the defaults' 100 x 200 joint steps made 52,000 in all)
     "cpu_small": dict(_SMALL_BATCHES, D=64, val_every=100, log_every=20, threads=1, epochs=1, iters_per_epoch=100,
@@ -58,15 +60,39 @@ PRESETS = {
                       n_surface=30000, n_spread=2000),
 }
 
-PRESETS["cpu_large"] = dict(PRESETS["cpu"], n_sources=768, n_path_sources=16, refine_dist_lr=5e-3,
-                            ratios=dict(PRESETS["cpu"]["ratios"], refine_sdf=1.0))
+PRESETS["cpu_large"] = dict(PRESETS["cpu"], n_sources=768, n_path_sources=16, refine_dist_lr=5e-3)
 LARGE_MESH = 15000  # vertices
+
+# What each preset is for, and the settings that say so (flat TrainConfig names, as --set takes them); a preset
+# described as another one's variant ("based_on") lists exactly the settings it changes. tests/test_cli_help.py
+# checks every claim against the settings, so a description cannot promise what the preset does not set.
+DESCRIPTIONS = {
+    "default": dict(text="the GPU recipe", settings=dict(D=256, n_sources=2048, hard_share=0.25)),
+    "paper": dict(text="the published network and recipe",
+                  settings=dict(fourier=0, euclid=False, path_residual=False, dist_loss="l1")),
+    "cpu": dict(text="a few minutes on a CPU",
+                settings=dict(D=128, n_sources=512, k=1, epochs=4, iters_per_epoch=100)),
+    "cpu_large": dict(text=f"cpu for meshes above {LARGE_MESH:,} vertices", based_on="cpu",
+                      settings=dict(n_sources=768, n_path_sources=16, refine_dist_lr=5e-3)),
+    "cpu_small": dict(text="a seconds-long smoke run, its models not meant to be accurate",
+                      settings=dict(D=64, n_sources=64, epochs=1, iters_per_epoch=100)),
+}
+
+
+def describe(name: str) -> str:
+    """One line on preset ``name``: what it is for and the settings that make it so, e.g.
+    ``cpu_large: cpu for meshes above 15,000 vertices (n_sources=768, ...)``."""
+    d = DESCRIPTIONS[name]
+    return f"{name}: {d['text']} ({', '.join(f'{k}={v}' for k, v in d['settings'].items())})"
+
 
 def preset(name: str = "default", **changes) -> TrainConfig:
     """The ``TrainConfig`` of preset ``name``, with ``changes`` (flat or dotted setting names) applied.
 
     Raises ValueError for an unknown preset, naming the known ones.
     """
+    from neurogf_warp.training.config import TrainConfig
+
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; known: {', '.join(PRESETS)}")
     cfg = TrainConfig().set(**PRESETS[name])
