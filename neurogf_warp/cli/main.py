@@ -133,6 +133,9 @@ def build_parser() -> argparse.ArgumentParser:
     for add in (_add_demo, _add_data, _add_train, _add_eval, _add_ssad, _add_msad, _add_distance, _add_path,
                 _add_info, _add_render):
         add(sub, common)
+    from neurogf_warp.cli import tools
+
+    tools.add_commands(sub, common)
     # listed here; main() hands their arguments to their own parsers (`neurogf-warp gen-train -h`)
     for name, line in GEN_COMMANDS.items():
         sub.add_parser(name, help=line, add_help=False)
@@ -186,6 +189,11 @@ def _add_train(sub, common):
                    help="continue the run in <model>.train with its own settings (also a finished one)")
     g.add_argument("--force", action="store_true", help="start over, replacing an existing run and model file")
     t.add_argument("--dataset", default=None, help="train on this dataset .npz instead of building one")
+    t.add_argument("--weld", action="store_true",
+                   help="merge vertices with exactly equal coordinates first (seams stored twice)")
+    t.add_argument("--allow-vertex-joins", action="store_true",
+                   help="train a mesh whose patches meet only at single vertices (refused by default: geodesics "
+                        "through such vertices are fitted poorly)")
     t.add_argument("--D", type=int, default=None, help="embedding width: 64, 128, 256 or 512 (default: the preset's)")
     t.add_argument("--epochs", type=int, default=None, help="joint-training epochs (default: the preset's)")
     t.add_argument("--iters-per-epoch", type=int, default=None, help="steps per epoch (default: the preset's)")
@@ -568,7 +576,12 @@ def _cmd_train(args) -> int:
     from neurogf_warp.training.run_folder import already_trained
 
     config = "paper" if args.paper else args.preset
-    done = None if args.force or args.resume else already_trained(
+    mesh = args.mesh
+    if args.weld:
+        from neurogf_warp.mesh.mesh import load_mesh
+
+        mesh = load_mesh(args.mesh, weld=True)
+    done = None if args.force or args.resume or args.weld else already_trained(
         args.mesh, args.output, config=config, device=args.device, dataset=args.dataset,
         budget_seconds=args.budget_seconds, **changes)
     if done is not None:  # answered from the run's log, before torch is imported
@@ -578,9 +591,9 @@ def _cmd_train(args) -> int:
     import neurogf_warp as ngf
 
     try:
-        model = ngf.train(args.mesh, args.output, config=config, device=args.device, dataset=args.dataset,
+        model = ngf.train(mesh, args.output, config=config, device=args.device, dataset=args.dataset,
                           resume=args.resume, force=args.force, budget_seconds=args.budget_seconds,
-                          progress=not args.quiet, **changes)
+                          progress=not args.quiet, allow_vertex_joins=args.allow_vertex_joins, **changes)
     except ValueError as e:
         raise InputError(_in_cli_terms(str(e))) from None
     print(_quality_line(model.config), file=sys.stderr)  # also with -q: the one line that says how good it is
