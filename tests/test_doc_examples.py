@@ -223,20 +223,16 @@ SHELL_PAGES = [p for p in PAGES if any(b.lang in SHELL for b in BLOCKS[p])]
 @pytest.mark.parametrize("page", SHELL_PAGES, ids=[str(p.relative_to(ROOT)) for p in SHELL_PAGES])
 def test_the_commands_parse(page: Path, monkeypatch):
     monkeypatch.setattr(argparse.ArgumentParser, "parse_args", _parse_only)
-    checked = 0
     for b in BLOCKS[page]:
         if b.lang not in SHELL:
             continue
         for argv in commands(b.code):
             if argv[0] == "python" and len(argv) > 1 and argv[1].endswith(".py"):
                 assert (ROOT / argv[1]).is_file(), f"{b.name}: {argv[1]} is not a file of the checkout"
-                checked += 1
                 continue
             if argv[0] in ("neurogf-warp", "torchrun") or (
                     argv[:2] == ["python", "-m"] and argv[2].startswith("neurogf_warp.")):
                 check_parses(argv, b.name)
-                checked += 1
-    assert checked or page.name == "README.md" or not any(b.lang in SHELL for b in BLOCKS[page])
 
 
 def test_the_examples_are_found():
