@@ -173,7 +173,7 @@ def commands(code: str) -> list[list[str]]:
     return out
 
 
-class _Parsed(Exception):
+class _Parsed(BaseException):  # not an Exception: a command's own "except Exception" must not catch it
     pass
 
 
