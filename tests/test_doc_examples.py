@@ -1,12 +1,15 @@
 """Every code example of the README and the docs runs as written.
 
-Fenced ```python blocks run in order, one shared namespace per markdown file, with the working directory a
-temporary folder that has the shared test data beside it as ``../shared`` (so the text's ``../shared/...`` paths
-resolve as they do from a checkout). ```bash blocks: every ``neurogf-warp``, ``python -m neurogf_warp...`` and
-``torchrun ... -m neurogf_warp...`` command must parse with its command's own parser, and every
-``python some/script.py`` must name a file of the checkout; a bash block preceded by ``<!-- run -->`` is run,
-in-process, and every command in it must exit with 0. A block preceded by ``<!-- no-run: REASON -->`` (needs a
-GPU, a long training run) is reported as skipped with that reason.
+Fenced ```python blocks run in order, one shared namespace per markdown file. The working directory is a
+temporary stand-in for the checkout's root (links to the checkout's files, the shared test data beside it as
+``../shared``), so the text's paths resolve as they do from a checkout, and what a block writes stays out of it.
+
+```bash blocks: every ``neurogf-warp``, ``python -m neurogf_warp...`` and ``torchrun ... -m neurogf_warp...``
+command must parse with its command's own parser, and every ``python some/script.py`` must name a file of the
+checkout. A bash block preceded by ``<!-- run -->`` is run, in-process, and each of its commands must exit with 0.
+
+A block preceded by ``<!-- no-run: REASON -->`` (needs a GPU, a long training run) is reported as skipped with
+that reason.
 """
 from __future__ import annotations
 
@@ -90,6 +93,10 @@ class PageRun:
         self.cwd = root / "checkout"
         self.cwd.mkdir(parents=True)
         (root / "shared").symlink_to(SHARED, target_is_directory=True)
+        # the checkout's own files (examples/, docs/, ...) as seen from its root; what a block writes stays here
+        for entry in ROOT.iterdir():
+            if not entry.name.startswith(".") and not entry.name.endswith(".egg-info"):
+                (self.cwd / entry.name).symlink_to(entry, target_is_directory=entry.is_dir())
         self.sources = root / "blocks"
         self.sources.mkdir()
         self.ns = {"__name__": "doc_example_" + re.sub(r"\W", "_", str(page.relative_to(ROOT)).removesuffix(".md"))}
