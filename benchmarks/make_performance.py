@@ -121,7 +121,7 @@ def header(provs: list, files: list) -> list:
     recorded = list(dict.fromkeys(p["recorded_in_commit"] for p in provs if p.get("recorded_in_commit")))
     if commits:
         commit = ", ".join(f"`{c}`" for c in commits)
-        if len(commits) < len(provs):
+        if any(not p.get("commit") for p in provs):
             commit += " (not recorded for some runs)"
     else:
         commit = "not recorded"
