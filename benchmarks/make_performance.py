@@ -133,7 +133,7 @@ def header(provs: list, files: list) -> list:
              f"- CUDA driver {_distinct(provs, 'driver')}; Warp {_distinct(provs, 'warp')}; "
              f"torch {_distinct(provs, 'torch')}",
              f"- date: {date}; commit: {commit}",
-             "- data: " + ", ".join(f"[`{f}`](../benchmarks/results/{f})" for f in files)]
+             "- data: " + ", ".join(f"`benchmarks/results/{f}`" for f in files)]
     if any(p.get("reconstructed_from_history") for p in provs):
         lines.append("- provenance recorded after the run, from the repository's history; "
                      "what it does not say is marked not recorded")
@@ -468,7 +468,8 @@ def build(results: Path = RESULTS_DIR, plots: list | None = None) -> str:
         provs = [r.get("provenance", {}) for r in runs]
         dev = ", ".join(dict.fromkeys(p.get("device_name") or p.get("device") or "?" for p in provs))
         heading = f"{title} — {dev}"
-        anchor = re.sub(r"[^a-z0-9 -]", "", heading.lower()).replace(" ", "-")
+        # the anchor the docs builder (Markdown's toc) gives the heading: runs of hyphens collapse to one
+        anchor = re.sub(r"[-\s]+", "-", re.sub(r"[^\w\s-]", "", heading).strip().lower())
         toc.append(f"- [{heading}](#{anchor})")
         body += [f"## {heading}", ""] + header(provs, [fname]) + [""] + fn(runs) + [""]
         if name in PLOTTERS and len({r["budget_s"] for run in runs for r in run.get("rows", [])}) > 1:
