@@ -6,20 +6,19 @@ import pytest
 import torch
 
 import neurogf_warp as ngf
-from tests.conftest import shared_path
 
-pytestmark = pytest.mark.slow  # the released D=256 fandisk on the CPU, gradient kernels compiled once
-
-
-@pytest.fixture(scope="module")
-def fandisk():
-    return ngf.load(str(shared_path("checkpoints", "official", "NeuroGF_Pretrainer__fandisk_final.pth")),
-                    mesh=str(shared_path("meshes", "fandisk.obj")))
+pytestmark = pytest.mark.slow  # uses the trained fixture; the gradient kernels compile once
 
 
 @pytest.fixture(scope="module")
-def net64(fandisk):
-    return copy.deepcopy(fandisk.net).double().eval()
+def model(trained):
+    """The test suite's trained model (the default network layout: Fourier inputs and the |p - q| term)."""
+    return trained[0]
+
+
+@pytest.fixture(scope="module")
+def net64(model):
+    return copy.deepcopy(model.net).double().eval()
 
 
 def _surface_points(model, n, seed):
@@ -37,65 +36,65 @@ def _ref_distance(model, net64, p, q):
     return torch.maximum(d, torch.linalg.vector_norm(p - q, dim=-1))
 
 
-def test_distance_gradients_match_float64_autograd(fandisk, net64):
+def test_distance_gradients_match_float64_autograd(model, net64):
     rng = np.random.default_rng(7)
-    pts = _surface_points(fandisk, 64, int(rng.integers(1 << 30)))
+    pts = _surface_points(model, 64, int(rng.integers(1 << 30)))
     p = torch.tensor(pts[:32], dtype=torch.float32, requires_grad=True)
     q = torch.tensor(pts[32:], dtype=torch.float32, requires_grad=True)
     w = torch.rand(32, dtype=torch.float32)
-    d = ngf.distance(fandisk, p, q, device="cpu")
+    d = ngf.distance(model, p, q, device="cpu")
     assert d.requires_grad
-    np.testing.assert_array_equal(d.detach().numpy(), ngf.distance(fandisk, p.detach(), q.detach(), device="cpu")
+    np.testing.assert_array_equal(d.detach().numpy(), ngf.distance(model, p.detach(), q.detach(), device="cpu")
                                   .numpy())  # forward values are the plain query's, bit for bit
     (d * w).sum().backward()
     p64 = p.detach().double().requires_grad_(True)
     q64 = q.detach().double().requires_grad_(True)
-    (_ref_distance(fandisk, net64, p64, q64) * w.double()).sum().backward()
+    (_ref_distance(model, net64, p64, q64) * w.double()).sum().backward()
     for got, want in ((p.grad, p64.grad), (q.grad, q64.grad)):
         err = torch.linalg.vector_norm(got.double() - want) / torch.linalg.vector_norm(want)
         assert err < 1e-4, float(err)
 
 
-def test_sdf_gradient_matches_float64_autograd(fandisk, net64):
+def test_sdf_gradient_matches_float64_autograd(model, net64):
     rng = np.random.default_rng(8)
-    x0 = _surface_points(fandisk, 40, int(rng.integers(1 << 30))) + rng.normal(0, 0.05, (40, 3))
+    x0 = _surface_points(model, 40, int(rng.integers(1 << 30))) + rng.normal(0, 0.05, (40, 3))
     x = torch.tensor(x0, dtype=torch.float32, requires_grad=True)
-    ngf.sdf(fandisk, x, device="cpu").sum().backward()
+    ngf.sdf(model, x, device="cpu").sum().backward()
     x64 = torch.tensor(x0, dtype=torch.float64, requires_grad=True)
-    c = torch.as_tensor(fandisk.center)
-    (net64.sdf((x64 - c) * fandisk.scale) / fandisk.scale).sum().backward()
+    c = torch.as_tensor(model.center)
+    (net64.sdf((x64 - c) * model.scale) / model.scale).sum().backward()
     err = torch.linalg.vector_norm(x.grad.double() - x64.grad) / torch.linalg.vector_norm(x64.grad)
     assert err < 1e-4, float(err)
 
 
-def test_ssad_and_msad_gradients_flow_to_their_sources(fandisk, net64):
+def test_ssad_and_msad_gradients_flow_to_their_sources(model, net64):
     rng = np.random.default_rng(9)
-    src = _surface_points(fandisk, 2, int(rng.integers(1 << 30)))
-    V = torch.tensor(fandisk.mesh.vertices[:200], dtype=torch.float64)
-    targets = fandisk.mesh.index[:200]  # file indices of the first internal vertices
-    w = torch.zeros(fandisk.mesh.n_input)
+    src = _surface_points(model, 2, int(rng.integers(1 << 30)))
+    V = torch.tensor(model.mesh.vertices[:200], dtype=torch.float64)
+    targets = model.mesh.index[:200]  # file indices of the first internal vertices
+    w = torch.zeros(model.mesh.n_input)
     w[targets] = torch.rand(200, dtype=torch.float32)
 
     s = torch.tensor(src[0], dtype=torch.float32, requires_grad=True)
-    (ngf.ssad(fandisk, s, device="cpu").nan_to_num(0) * w).sum().backward()
+    (ngf.ssad(model, s, device="cpu").nan_to_num(0) * w).sum().backward()
     s64 = torch.tensor(src[0], dtype=torch.float64, requires_grad=True)
-    ref = _ref_distance(fandisk, net64, s64.expand(200, 3), V)
+    ref = _ref_distance(model, net64, s64.expand(200, 3), V)
     (ref * w[targets].double()).sum().backward()
     assert torch.linalg.vector_norm(s.grad.double() - s64.grad) / torch.linalg.vector_norm(s64.grad) < 1e-4
 
     S = torch.tensor(src, dtype=torch.float32, requires_grad=True)
-    m = ngf.msad(fandisk, S, device="cpu")
+    m = ngf.msad(model, S, device="cpu")
     (m.nan_to_num(0) * w).sum().backward()
     S64 = torch.tensor(src, dtype=torch.float64, requires_grad=True)
-    both = torch.stack([_ref_distance(fandisk, net64, S64[i].expand(200, 3), V) for i in range(2)])
+    both = torch.stack([_ref_distance(model, net64, S64[i].expand(200, 3), V) for i in range(2)])
     (both.min(0).values * w[targets].double()).sum().backward()
     assert torch.linalg.vector_norm(S.grad.double() - S64.grad) / torch.linalg.vector_norm(S64.grad) < 1e-4
 
 
-def test_no_gradient_means_the_plain_query(fandisk):
-    p = torch.tensor(fandisk.mesh.vertices[:3], dtype=torch.float32)
-    d = ngf.distance(fandisk, p, p.flip(0), device="cpu")
+def test_no_gradient_means_the_plain_query(model):
+    p = torch.tensor(model.mesh.vertices[:3], dtype=torch.float32)
+    d = ngf.distance(model, p, p.flip(0), device="cpu")
     assert not d.requires_grad
     with torch.no_grad():
         pg = p.clone().requires_grad_(True)
-        assert not ngf.distance(fandisk, pg, p.flip(0), device="cpu").requires_grad
+        assert not ngf.distance(model, pg, p.flip(0), device="cpu").requires_grad
