@@ -385,6 +385,11 @@ def _load_model(args, needs_mesh: bool):
         MeshMismatchWarning,
     )
 
+    from neurogf_warp.generalizable.hooks import load_if_generalizable
+
+    gen = load_if_generalizable(args.model, args.mesh)  # conditioned on --mesh when given
+    if gen is not None:
+        return gen
     allow = getattr(args, "allow_mesh_mismatch", False)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", MeshMismatchWarning)
@@ -759,6 +764,9 @@ def _cmd_info(args) -> int:
     import json
 
     model = _load_model(args, needs_mesh=False)
+    if not hasattr(model, "D"):  # a generalizable network (neurogf_warp.generalizable)
+        from neurogf_warp.generalizable.hooks import cli_info
+        return cli_info(args, model, _stdout_write)
     info = model_summary(model)
     if args.json:
         _stdout_write(json.dumps(info, indent=1) + "\n")
@@ -865,12 +873,16 @@ def _quiet_stdout_exit():
 
 def main(argv=None) -> int:
     """Run ``neurogf-warp`` with ``argv`` (default: sys.argv[1:]); returns the exit code."""
+    from neurogf_warp.common.clock import process_clock
+
+    clock = process_clock(argv is None)  # the process's own command: --budget-seconds counts from its start
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0].startswith("gen-"):  # generalizable NeuroGF: gen-train, gen-shapes, gen-per-mesh
         from neurogf_warp.generalizable.hooks import CLI_COMMANDS
 
         if argv[0] in CLI_COMMANDS:
-            return CLI_COMMANDS[argv[0]](argv[1:])
+            with clock:
+                return CLI_COMMANDS[argv[0]](argv[1:])
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
@@ -878,7 +890,7 @@ def main(argv=None) -> int:
         return 2
     debug = args.verbose or os.environ.get("NEUROGF_DEBUG", "") not in ("", "0")
     try:
-        with _one_line_warnings(args):
+        with _one_line_warnings(args), clock:
             start_warp(args.verbose)
             return args.run(args)
     except _StdoutClosed:
