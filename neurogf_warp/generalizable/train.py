@@ -504,8 +504,8 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
     def progress(step, elapsed):
         """Fraction of the run done: by steps, or by time when a budget is set and runs out first."""
         p = step / cfg.steps
-        if deadline is not None:
-            p = max(p, elapsed / max(train_span, 1e-9))
+        if deadline is not None:  # where the step ends: the last one that fits then runs at the low rate
+            p = max(p, (elapsed + plan.step_time()) / max(train_span, 1e-9))
         return min(p, 1.0)
 
     def lr_at(p):
