@@ -82,7 +82,7 @@ def test_degenerate_clouds_are_refused_whatever_their_count(model, case):
         t = np.linspace(-1.0, 1.0, 500)[:, None]
         pts, why = np.array([3.0, 1.0, -2.0]) + t * np.array([1.0, 2.0, 0.5]), "on a line"
     else:
-        pts, why = np.ones((100, 3)), "only 1 distinct"
+        pts, why = np.ones((100, 3)), "coincide"
     with pytest.raises(InputError, match=why):
         model.condition(pts)
 

@@ -97,6 +97,8 @@ def check_cloud_size(n: int, kk: int, limit: int, what: str = "the point cloud")
 def cloud_spread_refusal(n_distinct: int, singular: np.ndarray, kk: int, what: str = "the point cloud") -> str | None:
     """Why a cloud cannot condition the network (None: it can): fewer than ``kk`` distinct points (repeating points
     adds none), or points on one line (``singular``: the centred cloud's singular values, largest first)."""
+    if n_distinct <= 1:
+        return f"all points of {what} coincide: a shape needs at least {kk} distinct points spread over a surface"
     if n_distinct < kk:
         return (f"{what} has only {n_distinct} distinct points; conditioning needs at least {kk} (the neighbour "
                 f"count), ideally ~2,048 spread over the surface as in training (repeated points do not count)")

@@ -307,17 +307,17 @@ def write_collection(folder, n: int = 600, seed: int = 0, test_every: int = 10, 
     man = json.loads(man_path.read_text()) if man_path.exists() else {"seed": seed, "test_every": test_every,
                                                                        "split": SPLIT_RULE, "shapes": {},
                                                                        "deformed_family": deform}
-    if man.get("deformed_family", deform) != deform:
-        raise ValueError(f"{folder} holds a collection made {'with' if not deform else 'without'} the deformed "
-                         f"family's source meshes; continue it "
-                         f"{'with the same shared_meshes folder' if not deform else 'without shared_meshes'}, "
-                         f"or use another folder")
     if man.get("split") != SPLIT_RULE:
         raise ValueError(f"{folder} holds a collection split by an older rule ({man.get('split', 'i % test_every')});"
                          f" use another folder")
     if man["seed"] != seed or man["test_every"] != test_every:
         raise ValueError(f"{folder} holds a collection with seed {man['seed']} / test_every {man['test_every']}; "
                          f"use another folder or the same settings")
+    if man.get("deformed_family", deform) != deform:
+        raise ValueError(f"{folder} holds a collection made {'with' if not deform else 'without'} the deformed "
+                         f"family's source meshes; continue it "
+                         f"{'with the same shared_meshes folder' if not deform else 'without shared_meshes'}, "
+                         f"or use another folder")
     if progress and not deform_sources_present(shared_meshes) and any(
             FAMILIES[i % len(FAMILIES)] == "deformed" for i in range(start, n)):
         where = f"the shared meshes folder ({shared_meshes})" if shared_meshes else "a folder given as shared_meshes"
