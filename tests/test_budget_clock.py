@@ -28,10 +28,12 @@ def test_budget_start_counts_from_the_process_only_inside_the_command_line_clock
     now = time.perf_counter()
     assert clock.budget_start(now) == now
     with clock.process_clock() as start:
-        assert start is not None and clock.budget_start(now) == start - clock.EXIT_RESERVE_S
+        want = start - clock.exit_reserve(now - start)
+        assert start is not None and clock.budget_start(now) == want
         with clock.process_clock(False):  # nested, inactive: the outer clock still counts
-            assert clock.budget_start(now) == start - clock.EXIT_RESERVE_S
+            assert clock.budget_start(now) == want
     assert clock.budget_start(now) == now
+    assert clock.exit_reserve(0.1) == clock.EXIT_RESERVE_S and clock.exit_reserve(10.0) == 10.0 * clock.EXIT_SHARE
 
 
 def test_cli_entry_counts_from_the_process_start_and_main_with_argv_from_the_call(monkeypatch):
@@ -52,7 +54,7 @@ def test_cli_entry_counts_from_the_process_start_and_main_with_argv_from_the_cal
     assert cli.main() == 0
     assert cli.main(["gen-train"]) == 0
     (now1, start1), (now2, start2) = seen
-    assert start1 <= clock.process_start() - clock.EXIT_RESERVE_S + 0.02 and start1 < now1
+    assert start1 <= clock.process_start() - clock.EXIT_RESERVE_S + 0.02 and start1 < now1 - 1.0
     assert start2 == now2
 
 

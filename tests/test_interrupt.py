@@ -126,3 +126,56 @@ def test_sigint_stops_a_long_cpu_query_between_chunks(fandisk, monkeypatch, ctrl
     t.join(5)
     assert third.is_set()
     assert 3 <= len(calls) <= 12, f"{len(calls)} of {total} chunks ran after the interrupt was sent at chunk 3"
+
+
+# ---- generalizable conditioning (N^2 neighbour searches) -----------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def gen_model():
+    from neurogf_warp.generalizable.model import load
+
+    return load(shared_path("checkpoints", "official", "GenNeuroGF.pth"))
+
+
+def _cloud(n, seed=5):
+    g = np.random.default_rng(seed).standard_normal((n, 3))
+    return g / np.linalg.norm(g, axis=1, keepdims=True) * np.array([1.5, 1.0, 0.6])
+
+
+def test_conditioning_in_chunks_gives_the_same_bits(gen_model, monkeypatch):
+    pts = _cloud(500)
+    _fixed_chunks(monkeypatch, 1 << 22)
+    one = gen_model.condition(pts)
+    _fixed_chunks(monkeypatch, 48)  # rows 0..47, 48..95, ...: not a divisor of 500
+    many = gen_model.condition(pts)
+    for a, b in ((one.enc.feats, many.enc.feats), (one.enc.fused, many.enc.fused)):
+        assert (a.numpy() == b.numpy()).all()
+    for a, b in zip(one.enc.neighbours, many.enc.neighbours):
+        assert (a.numpy() == b.numpy()).all()
+    np.testing.assert_array_equal(one.ssad(3), many.ssad(3))
+
+
+def test_sigint_stops_conditioning_between_chunks(gen_model, monkeypatch, ctrl_c_raises):
+    """Every row-wise launch of the CPU encoder runs in chunks; a SIGINT during the third chunk ends it there."""
+    _fixed_chunks(monkeypatch, 32)
+    pts = _cloud(1024)
+    inner = backends.in_chunks
+    runs = []
+    third = threading.Event()
+
+    def counting(device, n, run, *a, **k):
+        def counted(lo, hi):
+            runs.append((lo, hi))
+            if len(runs) == 3:
+                third.set()
+            return run(lo, hi)
+        return inner(device, n, counted, *a, **k)
+
+    monkeypatch.setattr(backends, "in_chunks", counting)
+    total = 13 * (1024 // 32)  # 13 row-wise launches of 32 chunks each (linear layers, kNN, edge layers)
+    t = threading.Thread(target=lambda: third.wait(120) and _thread.interrupt_main(), daemon=True)
+    t.start()
+    with pytest.raises(KeyboardInterrupt):
+        gen_model.condition(pts)
+    t.join(5)
+    assert third.is_set() and 3 <= len(runs) <= 12, f"{len(runs)} of {total}+ chunks ran after the interrupt"

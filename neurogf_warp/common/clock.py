@@ -11,9 +11,13 @@ import contextlib
 import os
 import time
 
-__all__ = ["process_start", "process_clock", "budget_start", "EXIT_RESERVE_S"]
+__all__ = ["process_start", "process_clock", "budget_start", "exit_reserve", "EXIT_RESERVE_S", "EXIT_SHARE"]
 
-EXIT_RESERVE_S = 0.5  # a command-line budget ends this much before its time: the process still prints and exits
+# A command-line budget ends before its time by what the process still needs to print and exit: at least
+# EXIT_RESERVE_S, and EXIT_SHARE of its start-up time (the interpreter's teardown of torch and Warp follows their
+# import: on a loaded 2-core machine `import torch` took 11.1 s and its exit 3.6 s, Warp's 4.4 s and 1.2 s).
+EXIT_RESERVE_S = 0.5
+EXIT_SHARE = 0.4
 _STARTED: list = []  # perf_counter values of the process start while a command-line run is going on
 
 
@@ -54,6 +58,11 @@ def process_clock(active: bool = True):
 
 def budget_start(now: float) -> float:
     """Where the clock of a budgeted call that begins at ``now`` starts: ``now``, or inside :func:`process_clock`
-    the process start, less ``EXIT_RESERVE_S`` for the exit after the call."""
+    the process start, less :func:`exit_reserve` for the exit after the call."""
     start = next((s for s in reversed(_STARTED) if s is not None), None)
-    return now if start is None else min(now, start - EXIT_RESERVE_S)
+    return now if start is None else min(now, start - exit_reserve(now - start))
+
+
+def exit_reserve(startup_s: float) -> float:
+    """Seconds kept for a process's exit after a start-up (imports) of ``startup_s`` seconds."""
+    return max(EXIT_RESERVE_S, EXIT_SHARE * max(startup_s, 0.0))
