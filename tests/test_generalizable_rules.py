@@ -162,9 +162,15 @@ def test_cli_info_and_queries_of_the_generalizable_network(small_mesh, tmp_path,
     np.testing.assert_array_equal(np.load(out_file), want)
     # no path head: refused with exit 2 and the reason, not an internal error
     capsys.readouterr()
-    assert main(["path", path, "--mesh", str(small_mesh), "--p", "0", "0", "0", "--q", "0.1", "0", "0"]) == 2
-    err = capsys.readouterr().err
-    assert "no SDF or path head" in err and "internal error" not in err
+    for argv in (["path", path, "--mesh", str(small_mesh), "--p", "0", "0", "0", "--q", "0.1", "0", "0"],
+                 ["render", path, "--mesh", str(small_mesh), "-o", str(tmp_path / "r.png")],
+                 ["eval", path, "--mesh", str(small_mesh)]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert f"{argv[0]} needs a per-mesh model" in err and "internal error" not in err
+    # a query without --mesh: how to give the shape
+    assert main(["ssad", path, "--source", "0"]) == 2
+    assert "pass --mesh MESHFILE" in capsys.readouterr().err
 
 
 # ---- the collection ------------------------------------------------------------------------------------------------
