@@ -30,10 +30,31 @@ def test_budget_start_counts_from_the_process_only_inside_the_command_line_clock
     with clock.process_clock() as start:
         want = start - clock.exit_reserve(now - start)
         assert start is not None and clock.budget_start(now) == want
-        with clock.process_clock(False):  # nested, inactive: the outer clock still counts
-            assert clock.budget_start(now) == want
+        with clock.process_clock(False):  # nested, inactive: from each call again (a budget per mesh of a folder)
+            assert clock.budget_start(now) == now
+        assert clock.budget_start(now) == want
     assert clock.budget_start(now) == now
     assert clock.exit_reserve(0.1) == clock.EXIT_RESERVE_S and clock.exit_reserve(10.0) == 10.0 * clock.EXIT_SHARE
+
+
+def test_per_mesh_folder_budgets_count_from_each_call(tmp_path, monkeypatch):
+    """gen-per-mesh's budget is per mesh: under the command line's clock each ngf.train still counts from its call."""
+    import neurogf_warp as ngf
+    from neurogf_warp.generalizable.per_mesh import train_folder
+
+    for i in range(2):
+        trimesh.creation.icosphere(subdivisions=1).export(tmp_path / f"m{i}.obj")
+    starts = []
+
+    def fake_train(mesh, out, **kw):
+        now = time.perf_counter()
+        starts.append(clock.budget_start(now) == now)
+        open(out, "w").close()
+
+    monkeypatch.setattr(ngf, "train", fake_train, raising=False)
+    with clock.process_clock():
+        s = train_folder(tmp_path, tmp_path / "out", budget_seconds=5, device="cpu", log=lambda s: None)
+    assert s["failed"] == 0 and starts == [True, True]
 
 
 def test_cli_entry_counts_from_the_process_start_and_main_with_argv_from_the_call(monkeypatch):

@@ -18,7 +18,7 @@ __all__ = ["process_start", "process_clock", "budget_start", "exit_reserve", "EX
 # import: on a loaded 2-core machine `import torch` took 11.1 s and its exit 3.6 s, Warp's 4.4 s and 1.2 s).
 EXIT_RESERVE_S = 0.5
 EXIT_SHARE = 0.4
-_STARTED: list = []  # perf_counter values of the process start while a command-line run is going on
+_STARTED: list = []  # innermost last: the process start (a perf_counter value), or None for "from the call"
 
 
 def _started_ago(pid) -> float | None:
@@ -47,7 +47,8 @@ def process_start(launcher: bool = True) -> float | None:
 
 @contextlib.contextmanager
 def process_clock(active: bool = True):
-    """Inside: budgets count from the process start (see the module docstring); ``active`` False: no change."""
+    """Inside: budgets count from the process start (see the module docstring); ``active`` False: from each
+    call again (e.g. a budget per mesh of a folder), until the block ends. The innermost block decides."""
     start = process_start() if active else None
     _STARTED.append(start)
     try:
@@ -59,7 +60,7 @@ def process_clock(active: bool = True):
 def budget_start(now: float) -> float:
     """Where the clock of a budgeted call that begins at ``now`` starts: ``now``, or inside :func:`process_clock`
     the process start, less :func:`exit_reserve` for the exit after the call."""
-    start = next((s for s in reversed(_STARTED) if s is not None), None)
+    start = _STARTED[-1] if _STARTED else None
     return now if start is None else min(now, start - exit_reserve(now - start))
 
 

@@ -617,9 +617,12 @@ def _flag(text: str) -> bool:
 
 
 def main(argv=None):
+    import contextlib
+
     from neurogf_warp.common.clock import process_clock
 
-    with process_clock(argv is None):  # run as a program: the budget counts from the process start
+    # run as a program: the budget counts from the process start (through neurogf-warp gen-train: already so)
+    with process_clock() if argv is None else contextlib.nullcontext():
         return _main(argv)
 
 
