@@ -74,7 +74,8 @@ def test_chunked_answers_are_the_single_launch_bits(fandisk, monkeypatch, precis
 
     def run():
         return (ngf.sdf(fandisk, p, **kw), ngf.distance(fandisk, p, q, **kw), ngf.msad(fandisk, srcs, **kw),
-                ngf.distance_matrix(fandisk, srcs, **kw))
+                ngf.distance_matrix(fandisk, srcs, **kw), ngf.ssad(fandisk, 9, cache=False, **kw),
+                ngf.embed(fandisk, p, device="cpu").numpy())
 
     _fixed_chunks(monkeypatch, 1 << 22)
     one = run()

@@ -232,9 +232,9 @@ class PerThread(_Backend):
         """Embeddings e(x) of (N,) vec3 points (in ``frame``, default ``state.frame``): (N, D) float32."""
         st = self.state
         out = wp.empty((pts.shape[0], st.shape.D), dtype=wp.float32, device=self.device)
-        if pts.shape[0]:
-            wp.launch(mlp.embed_points, pts.shape[0], inputs=[st.weights, pts, frame or st.frame], outputs=[out],
-                      device=self.device)
+        in_chunks(self.device, pts.shape[0], lambda lo, hi: wp.launch(
+            mlp.embed_points, hi - lo, inputs=[st.weights, pts[lo:hi], frame or st.frame], outputs=[out[lo:hi]],
+            device=self.device))
         return out
 
     def _embed_vertices(self, md: MeshOnDevice):
@@ -246,9 +246,10 @@ class PerThread(_Backend):
         S, V = src_pos.shape[0], md.V
         es = self.embed(src_pos)
         head = wp.empty((S, V), dtype=wp.float32, device=dev)
-        if bound is None or st.shape.D > head_fp32.MAX_D:
-            wp.launch(head_fp32.head_rows, (S, V), outputs=[head], device=dev,
-                      inputs=[st.head_weights, es, src_pos, md.verts, st.frame])
+        if bound is None or st.shape.D > head_fp32.MAX_D:  # every (source, vertex) its own: chunks of vertices
+            in_chunks(dev, V, lambda lo, hi: wp.launch(
+                head_fp32.head_rows, (S, hi - lo), outputs=[head[:, lo:hi]], device=dev,
+                inputs=[st.head_weights, es, src_pos, md.verts[lo:hi], st.frame]), first=max(1, 2048 // max(S, 1)))
             return head
         if st.tile_head is None:  # the tile kernel takes biases as (H, 1) columns
             w = st.weights
@@ -265,10 +266,15 @@ class PerThread(_Backend):
 
     def _finish(self, head, rows, row_comp, src, src_comp, out, raw: bool):
         st = self.state
-        wp.launch(finish.finish_rows, head.shape, inputs=[head, rows, row_comp if row_comp is not None else st.no_ints,
-                                                          src, src_comp if src_comp is not None else st.no_ints,
-                                                          st.frame, 1.0 if st.options["euclid"] else 0.0, int(raw)],
-                  outputs=[out], device=self.device)
+
+        def run(lo, hi):  # columns lo..hi (rows of the result: targets)
+            wp.launch(finish.finish_rows, (head.shape[0], hi - lo),
+                      inputs=[head[:, lo:hi], rows[lo:hi], row_comp[lo:hi] if row_comp is not None else st.no_ints,
+                              src, src_comp if src_comp is not None else st.no_ints, st.frame,
+                              1.0 if st.options["euclid"] else 0.0, int(raw)],
+                      outputs=[out[:, lo:hi]], device=self.device)
+
+        in_chunks(self.device, head.shape[1], run, first=1 << 16)
 
     def vertex_distances(self, md: MeshOnDevice, pts: np.ndarray, ids, comp, out: wp.array, reduce_min: bool,
                          raw: bool):
