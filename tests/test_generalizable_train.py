@@ -2,6 +2,7 @@
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -84,21 +85,22 @@ def test_two_gloo_ranks_train_write_and_resume(collection, tmp_path, gt_cache):
 
 
 def test_two_gloo_ranks_stop_together_at_a_budget(collection, tmp_path, gt_cache):
-    """Rank 0's clock ends a budgeted run; it is shared every SYNC_EVERY steps, so both ranks stop at one of
-    those steps (a rank stopping alone would leave the other in a collective until the timeout)."""
-    from neurogf_warp.generalizable.train import SYNC_EVERY
-
+    """Rank 0's clock ends a budgeted run, counted from torchrun's start: both ranks stop at the same step (a
+    rank stopping alone would leave the other in a collective until the timeout) within the budget."""
     out = tmp_path / "budget.pt"
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
            str(29000 + os.getpid() % 400), "-m", "neurogf_warp.generalizable.train", str(collection), "-o",
-           str(out), "--device", "cpu", "--steps", "1000000", "--budget-seconds", "2", "--cache", str(gt_cache),
+           str(out), "--device", "cpu", "--steps", "1000000", "--budget-seconds", "25", "--cache", str(gt_cache),
            *_cli_args(TINY)]
+    t0 = time.perf_counter()
     r = subprocess.run(cmd, check=False, env=env, capture_output=True, text=True, timeout=120)
+    wall = time.perf_counter() - t0
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     ck = torch.load(out, map_location="cpu", weights_only=True)
-    assert 0 < ck["step"] < 1000000 and ck["step"] % SYNC_EVERY == 0 and ck["world_size"] == 2
-    assert ck["elapsed_s"] < 2 + 1.5
+    assert 0 < ck["step"] < 1000000 and ck["world_size"] == 2
+    assert ck["elapsed_s"] + ck["gt_seconds"] < 25
+    assert wall < 25 + 15  # generous: torchrun's own exit after the deadline
 
 
 def test_bad_folder(tmp_path, capsys):
@@ -157,10 +159,10 @@ def test_interrupt_writes_checkpoint_and_resumes(collection, tmp_path, gt_cache)
 
 def test_budget_ends_the_cosine_at_the_low_lr(collection, tmp_path, gt_cache):
     """With a time budget shorter than the steps need, the schedule follows the clock: the last steps run near
-    lr_min (before, a budgeted run stopped at whatever lr its step count had reached, here the full 1e-2). 8 s: in
-    3 s a loaded 2-core machine logged only 2 steps."""
+    lr_min (before, a budgeted run stopped at whatever lr its step count had reached, here the full 1e-2). 25 s for
+    the whole call (set-up included): in 3 s of steps a loaded 2-core machine logged only 2 steps."""
     lines = []
-    cfg = GenTrainConfig(steps=10**6, budget_seconds=8.0, **dict(TINY, log_every=1, val_every=0))
+    cfg = GenTrainConfig(steps=10**6, budget_seconds=25.0, **dict(TINY, log_every=1, val_every=0))
     ck = train_generalizable(collection, tmp_path / "m.pt", cfg, device="cpu", log=lines.append, cache=gt_cache)
     lrs = [float(s.split("lr ")[1].split()[0]) for s in lines if s.startswith("step ") and " lr " in s]
     assert ck["step"] < cfg.steps and len(lrs) >= 3

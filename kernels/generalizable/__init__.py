@@ -43,17 +43,16 @@ def _build(mode: str) -> SimpleNamespace:
     VF = wp.types.vector(length=FUSE_WIDTH, dtype=A)
     INF = float("inf")
 
-    @wp.kernel(**opts)
-    def knn_partial(f: wp.array2d(dtype=T), c_off: int, nc: int, n_per: int, kk: int,
-                    pd: wp.array3d(dtype=A), pi: wp.array3d(dtype=wp.int32)):
-        """Thread (i, g): the kk nearest of point i among candidates [g n_per, (g+1) n_per), sorted by
-        (distance, index), in the feature space of columns [c_off, c_off + nc) of f. pd/pi (N, G, kk) hold the
-        sorted list (inf / -1 where the chunk has fewer)."""
-        i, g = wp.tid()
+    @wp.func
+    def knn_scan(f: wp.array2d(dtype=T), i: int, r: int, g: int, c_off: int, nc: int, n_per: int, kk: int,
+                 pd: wp.array3d(dtype=A), pi: wp.array3d(dtype=wp.int32)):
+        """The kk nearest of point i among candidates [g n_per, (g+1) n_per), sorted by (distance, index), in the
+        feature space of columns [c_off, c_off + nc) of f, into row r of pd/pi (inf / -1 where the chunk has
+        fewer)."""
         n = f.shape[0]
         for m in range(kk):
-            pd[i, g, m] = A(INF)
-            pi[i, g, m] = -1
+            pd[r, g, m] = A(INF)
+            pi[r, g, m] = -1
         j0 = g * n_per
         j1 = wp.min(j0 + n_per, n)
         cnt = int(0)
@@ -66,15 +65,32 @@ def _build(mode: str) -> SimpleNamespace:
             # strict comparisons: among equal distances the earlier (smaller) index stays first
             if cnt < kk or d < worst:
                 m = wp.min(cnt, kk - 1)
-                while m > 0 and pd[i, g, m - 1] > d:
-                    pd[i, g, m] = pd[i, g, m - 1]
-                    pi[i, g, m] = pi[i, g, m - 1]
+                while m > 0 and pd[r, g, m - 1] > d:
+                    pd[r, g, m] = pd[r, g, m - 1]
+                    pi[r, g, m] = pi[r, g, m - 1]
                     m -= 1
-                pd[i, g, m] = d
-                pi[i, g, m] = j
+                pd[r, g, m] = d
+                pi[r, g, m] = j
                 cnt = wp.min(cnt + 1, kk)
                 if cnt == kk:
-                    worst = pd[i, g, kk - 1]
+                    worst = pd[r, g, kk - 1]
+
+    @wp.kernel(**opts)
+    def knn_partial(f: wp.array2d(dtype=T), c_off: int, nc: int, n_per: int, kk: int,
+                    pd: wp.array3d(dtype=A), pi: wp.array3d(dtype=wp.int32)):
+        """Thread (i, g): the kk nearest of point i among candidates [g n_per, (g+1) n_per), sorted by
+        (distance, index), in the feature space of columns [c_off, c_off + nc) of f. pd/pi (N, G, kk) hold the
+        sorted list (inf / -1 where the chunk has fewer)."""
+        i, g = wp.tid()
+        knn_scan(f, i, i, g, c_off, nc, n_per, kk, pd, pi)
+
+    @wp.kernel(**opts)
+    def knn_rows(f: wp.array2d(dtype=T), i0: int, c_off: int, nc: int, n_per: int, kk: int,
+                 pd: wp.array3d(dtype=A), pi: wp.array3d(dtype=wp.int32)):
+        """knn_partial of the points i0, i0 + 1, ... only (a chunk of rows, Ctrl-C between chunks on the CPU):
+        thread (r, g) writes row r of pd/pi (views of the chunk's rows)."""
+        r, g = wp.tid()
+        knn_scan(f, r + i0, r, g, c_off, nc, n_per, kk, pd, pi)
 
     @wp.kernel(**opts)
     def knn_merge(pd: wp.array3d(dtype=A), pi: wp.array3d(dtype=wp.int32), nbr: wp.array2d(dtype=wp.int32)):
@@ -350,7 +366,7 @@ def _build(mode: str) -> SimpleNamespace:
         else:
             out[i] = -1
 
-    return SimpleNamespace(mode=mode, dtype=T, acc=A, module=module, knn_partial=knn_partial, knn_merge=knn_merge,
+    return SimpleNamespace(mode=mode, dtype=T, acc=A, module=module, knn_partial=knn_partial, knn_rows=knn_rows, knn_merge=knn_merge,
                            linear=linear, edge_two_layers=edge_two_layers, edge_one_layer=edge_one_layer,
                            column_max=column_max, nearest=nearest, nearest_user=nearest_user, nearest_point_func=nearest_point,
                            nearest_brute_func=nearest_brute, pair_ratio=pair_ratio,

@@ -423,6 +423,14 @@ def _load_model(args, needs_mesh: bool):
         MeshMismatchWarning,
     )
 
+    from neurogf_warp.generalizable.hooks import load_if_generalizable
+
+    gen = load_if_generalizable(args.model, args.mesh)  # conditioned on --mesh when given
+    if gen is not None and args.command not in ("info", "ssad", "msad", "distance"):
+        raise InputError(f"{args.model} is a generalizable network: it answers info, ssad, msad and distance (with "
+                         f"--mesh MESHFILE); {args.command} needs a per-mesh model (neurogf-warp train)")
+    if gen is not None:
+        return gen
     allow = getattr(args, "allow_mesh_mismatch", False)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", MeshMismatchWarning)
@@ -810,6 +818,9 @@ def _cmd_info(args) -> int:
     import json
 
     model = _load_model(args, needs_mesh=False)
+    if not hasattr(model, "D"):  # a generalizable network (neurogf_warp.generalizable)
+        from neurogf_warp.generalizable.hooks import cli_info
+        return cli_info(args, model, _stdout_write)
     info = model_summary(model)
     if args.json:
         _stdout_write(json.dumps(info, indent=1) + "\n")
@@ -956,13 +967,21 @@ def _versions() -> str:
 
 def main(argv=None) -> int:
     """Run ``neurogf-warp`` with ``argv`` (default: sys.argv[1:]); returns the exit code."""
+    from neurogf_warp.common.clock import process_clock
+
+    clock = process_clock(argv is None)  # the process's own command: --budget-seconds counts from its start
     argv = sys.argv[1:] if argv is None else list(argv)
     _closed_std_streams()
     if argv and argv[0] in GEN_COMMANDS:  # generalizable NeuroGF: their own parsers
         from neurogf_warp.cli.gen import run_gen
 
         args = argparse.Namespace(command=argv[0], verbose=False, quiet=False)
-        return _run_guarded(args, lambda: run_gen(argv[0], argv[1:]))
+
+        def run_generalizable():
+            with clock:
+                return run_gen(argv[0], argv[1:])
+
+        return _run_guarded(args, run_generalizable)
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
@@ -970,8 +989,9 @@ def main(argv=None) -> int:
         return 2
 
     def run():
-        start_warp(args.verbose)
-        return args.run(args)
+        with clock:
+            start_warp(args.verbose)
+            return args.run(args)
 
     return _run_guarded(args, run)
 

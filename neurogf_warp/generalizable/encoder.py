@@ -197,14 +197,33 @@ class WarpGenNet:
         pd = self._buf(scratch, "knn_d", (n, g, kk), self.k.acc)
         pi = self._buf(scratch, "knn_i", (n, g, kk), wp.int32)
         nbr = self._buf(scratch, "nbr" + tag, (n, kk), wp.int32)
-        wp.launch(self.k.knn_partial, (n, g), inputs=[f, c_off, nc, n_per, kk, pd, pi], device=self.device)
+        if self.device.is_cpu:  # N^2 work: in chunks of rows, so that Ctrl-C stops a large cloud within a second
+            self._rows(n, lambda lo, hi: wp.launch(
+                self.k.knn_rows, (hi - lo, g), inputs=[f, lo, c_off, nc, n_per, kk, pd[lo:hi], pi[lo:hi]],
+                device=self.device), first=max(16, (1 << 24) // max(n * nc, 1)))
+        else:
+            wp.launch(self.k.knn_partial, (n, g), inputs=[f, c_off, nc, n_per, kk, pd, pi], device=self.device)
         wp.launch(self.k.knn_merge, (n, g, kk), inputs=[pd, pi, nbr], device=self.device)
         return nbr
 
+    def _rows(self, n: int, run, first: int = 1024):
+        """``run(lo, hi)`` over the rows [0, n): one call on a GPU, chunks of about half a second on the CPU
+        (``inference.backends.in_chunks``; every kernel chunked so computes each row from its own inputs)."""
+        from neurogf_warp.inference.backends import in_chunks
+
+        in_chunks(self.device, n, run, first=first, align=1)
+
     def _linear(self, x, x_off, wb, relu, y, y_off=0):
         W, b = wb
-        wp.launch(self.k.linear, (x.shape[0], W.shape[0]), inputs=[x, x_off, W, b, int(relu), y, y_off],
-                  device=self.device)
+        self._rows(x.shape[0], lambda lo, hi: wp.launch(
+            self.k.linear, (hi - lo, W.shape[0]), inputs=[x[lo:hi], x_off, W, b, int(relu), y[lo:hi], y_off],
+            device=self.device))
+
+    def _edge(self, kernel, P, Q, nbr, extra, y, y_off):
+        """An edge layer over row chunks (``_rows``): rows of P, nbr and y, every row of Q (the neighbours)."""
+        self._rows(P.shape[0], lambda lo, hi: wp.launch(
+            kernel, (hi - lo, 64), inputs=[P[lo:hi], Q, nbr[lo:hi], *extra, y[lo:hi], y_off], device=self.device),
+            first=256)
 
     def encode(self, cloud, center=(0.0, 0.0, 0.0), scale: float = 1.0, into: Encoded | None = None) -> Encoded:
         """Condition the network on a point cloud.
@@ -249,17 +268,17 @@ class WarpGenNet:
         n1 = self.knn(X, scratch=sc, tag="1")
         self._linear(X, 0, w["e1aP"], False, P)
         self._linear(X, 0, w["e1aQ"], False, Q)
-        wp.launch(self.k.edge_two_layers, (n, 64), inputs=[P, Q, n1, *w["e1b"], cat, 0], device=dev)
+        self._edge(self.k.edge_two_layers, P, Q, n1, w["e1b"], cat, 0)
         # block 2: neighbours in f1 space
         n2 = self.knn(cat, 0, 64, scratch=sc, tag="2")
         self._linear(cat, 0, w["e2aP"], False, P)
         self._linear(cat, 0, w["e2aQ"], False, Q)
-        wp.launch(self.k.edge_two_layers, (n, 64), inputs=[P, Q, n2, *w["e2b"], cat, 64], device=dev)
+        self._edge(self.k.edge_two_layers, P, Q, n2, w["e2b"], cat, 64)
         # block 3: neighbours in f2 space, one layer: no per-edge matrix (see the kernels' docstring)
         n3 = self.knn(cat, 64, 64, scratch=sc, tag="3")
         self._linear(cat, 64, w["e3P"], False, P)
         self._linear(cat, 64, w["e3Q"], False, Q)
-        wp.launch(self.k.edge_one_layer, (n, 64), inputs=[P, Q, n3, cat, 128], device=dev)
+        self._edge(self.k.edge_one_layer, P, Q, n3, (), cat, 128)
         return self._heads(self._linear, T, sc, buf, n, cat, X, V, [n1, n2, n3], into)
 
     def _heads(self, lin, T, sc, buf, n, cat, X, V, nbrs, into, build_grid=True):

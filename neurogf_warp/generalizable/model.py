@@ -23,11 +23,18 @@ import os
 import numpy as np
 import warp as wp
 
+from neurogf_warp.common.checks import InputError, integer
 from neurogf_warp.generalizable.encoder import WarpGenNet, check_precision, default_mode
 from neurogf_warp.generalizable.network import GenNeuroGF, load_network
 
 DEFAULT_POINTS = 2048
 DEFAULT_SEED = 2024
+# Conditioning compares every point with every other (the neighbour searches): its time grows as N^2 (2,048
+# points 4.4 s, 16,384 points 236 s on a 2-core CPU). Larger clouds are refused (``max_points`` raises the limit).
+MAX_POINTS = {"cpu": 8192, "cuda": 65536}
+COLLINEAR = 1e-7  # second singular value / first of the centred cloud at most this: the points lie on a line
+NOT_CONDITIONED = ("condition it first: model.condition(points) or ngf.load(path, mesh=...), then query the "
+                   "returned object")
 
 
 def _finite_points(x, name: str, allow_single: bool = False) -> tuple[np.ndarray, bool]:
@@ -73,6 +80,42 @@ def normalization(points: np.ndarray) -> tuple[np.ndarray, float]:
     return c, 1.0 / r
 
 
+def max_points_for(device) -> int:
+    """The largest cloud :meth:`GeneralizableModel.condition` takes by default on ``device`` (``MAX_POINTS``)."""
+    return MAX_POINTS["cpu" if wp.get_device(device).is_cpu else "cuda"]
+
+
+def check_cloud_size(n: int, kk: int, limit: int, what: str = "the point cloud"):
+    """Refuse a cloud of ``n`` points above ``limit`` (the N^2 cost of conditioning), naming the fix."""
+    if n > limit:
+        raise InputError(f"{what} has {n:,} points; conditioning costs grow as N^2 and {limit:,} is the limit here "
+                         f"(2,048 points as in training take ~4 s on a 2-core CPU). Subsample it, e.g. "
+                         f"points[np.random.default_rng(0).choice(len(points), 2048, replace=False)], or "
+                         f"pass max_points={n} to condition() to wait for it")
+
+
+def cloud_spread_refusal(n_distinct: int, singular: np.ndarray, kk: int, what: str = "the point cloud") -> str | None:
+    """Why a cloud cannot condition the network (None: it can): fewer than ``kk`` distinct points (repeating points
+    adds none), or points on one line (``singular``: the centred cloud's singular values, largest first)."""
+    if n_distinct <= 1:
+        return f"all points of {what} coincide: a shape needs at least {kk} distinct points spread over a surface"
+    if n_distinct < kk:
+        return (f"{what} has only {n_distinct} distinct points; conditioning needs at least {kk} (the neighbour "
+                f"count), ideally ~2,048 spread over the surface as in training (repeated points do not count)")
+    if not singular[0] > 0 or singular[1] <= COLLINEAR * singular[0]:
+        return f"{what} lies on a line; conditioning needs points spread over a surface"
+    return None
+
+
+def check_cloud_spread(pts: np.ndarray, kk: int, what: str = "the point cloud"):
+    """:func:`cloud_spread_refusal` of an (N, 3) float64 host cloud, raised as an InputError."""
+    distinct = len(np.unique(pts, axis=0)) if len(pts) else 0
+    c = pts - (pts.min(axis=0) + pts.max(axis=0)) / 2 if len(pts) else np.zeros((1, 3))
+    why = cloud_spread_refusal(distinct, np.linalg.svd(c, compute_uv=False), kk, what)
+    if why is not None:
+        raise InputError(why)
+
+
 class GeneralizableModel:
     """A generalizable NeuroGF network (released or trained); :meth:`condition` returns a :class:`Conditioned`.
 
@@ -110,18 +153,52 @@ class GeneralizableModel:
         """Points per cloud the network was trained with (2,048 for the released one; a trained file's config)."""
         return int((self.meta.get("config") or {}).get("cloud_points", DEFAULT_POINTS))
 
+    # ---- queries need a shape: say so, and how ---------------------------------------------------------------
+    @property
+    def _states(self):
+        # reached when a per-mesh query (ngf.path, ngf.sdf, ...) is given this model
+        raise InputError(f"this is a generalizable NeuroGF network, not conditioned on a shape: {NOT_CONDITIONED}")
+
+    @property
+    def mesh(self):
+        # per-mesh code asks a model for its mesh first (ngf.path, the command line's vertex queries)
+        raise InputError(f"this is a generalizable NeuroGF network, not conditioned on a shape: {NOT_CONDITIONED}; "
+                         f"on the command line pass --mesh MESHFILE")
+
+    def _not_conditioned(self, name: str):
+        raise InputError(f"{name}() needs a shape: this generalizable network is not conditioned yet; "
+                         f"{NOT_CONDITIONED} (e.g. model.condition(points).{name}(...))")
+
+    def distance(self, *args, **kwargs):
+        """Refused: a generalizable network answers once conditioned on a shape (:meth:`condition`)."""
+        self._not_conditioned("distance")
+
+    def ssad(self, *args, **kwargs):
+        """Refused: a generalizable network answers once conditioned on a shape (:meth:`condition`)."""
+        self._not_conditioned("ssad")
+
+    def msad(self, *args, **kwargs):
+        """Refused: a generalizable network answers once conditioned on a shape (:meth:`condition`)."""
+        self._not_conditioned("msad")
+
+    def distance_matrix(self, *args, **kwargs):
+        """Refused: a generalizable network answers once conditioned on a shape (:meth:`condition`)."""
+        self._not_conditioned("distance_matrix")
+
     def condition(self, shape, n_points: int | None = None, seed: int = DEFAULT_SEED, device=None,
-                  mode: str | None = None) -> Conditioned:
+                  mode: str | None = None, max_points: int | None = None) -> Conditioned:
         """Encode a shape once; the result answers distance queries on it.
 
-        shape: an (N, 3) point cloud in your units (N >= 40; the released network was trained on 2,048-point
-        clouds), or a mesh (path, ``ngf.Mesh``, trimesh, (V, F) pair): ``n_points`` points (default: as many as
+        shape: an (N, 3) point cloud in your units (at least 40 distinct points, not all on one line; the
+        released network was trained on 2,048-point clouds), or a mesh (path, ``ngf.Mesh``, trimesh, (V, F) pair): ``n_points`` points (default: as many as
         the network was trained with, :attr:`cloud_points`) are sampled on it with ``seed`` (see the module
         docstring), and results are per mesh vertex with +inf across connected
         components. device: "cpu" / "cuda:N" (default: Warp's). mode: "fp64" / "fp32" / "mixed" (default
         fp64 on the CPU, fp32 on CUDA). On CUDA (fp32) the encoder replays a CUDA graph captured on the first
         cloud of each size (``NGF_NO_GRAPH=1`` or ``model.warp_net(device).use_graph = False``: launches from
-        Python, same numbers); every conditioned shape holds arrays of its own.
+        Python, same numbers); every conditioned shape holds arrays of its own. max_points: the largest cloud
+        (or ``n_points``) taken (default ``MAX_POINTS``: 8,192 on the CPU, 65,536 on CUDA), since conditioning
+        time grows as N^2; larger ones are refused with an InputError.
 
         A cloud already on the GPU (a CUDA torch tensor, or a CUDA ``wp.array`` of shape (N, 3), on the device
         conditioned on) stays there: the checks and the normalization run on the device (the same numbers as for
@@ -136,20 +213,26 @@ class GeneralizableModel:
                 isinstance(shape, (tuple, list)) and len(shape) == 2 and np.ndim(shape[1]) == 2):
             mesh = _load_mesh(shape)
         wn = self.warp_net(device, mode)
+        limit = max_points_for(wn.device) if max_points is None else integer("max_points", max_points, minimum=1)
         if mesh is None:
             on_dev = _device_cloud(shape, wn)
             if on_dev is not None:
+                check_cloud_size(on_dev[0].shape[0], wn.kk, limit)
                 return _condition_on_device(self, wn, *on_dev)
             pts, _ = _finite_points(shape, "points")
             if len(pts) < wn.kk:
-                raise ValueError(f"the point cloud has {len(pts)} points; conditioning needs at least "
+                raise InputError(f"the point cloud has {len(pts)} points; conditioning needs at least "
                                  f"{wn.kk} (the neighbour count), ideally ~2,048 as in training")
+            check_cloud_size(len(pts), wn.kk, limit)
+            check_cloud_spread(pts, wn.kk)
             center, scale = normalization(pts)
             return Conditioned(self, wn, pts, center, scale, None, None)
-        n_points = self.cloud_points if n_points is None else n_points
-        if int(n_points) < wn.kk:
-            raise ValueError(f"n_points={n_points} is too small; use at least {wn.kk} (2,048 as in training)")
-        pts, _ = sample_surface(mesh, int(n_points), seed)
+        n_points = self.cloud_points if n_points is None else integer("n_points", n_points, minimum=1)
+        if n_points < wn.kk:
+            raise InputError(f"n_points={n_points} is too small; use at least {wn.kk} (2,048 as in training)")
+        check_cloud_size(n_points, wn.kk, limit, what=f"n_points={n_points}: the sampled cloud")
+        pts, _ = sample_surface(mesh, n_points, seed)
+        check_cloud_spread(pts, wn.kk, what="the cloud sampled on the mesh")
         fcomp = mesh.components[mesh.faces[:, 0]].astype(np.int32)
         return Conditioned(self, wn, pts, np.asarray(mesh.center, np.float64), float(mesh.scale), mesh, fcomp)
 
@@ -222,6 +305,12 @@ def _condition_on_device(model, wn: WarpGenNet, t, from_torch: bool) -> Conditio
     r = float(np.sqrt(stats[3]))
     if not r > 0:
         raise ValueError("all points coincide: a shape needs points spread in space to be normalized")
+    with torch.cuda.stream(ts):  # distinct points and the spread, as check_cloud_spread on the host
+        d = x64 - torch.from_numpy(stats[:3].copy()).to(x64.device)
+        sv = torch.linalg.svdvals(d).cpu().numpy()
+        why = cloud_spread_refusal(int(torch.unique(x64, dim=0).shape[0]), sv, wn.kk)
+    if why is not None:
+        raise InputError(why)
     cloud = wp.from_torch(store, dtype=wn.k.dtype)
     cond = Conditioned(model, wn, x64, stats[:3].copy(), 1.0 / r, None, None, cloud=cloud)
     if cur is not None and cur.cuda_stream != ts.cuda_stream:
@@ -274,6 +363,13 @@ class Conditioned:
         self._targets = None
 
     @property
+    def _states(self):
+        # reached when a per-mesh query without a generalizable counterpart (ngf.sdf, ngf.path, ...) is given this
+        raise InputError("a conditioned generalizable model answers distance, ssad, msad and distance_matrix (its "
+                         "methods, or ngf.distance(...) etc.); it has no SDF or path head: for sdf, path and "
+                         "project train a per-mesh model (ngf.train)")
+
+    @property
     def points(self) -> np.ndarray:
         """The cloud (N, 3) float64 in user units (a cloud given on the GPU is copied to the host here, once)."""
         if not isinstance(self._user_points, np.ndarray):
@@ -302,6 +398,9 @@ class Conditioned:
         if allow_index and a.dtype.kind == "f" and a.ndim <= 1 and a.shape != (3,):
             raise ValueError(f"{name}: give integer indices or (M, 3) points, got a float array of shape {a.shape}")
         pts, single = _finite_points(arr, name, allow_single=single_ok)
+        from neurogf_warp.inference.inputs import check_points_in_frame
+
+        check_points_in_frame(pts, self.center, self.scale, name, "mesh" if self.mesh is not None else "cloud")
         comp = self._components_of(pts) if self._multi else None
         return pts, comp, single
 

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from neurogf_warp.common.clock import process_clock
 from neurogf_warp.common.shards import balanced_shard, file_sizes
 from neurogf_warp.generalizable.train import MESH_EXTENSIONS, _finite, torchrun_command
 
@@ -66,8 +67,9 @@ def train_folder(folder, outdir, budget_seconds=None, config=None, device=None, 
         t0 = time.perf_counter()
         row = {"mesh": str(rel), "rank": rank, "device": str(dev)}
         try:
-            ngf.train(str(f), out, config=config, device=str(dev), budget_seconds=budget_seconds, progress=False,
-                      **(settings or {}))
+            with process_clock(False):  # the budget is each mesh's, from its own call
+                ngf.train(str(f), out, config=config, device=str(dev), budget_seconds=budget_seconds, progress=False,
+                          **(settings or {}))
             row["model"] = str(out.relative_to(outdir))
         except Exception as e:  # noqa: BLE001  (one bad mesh must not stop the folder)
             row["error"] = f"{type(e).__name__}: {e}"

@@ -21,8 +21,9 @@ Families (all closed, one connected component, 2K-10K vertices, in roughly unit 
   capsules, meshed by marching tetrahedra on a 40-56 cell grid;
 - ``deformed``: a shared mesh (cow, homer, rocker-arm, cheburashka, alligator, igea; NOT stanford-bunny, fandisk,
   spot, which stay unseen for evaluation) simplified to 3K-8K vertices, randomly rotated, scaled and bent by a
-  smooth sinusoidal displacement field. Needs the shared meshes folder (``shared_meshes=``) with all six source
-  files; without them this family is replaced by ``blob`` (``write_collection`` says so once).
+  smooth sinusoidal displacement field. Needs a meshes folder given as ``shared_meshes=`` (``--shared-meshes``)
+  with all six source files; without one this family is replaced by ``blob`` (``write_collection`` says so once),
+  wherever the package is installed.
 """
 from __future__ import annotations
 
@@ -300,22 +301,28 @@ def write_collection(folder, n: int = 600, seed: int = 0, test_every: int = 10, 
     (family, seed, split, vertex/face counts of each). Existing files are kept (so a run can be resumed).
     ``workers`` > 1 makes the shapes in that many processes (same files: each shape depends on (seed, i) only)."""
     folder = Path(folder)
-    if shared_meshes is None:
-        guess = Path(__file__).resolve().parents[2].parent / "shared" / "meshes"
-        shared_meshes = str(guess) if guess.is_dir() else None
+    # only the folder given: a default looked up beside the package made the files depend on where it was installed
+    deform = deform_sources_present(shared_meshes)
     man_path = folder / "manifest.json"
     man = json.loads(man_path.read_text()) if man_path.exists() else {"seed": seed, "test_every": test_every,
-                                                                       "split": SPLIT_RULE, "shapes": {}}
+                                                                       "split": SPLIT_RULE, "shapes": {},
+                                                                       "deformed_family": deform}
     if man.get("split") != SPLIT_RULE:
         raise ValueError(f"{folder} holds a collection split by an older rule ({man.get('split', 'i % test_every')});"
                          f" use another folder")
     if man["seed"] != seed or man["test_every"] != test_every:
         raise ValueError(f"{folder} holds a collection with seed {man['seed']} / test_every {man['test_every']}; "
                          f"use another folder or the same settings")
+    if man.get("deformed_family", deform) != deform:
+        raise ValueError(f"{folder} holds a collection made {'with' if not deform else 'without'} the deformed "
+                         f"family's source meshes; continue it "
+                         f"{'with the same shared_meshes folder' if not deform else 'without shared_meshes'}, "
+                         f"or use another folder")
     if progress and not deform_sources_present(shared_meshes) and any(
             FAMILIES[i % len(FAMILIES)] == "deformed" for i in range(start, n)):
-        print(f"note: the 'deformed' family needs {', '.join(DEFORM_SOURCES)} in the shared meshes folder "
-              f"({shared_meshes}); those shapes are 'blob' instead", flush=True)
+        where = f"the shared meshes folder ({shared_meshes})" if shared_meshes else "a folder given as shared_meshes"
+        print(f"note: the 'deformed' family needs {', '.join(DEFORM_SOURCES)} in {where} (--shared-meshes DIR); "
+              f"those shapes are 'blob' instead", flush=True)
     jobs = [(folder, i, seed, test_every, shared_meshes) for i in range(start, n)]
     if workers > 1 and len(jobs) > 1:
         import multiprocessing as mp

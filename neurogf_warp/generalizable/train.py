@@ -9,8 +9,13 @@ with ground-truth geodesic distances from the project's solver (``ngf.geodesic_d
 centre, largest vertex norm 1). A training step draws ``shapes_per_step`` shapes and, per shape,
 ``step_sources`` x ``step_targets`` of its pairs; the loss is the L1 error of the predicted ratio
 geodesic / Euclidean (the authors' target). AdamW, lr 1e-2 cosine to 1e-4 over ``steps``, weight decay 1e-8.
-With a time budget the cosine runs over whichever ends first, the steps or the budget (progress =
-max(step / steps, elapsed / budget)), so a budgeted run always ends at the low learning rate.
+A time budget (``budget_seconds``) covers the whole call, from the call (Python) or from the process start (the
+command line; under torchrun the launcher's start, and rank 0's deadline on every rank): the ground truth gets at
+most a third of it (fewer shapes, and fewer sources of the last one, when it runs short; said in the output), the
+steps the rest less a second for the model file. A budgeted run's first step draws one shape and is timed, and the
+later steps draw as many shapes as let about 20 steps fit (``BudgetSteps``); no step starts that would end past the
+deadline. The cosine runs over whichever ends first, the steps or the training's time (progress =
+max(step / steps, elapsed / training time)), so a budgeted run always ends at the low learning rate.
 ``rotate`` (off by default) turns each drawn shape by a random rotation and re-normalizes it (bounding-box
 centre and largest vertex norm of the turned vertices, as conditioning would); the ratio target is unchanged.
 
@@ -56,6 +61,16 @@ FORMAT = "neurogf-generalizable"
 # H200s trained 1.70x the shapes/s of one with a broadcast every step (benchmarks/RESULTS.md, seventh session).
 # So it is shared every SYNC_EVERY steps; in between, every rank keeps the last shared fraction (the same lr).
 SYNC_EVERY = 8
+# Under a budget: the ground truth gets at most this share of it, as the per-mesh dataset (training/api.py), each
+# shape's sources solved in batches that fit the time left (at least GT_MIN_SOURCES sources of one shape per rank,
+# without which there is nothing to train on); the rest trains, less END_RESERVE_S for the model file and the exit.
+GT_SHARE = 1 / 3
+GT_MIN_SOURCES = 8
+END_RESERVE_S = 1.0
+# A budgeted run's first step draws one shape per rank and times it; the later steps draw as many shapes (at most
+# shapes_per_step) as let at least BUDGET_STEPS steps fit in the time left (a 16-shape step took 55 s on a 2-core
+# CPU: a 60 s budget would otherwise end after its first step, wherever that ends).
+BUDGET_STEPS = 20
 
 
 @dataclass
@@ -72,7 +87,7 @@ class GenTrainConfig:
     lr: float = 1e-2
     lr_min: float = 1e-4
     weight_decay: float = 1e-8
-    budget_seconds: float | None = None  # stop after this much training time (ground truth not counted)
+    budget_seconds: float | None = None  # the whole call, ground truth included (command line: the process)
     rotate: bool = False  # augmentation: a random rotation of every drawn shape (re-normalized)
     checkpoint_seconds: float = 120.0
     val_every: int = 200  # steps between validations
@@ -109,12 +124,16 @@ def _file_key(path: Path, cfg: GenTrainConfig) -> str:
     return h.hexdigest()[:16]
 
 
-def shape_ground_truth(path, cfg: GenTrainConfig, device=None) -> dict:
+def shape_ground_truth(path, cfg: GenTrainConfig, device=None, deadline: float | None = None) -> dict:
     """Ground truth of one mesh file (unit-sphere frame): ``cloud`` (P, 3) f32, ``verts`` (V, 3) f32 (internal
-    vertices), ``src`` (S,) i32, ``tgt`` (S, T) i32 vertex indices, ``dist`` (S, T) f32 geodesic distances.
+    vertices), ``src`` (S,) i32, ``tgt`` (S, T) i32 vertex indices, ``dist`` (S, T) f32 geodesic distances,
+    ``complete`` (whether every source asked for was solved).
 
     Sources: ``cfg.sources`` distinct vertices (all if fewer), random with a seed from (cfg.seed, file name);
     targets: per source, ``cfg.targets`` vertices of finite, non-zero distance (without replacement when enough).
+    ``deadline`` (a ``time.perf_counter()`` value): the sources are solved in batches, the first of
+    ``GT_MIN_SOURCES``, the next sized from its time to end by the deadline; the sources solved by then are kept
+    (the first ones of the same random order, so a shorter run's sources are a prefix of a longer run's).
     """
     import neurogf_warp as ngf
 
@@ -126,8 +145,22 @@ def shape_ground_truth(path, cfg: GenTrainConfig, device=None) -> dict:
     rng = np.random.default_rng([cfg.seed, int(hashlib.sha256(path.name.encode()).hexdigest()[:8], 16)])
     src = np.sort(rng.choice(nv, min(cfg.sources, nv), replace=False))
     # the plain solve, as the per-mesh training datasets use (near_source costs 1.3-2x on small CPU meshes)
-    d = ngf.geodesic_distances(mesh, mesh.index[src], device=device, near_source=False)[:, mesh.index]
-    d = d * np.float32(mesh.scale)
+    solve = lambda rows: ngf.geodesic_distances(mesh, mesh.index[rows], device=device, near_source=False)
+    if deadline is None:
+        d = solve(src)
+    else:
+        parts, done, step = [], 0, GT_MIN_SOURCES
+        while done < len(src):
+            t0 = time.perf_counter()
+            parts.append(solve(src[done: done + step]))
+            per = (time.perf_counter() - t0) / len(parts[-1])
+            done += len(parts[-1])
+            step = int((deadline - time.perf_counter()) / max(per, 1e-9))
+            if step < 1:
+                break
+        src, d = src[:done], np.concatenate(parts)
+    complete = len(src) == min(cfg.sources, nv)
+    d = d[:, mesh.index] * np.float32(mesh.scale)
     tgt = np.zeros((len(src), cfg.targets), np.int32)
     keep = np.ones(len(src), bool)
     for r in range(len(src)):
@@ -141,7 +174,7 @@ def shape_ground_truth(path, cfg: GenTrainConfig, device=None) -> dict:
     cloud, _ = sample_surface(mesh, cfg.cloud_points, cfg.seed)
     return {"cloud": ((cloud - mesh.center) * mesh.scale).astype(np.float32),
             "verts": mesh.normalized_vertices.astype(np.float32), "src": src.astype(np.int32), "tgt": tgt,
-            "dist": dist}
+            "dist": dist, "complete": np.bool_(complete)}
 
 
 def _atomic_savez(path: Path, **arrays):
@@ -151,22 +184,38 @@ def _atomic_savez(path: Path, **arrays):
     os.replace(tmp, path)
 
 
+def _complete(path: Path) -> bool:
+    try:
+        with np.load(path) as z:
+            return bool(z["complete"]) if "complete" in z.files else True
+    except (OSError, ValueError):
+        return False
+
+
 def ground_truth_cache(files, cache: Path, cfg: GenTrainConfig, rank: int = 0, world: int = 1, device=None,
-                       log=print, deadline: float | None = None) -> list[Path]:
+                       log=print, deadline: float | None = None, at_least: int = 0) -> list[Path]:
     """Compute (rank's shard: ``balanced_shard`` of the file sizes) and cache the ground truth of ``files``; returns the
     cache path of every file (all ranks), whether or not it is computed yet (a barrier follows under DDP).
-    ``deadline`` (a ``time.perf_counter()`` value): start no shape after it (the files left have no cache file)."""
+    ``deadline`` (a ``time.perf_counter()`` value): start no shape after it and solve the last one's sources up to it
+    (the files left have no cache file); ``at_least``: shapes solved even past the deadline (with
+    ``GT_MIN_SOURCES`` sources). A cached file solved short of its sources under a deadline is used under a deadline
+    and solved again without one."""
     cache = Path(cache)
     cache.mkdir(parents=True, exist_ok=True)
     out = [cache / f"{p.stem}_{_file_key(p, cfg)}.npz" for p in files]
-    mine = [i for i in balanced_shard(file_sizes(files), world, rank) if not out[i].exists()]
+    mine = [i for i in balanced_shard(file_sizes(files), world, rank)
+            if not out[i].exists() or (deadline is None and not _complete(out[i]))]
     t0 = time.perf_counter()
     for n, i in enumerate(mine):
-        if deadline is not None and time.perf_counter() >= deadline:
-            log(f"[rank {rank}] ground truth stopped at its deadline: {n}/{len(mine)} shapes, "
+        if deadline is not None and time.perf_counter() >= deadline and n >= at_least:
+            log(f"[rank {rank}] ground truth stopped at its share of the budget: {n}/{len(mine)} shapes, "
                 f"{time.perf_counter() - t0:.1f} s")
             break
-        _atomic_savez(out[i], **shape_ground_truth(files[i], cfg, device))
+        gt = shape_ground_truth(files[i], cfg, device, deadline)
+        if not gt["complete"]:
+            log(f"[rank {rank}] ground truth of {files[i].name}: {len(gt['src'])} of {cfg.sources} sources within "
+                f"the budget's share")
+        _atomic_savez(out[i], **gt)
         if (n + 1) % 10 == 0 or n + 1 == len(mine):
             log(f"[rank {rank}] ground truth {n + 1}/{len(mine)} shapes, {time.perf_counter() - t0:.1f} s")
     return out
@@ -250,6 +299,68 @@ def _dist_setup(device_arg):
     return rank, world, device, world > 1
 
 
+def shared_deadline(deadline: float | None, device, distributed: bool) -> float | None:
+    """Rank 0's deadline on every rank: the time it has left is broadcast and each rank adds it to its own clock
+    (``time.perf_counter()`` values of different hosts are not comparable). Every rank must call it."""
+    if not distributed or deadline is None:
+        return deadline
+    import torch.distributed as dist
+
+    left = torch.tensor([deadline - time.perf_counter()], dtype=torch.float64, device=device)
+    dist.broadcast(left, 0)
+    return time.perf_counter() + float(left.item())
+
+
+class BudgetSteps:
+    """A budgeted run's decisions on rank 0's clock: when to stop, how many shapes a step draws, how often the
+    clock is shared.
+
+    The first step draws one shape and is timed; then ``shapes`` becomes the most (up to ``shapes_per_step``) that
+    let ``BUDGET_STEPS`` steps fit in the time left (steps of s shapes take about s times a one-shape step). A step
+    is not started when it would end past ``end`` (``time.perf_counter()``), the first one excepted. Without a
+    budget (``end`` None) nothing changes: ``shapes_per_step`` shapes, every SYNC_EVERY steps.
+    """
+
+    def __init__(self, shapes_per_step: int, end: float | None):
+        self.full, self.end = int(shapes_per_step), end
+        self.shapes = self.full if end is None else 1
+        self.per_shape: float | None = None  # seconds of a step per shape drawn (the slowest measured)
+        self.said = False
+
+    def step_time(self) -> float:
+        return 0.0 if self.per_shape is None else self.per_shape * self.shapes
+
+    def stop(self, steps_done: int, now: float | None = None) -> bool:
+        """Whether the next step must not start (``steps_done`` steps of this call so far)."""
+        if self.end is None or steps_done == 0:
+            return False
+        now = time.perf_counter() if now is None else now
+        return now + self.step_time() > self.end
+
+    def step_done(self, steps_done: int, seconds: float, say=print, now: float | None = None):
+        """After step ``steps_done`` of this call took ``seconds`` with ``shapes`` shapes."""
+        per = seconds / max(self.shapes, 1)
+        self.per_shape = per if self.per_shape is None or steps_done <= 1 else max(0.5 * self.per_shape, per)
+        if steps_done == 0 and self.end is not None:
+            now = time.perf_counter() if now is None else now
+            fit = int(max(self.end - now, 0.0) / (BUDGET_STEPS * self.per_shape))
+            self.shapes = max(1, min(self.full, fit))
+            if self.shapes < self.full and not self.said:
+                self.said = True
+                say(f"short budget: {self.shapes} shape(s) per step instead of {self.full} (a step takes ~"
+                    f"{self.per_shape:.2f} s per shape, {max(self.end - now, 0.0):.0f} s left)")
+
+    def share_every(self) -> int:
+        """Steps until rank 0's clock is shared again: SYNC_EVERY, fewer when that many might pass the end."""
+        if self.end is None or self.per_shape is None:
+            return SYNC_EVERY if self.end is None else 1
+        left = self.end - time.perf_counter()
+        return int(max(1, min(SYNC_EVERY, left / max(2 * self.step_time(), 1e-9))))
+
+    def val_deadline(self) -> float | None:
+        return self.end
+
+
 # ---- checkpoints ---------------------------------------------------------------------------------------------
 
 def atomic_torch_save(obj, path: Path):
@@ -281,20 +392,28 @@ def _trained_on(folder, train, val, cfg):
 # ---- validation ----------------------------------------------------------------------------------------------
 
 @torch.no_grad()
-def validation_mre(net: GenNeuroGF, data: ShapeData, cfg: GenTrainConfig, device) -> float:
-    """Mean relative error of max(ratio, 1) |s - t| on held-out shapes (fixed pairs: seed 12345), eval mode."""
+def validation_mre(net: GenNeuroGF, data: ShapeData, cfg: GenTrainConfig, device,
+                   deadline: float | None = None) -> float:
+    """Mean relative error of max(ratio, 1) |s - t| on held-out shapes (fixed pairs: seed 12345), eval mode.
+    ``deadline`` (a ``time.perf_counter()`` value): no shape after the first is started once a shape would end
+    past it."""
     if len(data) == 0:
         return float("nan")
     was = net.training
     net.eval()
     rng = np.random.default_rng(12345)
     errs = []
+    per = 0.0
     for i in range(min(cfg.val_shapes, len(data))):
+        t0 = time.perf_counter()
+        if i and deadline is not None and t0 + per > deadline:
+            break
         C, S, T, _, D = data.batch([i], cfg.val_sources, cfg.val_targets, rng)
         args = (torch.from_numpy(x).to(device) for x in (C, S, T))
         r = net(*args).clamp_min(1.0).cpu().numpy()
         pred = r * np.linalg.norm(S - T, axis=-1)
         errs.append((np.abs(pred - D) / D).ravel())
+        per = max(per, time.perf_counter() - t0)
     net.train(was)
     return float(np.concatenate(errs).mean())
 
@@ -317,6 +436,9 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
     import torch.distributed as dist
     from torch.nn.parallel import DistributedDataParallel as DDP
 
+    from neurogf_warp.common.clock import budget_start
+
+    t_call = budget_start(time.perf_counter())
     cfg = config or GenTrainConfig()
     rank, world, dev, distributed = _dist_setup(device)
     log = log or (lambda s: print(s, flush=True))
@@ -330,19 +452,6 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
         raise ValueError(f"no training shapes under {folder}")
     say(f"{len(train_files)} training shapes, {len(val_files)} held out ({min(len(val_files), cfg.val_shapes)} "
         f"used for validation); world size {world}, device {dev}")
-
-    # ground truth, sharded over ranks
-    t_gt = time.perf_counter()
-    gtd = gt_device or (str(dev) if dev.type == "cuda" else "cpu")
-    tr_cache = ground_truth_cache(train_files, cache, cfg, rank, world, gtd, log)
-    va_cache = ground_truth_cache(val_files[: cfg.val_shapes], cache, cfg, rank, world, gtd, log)
-    if distributed:
-        dist.barrier()
-    gt_seconds = time.perf_counter() - t_gt
-    say(f"ground truth ready in {gt_seconds:.1f} s ({cache})")
-    train_data, val_data = ShapeData(tr_cache), ShapeData(va_cache)
-    # the shapes this rank solved (the same split as the ground truth's: a rank reads only its own cache files)
-    shard = balanced_shard(file_sizes(train_files), world, rank) or list(range(len(train_data)))
 
     torch.manual_seed(cfg.seed)
     net = GenNeuroGF().to(dev)
@@ -358,15 +467,45 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
         say(f"resumed {output} at step {state['step']} (written with world size {ck.get('world_size')})")
     elif output.exists() and rank == 0:
         say(f"note: {output} exists and will be overwritten (use --resume to continue it)")
+
+    # one deadline for the whole call (a resumed run gets what the earlier calls left), rank 0's on every rank
+    budget = cfg.budget_seconds
+    deadline = None
+    if budget is not None:
+        deadline = shared_deadline(t_call + budget - state["elapsed_s"] - state["gt_seconds"], dev, distributed)
+        left = max(deadline - time.perf_counter(), 0.0)
+        say(f"budget: {left:.1f} s of {budget:g} s left (ground truth at most {GT_SHARE * left:.1f} s of it)")
+
+    # ground truth, sharded over ranks
+    t_gt = time.perf_counter()
+    gt_deadline = None if deadline is None else min(deadline, t_gt + GT_SHARE * max(deadline - t_gt, 0.0))
+    gtd = gt_device or (str(dev) if dev.type == "cuda" else "cpu")
+    tr_cache = ground_truth_cache(train_files, cache, cfg, rank, world, gtd, log, gt_deadline, at_least=1)
+    va_cache = ground_truth_cache(val_files[: cfg.val_shapes], cache, cfg, rank, world, gtd, log, gt_deadline)
+    if distributed:
+        dist.barrier()
+    gt_seconds = time.perf_counter() - t_gt
     state["gt_seconds"] += gt_seconds
+    train_data, val_data = ShapeData(tr_cache), ShapeData([p for p in va_cache if p.exists()])
+    # the shapes this rank solved (the same split as the ground truth's: a rank reads only its own cache files)
+    shard = balanced_shard(file_sizes(train_files), world, rank) or list(range(len(train_data)))
+    shard = [i for i in shard if tr_cache[i].exists()] or [i for i in range(len(tr_cache)) if tr_cache[i].exists()]
+    if not shard:
+        raise ValueError(f"no training shape has ground truth in {cache} (the budget ended first): raise "
+                         f"--budget-seconds or run with --gt-only first")
+    ready = sum(p.exists() for p in tr_cache)
+    short = "" if ready == len(tr_cache) else (f": {ready} of {len(tr_cache)} training shapes and {len(val_data)} of "
+                                              f"{len(va_cache)} validation shapes within the budget's share")
+    say(f"ground truth ready in {gt_seconds:.1f} s ({cache}){short}")
     model = DDP(net, device_ids=[dev.index] if dev.type == "cuda" else None) if distributed else net
     model.train()
+    first_step = state["step"]
 
     def progress(step, elapsed):
         """Fraction of the run done: by steps, or by time when a budget is set and runs out first."""
         p = step / cfg.steps
-        if budget:
-            p = max(p, elapsed / budget)
+        if deadline is not None:  # where the step ends: the last one that fits then runs at the low rate
+            p = max(p, (elapsed + plan.step_time()) / max(train_span, 1e-9))
         return min(p, 1.0)
 
     def lr_at(p):
@@ -385,27 +524,35 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
 
     t_start = time.perf_counter() - state["elapsed_s"]
     t_ck = time.perf_counter()
-    budget = cfg.budget_seconds
+    # the training's share: from here to the deadline less the model file's and the exit's time
+    train_end = None if deadline is None else deadline - END_RESERVE_S
+    train_span = 0.0 if deadline is None else state["elapsed_s"] + max(train_end - time.perf_counter(), 0.0)
     run_loss, run_n = torch.zeros((), device=dev), 0  # summed on the device: no host sync per step
     shared_frac = None  # rank 0's fraction of the run, as last shared (DDP)
+    next_share = 0  # the step at which rank 0's clock is shared next
+    plan = BudgetSteps(cfg.shapes_per_step, train_end)
     try:
         while True:
             step = state["step"]
             elapsed = time.perf_counter() - t_start
-            stop = step >= cfg.steps or (budget is not None and elapsed >= budget)
+            stop = step >= cfg.steps or plan.stop(step - first_step)
             frac = progress(step, elapsed)
             if distributed:  # every rank stops at the same step and follows one schedule (rank 0's clock)
-                if step % SYNC_EVERY == 0 or shared_frac is None:
-                    flag = torch.tensor([1.0 if stop else 0.0, frac], device=dev, dtype=torch.float64)
+                if step >= next_share or shared_frac is None:
+                    flag = torch.tensor([1.0 if stop else 0.0, frac, plan.shapes, plan.share_every()], device=dev,
+                                        dtype=torch.float64)
                     dist.broadcast(flag, 0)
                     stop, frac = bool(flag[0].item()), float(flag[1].item())
-                    shared_frac = frac
+                    plan.shapes = int(flag[2].item())
+                    shared_frac, next_share = frac, step + int(flag[3].item())
                 else:  # the step count is the same on every rank; the clock waits for the next share
                     stop, frac = step >= cfg.steps, shared_frac
             if stop:
                 break
+            t_step = time.perf_counter()
             rng = np.random.default_rng([cfg.seed, step, rank])
-            idx = rng.choice(shard, cfg.shapes_per_step, replace=len(shard) < cfg.shapes_per_step)
+            n_shapes = plan.shapes
+            idx = rng.choice(shard, n_shapes, replace=len(shard) < n_shapes)
             C, S, T, R, _ = train_data.batch(idx, cfg.step_sources, cfg.step_targets, rng, rotate=cfg.rotate)
             C, S, T, R = (torch.from_numpy(x).to(dev, non_blocking=True) for x in (C, S, T, R))
             lr = lr_at(frac)
@@ -416,6 +563,8 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
             loss.backward()
             opt.step()
             state["step"] = step + 1
+            if deadline is not None:
+                plan.step_done(step - first_step, time.perf_counter() - t_step, say)
             if callback is not None:
                 callback(state["step"], float(loss.detach()))
             run_loss += loss.detach()
@@ -431,7 +580,7 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
                     f"{time.perf_counter() - t_start:.1f} s")
                 run_loss, run_n = torch.zeros((), device=dev), 0
             if cfg.val_every and state["step"] % cfg.val_every == 0 and rank == 0 and len(val_data):
-                mre = validation_mre(net, val_data, cfg, dev)
+                mre = validation_mre(net, val_data, cfg, dev, plan.val_deadline())
                 state["val_history"].append([state["step"], mre])
                 say(f"step {state['step']}  validation MRE {100 * mre:.2f}% ({min(cfg.val_shapes, len(val_data))} "
                     f"held-out shapes)")
@@ -447,7 +596,7 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
         raise
     state["elapsed_s"] = time.perf_counter() - t_start
     if rank == 0 and len(val_data) and (not state["val_history"] or state["val_history"][-1][0] != state["step"]):
-        mre = validation_mre(net, val_data, cfg, dev)
+        mre = validation_mre(net, val_data, cfg, dev, train_end)
         state["val_history"].append([state["step"], mre])
         say(f"final validation MRE {100 * mre:.2f}%")
     ck = checkpoint()
@@ -508,13 +657,25 @@ OPTION_HELP = {
 
 
 def main(argv=None, prog: str = "python -m neurogf_warp.generalizable.train"):
+    import contextlib
+
+    from neurogf_warp.common.clock import process_clock
+
+    # run as a program: the budget counts from the process start (through neurogf-warp gen-train: already so)
+    with process_clock() if argv is None else contextlib.nullcontext():
+        return _main(argv, prog)
+
+
+def _main(argv, prog: str):
     ap = argparse.ArgumentParser(prog=prog,
                                  description="Train a generalizable NeuroGF network on a folder of meshes "
                                              "(also under torchrun).",
                                  epilog="on N GPUs of one machine: " + torchrun_command(prog, "FOLDER -o model.pt"))
     ap.add_argument("folder", help="meshes (train/ and test/ subfolders, or every 10th file held out)")
     ap.add_argument("-o", "--output", required=True, help="model file to write (and resume from)")
-    ap.add_argument("--budget-seconds", type=_finite, default=None, help="training time limit")
+    ap.add_argument("--budget-seconds", type=_finite, default=None,
+                    help="time limit of the whole run from the process start (ground truth at most a third of it; "
+                         "under torchrun rank 0's clock)")
     ap.add_argument("--resume", action="store_true", help="continue the output file's training")
     ap.add_argument("--cache", default=None, help="ground-truth cache folder (default: <output>.gt)")
     ap.add_argument("--device", default=None, help="cpu, cuda (this rank's GPU) or cuda:N (default: auto)")
@@ -537,7 +698,11 @@ def main(argv=None, prog: str = "python -m neurogf_warp.generalizable.train"):
             cache = Path(a.cache) if a.cache else out.with_name(out.name + ".gt")
             gtd = str(dev) if dev.type == "cuda" else "cpu"
             t0 = time.perf_counter()
-            ground_truth_cache(train + val, cache, cfg, rank, world, gtd)
+            from neurogf_warp.common.clock import budget_start
+
+            deadline = None if a.budget_seconds is None else shared_deadline(
+                budget_start(t0) + a.budget_seconds - END_RESERVE_S, dev, distributed)
+            ground_truth_cache(train + val, cache, cfg, rank, world, gtd, deadline=deadline, at_least=1)
             if distributed:
                 import torch.distributed as dist
                 dist.barrier()

@@ -19,6 +19,8 @@ Every array is a ``wp.array`` on the state's device; vertex queries take points 
 """
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import warp as wp
 
@@ -28,7 +30,38 @@ from neurogf_warp.kernels.inference import finish, head_fp32, mlp
 from neurogf_warp.kernels.inference import refine as refine_kernels
 from neurogf_warp.model.folded import NetShape
 
-__all__ = ["backend_of", "bind", "fp32_refusal", "TensorCores", "PerThread"]
+__all__ = ["backend_of", "bind", "fp32_refusal", "TensorCores", "PerThread", "in_chunks", "CPU_CHUNK_SECONDS"]
+
+# A CPU launch runs to its end before Python sees a Ctrl-C (4M SDF points: minutes), so large CPU queries run in
+# chunks of about this many seconds; KeyboardInterrupt is raised between two of them. CUDA launches return at once.
+CPU_CHUNK_SECONDS = 0.5
+CPU_FIRST_CHUNK = 1024  # points of the first chunk (the next ones are sized from its time); a multiple of ALIGN
+CPU_CHUNK_ALIGN = 256  # chunk sizes are multiples of this (whole tensor-core tiles; every point is independent)
+CPU_MAX_CHUNK = 1 << 22
+
+
+def in_chunks(device, n: int, run, first: int | None = None, align: int = CPU_CHUNK_ALIGN):
+    """Call ``run(lo, hi)`` over [0, n): once on a CUDA device, in consecutive chunks on the CPU, each sized so that
+    it takes about ``CPU_CHUNK_SECONDS`` (from the time of the previous one), so that Ctrl-C stops a long query
+    within about that time. ``run`` must compute each row from its own inputs only (then the result is the same,
+    bit for bit, as one launch over all rows). ``first``: the first chunk's size (default ``CPU_FIRST_CHUNK``);
+    ``align``: later chunks are multiples of it. Returns the number of chunks run."""
+    if n <= 0:
+        return 0
+    if not wp.get_device(device).is_cpu:
+        run(0, n)
+        return 1
+    size, lo, count = max(1, first or CPU_FIRST_CHUNK), 0, 0
+    while lo < n:
+        hi = min(n, lo + size)
+        t0 = time.perf_counter()
+        run(lo, hi)
+        count += 1
+        dt = max(time.perf_counter() - t0, 1e-6)
+        grow = min(4.0, max(0.25, CPU_CHUNK_SECONDS / dt))  # at most 4x either way: one slow chunk is no trend
+        size = int(min(CPU_MAX_CHUNK, max(align, (size * grow) // align * align)))
+        lo = hi
+    return count
 
 _HID = mlp.MAX_D // 2   # the per-thread kernels' hidden vectors (vec_h)
 _ACC = mlp.MAX_D // 4   # their float64 accumulators of a head's first layer (vec_acc)
@@ -199,9 +232,9 @@ class PerThread(_Backend):
         """Embeddings e(x) of (N,) vec3 points (in ``frame``, default ``state.frame``): (N, D) float32."""
         st = self.state
         out = wp.empty((pts.shape[0], st.shape.D), dtype=wp.float32, device=self.device)
-        if pts.shape[0]:
-            wp.launch(mlp.embed_points, pts.shape[0], inputs=[st.weights, pts, frame or st.frame], outputs=[out],
-                      device=self.device)
+        in_chunks(self.device, pts.shape[0], lambda lo, hi: wp.launch(
+            mlp.embed_points, hi - lo, inputs=[st.weights, pts[lo:hi], frame or st.frame], outputs=[out[lo:hi]],
+            device=self.device))
         return out
 
     def _embed_vertices(self, md: MeshOnDevice):
@@ -213,9 +246,10 @@ class PerThread(_Backend):
         S, V = src_pos.shape[0], md.V
         es = self.embed(src_pos)
         head = wp.empty((S, V), dtype=wp.float32, device=dev)
-        if bound is None or st.shape.D > head_fp32.MAX_D:
-            wp.launch(head_fp32.head_rows, (S, V), outputs=[head], device=dev,
-                      inputs=[st.head_weights, es, src_pos, md.verts, st.frame])
+        if bound is None or st.shape.D > head_fp32.MAX_D:  # every (source, vertex) its own: chunks of vertices
+            in_chunks(dev, V, lambda lo, hi: wp.launch(
+                head_fp32.head_rows, (S, hi - lo), outputs=[head[:, lo:hi]], device=dev,
+                inputs=[st.head_weights, es, src_pos, md.verts[lo:hi], st.frame]), first=max(1, 2048 // max(S, 1)))
             return head
         if st.tile_head is None:  # the tile kernel takes biases as (H, 1) columns
             w = st.weights
@@ -232,10 +266,15 @@ class PerThread(_Backend):
 
     def _finish(self, head, rows, row_comp, src, src_comp, out, raw: bool):
         st = self.state
-        wp.launch(finish.finish_rows, head.shape, inputs=[head, rows, row_comp if row_comp is not None else st.no_ints,
-                                                          src, src_comp if src_comp is not None else st.no_ints,
-                                                          st.frame, 1.0 if st.options["euclid"] else 0.0, int(raw)],
-                  outputs=[out], device=self.device)
+
+        def run(lo, hi):  # columns lo..hi (rows of the result: targets)
+            wp.launch(finish.finish_rows, (head.shape[0], hi - lo),
+                      inputs=[head[:, lo:hi], rows[lo:hi], row_comp[lo:hi] if row_comp is not None else st.no_ints,
+                              src, src_comp if src_comp is not None else st.no_ints, st.frame,
+                              1.0 if st.options["euclid"] else 0.0, int(raw)],
+                      outputs=[out[:, lo:hi]], device=self.device)
+
+        in_chunks(self.device, head.shape[1], run, first=1 << 16)
 
     def vertex_distances(self, md: MeshOnDevice, pts: np.ndarray, ids, comp, out: wp.array, reduce_min: bool,
                          raw: bool):

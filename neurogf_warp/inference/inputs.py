@@ -21,7 +21,8 @@ from neurogf_warp.inference.state import DOMAIN, query_state, to_relative
 from neurogf_warp.kernels.inference import finish
 from neurogf_warp.model.model import Model
 
-__all__ = ["DOMAIN", "check_domain", "points_in", "sources_in", "pair_inputs", "pair_components", "single_answer"]
+__all__ = ["DOMAIN", "check_domain", "points_in", "sources_in", "pair_inputs", "pair_components", "single_answer",
+           "check_points_in_frame"]
 
 _NO_BAD = 2**31 - 1
 _OUTSIDE = "outside the model's domain (the cube of half-side 1.5 bounding radii around the mesh's bounding-box centre)"
@@ -153,6 +154,20 @@ def _check_domain_host(st, a: np.ndarray, rel: np.ndarray, name: str):
         i = int(np.argmax(bad))
         where = _OUTSIDE if np.all(np.isfinite(a[i])) else "non-finite (NaN or inf)"
         raise ValueError(f"{name}[{i}] = {a[i].tolist()} is {where}")
+
+
+def check_points_in_frame(points: np.ndarray, center, scale: float, name: str, shape: str = "shape"):
+    """The domain rule of every model, for (N, 3) float64 host points in user units and a normalized frame
+    ``(x - center) * scale`` (the generalizable model's): a row outside the cube ``[-DOMAIN, DOMAIN]^3`` of the frame,
+    or with a NaN or infinite coordinate, is refused with a ValueError naming it."""
+    x = (np.asarray(points, np.float64) - np.asarray(center, np.float64)) * float(scale)
+    bad = ~np.all(np.isfinite(x) & (np.abs(x) <= DOMAIN), axis=1)
+    if np.any(bad):
+        i = int(np.argmax(bad))
+        a = np.asarray(points[i], np.float64)
+        where = (f"outside the model's domain (the cube of half-side {DOMAIN} bounding radii around the {shape}'s "
+                 f"bounding-box centre)") if np.all(np.isfinite(a)) else "non-finite (NaN or inf)"
+        raise ValueError(f"{name}[{i}] = {a.tolist()} is {where}")
 
 
 def pair_inputs(model, p, q, device, check: bool = True):

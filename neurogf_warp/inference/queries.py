@@ -45,9 +45,10 @@ import torch
 import warp as wp
 
 from neurogf_warp.common.arrays import Output, resolve_device
+from neurogf_warp.common.checks import InputError
 from neurogf_warp.inference import autograd
 from neurogf_warp.inference.autograd import wants_grad
-from neurogf_warp.inference.backends import PerThread, backend_of, bind
+from neurogf_warp.inference.backends import PerThread, backend_of, bind, in_chunks
 from neurogf_warp.inference.inputs import DOMAIN, pair_components, pair_inputs, points_in, single_answer, sources_in
 from neurogf_warp.inference.paths import PROJECT_STEPS, path, project  # noqa: F401  (public through this module)
 from neurogf_warp.inference.state import PRECISIONS, check_memory, query_state, unbind
@@ -95,7 +96,7 @@ def _vertex_distances(model: Model, src, name: str, device, output: str, precisi
                 _warned_unbound.add((id(model), str(dev)))
                 warnings.warn(f"{e}; answering without kept embeddings", RuntimeWarning, stacklevel=3)
     internal = wp.empty(rows_out * V, dtype=wp.float32, device=dev)
-    be.vertex_distances(md, pts, ids, comp, internal, reduce_min, raw)
+    _sources_in_chunks(be, md, pts, ids, comp, internal, reduce_min, raw)
     flat = rows_out == 1 and (one or reduce_min)
     if md.identity:
         res = internal if flat else internal.reshape((rows_out, V))
@@ -106,6 +107,53 @@ def _vertex_distances(model: Model, src, name: str, device, output: str, precisi
         if flat:
             res = res.reshape(-1)
     return Output(output, dev).result(res)
+
+
+def _sources_in_chunks(be, md, pts, ids, comp, internal: wp.array, reduce_min: bool, raw: bool):
+    """``be.vertex_distances`` over the sources, in chunks of sources on the CPU (``in_chunks``: Ctrl-C between
+    them); every source's row is its own, and the nearest source of several chunks is the least of their minima."""
+    S, V = len(pts), md.V
+    dev = internal.device
+    if S <= 1 or not dev.is_cpu:
+        be.vertex_distances(md, pts, ids, comp, internal, reduce_min, raw)
+        return
+    part = wp.empty(V, dtype=wp.float32, device=dev) if reduce_min else None
+    done = []
+
+    def run(lo, hi):
+        sl = slice(lo, hi)
+        sub = (pts[sl], None if ids is None else ids[sl], None if comp is None else comp[sl])
+        if not reduce_min:
+            be.vertex_distances(md, *sub, internal[lo * V: hi * V], False, raw)
+            return
+        be.vertex_distances(md, *sub, part if done else internal, True, raw)
+        if done:  # the CPU's arrays are host memory: numpy works on them in place
+            np.fmin(internal.numpy(), part.numpy(), out=internal.numpy())
+        done.append(hi)
+
+    in_chunks(dev, S, run, first=max(1, (1 << 14) // max(V, 1)), align=1)
+
+
+def _generalizable(model, name: str, device, output: str, precision: str, raw: bool, **kw):
+    """The answer of a generalizable model (``neurogf_warp.generalizable``) given to a per-mesh query function: its
+    own method when it is conditioned on a shape, and what the per-mesh options become there; None for a per-mesh
+    model. Options it does not have are refused by name."""
+    if isinstance(model, Model) or type(model).__module__ != "neurogf_warp.generalizable.model":
+        return None
+    method = getattr(model, name)
+    if not hasattr(model, "wn"):  # not conditioned: the method says how to condition it
+        return method()
+    if device is not None and str(wp.get_device(device)) != str(model.device):
+        raise InputError(f"device={device!r}: this generalizable model is conditioned on {model.device}; condition it "
+                         f"on {device!r} (model.condition(shape, device=...)) or leave device out")
+    if output != "numpy":
+        raise InputError(f"output={output!r}: a conditioned generalizable model answers numpy arrays; use "
+                         f"output='numpy' (the default)")
+    if raw:
+        raise InputError("raw=True is for per-mesh models; a generalizable model's answers are its own values")
+    if precision not in ("auto", "fp32", "fp16"):
+        raise InputError(f"precision must be one of ('auto', 'fp16', 'fp32'), got {precision!r}")
+    return method(**kw, precision="fp32" if precision == "auto" else precision)
 
 
 def _source_chunks(src, pts, ids, step: int):
@@ -143,6 +191,9 @@ def ssad(model: Model, source, device=None, output: str = "numpy", precision: st
         Distances in mesh units, in the file's vertex numbering: NaN for vertices no face uses, +inf for vertices
         on another connected component, exactly 0 at the source vertex.
     """
+    gen = _generalizable(model, "ssad", device, output, precision, raw, source=source)
+    if gen is not None:
+        return gen
     if wants_grad(source):
         return autograd.ssad(model, source, device=device, precision=precision, cache=cache, raw=raw)
     return _vertex_distances(model, source, "source", device, output, precision, cache, False, one=True, raw=raw)
@@ -156,6 +207,9 @@ def msad(model: Model, sources, device=None, output: str = "numpy", precision: s
     one point is [[x, y, z]]: a flat list of floats is refused, never read as a point or as indices).
     Returns (n_input,) float32, as ``ssad``.
     """
+    gen = _generalizable(model, "msad", device, output, precision, raw, sources=sources)
+    if gen is not None:
+        return gen
     if wants_grad(sources):
         return autograd.msad(model, sources, device=device, precision=precision, cache=cache, raw=raw)
     return _vertex_distances(model, sources, "sources", device, output, precision, cache, True, raw=raw)
@@ -178,6 +232,9 @@ def distance_matrix(model: Model, sources, targets=None, device=None, output: st
     The (S, V) form of S sources costs about S single-source queries of the distance head but one pass over the
     vertex embeddings; memory is 4 S V bytes for the result.
     """
+    gen = _generalizable(model, "distance_matrix", device, output, precision, raw, sources=sources, targets=targets)
+    if gen is not None:
+        return gen
     if targets is None:
         return _vertex_distances(model, sources, "sources", device, output, precision, cache, False, raw=raw)
     st = query_state(model, device)
@@ -206,6 +263,9 @@ def distance(model: Model, p, q, device=None, precision: str = "auto", check: bo
     and out-of-domain points (one device-side pass and a synchronization); with False such rows give NaN.
     ``raw``: the network's own values (not raised to |p - q|, no exact 0 for identical points).
     """
+    gen = _generalizable(model, "distance", device, "numpy", precision, raw, p=p, q=q)
+    if gen is not None:
+        return gen
     if wants_grad(p, q):
         return autograd.distance(model, p, q, device=device, precision=precision, check=check, raw=raw)
     dev, P, Q, kind, single, frame = pair_inputs(model, p, q, device, check)
@@ -214,7 +274,7 @@ def distance(model: Model, p, q, device=None, precision: str = "auto", check: bo
     res = out.empty(P.shape[0])
     n = P.shape[0]
     if n:
-        be.pairs(P, Q, res, raw, frame)
+        in_chunks(dev, n, lambda lo, hi: be.pairs(P[lo:hi], Q[lo:hi], res[lo:hi], raw, frame))
         comps = pair_components(model, P, Q, dev, frame)
         if comps is not None:
             wp.launch(finish.split_pairs, n, inputs=[*comps, res], device=dev)
@@ -233,7 +293,7 @@ def sdf(model: Model, x, device=None, precision: str = "auto", check: bool = Tru
     out = Output(kind, dev)
     res = out.empty(X.shape[0])
     if X.shape[0]:
-        be.sdf(X, res, frame, not check)
+        in_chunks(dev, X.shape[0], lambda lo, hi: be.sdf(X[lo:hi], res[lo:hi], frame, not check))
     return single_answer(out.result(res), kind, single)
 
 

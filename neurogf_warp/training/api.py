@@ -99,7 +99,8 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
         used); a finished run's checkpoint gives its model back
     force : start over, replacing an existing run and model file
     budget_seconds : seconds for the whole run (dataset, set-up, all stages, saving; in a fresh process also the
-        import of torch and the training stage that ``ngf.train`` triggers), a number > 0 and at most 30
+        import of torch and the training stage that ``ngf.train`` triggers; under the command line, everything
+        from the process start to its exit), a number > 0 and at most 30
         days (InputError otherwise, before any work). The ground truth gets at most a third of it (fewer sources
         when it runs short, noted in the dataset); the step counts are fitted to the rest and re-planned from the
         measured step times. A run interrupted and continued by a later call gets what the earlier calls left.
@@ -121,9 +122,11 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
     model's ``config`` (the file's metadata) and the run's log. A model worse than the heat method, or a budget
     predicted too small before the steps start, gives a ``ModelQualityWarning`` (``training.quality``).
     """
+    from neurogf_warp.common.clock import budget_start
     from neurogf_warp.common.lazy import call_started
 
-    t_call = call_started("train", time.perf_counter())  # a fresh process's import of this stage counts too
+    # a fresh process's import of this stage counts too; on the command line, everything since the process began
+    t_call = budget_start(call_started("train", time.perf_counter()))
     budget_seconds = check_budget(budget_seconds)
     files = RunFiles.for_model(out)
     files.check_writable()
