@@ -1,6 +1,6 @@
 """The command line a new user meets: results only where asked (stdout without -o), refusing another mesh unless
 told, paths on the surface by default, messages in the command line's terms, exit codes that tell bad input (2)
-from failures and bugs (1), a closed stdout ending quietly, and quiet library calls (issues 20, 21, 22)."""
+from failures and bugs (1), a closed stdout ending quietly, and quiet library calls."""
 import errno
 import os
 import subprocess

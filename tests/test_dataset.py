@@ -262,7 +262,7 @@ def test_the_next_batch_started_early_gives_the_same_dataset(two_blobs, monkeypa
 @pytest.mark.parametrize("with_distances", [False, True], ids=["path phase", "paths in the distance pass"])
 def test_a_time_limit_covers_test_sources_and_paths_too(with_distances, monkeypatch):
     """The limit once stopped only the distance sources; the test sources and every path came after it, so a
-    48K-vertex mesh's dataset took 54 s of its 40 s (issue 24). Now the whole build ends within the limit, give
+    48K-vertex mesh's dataset took 54 s of its 40 s. Now the whole build ends within the limit, give
     or take one solver batch, and says it is incomplete: with a path phase (CPU) and with the paths traced in the
     distance pass (GPU; forced here)."""
     monkeypatch.setattr(D, "trace_with_distances", lambda device: with_distances)

@@ -105,7 +105,7 @@ def test_proxy_error_reads_the_fine_rows_on_each_proxy_vertex(fine_blobs):
     (2_223_321, 20.0, (30_000, 40_000)),     # 66x smaller, near PROXY_MIN_VERTICES
     (436_076, 100.0, (100_000, 218_038)),    # 1,024 of its own sources do not fit in 50 s: a proxy, at most half
     (436_076, 2000.0, (0, 0)),               # they do: the mesh itself
-    (134_345, 15.0, (30_000, 40_000)),       # igea at 60 s: ~4x smaller (RESULTS.md, tenth session: 34K wins)
+    (134_345, 15.0, (30_000, 40_000)),       # igea at 60 s: ~4x smaller (a 34K proxy trained best)
     (134_345, 95.0, (0, 0)),                 # igea at 300 s: its own mesh
     (50_000, 15.0, (0, 0)),                  # below 2 x PROXY_MIN_VERTICES: never decimated
     (34_834, 15.0, (0, 0)),

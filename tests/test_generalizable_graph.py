@@ -1,4 +1,4 @@
-"""The generalizable encoder as a captured graph (issue 23): ``WarpGenNet.encode`` without ``into`` replays one
+"""The generalizable encoder as a captured graph: ``WarpGenNet.encode`` without ``into`` replays one
 graph per point count on CUDA and copies its outputs into the returned state, so conditioned shapes alive at the
 same time stay independent. On the CPU the public call launches eagerly (checked as such); the graph machinery
 itself is checked on the CPU too through Warp's CPU graphs (``WarpGenNet._graph_cpu``, a test switch), with the

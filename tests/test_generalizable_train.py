@@ -110,8 +110,8 @@ def test_bad_folder(tmp_path, capsys):
 
 def test_per_mesh_folder_records_each_mesh(collection, tmp_path, monkeypatch):
     """per_mesh.train_folder (one rank): every mesh goes to ngf.train with its own output file, a failing mesh is
-    recorded without stopping the others, the summary is written. (ngf.train itself is tested elsewhere; the
-    two-rank gloo run of this entry point is in the report.)"""
+    recorded without stopping the others, the summary is written. (ngf.train itself is tested elsewhere; here
+    with one rank only.)"""
     import neurogf_warp as ngf
     from neurogf_warp.generalizable.per_mesh import main as per_mesh_main
 

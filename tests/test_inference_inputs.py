@@ -1,5 +1,5 @@
 """Answers that do not depend on where the mesh sits, check=False rows, source forms and the chord bound
-(issue 21, items 1, 3, 6 and 8), on Warp's CPU device."""
+on Warp's CPU device."""
 import numpy as np
 import pytest
 import torch

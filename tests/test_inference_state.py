@@ -1,4 +1,4 @@
-"""The per-device query state (issue 20): one owner of what a model keeps on a device, freed by ``unbind`` /
+"""The per-device query state: one owner of what a model keeps on a device, freed by ``unbind`` /
 ``invalidate``; the network's shape read from its weights and checked by each backend."""
 import gc
 import weakref

@@ -1,4 +1,4 @@
-"""Paths a user can trust (issues 21 item 4 and 24 item 5): default paths on the surface, refinement that never
+"""Paths a user can trust: default paths on the surface, refinement that never
 returns a path worse than the head's or the straight line's (by the on-surface length it is chosen by, and on
 average by Chamfer to the solver's paths), a point's path to itself is the point, NaN across components.
 

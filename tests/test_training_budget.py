@@ -1,7 +1,7 @@
-"""Budgets that hold, models that are never silently bad, one run per output (issues 21, 22, 24).
+"""Budgets that hold, models that are never silently bad, one run per output.
 
 CPU, small meshes of three kinds (an ellipsoid, two separate parts, open patches joined at one vertex like the
-teapot of issue 24); the budgeted runs use the preset a user gets on a CPU (``cpu``)."""
+Utah teapot's); the budgeted runs use the preset a user gets on a CPU (``cpu``)."""
 import json
 import math
 import os

@@ -32,9 +32,9 @@ PRESET_HELP = ("training preset: default (the GPU recipe), paper (the published 
                "run); default: chosen by the device and the mesh size")
 VALUE_FORMATS = (".npy", ".csv", ".ply")
 ISSUES = "the neurogf-warp issue tracker"
-# `path --refine` cost, measured: on an H200 (README, benchmarks/RESULTS.md) and on the shared 2-core CPU of
-# issue 21 (200 pairs of a D=128 CPU-preset model in 174 s) and 2026-11-24 (20 pairs of the released fandisk,
-# D=256, in 484 s with other jobs running)
+# `path --refine` cost, measured: on an H200 (docs/performance.md) and on a shared 2-core CPU (200 pairs of a
+# D=128 CPU-preset model in 174 s; 2026-11-24: 20 pairs of the released fandisk, D=256, in 484 s with other jobs
+# running)
 REFINE_COST = ("costly on a CPU: every sweep re-evaluates the SDF network at every point (measured on a shared "
                "2-core CPU: {cpu}); on an H200, 1,000 pairs of 128 points with 50 sweeps take 50 ms")
 REFINE_CPU = "0.9 to 24 s per pair of 128 points with 50 sweeps"
@@ -292,7 +292,7 @@ def _add_render(sub, common):
     s.set_defaults(run=_cmd_render)
 
 
-# ------------------------------------------------------------------------------------------ helpers
+# ---------------------------------------------------------------------------------------- utilities
 
 def start_warp(verbose: bool):
     """Import and initialize Warp: quiet (log level WARNING, no driver warning) unless ``verbose``."""

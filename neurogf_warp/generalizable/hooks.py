@@ -1,6 +1,6 @@
 """Small entry points for the existing package (``ngf.load``, the command line) to reach this subpackage.
 
-Kept here so that the hooks in existing modules stay one or two lines each (see the report of issue 23).
+Kept here so that the hooks in the modules outside this subpackage stay one or two lines each.
 """
 from __future__ import annotations
 
