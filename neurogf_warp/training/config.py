@@ -25,7 +25,7 @@ STAGES = ("querier", "joint", "refine_dist", "refine_sdf", "refine_path")
 RATIOS = {"querier": 0.25, "joint": 1.0, "refine_dist": 1.0, "refine_sdf": 0.1, "refine_path": 0.3}
 QUERIER_MAX = 4000  # default querier steps: 0.25 x joint steps, at most this (it only guides the surface term)
 DIST_LOSSES = ("l1", "relative_global")
-# settings of older versions that measured no better than without them, with the value that meant "off":
+# settings of older versions that did not improve training, with the value that meant "off":
 # old configs that carry that value still load; any other value is refused
 REMOVED = {"refine_amp": True, "refine_batch_paths": None}
 
@@ -307,7 +307,7 @@ def _without_removed(d: dict) -> dict:
     for name, off in REMOVED.items():
         if name in d:
             if d[name] != off:
-                raise ValueError(f"setting {name}={d[name]!r} was removed (it measured no better than without); this "
+                raise ValueError(f"setting {name}={d[name]!r} was removed (it did not improve training); this "
                                  "version cannot continue a run that used it")
             del d[name]
     return d
