@@ -98,6 +98,7 @@ def test_evaluate_bad_options(trained, monkeypatch):
         evaluate(trained[0], heat=True, verbose=False)
 
 
+@pytest.mark.slow
 def test_evaluate_reproduces_released_checkpoint_numbers():
     """The released fandisk checkpoint against the exact reference: 0.263% MRE (0.274% in reference/README, before
     distances were bounded below by the straight line) and heat 1.04%."""

@@ -3,6 +3,7 @@ import importlib.util
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 import neurogf_warp as ngf
 from neurogf_warp.mesh.surface import snap_to_mesh
@@ -19,6 +20,7 @@ def load_example():
     return mod
 
 
+@pytest.mark.slow
 def test_agents_reach_the_target_along_geodesics():
     """Released fandisk model; the target is a source of the exact reference, so each agent's walk can be
     compared with the exact geodesic distance from its start."""
@@ -59,6 +61,7 @@ def test_agents_reach_the_target_along_geodesics():
     assert np.all(np.abs(walked - exact) <= 0.10 * exact + speed), f"{msg}: {walked / exact}"
 
 
+@pytest.mark.slow
 def test_example_command_writes_frames_and_gif(tmp_path):
     from PIL import Image
 
@@ -71,6 +74,7 @@ def test_example_command_writes_frames_and_gif(tmp_path):
     assert gif.size == (40, 40) and gif.n_frames == 2
 
 
+@pytest.mark.slow
 def test_example_reports_agents_that_do_not_arrive(tmp_path, capsys):
     """Two steps are too few to arrive: the summary names the agents that did not, and --require-arrival turns
     that into exit status 1 (the example's stated guarantee: arrival is reported, never assumed)."""

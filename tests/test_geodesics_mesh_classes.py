@@ -34,6 +34,7 @@ def relative_errors(name, sources=4, seed=0, **solver):
     return (d[ok] - exact[ok]) / exact[ok], exact[ok]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(CLASSES))
 def test_accuracy_against_exact(name):
     rel, exact = relative_errors(name)

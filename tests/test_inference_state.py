@@ -33,6 +33,7 @@ def dead(refs) -> bool:
     return all(r() is None for r in refs)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("precision", ["fp32", "fp16"])
 def test_unbind_leaves_no_reference_to_the_kept_embeddings(precision):
     """After every kind of vertex query on a bound model (which makes tables and recorded launches from the kept
