@@ -17,9 +17,9 @@ import torch
 import trimesh
 
 from neurogf_warp.common.checks import InputError
+from neurogf_warp.dataset.build import load_dataset
 from neurogf_warp.training import RunFiles, TrainingInterrupted, preset, train
 from neurogf_warp.training import quality
-from neurogf_warp.dataset.build import load_dataset
 from neurogf_warp.training.budget import MIN_SDF_SCALE
 from neurogf_warp.training.loop import Runner
 from neurogf_warp.training.quality import ModelQualityWarning
