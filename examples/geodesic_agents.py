@@ -20,7 +20,7 @@ it), the 3D gradient and four directions turned from it are tried too, and the l
 Arrival is not guaranteed: the walk follows the network's field, and where that field has a false local minimum an
 agent can stall or lose ground. On the released fandisk model, 1,000 random draws of the test's case (12 agents, a
 reference source as target) had an agent that stalled at a crease in 4 draws with the steepest descent alone, in
-none of 2,000 with the other directions (benchmarks/RESULTS.md, 2026-11-25); on a user's CPU-trained torus 28 of
+none of 2,000 with the other directions (2026-11-25); on a user's CPU-trained torus 28 of
 32 arrived, and one step raised an agent's distance by 139% of a step (before the other directions). The summary
 line counts the agents that arrived, names those that did not and gives the largest rise of an agent's distance
 in one step; ``--require-arrival`` makes the run exit with status 1 when any agent did not arrive.

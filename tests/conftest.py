@@ -88,3 +88,22 @@ def ctrl_c_raises():
     before = signal.signal(signal.SIGINT, signal.default_int_handler)
     yield
     signal.signal(signal.SIGINT, before)
+
+
+# Fixtures that train or build something for many seconds: a test that uses one is slow (out of the quick run).
+SLOW_FIXTURES = {"trained"}
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest's own -m selection, which then sees these marks
+def pytest_collection_modifyitems(config, items):
+    """Marks from what a test needs: ``slow`` for the fixtures above, ``gpu`` for a test parametrized on a CUDA
+    device; ``gpu`` tests are skipped where Warp finds no CUDA device."""
+    cuda = wp.get_cuda_device_count() > 0
+    for item in items:
+        if SLOW_FIXTURES.intersection(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.slow)
+        params = getattr(getattr(item, "callspec", None), "params", {})
+        if any(isinstance(v, str) and v.startswith("cuda") for v in params.values()):
+            item.add_marker(pytest.mark.gpu)
+        if not cuda and item.get_closest_marker("gpu"):
+            item.add_marker(pytest.mark.skip(reason="needs a CUDA device"))

@@ -258,7 +258,7 @@ def scattered_parts(count=44, seed=0):
     return np.concatenate(Vs), np.concatenate(Fs), np.concatenate(part)
 
 
-# ---- mesh classes of issue 24 (exact reference: tvb-gdist, float64) ------------------------------------------
+# ---- hard mesh classes (exact reference: tvb-gdist, float64) -------------------------------------------------
 
 STRETCHES = {"stretched-0.01": (1.0, 0.01, 0.01), "stretched-100-1-0.01": (100.0, 1.0, 0.01),
              "stretched-1e-4": (1.0, 1e-4, 1e-4)}
@@ -348,7 +348,7 @@ def fan_box(n=4, size=(2.0, 1.0, 0.3)):
 
 
 def mesh_classes():
-    """name -> (V, F, R): one small mesh of each class of issue 24 (stretched, needles, slivers, duplicated faces,
+    """name -> (V, F, R): one small mesh of each hard class (stretched, needles, slivers, duplicated faces,
     coarse CAD-like fans) and R, the faces of the same surface that the exact reference (tvb-gdist,
     `reference_geodesics.gdist_distances`) runs on: F itself, except for duplicated faces (gdist needs a manifold;
     the copies add no surface, so the icosphere's own faces give the same distances)."""

@@ -60,17 +60,17 @@ def test_per_mesh_folder_budgets_count_from_each_call(tmp_path, monkeypatch):
 def test_cli_entry_counts_from_the_process_start_and_main_with_argv_from_the_call(monkeypatch):
     """``neurogf-warp`` run as the program (main() without argv) starts budgets at the process start; a call of
     main([...]) from Python (tests, scripts) at the call."""
+    from neurogf_warp.cli import gen
     from neurogf_warp.cli import main as cli
-    from neurogf_warp.generalizable import hooks
 
     seen = []
 
-    def fake_gen_train(argv):
+    def fake_run_gen(name, argv):
         now = time.perf_counter()
         seen.append((now, clock.budget_start(now)))
         return 0
 
-    monkeypatch.setitem(hooks.CLI_COMMANDS, "gen-train", fake_gen_train)
+    monkeypatch.setattr(gen, "run_gen", fake_run_gen)
     monkeypatch.setattr(sys, "argv", ["neurogf-warp", "gen-train"])
     assert cli.main() == 0
     assert cli.main(["gen-train"]) == 0

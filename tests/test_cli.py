@@ -41,6 +41,7 @@ def test_help_imports_neither_torch_nor_warp():
     assert out.split() == ["False", "False"]
 
 
+@pytest.mark.slow
 def test_query_commands_write_what_the_api_returns(trained, tmp_path, capsys):
     import neurogf_warp as ngf
 
@@ -156,6 +157,7 @@ def test_render_exact_and_heat_fields(trained, tmp_path, capsys):
     assert code == 2 and "not one of" in err
 
 
+@pytest.mark.slow
 def test_warp_stays_quiet_unless_verbose(trained):
     env = dict(os.environ, NEUROGF_DEBUG="")
     cmd = [sys.executable, "-m", "neurogf_warp.cli.main", "info", str(trained[1])]
@@ -165,6 +167,7 @@ def test_warp_stays_quiet_unless_verbose(trained):
     assert loud.returncode == 0 and "Warp" in loud.stderr  # the banner (and, without a GPU, the driver warning)
 
 
+@pytest.mark.slow
 def test_demo_twice_in_the_same_folder(tmp_path, capsys, ellipsoid):
     """The main job run twice: the second run answers from the finished model; nothing lands outside the folder."""
     import trimesh

@@ -188,6 +188,7 @@ def test_budgets_are_checked_before_any_work(command, value, tmp_path, capsys, m
     assert os.listdir(tmp_path) == []
 
 
+@pytest.mark.slow
 def test_a_closed_stdout_ends_quietly(trained, tmp_path):
     """`neurogf-warp path ... | head -2` (and `info --json | head`): exit 0, nothing on stderr."""
     v = trained[0].mesh.vertices
@@ -249,6 +250,7 @@ print("ok", d.shape)
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("verbose", ["", "1"])
 def test_library_calls_are_quiet_unless_asked(verbose, tmp_path):
     """No Warp banner, no "Module ... load" lines, no CUDA-driver warning; NEUROGF_WARP_VERBOSE=1 brings them back."""

@@ -259,10 +259,12 @@ def test_the_next_batch_started_early_gives_the_same_dataset(two_blobs, monkeypa
         np.testing.assert_array_equal(getattr(early, name), getattr(plain, name), err_msg=name)
 
 
+@pytest.mark.slow
+@pytest.mark.wallclock
 @pytest.mark.parametrize("with_distances", [False, True], ids=["path phase", "paths in the distance pass"])
 def test_a_time_limit_covers_test_sources_and_paths_too(with_distances, monkeypatch):
     """The limit once stopped only the distance sources; the test sources and every path came after it, so a
-    48K-vertex mesh's dataset took 54 s of its 40 s (issue 24). Now the whole build ends within the limit, give
+    48K-vertex mesh's dataset took 54 s of its 40 s. Now the whole build ends within the limit, give
     or take one solver batch, and says it is incomplete: with a path phase (CPU) and with the paths traced in the
     distance pass (GPU; forced here)."""
     monkeypatch.setattr(D, "trace_with_distances", lambda device: with_distances)
@@ -291,6 +293,7 @@ def test_nearest_first_is_the_head_of_a_stable_argsort():
         np.testing.assert_array_equal(D.nearest_first(d, s, n), want)
 
 
+@pytest.mark.slow
 def test_held_out_rows_are_exact_grade_when_training_rows_are_coarse(two_blobs):
     """A coarse training solver (k=1, the cpu_large preset) still gives held-out rows at the default accuracy: those
     rows judge the model against the heat method (training.quality), and k=1 rows flattered the model there."""
@@ -310,6 +313,7 @@ def test_held_out_rows_are_exact_grade_when_training_rows_are_coarse(two_blobs):
     assert timed.meta["settings"]["test_k"] == DEFAULT_K and len(timed.gd_src) == SMALL["n_sources"]
 
 
+@pytest.mark.slow
 def test_coarse_training_rows_are_scaled_by_the_bias_the_held_out_rows_measure():
     """k=1 rows are longer than exact-grade ones by a near-constant factor (median +0.11-0.23% on the shared
     meshes): the build measures it on the held-out sources, solved at both accuracies, and divides the training

@@ -36,6 +36,7 @@ def proxied(fine_blobs):
     return D.build_dataset(fine_blobs, proxy=700, **SMALL)
 
 
+@pytest.mark.slow
 def test_a_kept_proxy_gives_rows_of_the_fine_mesh(proxied, fine_blobs):
     d = proxied
     m = load_mesh(fine_blobs)
@@ -69,6 +70,7 @@ def test_a_kept_proxy_gives_rows_of_the_fine_mesh(proxied, fine_blobs):
     assert len(d.path_global) and np.isfinite(d.path_global).all()
 
 
+@pytest.mark.slow
 def test_a_proxy_too_far_from_the_mesh_is_dropped(fine_blobs, monkeypatch):
     monkeypatch.setattr(D, "PROXY_MAX_MRE", 0.0)
     d = D.build_dataset(fine_blobs, proxy=700, **SMALL)
@@ -81,6 +83,7 @@ def test_a_proxy_too_far_from_the_mesh_is_dropped(fine_blobs, monkeypatch):
     np.testing.assert_array_equal(d.test_dist, GeodesicSolver(m, device="cpu").solve(d.test_src))
 
 
+@pytest.mark.slow
 def test_no_proxy_unless_asked_or_needed(fine_blobs):
     d = D.build_dataset(fine_blobs, **SMALL)  # CPU, no time limit: the mesh itself
     assert d.meta["proxy"] is None
@@ -105,7 +108,7 @@ def test_proxy_error_reads_the_fine_rows_on_each_proxy_vertex(fine_blobs):
     (2_223_321, 20.0, (30_000, 40_000)),     # 66x smaller, near PROXY_MIN_VERTICES
     (436_076, 100.0, (100_000, 218_038)),    # 1,024 of its own sources do not fit in 50 s: a proxy, at most half
     (436_076, 2000.0, (0, 0)),               # they do: the mesh itself
-    (134_345, 15.0, (30_000, 40_000)),       # igea at 60 s: ~4x smaller (RESULTS.md, tenth session: 34K wins)
+    (134_345, 15.0, (30_000, 40_000)),       # igea at 60 s: ~4x smaller (a 34K proxy trained best)
     (134_345, 95.0, (0, 0)),                 # igea at 300 s: its own mesh
     (50_000, 15.0, (0, 0)),                  # below 2 x PROXY_MIN_VERTICES: never decimated
     (34_834, 15.0, (0, 0)),
@@ -156,6 +159,7 @@ def test_cpu_builds_get_a_proxy_from_the_cpu_rates(V, k, limit, workers, expect)
     assert D._auto_proxy(mesh, dataclasses.replace(st, batch=8), "cpu", limit) == 0
 
 
+@pytest.mark.slow
 @pytest.mark.filterwarnings("ignore::neurogf_warp.training.quality.ModelQualityWarning")  # 10 steps: of course
 def test_a_training_run_says_it_used_a_proxy(fine_blobs, tmp_path, capsys):
     """The run's history (log.json) and its progress lines say which ground truth it trained on."""

@@ -98,9 +98,10 @@ def test_evaluate_bad_options(trained, monkeypatch):
         evaluate(trained[0], heat=True, verbose=False)
 
 
+@pytest.mark.slow
 def test_evaluate_reproduces_released_checkpoint_numbers():
     """The released fandisk checkpoint against the exact reference: 0.263% MRE (0.274% in reference/README, before
-    distances were bounded below by the straight line: issue 21, benchmarks/RESULTS.md) and heat 1.04%."""
+    distances were bounded below by the straight line) and heat 1.04%."""
     from neurogf_warp.model.files import load
 
     ck = shared_path("checkpoints", "official", "NeuroGF_Pretrainer__fandisk_final.pth")

@@ -64,6 +64,7 @@ def test_state_dict_loads_strictly(released):
         load_network(bad)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mesh", MESHES)
 def test_torch_network_matches_reference(released, refs, mesh):
     z = refs[mesh]
@@ -82,6 +83,7 @@ def test_folding_matches_batchnorm(random_net):
     assert torch.allclose(torch.relu(x @ W.T + b), ref, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode,mesh", [("fp64", "stanford-bunny"),
                                        ("fp32", "fandisk"), ("mixed", "spot")])
 def test_warp_matches_reference(released, refs, mode, mesh):
@@ -199,6 +201,7 @@ def test_encode_into_reuses_buffers(random_net):
     np.testing.assert_array_equal(st.fused.numpy(), fresh)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("operand,tol", [("fp32", 1e-5), ("fp16", 5e-3)])
 def test_tiled_query_matches_simt(released, operand, tol):
     """The tile-GEMM query path (tensor cores on CUDA) against the SIMT path on random pairs, fp32 mode; the

@@ -1,4 +1,4 @@
-"""benchmarks/generalizable_collection.py and generalizable_eval.py helpers: evaluation order, tables with
+"""benchmarks/generalizable_collection.py and generalizable_eval.py functions: evaluation order, tables with
 partial columns, merging two calls' rows, pairs that depend on the shape name only."""
 import json
 import sys

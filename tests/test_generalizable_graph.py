@@ -1,4 +1,4 @@
-"""The generalizable encoder as a captured graph (issue 23): ``WarpGenNet.encode`` without ``into`` replays one
+"""The generalizable encoder as a captured graph: ``WarpGenNet.encode`` without ``into`` replays one
 graph per point count on CUDA and copies its outputs into the returned state, so conditioned shapes alive at the
 same time stay independent. On the CPU the public call launches eagerly (checked as such); the graph machinery
 itself is checked on the CPU too through Warp's CPU graphs (``WarpGenNet._graph_cpu``, a test switch), with the
@@ -54,6 +54,7 @@ def arrays(enc):
 CASES = ([("cpu", None), ("cpu", "cpu-graph")] if CPU else []) + ([("cuda:0", None)] if "cuda:0" in DEVICES else [])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("device,how", CASES)
 def test_two_conditioned_clouds_answer_their_own_distances(model, device, how):
     """Two clouds of the same size conditioned one after another (on CUDA: the same captured graph) each answer
@@ -89,7 +90,7 @@ def test_two_conditioned_clouds_answer_their_own_distances(model, device, how):
         assert n in wn._graphs or wn._graph_off, "no graph captured and no reason recorded"
 
 
-@pytest.mark.skipif(wp.get_cuda_device_count() == 0, reason="needs a CUDA device")
+@pytest.mark.gpu
 def test_graph_matches_eager_launches_on_cuda(model):
     """On cuda:0 the public call with the graph gives the eager launches' encoding and distances."""
     x = blob(2048, 7, (2.0, 1.0, 1.5))
@@ -106,6 +107,7 @@ def test_graph_matches_eager_launches_on_cuda(model):
     np.testing.assert_array_equal(cg.ssad(3), ce.ssad(3))
 
 
+@pytest.mark.slow
 @needs_cpu
 def test_graph_path_on_cpu_graphs(random_net):
     """The graph path itself (persistent inputs, frame read from the device, capture, replay, copies out, hash
@@ -203,6 +205,7 @@ def test_outputs_outlive_the_encoding(model):
     np.testing.assert_array_equal(nbr.numpy(), want_n)
 
 
+@pytest.mark.slow
 def test_normalization_matches_the_plain_formula():
     """normalization() (reductions on a (3, N) copy) and its torch twin give the plain formula's bits; the input is
     left alone."""
@@ -230,7 +233,8 @@ def test_normalization_matches_the_plain_formula():
             assert 1.0 / float(np.sqrt(st[3])) == got_s
 
 
-@pytest.mark.skipif(wp.get_cuda_device_count() == 0 or not torch.cuda.is_available(), reason="needs torch on CUDA")
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs torch on CUDA")
 def test_cloud_on_the_gpu_conditions_as_numpy(model):
     """A CUDA torch tensor (float32 or float64) or a CUDA wp.array conditions as the same points from numpy: the
     same frame and encoding bits, the same distances; clear errors for non-finite and too few points."""

@@ -22,6 +22,7 @@ def cloud_cond(model):
     return model.condition(pts)
 
 
+@pytest.mark.slow
 def test_mesh_conditioning_reproduces_reference(model):
     """condition(mesh) samples the authors' reference cloud (same sampler, seed and frame) and its distances are
     max(ratio, 1) * |s - t| in mesh units with the reference ratios."""

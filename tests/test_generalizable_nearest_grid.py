@@ -62,6 +62,7 @@ def test_grid_equals_brute_force(mode, n, seed, dev):
     np.testing.assert_array_equal(got_u.numpy(), want_u.numpy())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dev", DEVICES)
 def test_warp_gen_net_grid_lookup(dev):
     """WarpGenNet(nearest="grid") gives bit for bit the hash-grid distances; encode(into=) rebuilds the lists."""

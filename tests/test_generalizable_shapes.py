@@ -71,6 +71,7 @@ def test_write_collection_and_split(tmp_path, meshes_dir):
         write_collection(tmp_path, n=2, seed=1, test_every=3, progress=False)
 
 
+@pytest.mark.slow
 def test_workers_write_the_same_files(tmp_path, meshes_dir):
     one = write_collection(tmp_path / "a", n=8, seed=2, test_every=4, shared_meshes=meshes_dir, progress=False)
     two = write_collection(tmp_path / "b", n=8, seed=2, test_every=4, shared_meshes=meshes_dir, progress=False,

@@ -45,6 +45,7 @@ def head_ref(w, g, us, ut, si, ti):
     return h @ w["w2"][0], h @ np.abs(w["w2"][0])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dev", DEVICES)
 @pytest.mark.parametrize("storage,mt,nc", [("fp32", 1, 8), ("fp64", 1, 8), ("fp32", 2, 4), ("fp32", 1, 16)])
 def test_kernel_random_weights(storage, mt, nc, dev):

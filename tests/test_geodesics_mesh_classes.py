@@ -1,9 +1,9 @@
-"""Ground-truth solver on the mesh classes of issue 24 against exact MMP (tvb-gdist, float64), Warp CPU device.
+"""Ground-truth solver on hard mesh classes against exact MMP (tvb-gdist, float64), Warp CPU device.
 
 Stretched icospheres (triangle aspect ~70 to ~7,000), needles, slivers, duplicated faces and coarse CAD-like fans
 (`tests/geodesic_meshes.mesh_classes`). The bar: MRE <= 0.05%, no distance more than 0.5% too long, none below
 exact beyond the rounding of the float32 positions the solver works on. Measured values per class and the method
-are in benchmarks/geodesics_notes.md.
+are in docs/design.md.
 """
 import numpy as np
 import pytest
@@ -15,7 +15,7 @@ from tests.reference_geodesics import gdist_distances
 
 CLASSES = M.mesh_classes()
 # the coarse needle mesh keeps a tail of a few pairs above 0.5% at k=3 (rays passing close to a flat or convex
-# vertex are lost: one window per node; benchmarks/geodesics_notes.md, "The worst-pair tail"); bounded, not met
+# vertex are lost: one window per node; docs/design.md); bounded, not met
 WORST = {"needles": 1e-2}
 
 
@@ -34,6 +34,7 @@ def relative_errors(name, sources=4, seed=0, **solver):
     return (d[ok] - exact[ok]) / exact[ok], exact[ok]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(CLASSES))
 def test_accuracy_against_exact(name):
     rel, exact = relative_errors(name)
@@ -103,7 +104,7 @@ def test_near_source_patches_take_the_needles_tail_under_the_bar():
 
 
 def test_near_source_on_a_shared_mesh():
-    # cow, three sources whose k=3 rows hold pairs up to 1.44% too long (benchmarks/geodesics_notes.md)
+    # cow, three sources whose k=3 rows hold pairs up to 1.44% too long without the near-source solve
     import trimesh
 
     from tests.conftest import shared_path

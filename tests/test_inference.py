@@ -67,6 +67,7 @@ def test_golden_parity_values():
                                                    [-0.377735, 0.093600, -0.111356]], atol=2e-6)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name,bound", [("fandisk", 0.0028), ("stanford-bunny", 0.0045)])
 def test_mre_against_exact_geodesics(name, bound):
     """SSAD of the released checkpoint on its mesh, over the 8 exact-reference sources."""
@@ -238,6 +239,7 @@ def test_projection_and_refinement_match_float64():
     assert np.quantile(err, 0.95) <= 2e-5 and err.max() <= 1e-3, f"seed {seed}: {np.quantile(err, 0.95)}, {err.max()}"
 
 
+@pytest.mark.slow
 def test_symmetry_and_ssad_equals_distance():
     model = released("fandisk", mesh=True)
     rng = np.random.default_rng()
@@ -298,6 +300,7 @@ def test_torch_and_warp_arrays_in_and_out():
     assert kind == "torch" and arr.ptr == t.data_ptr()
 
 
+@pytest.mark.slow
 def test_user_kernel_can_call_distance():
     """The SIMT functions are usable inside a user's own Warp kernel."""
     model = released("bunny")

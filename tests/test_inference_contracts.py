@@ -1,4 +1,4 @@
-"""Every contract between the Python side and the native header is written once and checked (issue 20): struct
+"""Every contract between the Python side and the native header is written once and checked: struct
 initializers come from both declarations, flag bits from their Python names, recorded launches are updated by
 parameter name, and distances are finished by the header's one rule on both backends."""
 import numpy as np

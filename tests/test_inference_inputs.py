@@ -1,5 +1,5 @@
 """Answers that do not depend on where the mesh sits, check=False rows, source forms and the chord bound
-(issue 21, items 1, 3, 6 and 8), on Warp's CPU device."""
+on Warp's CPU device."""
 import numpy as np
 import pytest
 import torch
@@ -39,6 +39,7 @@ def small_model(D=64, seed=0, offset=0.0, **options):
 
 # ---- item 1: far from the origin ------------------------------------------------------------------------------
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shift", [1e3, -3.7e5, 1e6, np.array([1e8, -2e7, 5e7])], ids=str)
 def test_moved_mesh_gives_the_same_answers(fandisk, shift):
     """SSAD (from a vertex and from a point), MSAD and point-pair distances of the mesh moved far from the origin
@@ -121,6 +122,7 @@ def test_paths_of_a_moved_mesh(fandisk):
 BAD_ROWS = [[np.nan, 0.0, 0.0], [np.inf, 0.0, 0.0], [0.0, -np.inf, np.nan], "far"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("precision", ["fp32", "fp16"])
 def test_check_false_gives_nan_rows_for_bad_points(precision):
     """check=False: a NaN, infinite or far (outside the domain) point gives NaN for distance, sdf and path rows,
@@ -192,6 +194,7 @@ def test_a_flat_list_of_floats_is_not_read_as_points(n):
 
 # ---- item 8: never shorter than the chord -------------------------------------------------------------------------------
 
+@pytest.mark.slow
 @pytest.mark.parametrize("precision", ["fp32", "fp16"])
 def test_distances_are_never_below_the_chord(precision):
     """A random (untrained) network's head goes negative often; every finished distance is at least the straight

@@ -1,4 +1,4 @@
-"""The per-device query state (issue 20): one owner of what a model keeps on a device, freed by ``unbind`` /
+"""The per-device query state: one owner of what a model keeps on a device, freed by ``unbind`` /
 ``invalidate``; the network's shape read from its weights and checked by each backend."""
 import gc
 import weakref
@@ -33,6 +33,7 @@ def dead(refs) -> bool:
     return all(r() is None for r in refs)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("precision", ["fp32", "fp16"])
 def test_unbind_leaves_no_reference_to_the_kept_embeddings(precision):
     """After every kind of vertex query on a bound model (which makes tables and recorded launches from the kept

@@ -219,6 +219,7 @@ def test_gradients_match_autograd_and_differences_random_nets(D, options):
     _check_gradients(model, p, q, f"seed {seed}, D={D}, {options}")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["fandisk", "bunny"])
 def test_gradients_match_autograd_and_differences_released(name):
     seed = fresh_seed()

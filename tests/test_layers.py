@@ -1,5 +1,5 @@
 """The package's layout is its pipeline: each stage imports only from stages below it, and nothing imports in a
-cycle (issue 20). Read from the source with ``ast``, lazy imports inside functions included."""
+cycle. Read from the source with ``ast``, lazy imports inside functions included."""
 import ast
 from pathlib import Path
 

@@ -330,7 +330,7 @@ def test_property_stl_numbering(tmp_path, mesh):
     np.testing.assert_array_equal(same, groups.reshape(-1)[:, None] == groups.reshape(-1)[None, :])
 
 
-# --- encodings, line ends and truncations (issue 21 items 2, 9, 11) ---------------------------------------------
+# --- encodings, line ends and truncations ----------------------------------------------------------------------
 
 TRAILING_UNUSED = TET_OBJ + "v 8 8 8\n"  # an unused last vertex: a dropped first record would still load
 

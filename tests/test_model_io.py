@@ -129,6 +129,7 @@ def test_bad_model_files(tmp_path):
         ngf.load(shared_path("checkpoints", "official", "SDist_Querier_Offline_Pretrainer__bunny.pth"))
 
 
+@pytest.mark.slow
 def test_cli_writes_ssad(tmp_path):
     from neurogf_warp.cli.main import main
 
@@ -386,6 +387,7 @@ json_scalars = st.one_of(st.none(), st.booleans(), st.integers(-10 ** 6, 10 ** 6
                          st.floats(allow_nan=False, allow_infinity=False))
 
 
+@pytest.mark.slow
 @PROPERTY
 @given(options=st.fixed_dictionaries({"fourier": st.integers(0, 2), "euclid": st.booleans(),
                                       "path_residual": st.booleans(), "path_width": st.sampled_from([1, 2])}),
@@ -439,6 +441,7 @@ def test_property_damaged_files_are_refused(tmp_path, saved_small_model, flips):
     assert_same_model(model, back)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shift, stretch", [(0.0, 1.0), (250.0, 40.0), (-3.0, 0.01)])
 def test_saved_without_mesh_answers_in_the_same_frame(tmp_path, shift, stretch):
     """save(include_mesh=False) then load(): the file keeps the normalization, so point queries answer in the

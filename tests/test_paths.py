@@ -1,4 +1,4 @@
-"""Paths a user can trust (issues 21 item 4 and 24 item 5): default paths on the surface, refinement that never
+"""Paths a user can trust: default paths on the surface, refinement that never
 returns a path worse than the head's or the straight line's (by the on-surface length it is chosen by, and on
 average by Chamfer to the solver's paths), a point's path to itself is the point, NaN across components.
 
@@ -70,6 +70,7 @@ def _diag(model):
     return float(np.linalg.norm(v.max(0) - v.min(0)))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("which", ["torus", "ellipsoid_model"])
 def test_default_paths_lie_on_the_mesh(which, request):
     """With a mesh attached, every point of a default path (no options) is on the mesh (it was the head's point,
@@ -106,6 +107,7 @@ def _follows(length, excess, m):
     return excess <= paths_mod.SURFACE_TOL * length / (m - 1)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("which,sweeps,precision", [("torus", 20, "fp32"), ("ellipsoid_model", 5, "fp32"),
                                                      ("ellipsoid_model", 5, "fp16")])
 def test_refined_never_worse_by_the_criterion(which, sweeps, precision, request):
@@ -129,6 +131,7 @@ def test_refined_never_worse_by_the_criterion(which, sweeps, precision, request)
     assert np.all((d[:, 1:] * d[:, :-1]).sum(-1) > np.cos(np.radians(45)))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("which", ["torus", "ellipsoid_model"])
 def test_refined_paths_closer_to_solver_paths(which, request):
     """Chamfer-L1 to our solver's paths: refine=20 below the head's paths (raw and snapped) on average and at the
@@ -154,6 +157,7 @@ def test_refined_paths_closer_to_solver_paths(which, request):
     assert np.abs(surface_fit(model, ref, device=DEV)[0] / length(gt) - 1).max() < 0.05
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("refine", [0, 3])
 @pytest.mark.parametrize("project", ["auto", None, "sdf", "mesh"])
 def test_path_from_a_point_to_itself_is_the_point(torus, refine, project):
@@ -206,6 +210,7 @@ def test_paths_across_components_stay_nan(refine):
         assert np.all(np.isfinite(x[0])) and np.all(np.isnan(x[1])) and np.all(x[2] == x[2, :1])
 
 
+@pytest.mark.slow
 def test_warns_when_no_candidate_follows_the_surface(torus, monkeypatch):
     """A pair none of whose candidates follows the surface gets the least-leaving one and a PathWarning that
     counts them (forced here: a negative tolerance refuses every candidate)."""
@@ -236,6 +241,7 @@ def test_surface_fit_sees_a_jump():
         surface_fit(model, arc[0], device=DEV)
 
 
+@pytest.mark.slow
 def test_refinement_without_a_mesh_uses_the_sdf_surface():
     """The released fandisk model without its mesh: refined paths are chosen on the SDF head's surface, never
     longer along it than the head's path projected there, and p == q rows are the point."""

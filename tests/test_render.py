@@ -179,7 +179,7 @@ def test_write_ply_round_trip(tmp_path):
     assert not (tmp_path / "g.ply").exists()
 
 
-# --- framing, up axis, the source's side, path targets (issue 22 item 7) ------------------------------------------
+# --- framing, up axis, the source's side, path targets ---------------------------------------------------------
 
 def ellipsoid_mesh(radii, subdivisions=2):
     import trimesh

@@ -63,6 +63,7 @@ def _alive(pool: DistanceRows) -> list:
     return [w for w in pool._pool if w.proc.poll() is None]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_rows_match_one_process_in_order(solver, seed, request):
     batches = _batches(solver.nv, 40 + 3 * seed, seed)  # a short last batch for seed 1
@@ -78,6 +79,7 @@ def test_rows_match_one_process_in_order(solver, seed, request):
     assert all(w.proc.poll() is not None for w in procs)  # every worker has exited
 
 
+@pytest.mark.slow
 def test_dataset_is_the_same_with_workers(ellipsoid, request):
     settings = DatasetSettings(n_sources=40, n_global=64, n_local1=8, n_local2=16, n_path_sources=4, n_test=3,
                                n_surface=1000, n_spread=400, k=2, batch=4)
@@ -98,6 +100,7 @@ def test_a_stop_keeps_a_prefix_of_batches(solver, eager):
     assert got == list(range(len(got))) and 6 <= len(got) < len(batches)  # those started finish, in order
 
 
+@pytest.mark.slow
 def test_a_failing_worker_is_reported_and_its_work_done_here(solver, monkeypatch, request):
     batches = _batches(solver.nv, 24, 3)
     expect = [solver.solve(b) for b in batches]

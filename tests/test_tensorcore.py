@@ -110,6 +110,7 @@ def close_emu(got, ref, what):
 OPTIONS = [dict(fourier=2, euclid=True, path_residual=True, path_window=True), dict(fourier=0)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("device,D", DEVICES)
 @pytest.mark.parametrize("options", OPTIONS, ids=["default", "paper"])
 def test_point_queries_match_float64(device, D, options):
@@ -139,6 +140,7 @@ def test_point_queries_match_float64(device, D, options):
                           ngf.distance(model, q, p, device=device, precision="fp16", raw=True)), msg
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("device,D", DEVICES)
 def test_vertex_queries_match_float64_bound_and_cold(device, D):
     """SSAD / MSAD / distance matrices from vertices and points, with kept embeddings and without; both paths
@@ -225,6 +227,7 @@ def test_fp16_range_is_checked():
         tc.pack_weights(np.full((8, 16), 1e6))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("setting", [{"ssad": (1, True)}, {"ssad": (1, False)}, {"source_group": 1},
                                      {"lift_ssad": (1, 4)}, {"sdf_tile": (1, 8)}, {"pair_nc": 4}], ids=str)
 def test_tile_variants_agree(setting):

@@ -64,6 +64,7 @@ def test_train_loss_falls_and_beats_mre_bound(trained, tiny_dataset):
     assert sorted(os.listdir(out.parent / "m.train")) == ["checkpoint.pt", "log.json"]  # dataset given: no cache
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("resample_every,flag,hard", [(1, "resume", 0.0), (5, "same call", 0.0), (1, "resume", 0.25)])
 def test_interrupt_then_continue_bit_for_bit(tmp_path, ellipsoid, tiny_dataset, resample_every, flag, hard):
     """hard: with a hard-pair pool re-ranked every 10 steps, the pool of step 10 travels in the checkpoint."""
@@ -94,6 +95,7 @@ def test_interrupt_then_continue_bit_for_bit(tmp_path, ellipsoid, tiny_dataset, 
         assert torch.equal(a, b), k
 
 
+@pytest.mark.slow
 def test_finished_run_repeats_resumes_and_refuses_other_settings(tmp_path, ellipsoid, tiny_dataset, capsys):
     cfg = small(epochs=1, iters_per_epoch=10, val_every=0)
     out = tmp_path / "m.ngf"
@@ -234,6 +236,7 @@ def test_bad_inputs_fail_before_any_work(tmp_path, ellipsoid, tiny_dataset):
     assert os.listdir(tmp_path) == []  # nothing written by any of them
 
 
+@pytest.mark.slow
 def test_corrupt_or_foreign_dataset_cache_is_rebuilt(tmp_path, ellipsoid, capsys):
     cache = str(tmp_path / "dataset.npz")
     with open(cache, "wb") as f:
@@ -319,6 +322,7 @@ def test_threads_0_keeps_the_count_timed_fastest_on_the_first_steps(monkeypatch,
     assert counts == [1, 2, 1] and cut.chosen == {}
 
 
+@pytest.mark.slow
 def test_threads_0_run_records_the_counts_and_restores_torchs(tmp_path, ellipsoid, tiny_dataset):
     n = torch.get_num_threads()
     out = tmp_path / "m.ngf"

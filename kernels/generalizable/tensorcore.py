@@ -36,7 +36,7 @@ WARPS_PER_SM = 12  # persistent warps per multiprocessor on CUDA (MT = 1; 8 for 
 # The kernel is compiled for that occupancy (__launch_bounds__(128, WARPS_PER_SM / 4)): without the bound NVRTC
 # (Warp 1.19, sm_90) gave the 1 x 8 kernel 143 registers, so only 12 of 16 persistent warps would be resident. For
 # 12 warps it keeps 168 registers and no local frame, for 16 it gets 128 and a 64-byte frame: 1M pairs on an H100
-# took 0.312 vs 0.385 ms of kernel time (benchmarks/RESULTS.md, 2026-11-24).
+# took 0.312 vs 0.385 ms of kernel time (2026-11-24).
 CPU_WARPS = 1  # the CPU emulation runs one warp (32 fibers) through every tile
 
 # the mma column position (within a k-step) -> channel offset (within the 16 channels of that k-step)

@@ -193,7 +193,7 @@ def finish_iteration(front: Frontier):
 
 
 # 96 registers gave 25% occupancy for a kernel that waits on loads; 64 measured fastest (H200, 436K: 17.2 -> 20.9
-# sources/s; 80: 18.6, 48 with decode capped too: 19.5; benchmarks/RESULTS.md, 2026-11-27). The CPU ignores it.
+# sources/s; 80: 18.6, 48 with decode capped too: 19.5; 2026-11-27). The CPU ignores it.
 @wp.kernel(cuda_max_registers=64)
 def relax_frontier(graph: SteinerGraph, state: NodeState, front: Frontier):
     """Relax the active nodes under the threshold over the faces around them; carry the others.

@@ -13,7 +13,7 @@ from . import mlp
 
 BLOCK = 64  # vertices per tile (columns)
 CHUNK = 32  # embedding channels per step of the first layer
-THREADS = 128  # block_dim on CUDA (B=32..128 with 64..256 threads measured within 10%, benchmarks/RESULTS.md)
+THREADS = 128  # block_dim on CUDA (B=32..128 with 64..256 threads measured within 10% of each other)
 
 
 @wp.func

@@ -7,7 +7,7 @@ The device code is ``native/neurogf_mma.h``; this module packs the weights, grou
 structs and launches.
 
 Why native code: Warp's tile API (cuBLASDx ``tile_matmul``) stages every operand and result in shared memory and
-cannot keep a layer's output in registers as the next layer's input; benchmarks/RESULTS.md has the measurements.
+cannot keep a layer's output in registers as the next layer's input (docs/design.md).
 
 Numerics: coordinates and Fourier features enter the first layer as fp16 high + low parts (fp32-accurate input),
 weights and activations are fp16, sums fp32, the last layer an fp32 dot product. Vertex embeddings kept for

@@ -328,7 +328,7 @@ def _add_render(sub, common):
     s.set_defaults(run=_cmd_render)
 
 
-# ------------------------------------------------------------------------------------------ helpers
+# ---------------------------------------------------------------------------------------- utilities
 
 def start_warp(verbose: bool):
     """Import and initialize Warp: quiet (log level WARNING, no driver warning) unless ``verbose``."""

@@ -1,4 +1,5 @@
-"""Training data for a NeuroGF (layout of neurogf-reference.md §3-4), all in the normalized unit-sphere frame.
+"""Training data for a NeuroGF (the layout of the official NeuroGF implementation), all in the normalized
+unit-sphere frame.
 
 A :class:`Dataset` holds the mesh, area-weighted surface points, distance rows [xs,ys,zs,xt,yt,zt,d] for
 global / local_1 / local_2 targets, resampled ground-truth paths and full distance fields from held-out test
@@ -63,7 +64,7 @@ def solver_batch(batch: int | None, device) -> int | None:
 class DatasetSettings:
     """How much ground truth :func:`build_dataset` computes (counts per source unless stated).
 
-    The defaults are the GPU recipe's (benchmarks/RESULTS.md): distances from 2,048 sources and paths from all
+    The defaults are the GPU recipe's (docs/performance.md): distances from 2,048 sources and paths from all
     of them. ``neurogf_warp.training.presets`` sizes them to the device and the mesh.
     """
 
@@ -300,7 +301,7 @@ def _refuse_vertex_joins(mesh: Mesh) -> None:
     raise InputError(msg)
 
 
-# ---- sampling helpers ------------------------------------------------------------------------------
+# ---- sampling ---------------------------------------------------------------------------------------
 def spread_vertices(mesh: Mesh, n: int) -> np.ndarray:
     """About ``n`` well-spread internal vertex ids, sorted: QSlim-decimated vertices snapped to the nearest
     mesh vertex (random vertices where QSlim refuses the mesh)."""
@@ -455,7 +456,7 @@ PATH_SHARE = 0.25
 # mesh-sized sweep), but much below ~64 rows the sweeps stop filling the GPU (igea: 31 sources/s in batches of 16,
 # 54 in batches of 64).
 DISTANCE_BATCH_SHARE = 0.12  # of the limit, per distance batch
-# (vertices, seconds per distance source) on an H100, batches of 64+ (benchmarks/RESULTS.md, 2026-11-24): the
+# (vertices, seconds per distance source) on an H100, batches of 64+ (2026-11-24; docs/performance.md): the
 # bunny, igea, and the bunny subdivided twice and three times
 GPU_S_PER_SOURCE = ((34_834, 5.0e-3), (134_345, 1.86e-2), (556_051, 0.100), (2_223_321, 0.833))
 MIN_LIMITED_BATCH = 16
@@ -509,7 +510,7 @@ def limited_batch(seconds: float, per_source: float) -> int:
 # within PROXY_MAX_MRE of the fine mesh's (measured before any training source).
 # Why 1,024 sources: at 60 s on an H100, igea (134K vertices) trained on its own mesh got 384 sources, 0.388% MRE /
 # 1.85% p99; on a 34K proxy 768-1,024 sources, 0.306% / 1.36% and 0.309% / 1.43%; on a 67K proxy 512 sources,
-# 0.379% / 1.89% (benchmarks/RESULTS.md, tenth session). The bunny (35K) on a 17K proxy: 2,048 sources instead
+# 0.379% / 1.89%. The bunny (35K) on a 17K proxy: 2,048 sources instead
 # of 1,280 and no gain (0.487% against 0.505%), so meshes below 2 x PROXY_MIN_VERTICES keep their own.
 # DATASET_SLOWDOWN: a dataset's distance phase solves at about half the rate of the table above (its batches are
 # cut by the clock, the rows are processed on the host; the same runs: bunny 9.0 ms a source against the table's
@@ -821,7 +822,7 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
         # The held-out rows judge the model, and the heat method against it (training.quality): they come from the
         # solver at its default accuracy on the mesh itself, even when the training sources use a coarser solver
         # or a proxy. With k=1 rows (~0.2% MRE) a 120 s CPU bunny model scored 0.91% against the heat method's
-        # 1.14% on them, but 1.01% against 0.95% on exact geodesics (benchmarks/RESULTS.md, sixth session).
+        # 1.14% on them, but 1.01% against 0.95% on exact geodesics.
         exact = GeodesicSolver(m, k=DEFAULT_K, device=device, batch=batch, max_rows=len(test_src))
         test_dist, test_k = exact.solve(test_src), DEFAULT_K
         del exact
@@ -887,7 +888,7 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
 # Rows of a coarser solver (k < DEFAULT_K) are longer than exact-grade ones by a near-constant factor: at k = 1
 # the median pair is 0.11-0.23% too long on seven shared meshes (MRE 0.12-0.25%). The held-out sources, solved at
 # both accuracies, measure it; the training distances are divided by (1 + the median bias), which halves their
-# error (0.05-0.12% on the other half of the sources; benchmarks/RESULTS.md, fourteenth session). Paths keep
+# error (0.05-0.12% on the other half of the sources). Paths keep
 # their points. A bias from fewer than COARSE_MIN_PAIRS pairs, or larger than COARSE_MAX_BIAS, is not applied.
 COARSE_MIN_PAIRS = 1000
 COARSE_MAX_BIAS = 0.02
@@ -908,7 +909,7 @@ def _coarse_correction(solver, test_src: np.ndarray, test_dist: np.ndarray, prox
 def _auto_proxy(m: Mesh, st: DatasetSettings, device, time_limit_s: float | None) -> int:
     """``auto_proxy`` for this build: none where the solver's batch is set by hand; on a GPU from the H100 table;
     on the CPU from the CPU tables at the build's k over its processes (a 134K-vertex mesh at 300 s had 8 training
-    sources on its own mesh, 768 asked: benchmarks/RESULTS.md, twelfth session)."""
+    sources on its own mesh, 768 asked)."""
     if st.batch is not None:
         return 0
     if not resolve_device(device).is_cpu:

@@ -1,12 +1,12 @@
 """A decimated stand-in ("proxy") of a large mesh, for training distances the fine mesh's solver cannot afford.
 
-On a 2.2M-vertex mesh the geodesic solver gives ~1.2 sources/s on an H100 (benchmarks/RESULTS.md), so a
+On a 2.2M-vertex mesh the geodesic solver gives ~1.2 sources/s on an H100 (docs/performance.md), so a
 10-minute budget gets ~100 training sources. The same surface decimated by QSlim to a few hundred thousand
 vertices is solved ~10x faster per source. The proxy lives in the fine mesh's normalized frame (same center and
 scale), so its rows [xs, ys, zs, xt, yt, zt, d] are training rows of the fine mesh's model as they are. Its
 vertices are QSlim's quadric optima moved to the closest point of the fine surface (not snapped to fine
 vertices: on the stanford bunny decimated 4x, proxy vertices snapped to fine vertices gave distances 1.0% off on
-average and 0.9% too long in the median, the QSlim positions 0.11% off; benchmarks/RESULTS.md, seventh session).
+average and 0.9% too long in the median, the QSlim positions 0.11% off).
 
 The proxy's distances are not the fine mesh's: decimation changes the surface. :func:`proxy_error` measures by
 how much, on rows both meshes solved (the held-out test sources, which are always solved on the fine mesh).

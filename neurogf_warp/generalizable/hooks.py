@@ -1,7 +1,7 @@
 """Small entry points for the existing package (``ngf.load``) to reach this subpackage (the command line's are in
 ``neurogf_warp/cli/gen.py``).
 
-Kept here so that the hooks in existing modules stay one or two lines each (see the report of issue 23).
+Kept here so that the hooks in the modules outside this subpackage stay one or two lines each.
 """
 from __future__ import annotations
 

@@ -206,7 +206,7 @@ class GeneralizableModel:
         use. The tensor's stream is waited for, and it waits for the copy, so it may be changed right after the
         call. Anything else (numpy, lists, CPU tensors, another device's tensors) goes through the host. This
         path saves the download, not time: on an H100 it took 1.48 ms for a 2,048-point cloud against 1.08 ms from
-        numpy (its checks and frame are small separate launches and a synchronization; RESULTS.md, eighth session).
+        numpy (its checks and frame are small separate launches and a synchronization).
         """
         mesh = None
         if isinstance(shape, (str, os.PathLike)) or hasattr(shape, "faces") or (

@@ -1,6 +1,6 @@
 """The generalizable NeuroGF network (paper section "Extension to Generalizable Learning Frameworks") in torch.
 
-Written from the architecture description in issue 23 and docs/neurogf-reference.md section 9; parameter names
+Written from the paper's architecture description (and the released weights' shapes); parameter names
 follow the released state_dict ``GenNeuroGF.pth`` so that it loads with ``strict=True``.
 
 Structure (every "layer" is a bias-free 1x1 linear map, then BatchNorm, then ReLU, unless said otherwise):

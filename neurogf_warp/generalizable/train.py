@@ -3,7 +3,7 @@
     python -m neurogf_warp.generalizable.train FOLDER -o model.pt --budget-seconds 600
     torchrun --nproc_per_node 2 -m neurogf_warp.generalizable.train FOLDER -o model.pt --budget-seconds 600
 
-Data, as the authors' (issue 23): per shape, ``sources`` (256) source vertices x ``targets`` (512) target vertices
+Data, as the authors': per shape, ``sources`` (256) source vertices x ``targets`` (512) target vertices
 with ground-truth geodesic distances from the project's solver (``ngf.geodesic_distances``), plus a
 ``cloud_points`` (2,048) point cloud sampled on the surface, all in the shape's unit-sphere frame (bounding-box
 centre, largest vertex norm 1). A training step draws ``shapes_per_step`` shapes and, per shape,
@@ -58,7 +58,7 @@ MESH_EXTENSIONS = (".obj", ".ply", ".stl", ".off")
 FORMAT = "neurogf-generalizable"
 # Under DDP rank 0's clock decides when a budget ends and where the schedule is. Sharing it is a host sync (the
 # broadcast's .item() waits for the GPU), which took the host's batch preparation out of the GPU's shadow: two
-# H200s trained 1.70x the shapes/s of one with a broadcast every step (benchmarks/RESULTS.md, seventh session).
+# H200s trained 1.70x the shapes/s of one with a broadcast every step (docs/performance.md).
 # So it is shared every SYNC_EVERY steps; in between, every rank keeps the last shared fraction (the same lr).
 SYNC_EVERY = 8
 # Under a budget: the ground truth gets at most this share of it, as the per-mesh dataset (training/api.py), each

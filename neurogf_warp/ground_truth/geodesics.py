@@ -2,7 +2,7 @@
 
 `geodesic_distances` and `geodesic_paths` are the one-call functions; `GeodesicSolver` (geodesic_solver.py) is the
 reusable solver behind them. Every distance is the length of a real surface path (an upper bound of the exact
-geodesic distance, within 0.02% of it on average at the defaults; benchmarks/geodesics_notes.md).
+geodesic distance, within 0.02% of it on average at the defaults; docs/design.md).
 """
 from __future__ import annotations
 
@@ -51,10 +51,10 @@ def geodesic_distances(mesh, sources, device=None, k: int = DEFAULT_K, windows: 
     delta : float, delta-stepping bucket in mean edge lengths (speed only; 0 = plain Bellman-Ford)
     near_source : bool, also solve the faces within 14 mean edges of each source at k = 6 and keep the shorter
         value (``near_source.refine_near_sources``): the worst pairs, which lie near their source, go from up to
-        1.4% too long to at most 0.45% on the shared meshes (24 sources each; benchmarks/geodesics_notes.md), for
+        1.4% too long to at most 0.45% on the shared meshes (24 sources each; docs/design.md), for
         about 12K more nodes of work per source. On by default: on an H100 the 256-source call on the 436K-vertex
         benchmark mesh took 34.0 s with it and 34.4 s without; on a 2-core CPU +3% on the bunny, 1.3-2x on meshes of
-        a few thousand vertices (benchmarks/RESULTS.md, tenth session). None (the default) means on with
+        a few thousand vertices (docs/performance.md). None (the default) means on with
         ``windows`` and off for the plain Steiner graph (``windows=False``, which stays exactly that graph's
         shortest paths); False gives the plain solve at ``k``, which is what the training datasets use.
 
@@ -102,7 +102,7 @@ def resample_polylines(points: np.ndarray, starts: np.ndarray, ends: np.ndarray,
     Warp launch on ``device`` (one thread per polyline) for all of them.
 
     A dataset batch on a GPU resamples ~80K paths of ~100-200 points: the loop over them in numpy this replaces
-    took ~13 ms per path source, most of a small mesh's ground-truth time (benchmarks/RESULTS.md).
+    took ~13 ms per path source, most of a small mesh's ground-truth time.
     """
     from neurogf_warp.kernels.ground_truth import paths as kp
 

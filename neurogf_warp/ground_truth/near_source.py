@@ -3,7 +3,7 @@
 With one window per Steiner node, a beam of rays is lost where it passes close to a vertex; that costs a similar
 length anywhere (1-11% of a mean edge on the shared meshes), so the relative error is largest for targets close
 to the source: every pair above 0.5% at k = 3 lies within 13.4 mean edge lengths of its source (24 sources on six
-meshes, benchmarks/geodesics_notes.md). ``refine_near_sources`` re-solves, for each source, only the faces within
+meshes; docs/design.md). ``refine_near_sources`` re-solves, for each source, only the faces within
 ``radius + 2`` mean edges of it, at a higher k, and keeps the shorter value per vertex. Both values are lengths of
 real surface paths, so the result is still an upper bound of the exact distance; a geodesic to a vertex at
 distance r stays within r of the source, so the patch holds it.

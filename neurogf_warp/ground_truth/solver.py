@@ -20,7 +20,7 @@ from neurogf_warp.mesh.mesh import load_mesh
 __all__ = ["GeodesicSolver", "load_kernels", "DEFAULT_K", "DEFAULT_DELTA", "PATH_DELTA", "PATH_TOLERANCE",
            "BYTES_PER_NODE"]
 
-DEFAULT_K = 3  # Steiner points per edge at default accuracy (windows on); see benchmarks/geodesics_notes.md
+DEFAULT_K = 3  # Steiner points per edge at default accuracy (windows on); accuracy per k: docs/design.md
 DEFAULT_DELTA = 2.0  # delta-stepping bucket (mean edge lengths): few iterations, ~2.4 improvements per node
 PATH_DELTA = DEFAULT_DELTA  # paths come from the same run as distances (every node keeps a path record)
 BYTES_PER_NODE = 109  # solver state per (source row, node): see GeodesicSolver._alloc
@@ -116,7 +116,7 @@ def load_for_capture(device) -> None:
     ``LOAD_WORKERS``), ahead of the solver's first graph capture. The capture force-loads all of them itself, one
     after another: on a fresh 2-core CPU that was ~7 s after the solver's own two modules (warp.utils 4.0 s, the
     dataset's SDF kernel 2.8 s, Warp's coloring and math), all inside a 20 s budget's ground-truth share
-    (benchmarks/RESULTS.md, eleventh session). NVRTC and Warp's CPU compiler run outside the GIL."""
+    (docs/performance.md). NVRTC and Warp's CPU compiler run outside the GIL."""
     import os
 
     _kernels()  # the solver's modules are among them
@@ -200,7 +200,7 @@ class GeodesicSolver:
         batch = _count("batch", batch)
         if self.device.is_cpu and free is not None:
             # the dataset's CPU batch of 8 rows was 19 GB of state on a 2.2M-vertex mesh at k=3: the process was
-            # killed by the kernel's out-of-memory killer (24 GB machine, benchmarks/RESULTS.md, eleventh session)
+            # killed by the kernel's out-of-memory killer (24 GB machine), hence the cap by free memory
             batch = min(batch, max(1, int(CPU_MEMORY_SHARE * free // self.bytes_per_row)))
         self.batch = batch
         need = self.batch * self.bytes_per_row

@@ -65,14 +65,13 @@ class CompiledLosses:
 
 # torch.compile under a budget. Compiling the five stages' losses took 62 s on a fresh H100 (cold inductor and
 # Triton caches: querier 18.6 s with the compiler's own start-up, joint 26.4, refine_dist 4.9, refine_sdf 3.6,
-# refine_path 8.7) and makes the steps 1.2-1.7x faster (joint 9.0 -> 6.25 ms on the bunny; benchmarks/RESULTS.md).
+# refine_path 8.7) and makes the steps 1.2-1.7x faster (joint 9.0 -> 6.25 ms on the bunny; docs/performance.md).
 # It pays off only when the training time left is over COMPILE_PAYOFF x the compile time; a budget too short for
 # that runs eagerly (under CUDA graphs). A run that compiled records how long it took, and whether the cache held
 # its shapes already, in the inductor cache's own folder; a later run of the same shapes on the same machine plans
 # with that: a warm compile's time as it was, a cold one's times WARM_SHARE, as the caches it filled serve the next
 # compile (H200, quarter batches, 2026-11-27: the calibration, compile included, took 48.6 s on a fresh machine and
-# 11.3-12.9 s in the next runs of the same shapes; the five stages alone 62.2 s cold, 8.2 s warm; RESULTS.md,
-# fifteenth session)
+# 11.3-12.9 s in the next runs of the same shapes; the five stages alone 62.2 s cold, 8.2 s warm)
 COLD_COMPILE_S = 65.0
 COMPILE_PAYOFF = 3.3  # 1.45 / (1.45 - 1): the joint step's speed-up
 WARM_SHARE = 0.25

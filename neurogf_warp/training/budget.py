@@ -59,8 +59,8 @@ class ThreadChooser:
     ``warm`` + ``timed`` real training steps, and the count whose timed steps have the lowest median is kept; every
     ``retry_s`` seconds of the stage the trial runs again, since other jobs come and go. On a busy machine several
     threads can be 3-10x slower than one (OpenMP threads wait on each other); on an idle one two threads were 1.6x
-    faster (benchmarks/RESULTS.md). Timing the candidates on extra steps before the run took 14-40 s of a 20 s budget
-    on this 2-core machine; here a step is never wasted.
+    faster. Timing the candidates on extra steps before the run took 14-40 s of a 20 s budget on a 2-core
+    machine; here a step is never wasted.
     """
 
     STAGES_TIMED = ("joint", "refine_dist")  # the stages whose steps fill a CPU run (1 and 10 per joint step)
@@ -123,7 +123,7 @@ class ThreadChooser:
 
 # Short budgets: the default batches (65K distance pairs, 4K paths) gave the bunny 2,165 joint steps in 60 s and
 # 0.82% MRE; half the batches 3,530 steps and 0.69%, a quarter 5,360 and 0.59% (igea: 0.47% -> 0.46% at half; H100,
-# benchmarks/RESULTS.md, 2026-11-24). At 300 s a quarter also won: bunny 0.41% -> 0.37% (19,664 -> 61,126 joint
+# 2026-11-24; docs/performance.md). At 300 s a quarter also won: bunny 0.41% -> 0.37% (19,664 -> 61,126 joint
 # steps), igea 0.31% -> 0.27%; an eighth at 60 s (bunny 0.52%) did not clearly beat a quarter on the GPU, whose
 # small steps are bound by kernel count, not size. On a 2-core CPU, where a step's time follows its size, the cpu
 # preset makes ~170 joint steps in 60 s: a quarter of its batches gave fandisk 1.11% -> 0.80% (60 s), a sixteenth

@@ -26,7 +26,7 @@ STAGES = ("querier", "joint", "refine_dist", "refine_sdf", "refine_path")
 RATIOS = {"querier": 0.25, "joint": 1.0, "refine_dist": 1.0, "refine_sdf": 0.1, "refine_path": 0.3}
 QUERIER_MAX = 4000  # default querier steps: 0.25 x joint steps, at most this (it only guides the surface term)
 DIST_LOSSES = ("l1", "relative_global")
-# settings of older versions whose sweeps lost (benchmarks/RESULTS.md), with the value that meant "off":
+# settings of older versions that did not improve training, with the value that meant "off":
 # old configs that carry that value still load; any other value is refused
 REMOVED = {"refine_amp": True, "refine_batch_paths": None}
 
@@ -147,7 +147,7 @@ class BatchConfig:
     # with a budget: when fewer than training.budget.SHORT_BUDGET_STEPS joint steps fit, every batch above (not
     # sdf_pool) shrinks, down to a quarter on a GPU and a sixteenth on the CPU (SDF batches a quarter), for more
     # steps (bunny, H100: 60 s 0.82% -> 0.59% MRE, 300 s 0.41% -> 0.37%; fandisk, 60 s, 2-core CPU: 1.11% -> 0.76%;
-    # training/budget.py, RESULTS.md)
+    # training/budget.py)
     short_budget_batches: bool = True
 
     def scaled(self, factor: float, sdf_factor: float | None = None) -> "BatchConfig":
@@ -321,7 +321,7 @@ def _without_removed(d: dict) -> dict:
     for name, off in REMOVED.items():
         if name in d:
             if d[name] != off:
-                raise ValueError(f"setting {name}={d[name]!r} was removed (its sweep lost, benchmarks/RESULTS.md); this "
+                raise ValueError(f"setting {name}={d[name]!r} was removed (it did not improve training); this "
                                  "version cannot continue a run that used it")
             del d[name]
     return d

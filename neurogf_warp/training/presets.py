@@ -1,7 +1,7 @@
 """Named training presets, and the choice of one by device and mesh size.
 
 ``default`` is the GPU recipe measured on bunny and fandisk (D=256, 65K distance pairs and 4K paths per step,
-2,048 sources; benchmarks/RESULTS.md); ``paper`` is the published network and recipe (no Fourier inputs,
+2,048 sources; docs/performance.md); ``paper`` is the published network and recipe (no Fourier inputs,
 Euclidean term or residual paths; L1 losses); ``cpu`` fits a CPU run of a few minutes (D=128, small batches,
 512 sources from a coarser solver, k=1) and ``cpu_large`` the same for meshes above ``LARGE_MESH`` vertices (768
 sources); ``cpu_small`` is a seconds-long smoke run for tests (its models are not meant to be accurate). Each
@@ -24,12 +24,12 @@ _SMALL_BATCHES = dict(batch_sdf=2048, batch_g=4096, batch_l1=512, batch_l2=1024,
 PRESETS = {
     # GPU: a quarter of each distance batch from the hard-pair pool and 4 refine_dist steps per joint step (H100,
     # 60 s, one run each: spot 0.299% -> 0.268% MRE, p99 2.03% -> 1.47%; bunny 0.565% -> 0.489%, 2.79% -> 2.15%;
-    # fandisk 0.305% -> 0.296%, 1.89% -> 1.60%; 300 s fandisk 0.224% -> 0.212%, 1.56% -> 1.15%; RESULTS.md, eighth
-    # session). The longer refine_dist moves the lifting features further from the SDF head (60 s SDF L1 2.7e-3 ->
+    # fandisk 0.305% -> 0.296%, 1.89% -> 1.60%; 300 s fandisk 0.224% -> 0.212%, 1.56% -> 1.15%). The
+    # longer refine_dist moves the lifting features further from the SDF head (60 s SDF L1 2.7e-3 ->
     # 4.5e-3 in those runs), so refine_sdf gets 4x its steps too (0.4: as the CPU preset's 1.0 with refine_dist 10;
-    # chosen after those runs, not yet measured on a GPU; its steps cost ~1% of a 60 s budget). Without a budget
+    # set by that analogy, not from a GPU run of its own; its steps cost ~1% of a 60 s budget). Without a budget
     # this is 80,000 refine_dist steps instead of 20,000: about 3 more minutes on an H100 (3.2 ms per full-batch
-    # step, sixth session's profile); such a run has not been made with this recipe
+    # step, from a profile); the accuracy of such an unbudgeted run with this recipe is unknown
     "default": dict(hard_share=0.25, ratios={"refine_dist": 4.0, "refine_sdf": 0.4}),
     "paper": dict(fourier=0, euclid=False, path_residual=False, path_width=1, path_window=False, dist_loss="l1",
                   refine_dist_steps=0, refine_path_lr=1e-3, ratios={"refine_path": 0.1}),
@@ -39,11 +39,11 @@ PRESETS = {
     # k=1 training rows (the solver's MRE 0.12-0.23% on spot, cow, fandisk and rocker-arm against exact MMP,
     # 0.016-0.032% at k=3) at 3-4x the sources per second, 512 asked: on a 2-core CPU a short budget is short of
     # sources more than of exact ones (fandisk 60 s: 1.10% with 176 sources at k=3, 0.92% with 256 at k=1, 0.87%
-    # with 512; 180 s: 0.665% / 0.653% / 0.628% with 256 / 256 / 1,024; RESULTS.md, fourteenth session). The
+    # with 512; 180 s: 0.665% / 0.653% / 0.628% with 256 / 256 / 1,024). The
     # held-out rows that judge the model stay at the default accuracy (dataset/build.py)
     # refine_sdf 1.0: with the short-budget batches (a sixteenth) 0.1 left the SDF head behind the features that the
     # many refine_dist steps move (alligator 60 s SDF L1 39.9e-3 at a quarter, 93.7e-3 at a sixteenth, 32.9e-3 with
-    # 1.0; RESULTS.md, sixth session)
+    # 1.0)
     "cpu": dict(_SMALL_BATCHES, D=128, batch_surf=4, batch_querier=1024, sdf_pool=100000, val_every=500, epochs=4,
                 iters_per_epoch=100, ratios={"querier": 0.15, "refine_dist": 10.0, "refine_sdf": 1.0, "refine_path": 0.3},
                 n_sources=512, k=1, n_global=2048, n_local1=32, n_local2=512, n_path_sources=32, n_path_global=64,

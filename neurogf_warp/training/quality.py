@@ -21,16 +21,16 @@ __all__ = ["ModelQualityWarning", "HeatBaseline", "validation_mre", "final_verdi
            "MIN_JOINT_STEPS", "MIN_TRAIN_SHARE", "HEAT_SPREAD", "heat_margin"]
 
 # A plan below either figure is predicted too small, before the run starts. Both are floors, not a promise:
-# the end-of-run comparison with the heat method is the check that counts. The CPU runs of benchmarks/RESULTS.md
+# the end-of-run comparison with the heat method is the check that counts. The measured CPU runs (docs/performance.md)
 # that beat the heat method made 150-770 joint steps with 80-95% of their budget left for training after the
-# dataset and set-up; the 120 s teapot of issue 24, 16.9% MRE, had 37% left.
+# dataset and set-up; a 120 s run on a teapot mesh, 16.9% MRE, had 37% left.
 MIN_JOINT_STEPS = 100
 MIN_TRAIN_SHARE = 0.4
 KERNELS_SAID_S = 2.0  # a kernel load slower than this was a compile (a cached load takes 0.1-0.3 s)
 # The held-out comparison uses a few sources (8 in the default and CPU presets), and the heat method's error
 # varies from source to source: a 120 s CPU bunny model scored 0.90% against the heat method's 1.12% on its 4
-# held-out sources, but 0.95% against 0.95% on 8 other sources with exact geodesics (benchmarks/RESULTS.md, sixth
-# session). So a model is called better only by a margin of HEAT_SPREAD / sqrt(held-out sources) (20% with 4,
+# held-out sources, but 0.95% against 0.95% on 8 other sources with exact geodesics. So a
+# model is called better only by a margin of HEAT_SPREAD / sqrt(held-out sources) (20% with 4,
 # 14% with 8); inside it, the run says that the model is not clearly better.
 HEAT_SPREAD = 0.4
 

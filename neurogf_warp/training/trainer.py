@@ -184,7 +184,7 @@ class Trainer:
                   "refine_path": lambda: list(self.net.cdw_fc.parameters()) + list(self.net.spf_head.parameters()),
                   }[stage]()
         # fused: one kernel for the whole update, on CUDA and on the CPU (there the cpu preset's small-batch steps
-        # take 10-14% less time than with torch's default per-parameter loop: RESULTS.md, ninth session). Under
+        # take 10-14% less time than with torch's default per-parameter loop). Under
         # CUDA graphs the learning rate is a device tensor (filled before each replay) and the step counter lives
         # on the device (capturable).
         lr = torch.tensor(s.lr, device=self.device) if self.graphs else s.lr

@@ -590,7 +590,7 @@ NGF_FN void distance_heads(const Head& W, const u32 (&e)[1][D / 16][4], const u3
 // float32 rounding (a point near the centre subtracts hi exactly); distances * dscale are in user units. A point
 // outside the cube |x_net| <= limit (or not finite) has no answer: its results are NaN. The float64 centre cx..cz is
 // the per-thread Warp kernels' (kernels/inference/mlp.py); float64 arithmetic here cost the SDF kernel 16% and the
-// pair kernel 3% on an H100 (benchmarks/RESULTS.md).
+// pair kernel 3% on an H100.
 struct Frame
 {
     double cx, cy, cz;
@@ -715,7 +715,7 @@ struct Sources
 // inside: both points are in the domain. The vertex-query kernels below (distance_rows, ssad_rows, lift_ssad_rows)
 // pass true: their rows are mesh vertices or targets and their sources points that the host refused unless inside
 // (inference/inputs.py, sources_in); a test per distance there cost a bound MSAD 50%, and one per row and source
-// still 15%, on an H100 (benchmarks/RESULTS.md). The pair kernel tests its points (check=False gives NaN rows).
+// still 15%, on an H100. The pair kernel tests its points (check=False gives NaN rows).
 NGF_FN float finish_inside(float y, const Frame& f, const float* p, const float* sp, float euclid, bool other_part,
                            int raw, bool inside)
 {
