@@ -102,7 +102,7 @@ def test_stderr_into_a_pipe_gets_no_carriage_returns():
 
 
 def test_dataset_and_training_progress_into_a_file_are_plain_lines(ellipsoid, tiny_dataset, tmp_path, capsys):
-    """The training loop and the dataset builder use the helper: with stderr captured (not a terminal) they write
+    """The training loop and the dataset builder use the progress module: with stderr captured (not a terminal) they write
     a few plain lines and no carriage return."""
     import warnings
 
