@@ -84,7 +84,7 @@ def main():
     model = ngf.load(shared("checkpoints", "official", "NeuroGF_Pretrainer__bunny_final.pth"), mesh=(v, f))
     ngf.bind(model, dev) if hasattr(ngf, "bind") else model.bind(dev)
     rng = np.random.default_rng(0)
-    V = model.mesh.vertices
+    V = model.mesh.internal_vertices
     n = len(V)
     lo, hi = V.min(0), V.max(0)
     idx = np.asarray(model.mesh.index)

@@ -30,8 +30,8 @@ def test_obj_keeps_unused_vertices_in_file_numbering(tmp_path):
     """The issue's repro: vertex 0 unused stays in the numbering; vertex 1 is (0, 0, 0)."""
     path = write(tmp_path / "t.obj", TET_OBJ)
     m = ngf.load_mesh(path)
-    assert m.n_input == 5 and len(m.vertices) == 4
-    np.testing.assert_array_equal(m.vertices[m.vertex(1)], [0, 0, 0])
+    assert m.n_input == 5 and len(m.internal_vertices) == 4
+    np.testing.assert_array_equal(m.internal_vertices[m.vertex(1)], [0, 0, 0])
     np.testing.assert_array_equal(m.input_to_internal, [-1, 0, 1, 2, 3])
     d = ngf.geodesic_distances(path, [1], device="cpu")
     assert d.shape == (1, 5) and np.isnan(d[0, 0])
@@ -47,11 +47,11 @@ def test_obj_keeps_unused_vertices_in_file_numbering(tmp_path):
 def test_bunny_obj_numbering_and_fingerprint():
     path = shared_path("meshes", "stanford-bunny.obj")
     m = ngf.load_mesh(path)
-    assert m.n_input == 35947 and len(m.vertices) == 34834
+    assert m.n_input == 35947 and len(m.internal_vertices) == 34834
     assert np.count_nonzero(m.input_to_internal < 0) == 1113
     ref = np.load(shared_path("reference", "exact", "stanford-bunny.npz"))
     np.testing.assert_array_equal(m.index, ref["file_index"])  # the reference's own file numbering
-    np.testing.assert_array_equal(m.vertices.astype(np.float32), ref["positions"])
+    np.testing.assert_array_equal(m.internal_vertices.astype(np.float32), ref["positions"])
     # the fingerprint is that of the used vertices, the same as when trimesh (which drops unused ones) read it
     tm = trimesh.load(path, process=False, force="mesh")
     assert m.fingerprint == mesh_fingerprint(tm.vertices, tm.faces)
@@ -121,11 +121,11 @@ def test_ply_keeps_unused_vertices_and_order(tmp_path, binary):
     path = tmp_path / "q.ply"
     path.write_bytes(ply_text(V, F, binary))
     m = ngf.load_mesh(path)
-    assert m.n_input == 7 and len(m.vertices) == 5
+    assert m.n_input == 7 and len(m.internal_vertices) == 5
     np.testing.assert_array_equal(m.input_to_internal, [-1, 0, 1, 2, 3, 4, -1])
-    np.testing.assert_array_equal(m.vertices, V[1:6])
-    assert len(m.faces) == 6 and m.n_components == 1
-    np.testing.assert_array_equal(m.index[m.faces], [[1, 2, 3], [3, 4, 1], [1, 2, 5], [2, 3, 5], [3, 4, 5], [4, 1, 5]]
+    np.testing.assert_array_equal(m.internal_vertices, V[1:6])
+    assert len(m.internal_faces) == 6 and m.n_components == 1
+    np.testing.assert_array_equal(m.index[m.internal_faces], [[1, 2, 3], [3, 4, 1], [1, 2, 5], [2, 3, 5], [3, 4, 5], [4, 1, 5]]
                                   if binary else  # trimesh (ascii) lists triangles before split quads
                                   [[1, 2, 5], [2, 3, 5], [3, 4, 5], [4, 1, 5], [1, 2, 3], [3, 4, 1]])
     # a header that promises more vertices than the file holds is refused before parsing
@@ -145,9 +145,9 @@ def test_stl_of_closed_mesh_is_welded_with_the_map_kept(tmp_path):
     path = tmp_path / "sphere.stl"
     trimesh.Trimesh(V, F, process=False).export(path)
     m = ngf.load_mesh(path)
-    assert m.n_input == 3 * len(F) and len(m.vertices) == len(V) and m.welded and m.n_components == 1
+    assert m.n_input == 3 * len(F) and len(m.internal_vertices) == len(V) and m.welded and m.n_components == 1
     corners = read_mesh_file(path)[0]  # the file's own corners (float32 in the file)
-    np.testing.assert_array_equal(m.vertices[m.input_to_internal], corners)
+    np.testing.assert_array_equal(m.internal_vertices[m.input_to_internal], corners)
     d = ngf.geodesic_distances(path, [0], device="cpu")[0]
     assert d.shape == (3 * len(F),) and np.all(np.isfinite(d))
     # the same as on the indexed sphere, corner by corner
@@ -209,7 +209,7 @@ def test_bad_meshes(tmp_path):
         ngf.load_mesh((np.ones((3, 3)), np.array([[0, 1, 2]])))
     # a NaN in a vertex no face uses is harmless: that vertex gets NaN anyway
     m = ngf.load_mesh((np.array([[np.nan] * 3, [0, 0, 0], [1, 0, 0], [0, 1, 0]]), np.array([[1, 2, 3]])))
-    assert m.n_input == 4 and len(m.vertices) == 3
+    assert m.n_input == 4 and len(m.internal_vertices) == 3
     # STL whose triangle count disagrees with its size
     stl = tmp_path / "short.stl"
     stl.write_bytes(b"\0" * 80 + struct.pack("<I", 1000) + b"\0" * 100)
@@ -277,12 +277,12 @@ def check_numbering(m, v, f, welded_ok):
     used[f.ravel()] = True
     assert m.n_input == len(v)
     assert np.all((inv >= 0) == used)
-    np.testing.assert_array_equal(m.vertices[inv[used]], v[used])
-    np.testing.assert_array_equal(m.faces, inv[f])
+    np.testing.assert_array_equal(m.internal_vertices[inv[used]], v[used])
+    np.testing.assert_array_equal(m.internal_faces, inv[f])
     if not welded_ok:
         assert len(np.unique(inv[used])) == used.sum()
     # a per-vertex value computed on the internal mesh comes back on the right input vertices
-    val = m.vertices @ np.array([1.0, 1e-3, 1e-6])
+    val = m.internal_vertices @ np.array([1.0, 1e-3, 1e-6])
     back = m.to_input(val)
     np.testing.assert_array_equal(back[used], v[used] @ np.array([1.0, 1e-3, 1e-6]))
     assert np.all(np.isnan(back[~used]))

@@ -31,7 +31,7 @@ def main(argv=None):
                      mesh=shared_path("meshes", "fandisk.obj"))
     mesh = model.mesh
     ref = np.load(shared_path("reference", "exact", "fandisk.npz"))
-    radius = float(np.linalg.norm(mesh.vertices - mesh.vertices.mean(0), axis=1).max())
+    radius = float(np.linalg.norm(mesh.internal_vertices - mesh.internal_vertices.mean(0), axis=1).max())
     speed = 0.025 * radius
     fails = {"arrive": [], "at target": [], "rise": [], "surface": [], "walk": []}
     worst = {"rise / step": 0.0, "(walked - exact - step) / exact": -1.0, "off surface / radius": 0.0}
@@ -41,11 +41,11 @@ def main(argv=None):
         k = int(rng.integers(len(ref["sources"])))
         target = int(ref["orig_index"][ref["sources"][k]])
         rows = rng.choice(len(ref["orig_index"]), 12, replace=False)
-        starts = mesh.vertices[mesh.vertex(ref["orig_index"][rows])]
+        starts = mesh.internal_vertices[mesh.vertex(ref["orig_index"][rows])]
         exact = ref["dist"][k][rows].astype(np.float64)
         steps = int(np.ceil(exact.max() / speed * 1.3)) + 5
         xs, ds = ex.simulate(model, target, starts, steps, speed, "cpu")
-        tv = mesh.vertices[mesh.vertex([target])][0]
+        tv = mesh.internal_vertices[mesh.vertex([target])][0]
         checks = {"arrive": np.all(ds[-1] <= 0.5 * speed),
                   "at target": np.linalg.norm(xs[-1] - tv, axis=1).max() <= speed}
         rise = float(np.diff(ds, axis=0).max() / speed)

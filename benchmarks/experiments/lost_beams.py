@@ -41,7 +41,7 @@ def main(argv=None):
         pairs = [tuple(int(x) for x in p.split(":")) for p in a.pairs.split(",")]
     else:
         pairs = [divmod(int(i), len(V)) for i in np.argsort(rel.ravel())[::-1][:3]]
-    Vn = s.mesh.normalized_vertices
+    Vn = s.mesh.internal_normalized_vertices
     P, tf, asum, val = vertex_geometry(s)
     edges = s.topo.edges
     ekey = {(int(u), int(v)): i for i, (u, v) in enumerate(edges)}
@@ -50,7 +50,7 @@ def main(argv=None):
     W = {n: getattr(st.win, n).numpy() for n in ("face", "along", "height", "sigma", "lo", "hi")}
     dist = st.dist.numpy()
     mel = np.linalg.norm(P[edges[:, 0]] - P[edges[:, 1]], axis=1).mean()
-    solver = pp.EdgeFlipGeodesicSolver(Vn, np.asarray(s.mesh.faces))
+    solver = pp.EdgeFlipGeodesicSolver(Vn, np.asarray(s.mesh.internal_faces))
     for r, tgt in pairs:
         pts = solver.find_geodesic_path(v_start=int(src[r]), v_end=int(tgt))
         L = np.linalg.norm(np.diff(pts, axis=0), axis=1)

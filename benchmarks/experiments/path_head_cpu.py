@@ -29,7 +29,7 @@ from neurogf_warp.training.trainer import cosine_lr, fast_path  # noqa: E402
 
 
 def test_pairs(mesh):
-    rng, V, gts = np.random.default_rng(0), len(mesh.vertices), []
+    rng, V, gts = np.random.default_rng(0), len(mesh.internal_vertices), []
     for s in rng.choice(V, 16, replace=False):
         tg = rng.choice(V, 32, replace=False)
         g = geodesic_paths(mesh, mesh.index[s], mesh.index[tg[tg != s]], m=128, device="cpu")

@@ -38,7 +38,7 @@ def main():
     mesh = load_mesh(a.mesh)
     model = ngf.load(a.model, mesh=a.mesh)
     rng = np.random.default_rng(a.seed)
-    V = len(mesh.vertices)
+    V = len(mesh.internal_vertices)
     gts, exact = [], []
     if a.exact:
         from neurogf_warp.evaluation.evaluate import load_reference
@@ -49,7 +49,7 @@ def main():
         picks = [(s, None) for s in rng.choice(V, a.sources, replace=False)]
     for s, i in picks:
         if i is None:
-            same = np.flatnonzero((mesh.components == mesh.components[s]) & (np.arange(V) != s))
+            same = np.flatnonzero((mesh.internal_components == mesh.internal_components[s]) & (np.arange(V) != s))
             tg = rng.choice(same, a.targets, replace=False)
         else:
             j = rng.choice(np.flatnonzero(np.isfinite(dist[i]) & (inv != s)), a.targets, replace=False)

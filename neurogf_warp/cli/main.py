@@ -23,6 +23,7 @@ import warnings
 
 from neurogf_warp import __version__
 from neurogf_warp.common.checks import InputError, number, say
+from neurogf_warp.common.files import input_guard
 
 __all__ = ["main", "build_parser", "BadInput", "model_summary"]
 
@@ -494,7 +495,7 @@ def _cmd_data(args) -> int:
 
     dev = torch_device(args.device)
     mesh = ngf.load_mesh(args.mesh)
-    cfg = preset(args.preset or choose_preset(dev.type, len(mesh.vertices)))
+    cfg = preset(args.preset or choose_preset(dev.type, len(mesh.internal_vertices)))
     bad = [k for k in changes if k.split(".")[-1] not in {f for f in cfg.data.__dataclass_fields__}]
     if bad:
         raise InputError(f"--set {bad[0]}: not a dataset setting (see neurogf_warp.DatasetSettings)")
@@ -747,8 +748,8 @@ def model_summary(model) -> dict:
                              "frame": "mesh coordinates" if model.in_mesh_frame else "normalized unit sphere"}}
     m = model.mesh
     if m is not None:
-        out["mesh"] = {"vertices_as_given": int(m.n_input), "vertices_used": int(len(m.vertices)),
-                       "faces": int(len(m.faces)), "components": int(m.n_components), "fingerprint": m.fingerprint}
+        out["mesh"] = {"vertices_as_given": int(m.n_input), "vertices_used": int(len(m.internal_vertices)),
+                       "faces": int(len(m.internal_faces)), "components": int(m.n_components), "fingerprint": m.fingerprint}
     cfg = dict(model.config or {})
     if cfg:
         out["training"] = cfg
@@ -817,14 +818,14 @@ def _cmd_render(args) -> int:
         elif args.heat:
             paths = fields.heat_paths(mesh, src[0], tg)
         else:
-            v = mesh.vertices[mesh.vertex(np.asarray(tg))]
-            s = np.repeat(mesh.vertices[mesh.vertex(np.asarray(src[:1]))], len(tg), axis=0)
+            v = mesh.internal_vertices[mesh.vertex(np.asarray(tg))]
+            s = np.repeat(mesh.internal_vertices[mesh.vertex(np.asarray(src[:1]))], len(tg), axis=0)
             paths = np.asarray(ngf.path(model, s, v, m=128, refine=args.refine, project="mesh", device=args.device))
     view = None if args.view is None else View(azimuth=args.view[0], elevation=args.view[1], up=args.up)
     if view is None and args.up != "auto":  # face the sources as render would, with the given up axis
         from neurogf_warp.pictures.render import SOURCE_VIEW_MAX_ELEVATION, source_side
 
-        side = source_side(mesh.vertices[mesh.vertex(np.asarray(src))], mesh.vertices)
+        side = source_side(mesh.internal_vertices[mesh.vertex(np.asarray(src))], mesh.internal_vertices)
         view = View(up=args.up) if side is None else View.toward(side, up=args.up,
                                                                  max_elevation=SOURCE_VIEW_MAX_ELEVATION)
     render(model, values, sources=src, paths=paths, view=view, style=Style(isolines=args.isolines, vrange=args.vrange),
@@ -870,7 +871,8 @@ def main(argv=None) -> int:
         from neurogf_warp.generalizable.hooks import CLI_COMMANDS
 
         if argv[0] in CLI_COMMANDS:
-            return CLI_COMMANDS[argv[0]](argv[1:])
+            with input_guard():
+                return CLI_COMMANDS[argv[0]](argv[1:])
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
@@ -878,7 +880,8 @@ def main(argv=None) -> int:
         return 2
     debug = args.verbose or os.environ.get("NEUROGF_DEBUG", "") not in ("", "0")
     try:
-        with _one_line_warnings(args):
+        # input_guard: no -o of a command may replace a file the command reads (mesh, model, reference, dataset)
+        with _one_line_warnings(args), input_guard():
             start_warp(args.verbose)
             return args.run(args)
     except _StdoutClosed:

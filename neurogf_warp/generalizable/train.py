@@ -122,7 +122,7 @@ def shape_ground_truth(path, cfg: GenTrainConfig, device=None) -> dict:
 
     path = Path(path)
     mesh = ngf.load_mesh(str(path))
-    nv = len(mesh.vertices)
+    nv = len(mesh.internal_vertices)
     rng = np.random.default_rng([cfg.seed, int(hashlib.sha256(path.name.encode()).hexdigest()[:8], 16)])
     src = np.sort(rng.choice(nv, min(cfg.sources, nv), replace=False))
     # the plain solve, as the per-mesh training datasets use (near_source costs 1.3-2x on small CPU meshes)
@@ -140,7 +140,7 @@ def shape_ground_truth(path, cfg: GenTrainConfig, device=None) -> dict:
     dist = np.take_along_axis(d[keep], tgt, axis=1).astype(np.float32)
     cloud, _ = sample_surface(mesh, cfg.cloud_points, cfg.seed)
     return {"cloud": ((cloud - mesh.center) * mesh.scale).astype(np.float32),
-            "verts": mesh.normalized_vertices.astype(np.float32), "src": src.astype(np.int32), "tgt": tgt,
+            "verts": mesh.internal_normalized_vertices.astype(np.float32), "src": src.astype(np.int32), "tgt": tgt,
             "dist": dist}
 
 

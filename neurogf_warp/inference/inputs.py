@@ -101,7 +101,7 @@ def sources_in(model: Model, src, name: str, dev, one: bool = False):
         if 0 <= i < m.n_input and m.input_to_internal[i] >= 0:
             j = int(m.input_to_internal[i])
             return (st.mesh(name).rel64[j:j + 1], np.array([j]),
-                    (m.components[j:j + 1] if m.n_components > 1 else None))
+                    (m.internal_components[j:j + 1] if m.n_components > 1 else None))
     if isinstance(src, wp.array):
         src = src.numpy()
     elif isinstance(src, torch.Tensor):
@@ -124,8 +124,8 @@ def sources_in(model: Model, src, name: str, dev, one: bool = False):
             raise IndexError(f"{name}: vertex index {int(flat[flat < 0][0])} is negative; indices run from 0 to "
                              f"{model.mesh.n_input - 1} in the mesh file's numbering")
         ids = model.mesh.vertex(flat)
-        comp = model.mesh.components[ids] if model.mesh.n_components > 1 else None
-        return to_relative(st, model.mesh.vertices[ids]), ids, comp
+        comp = model.mesh.internal_components[ids] if model.mesh.n_components > 1 else None
+        return to_relative(st, model.mesh.internal_vertices[ids]), ids, comp
     if not np.issubdtype(a.dtype, np.floating):
         raise TypeError(f"{name} must be vertex indices (integers) or points (floats), got dtype {a.dtype}")
     if one:

@@ -144,7 +144,7 @@ def _relative_mesh(st: QueryState) -> wp.Mesh:
     refinement), made once per state."""
     md = st.mesh("refined paths")
     if md._wp_mesh is None:  # a one-part mesh has none yet (components need no closest points there)
-        faces = st.model.mesh.faces.reshape(-1).astype(np.int32)
+        faces = st.model.mesh.internal_faces.reshape(-1).astype(np.int32)
         md._wp_mesh = wp.Mesh(points=md.verts, indices=wp.array(faces, dtype=wp.int32, device=st.device))
     return md._wp_mesh
 

@@ -244,7 +244,7 @@ def warmup(model: Model, device=None, precision: str = "auto") -> dict:
     dev = resolve_device(device)
     prec = backend_of(query_state(model, dev), precision).precision
     t0 = time.perf_counter()
-    x = model.mesh.vertices[:2] if model.mesh is not None else np.array([[0.1, 0.2, 0.3], [-0.3, 0.1, 0.0]])
+    x = model.mesh.internal_vertices[:2] if model.mesh is not None else np.array([[0.1, 0.2, 0.3], [-0.3, 0.1, 0.0]])
     kw = dict(device=dev, precision=prec)
     distance(model, x[:1], x[1:], **kw)
     sdf(model, x, **kw)
