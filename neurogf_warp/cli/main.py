@@ -23,7 +23,7 @@ import warnings
 
 from neurogf_warp import __version__
 from neurogf_warp.common.checks import InputError, number, say
-from neurogf_warp.common.files import input_guard
+from neurogf_warp.common.files import input_guard, output_target
 
 __all__ = ["main", "build_parser", "BadInput", "model_summary"]
 
@@ -333,6 +333,7 @@ def _check_output(path: str, formats: tuple, what: str = "output") -> str:
         raise InputError(f"cannot write {path}: folder {folder} does not exist")
     if not os.access(folder, os.W_OK) or (os.path.exists(full) and not os.access(full, os.W_OK)):
         raise InputError(f"cannot write {path}: permission denied")
+    output_target(path, what=what)  # a device, FIFO or socket is refused here, before any work
     return ext
 
 

@@ -145,10 +145,9 @@ def shape_ground_truth(path, cfg: GenTrainConfig, device=None) -> dict:
 
 
 def _atomic_savez(path: Path, **arrays):
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    with open(tmp, "wb") as f:
-        np.savez(f, **arrays)
-    os.replace(tmp, path)
+    from neurogf_warp.common.files import atomic_write
+
+    atomic_write(path, lambda f: np.savez(f, **arrays))
 
 
 def ground_truth_cache(files, cache: Path, cfg: GenTrainConfig, rank: int = 0, world: int = 1, device=None,
@@ -253,9 +252,9 @@ def _dist_setup(device_arg):
 # ---- checkpoints ---------------------------------------------------------------------------------------------
 
 def atomic_torch_save(obj, path: Path):
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    from neurogf_warp.common.files import atomic_write  # the package's one rule for every file it writes
+
+    atomic_write(path, lambda f: torch.save(obj, f), what="model file")
 
 
 def _trained_on(folder, train, val, cfg):

@@ -46,7 +46,8 @@ import warp as wp
 
 from neurogf_warp.common.arrays import Output, resolve_device
 from neurogf_warp.inference.backends import PerThread, backend_of, bind
-from neurogf_warp.inference.inputs import DOMAIN, pair_components, pair_inputs, points_in, single_answer, sources_in
+from neurogf_warp.inference.inputs import (DOMAIN, check_tensor, pair_components, pair_inputs, points_in, single_answer,
+                                          sources_in)
 from neurogf_warp.inference.paths import PROJECT_STEPS, path, project  # noqa: F401  (public through this module)
 from neurogf_warp.inference.state import PRECISIONS, check_memory, query_state, unbind
 from neurogf_warp.kernels.inference import finish
@@ -215,6 +216,7 @@ def sdf(model: Model, x, device=None, precision: str = "auto", check: bool = Tru
     """Signed distance from the network's SDF head: (N, 3) -> (N,) float32 mesh units, negative inside; (3,) -> ().
 
     ``check``: refuse non-finite and out-of-domain points; with False their rows are NaN."""
+    check_tensor(x, "x")
     dev = resolve_device(device, like=x)
     X, kind, single, frame = points_in(model, x, "x", dev, check)
     be = backend_of(query_state(model, dev), precision)
@@ -227,6 +229,7 @@ def sdf(model: Model, x, device=None, precision: str = "auto", check: bool = Tru
 
 def embed(model: Model, x, device=None) -> wp.array:
     """Point embeddings e(x) of the lifting network: (N, 3) -> (N, D) float32 wp.array on the device."""
+    check_tensor(x, "x")
     dev = resolve_device(device, like=x)
     pts, _, _, frame = points_in(model, x, "x", dev, check=False)
     return PerThread(query_state(model, dev)).embed(pts, frame)

@@ -16,7 +16,8 @@ import numpy as np
 
 from neurogf_warp.common.checks import InputError
 
-__all__ = ["Mesh", "load_mesh", "mesh_fingerprint", "component_labels"]
+__all__ = ["Mesh", "load_mesh", "mesh_fingerprint", "component_labels", "check_scale", "MIN_RADIUS", "MAX_RADIUS",
+           "MAX_COORDINATE"]
 
 
 def mesh_fingerprint(vertices: np.ndarray, faces: np.ndarray) -> str:
@@ -202,6 +203,43 @@ class Mesh:
         return trimesh.Trimesh(self.internal_vertices, self.internal_faces, process=False)
 
 
+# The supported sizes. The kernels work in float32, in the unit sphere, and give results in mesh units: outside
+# these bounds distances (and squared lengths along paths) underflow to 0 or overflow to inf.
+MIN_RADIUS = 1e-20
+MAX_RADIUS = 1e30
+MAX_COORDINATE = 1e32
+
+
+def check_scale(radius: float, largest: float, pre: str = "") -> None:
+    """Refuse a mesh whose size or coordinates float32 cannot carry through the normalized computations.
+
+    Parameters
+    ----------
+    radius : float, input units
+        The largest distance of a used vertex from the bounding-box centre.
+    largest : float, input units
+        The largest absolute vertex coordinate.
+    pre : str
+        Prefix of the message (e.g. the file name).
+
+    Raises
+    ------
+    InputError
+        ``radius`` outside [MIN_RADIUS, MAX_RADIUS] or ``largest`` above MAX_COORDINATE.
+    """
+    if not largest <= MAX_COORDINATE and radius <= MAX_RADIUS:
+        raise InputError(f"{pre}the mesh's coordinates reach {largest:.3g}, beyond the supported {MAX_COORDINATE:g} "
+                         "(float32 could not hold them); move the mesh nearer the origin or rescale it")
+    if not MIN_RADIUS <= radius <= MAX_RADIUS:
+        raise InputError(f"{pre}the mesh's size is outside the supported range: its bounding radius is {radius:.3g} "
+                         f"units, and meshes from {MIN_RADIUS:g} to {MAX_RADIUS:g} units are supported (the "
+                         "float32 computations would give distances of 0 or inf); rescale the mesh, e.g. by "
+                         "expressing it in other units, and scale the results back")
+    if not largest <= MAX_COORDINATE:
+        raise InputError(f"{pre}the mesh's coordinates reach {largest:.3g}, beyond the supported {MAX_COORDINATE:g} "
+                         "(float32 could not hold them); move the mesh nearer the origin or rescale it")
+
+
 def _canonical_labels(labels: np.ndarray) -> np.ndarray:
     """Component labels renumbered 0, 1, ... in order of each component's first vertex."""
     labels = np.asarray(labels, dtype=np.int64)
@@ -291,9 +329,15 @@ def _from_arrays(vertices, faces, weld="auto", where: str = "") -> Mesh:
     tris = inverse[f].astype(np.int32)
     lo, hi = verts.min(0), verts.max(0)
     center = (lo + hi) / 2.0
-    radius = np.linalg.norm(verts - center, axis=1).max()
+    rel = verts - center
+    with np.errstate(over="ignore", under="ignore"):
+        radius = np.linalg.norm(rel, axis=1).max()
+    size = float(np.abs(rel).max())
+    if size > 0 and not (np.isfinite(radius) and radius > 0):  # squares overflowed (1e300) or underflowed (1e-200)
+        radius = size * float(np.linalg.norm(rel / size, axis=1).max())
     if not radius > 0:
         raise InputError(f"{pre}the mesh is degenerate: all referenced vertices coincide")
+    check_scale(radius, float(np.abs(verts).max()), pre)
     fp = mesh_fingerprint(verts, tris)
     # format-1 model files stored the fingerprint of the arrays as given; keep it to recognise them
     v1 = mesh_fingerprint(v, f) if (len(index) != len(v) and len(index) == len(used)) else fp
