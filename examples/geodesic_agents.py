@@ -177,7 +177,8 @@ def main(argv=None) -> int:
     os.makedirs(a.out, exist_ok=True)
     field_values = ngf.ssad(model, target, device=a.device)
     tv = mesh.internal_vertices[mesh.vertex([target])][0]
-    view = View.toward(tv - (mesh.internal_vertices.min(0) + mesh.internal_vertices.max(0)) / 2, up="auto", vertices=mesh.internal_vertices,
+    iv = mesh.internal_vertices
+    view = View.toward(tv - (iv.min(0) + iv.max(0)) / 2, up="auto", vertices=iv,
                        max_elevation=60.0)  # the target's side
     frames = []
     for f, k in enumerate(np.linspace(0, a.steps, a.frames).round().astype(int)):

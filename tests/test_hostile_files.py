@@ -315,3 +315,18 @@ def test_special_files_as_inputs_are_not_regular_files(tmp_path, make):
         ngf.load(path)
     with pytest.raises(FileNotFoundError, match="mesh file not found"):
         ngf.load_mesh(tmp_path / "missing.obj")
+
+
+def test_a_file_that_failed_to_load_is_no_protected_input(tmp_path):
+    """``train`` writes a damaged model file again; only files that loaded are a command's inputs."""
+    damaged = tmp_path / "m.ngf"
+    damaged.write_bytes(b"not a model")
+    with input_guard():
+        with pytest.raises(ValueError):
+            ngf.load(damaged)
+        atomic_write_bytes(damaged, b"rewritten")
+        mesh = _write(tmp_path / "m.obj", OBJ)
+        ngf.load_mesh(mesh)
+        with pytest.raises(InputError, match="input file"):
+            atomic_write_bytes(mesh, b"x")
+    assert damaged.read_bytes() == b"rewritten"

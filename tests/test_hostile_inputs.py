@@ -167,7 +167,8 @@ def test_integer_2d_sources_are_refused_by_every_query(tet_model):
     for call, name in calls:
         for x in (two, two.tolist(), torch.as_tensor(two), two.astype(np.uint16)):
             arr = x if not isinstance(x, list) else np.asarray(x)
-            with pytest.raises(InputError, match=rf"{name} is an integer array of shape \({arr.shape[0] if name != 'source' else 1}, 3\).*dtype=float"):
+            rows = arr.shape[0] if name != "source" else 1
+            with pytest.raises(InputError, match=rf"{name} is an integer array of shape \({rows}, 3\).*dtype=float"):
                 call(x)
     # the two readings it names both work, and agree with their spellings elsewhere
     by_index = np.asarray(ngf.msad(tet_model, two.ravel(), device="cpu"))
@@ -197,7 +198,8 @@ def _reference(tmp_path, mesh, name, positions=True, key="file_index", idx=None)
 @pytest.fixture
 def unused_mesh(tmp_path):
     p = tmp_path / "u.obj"
-    p.write_text("v 5 5 5\n" + "".join(f"v {x} {y} {z}\n" for x, y, z in TET_V) + "f 2 3 4\nf 2 3 5\nf 2 4 5\nf 3 4 5\n")
+    p.write_text("v 5 5 5\n" + "".join(f"v {x} {y} {z}\n" for x, y, z in TET_V)
+                 + "f 2 3 4\nf 2 3 5\nf 2 4 5\nf 3 4 5\n")
     return ngf.load_mesh(p), str(p)
 
 

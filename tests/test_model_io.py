@@ -371,7 +371,8 @@ def test_released_checkpoint_with_another_mesh_warns():
     m = ngf.load_mesh(mesh)
     far = m.internal_vertices.max(0) + 0.05 * (m.internal_vertices.max(0) - m.internal_vertices.min(0))
     v = np.vstack([m.internal_vertices, far, far + [1e-3, 0, 0], far + [0, 1e-3, 0]])
-    f = np.vstack([m.internal_faces, [[len(m.internal_vertices), len(m.internal_vertices) + 1, len(m.internal_vertices) + 2]]])
+    n = len(m.internal_vertices)
+    f = np.vstack([m.internal_faces, [[n, n + 1, n + 2]]])
     with pytest.warns(MeshMismatchWarning):
         ngf.load(ck, mesh=(v, f))
 

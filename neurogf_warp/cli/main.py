@@ -586,7 +586,7 @@ def _cmd_eval(args) -> int:
         _check_output(args.json, (".json",), "--json")
     if args.heat:
         _require_heat()
-    if args.reference is not None and not os.path.isfile(args.reference):
+    if args.reference is not None and not os.path.exists(args.reference):  # a FIFO etc.: the reader says what it is
         raise InputError(f"--reference {args.reference}: no such file")
     import json
 
@@ -750,7 +750,8 @@ def model_summary(model) -> dict:
     m = model.mesh
     if m is not None:
         out["mesh"] = {"vertices_as_given": int(m.n_input), "vertices_used": int(len(m.internal_vertices)),
-                       "faces": int(len(m.internal_faces)), "components": int(m.n_components), "fingerprint": m.fingerprint}
+                       "faces": int(len(m.internal_faces)), "components": int(m.n_components),
+                       "fingerprint": m.fingerprint}
     cfg = dict(model.config or {})
     if cfg:
         out["training"] = cfg

@@ -277,7 +277,7 @@ def _mode_for(path: str) -> int:
         return 0o666 & ~umask
 
 
-def check_input_file(path, what: str = "input file") -> str:
+def check_input_file(path, what: str = "input file", note: bool = True) -> str:
     """``path`` as a str when it names a readable regular file (links followed), noted as an input.
 
     Parameters
@@ -285,6 +285,9 @@ def check_input_file(path, what: str = "input file") -> str:
     path : str or os.PathLike
     what : str
         What the file is, for messages ("mesh file", "model file").
+    note : bool
+        ``note_input(path)`` now; readers that note a file only once it has been read pass False (a file that
+        failed to load, such as a damaged model that ``train`` writes again, is no input to protect).
 
     Raises
     ------
@@ -311,5 +314,6 @@ def check_input_file(path, what: str = "input file") -> str:
         raise InputError(f"{what} {path} is not a regular file (it is {_kind(mode)}): give a file on disk")
     if not os.access(path, os.R_OK):
         raise PermissionError(f"{what} is not readable: {path}")
-    note_input(path)
+    if note:
+        note_input(path)
     return path

@@ -769,7 +769,8 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
         g, where = proxy_mesh(m, n_proxy, device)
         fine_of = where.nearest_vertex
         timings["proxy_s"] = time.perf_counter() - t0
-        proxy_meta = {"asked": int(n_proxy), "vertices": int(len(g.internal_vertices)), "faces": int(len(g.internal_faces))}
+        proxy_meta = {"asked": int(n_proxy), "vertices": int(len(g.internal_vertices)),
+                      "faces": int(len(g.internal_faces))}
 
     t0 = time.perf_counter()
     plan = _sample(g, st, rng, surface_mesh=m)

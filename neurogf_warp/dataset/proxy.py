@@ -90,7 +90,8 @@ class Surface:
         if len(q):
             wp.launch(kernels.snap_points, len(q), inputs=[wm.id, q, 1.0e18], outputs=[p, f, b], device=dev)
         face = f.numpy()
-        return cls(p.numpy().astype(np.float64), mesh.internal_faces[face].astype(np.int64), b.numpy().astype(np.float64))
+        return cls(p.numpy().astype(np.float64), mesh.internal_faces[face].astype(np.int64),
+                   b.numpy().astype(np.float64))
 
     def take(self, idx) -> "Surface":
         return Surface(self.points[idx], self.corners[idx], self.weights[idx])

@@ -176,7 +176,8 @@ def _heat(mesh: Mesh, source_ids, vertex_ids, progress):
     """Heat-method distances (potpourri3d defaults) from each source: (S, Vr) float64, mesh units."""
     require_heat()
     with _bar(len(source_ids), "heat method", progress) as bar:
-        d = heat_distances(mesh.internal_normalized_vertices, mesh.internal_faces, source_ids, on_row=lambda: bar.update(1))
+        d = heat_distances(mesh.internal_normalized_vertices, mesh.internal_faces, source_ids,
+                           on_row=lambda: bar.update(1))
     return d[:, vertex_ids] / mesh.scale
 
 
@@ -235,9 +236,9 @@ def _chamfer(cd: np.ndarray, key: str) -> dict:
            f"{key}_median": float(np.median(cd[ok])) if ok.any() else None,
            f"{key}_nonfinite": int((~ok).sum())}
     if not ok.all():
-        out[f"{key}_note"] = (f"{int((~ok).sum())} of {len(cd)} predicted paths are NaN (path() found their two ends on "
-                              "different parts of the mesh); " + (f"the value is over the other {int(ok.sum())}"
-                                                                  if ok.any() else "no path is left to score"))
+        left = f"the value is over the other {int(ok.sum())}" if ok.any() else "no path is left to score"
+        out[f"{key}_note"] = (f"{int((~ok).sum())} of {len(cd)} predicted paths are NaN (path() found their two "
+                              f"ends on different parts of the mesh); {left}")
     return out
 
 
@@ -360,8 +361,8 @@ def format_table(res: dict) -> str:
     if cc.get("pairs"):
         lines.append(f"pairs in different components: {cc['pairs']} (exact distance inf); the model answered "
                      f"{cc['finite']} of them with a finite distance" + (" (must be 0)" if cc["finite"] else ""))
-    for key, what in (("chamfer_l1", "path Chamfer-L1"), ("chamfer_l1_refined", "path Chamfer-L1 after "
-                                                                              f"{res.get('refine_sweeps')} shortening sweeps")):
+    refined = f"path Chamfer-L1 after {res.get('refine_sweeps')} shortening sweeps"
+    for key, what in (("chamfer_l1", "path Chamfer-L1"), ("chamfer_l1_refined", refined)):
         if key not in res:
             continue
         if res[key] is None:

@@ -49,7 +49,8 @@ class MeshOnDevice:
         if self.multi:  # closest-point queries give a point's component (in these relative coordinates)
             self._wp_mesh = wp.Mesh(points=self.verts, indices=wp.array(m.internal_faces.reshape(-1).astype(np.int32),
                                                                          device=dev))
-            self._face_comp = wp.array(m.internal_components[m.internal_faces[:, 0]].astype(np.int32), dtype=wp.int32, device=dev)
+            self._face_comp = wp.array(m.internal_components[m.internal_faces[:, 0]].astype(np.int32), dtype=wp.int32,
+                                       device=dev)
 
     def components_of(self, pts: wp.array) -> wp.array:
         """Component label of each point, relative coordinates (that of its closest surface point; -1 for a

@@ -60,12 +60,12 @@ def read_mesh_file(path) -> tuple[np.ndarray, np.ndarray, str]:
         When the file is not a mesh of its kind (the message names the file, and the line for OBJ), or not a
         regular file (a folder, a device such as ``/dev/null``, a FIFO).
     """
-    from neurogf_warp.common.files import check_input_file
+    from neurogf_warp.common.files import check_input_file, note_input
 
     path = os.fspath(path)
     if os.path.isdir(path):
         raise InputError(f"{path} is a folder, not a mesh file")
-    check_input_file(path, "mesh file")
+    check_input_file(path, "mesh file", note=False)
     name = os.path.basename(path).lower()
     archive = next((a for a in ARCHIVE_SUFFIXES if name.endswith(a)), None)
     packed = next((c for c in COMPRESSED_SUFFIXES if name.endswith(c)), None)
@@ -92,6 +92,7 @@ def read_mesh_file(path) -> tuple[np.ndarray, np.ndarray, str]:
         v, f = _read_other(data, kind, where)
     if len(f) == 0:
         raise InputError(f"mesh file {where} has no triangle faces: NeuroGF needs a triangle surface")
+    note_input(path)  # an input of this command now: no output of it may replace the file
     return v, f, kind
 
 
@@ -145,7 +146,8 @@ def _archive_member(path: str, suffix: str) -> tuple[bytes, str]:
     except (zipfile.BadZipFile, tarfile.TarError, OSError, EOFError) as e:
         raise InputError(f"{path} is not a valid {suffix} archive ({e})") from None
     if not names:
-        raise InputError(f"archive {path} holds no mesh file (looked for {', '.join('.' + k for k in _member_kinds())})")
+        kinds = ", ".join("." + k for k in _member_kinds())
+        raise InputError(f"archive {path} holds no mesh file (looked for {kinds})")
     raise InputError(f"archive {path} holds {len(names)} mesh files ({', '.join(names[:5])}"
                      f"{' ...' if len(names) > 5 else ''}); give an archive with one mesh, or the mesh file itself")
 

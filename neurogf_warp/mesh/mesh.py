@@ -1,10 +1,11 @@
 """Triangle meshes as NeuroGF sees them: referenced (optionally welded) vertices, plus the unit-sphere frame.
 
 Users keep their own coordinates and vertex numbering: the file's own vertex records in file order
-(``mesh_files``), or the arrays as given; ``Mesh.vertices``, ``faces`` and ``components`` are in that numbering. Internally we drop vertices no face uses, weld STL and other
-triangle soups (exact duplicate coordinates), and work in the normalized frame the released models use:
-centre = bounding-box centre, scale so that the largest vertex norm is 1. ``Mesh.input_to_internal`` maps
-every input vertex to its internal vertex, so per-vertex results go back to the input numbering.
+(``mesh_files``), or the arrays as given; ``Mesh.vertices``, ``faces`` and ``components`` are in that numbering.
+Internally (``Mesh.internal_*``) we drop vertices no face uses, weld STL and other triangle soups (exact duplicate
+coordinates), and work in the normalized frame the released models use: centre = bounding-box centre, scale so
+that the largest vertex norm is 1. ``Mesh.input_to_internal`` maps every input vertex to its internal vertex, so
+per-vertex results go back to the input numbering.
 """
 from __future__ import annotations
 
@@ -23,8 +24,8 @@ __all__ = ["Mesh", "load_mesh", "mesh_fingerprint", "component_labels", "check_s
 def mesh_fingerprint(vertices: np.ndarray, faces: np.ndarray) -> str:
     """SHA-256 of a mesh (vertices as float32, faces as int64, little-endian): identifies a model's mesh.
 
-    ``Mesh.fingerprint`` is this hash of the internal mesh (``internal_vertices``, ``internal_faces``) (used vertices in input order, welded where the
-    mesh was welded), so the same surface read from files that differ only in unused vertices has one
+    ``Mesh.fingerprint`` is this hash of the internal mesh (``internal_vertices``, ``internal_faces``: used vertices
+    in input order, welded where the mesh was welded), so the same surface read from files that differ only in unused vertices has one
     fingerprint, and a stored mesh's fingerprint can be recomputed from it.
     """
     h = hashlib.sha256()
@@ -76,20 +77,27 @@ class Mesh:
     _inverse: np.ndarray | None = field(default=None, repr=False)
     _components: np.ndarray | None = field(default=None, repr=False)
     _v1_fingerprint: str | None = field(default=None, repr=False)
+    # the file-order views, made on first use (init=False: dataclasses.replace starts them afresh)
+    _file_vertices: np.ndarray | None = field(default=None, init=False, repr=False)
+    _file_faces: np.ndarray | None = field(default=None, init=False, repr=False)
 
     @property
     def vertices(self) -> np.ndarray:
-        out = np.full((self.n_input, 3), np.nan)
-        used = self.input_to_internal >= 0
-        out[used] = self.internal_vertices[self.input_to_internal[used]]
-        out.flags.writeable = False  # a copy: writing to it would change nothing the mesh uses
-        return out
+        if self._file_vertices is None:
+            out = np.full((self.n_input, 3), np.nan)
+            used = self.input_to_internal >= 0
+            out[used] = self.internal_vertices[self.input_to_internal[used]]
+            out.flags.writeable = False  # derived: writing to it would change nothing the mesh uses
+            self._file_vertices = out
+        return self._file_vertices
 
     @property
     def faces(self) -> np.ndarray:
-        out = self.index[self.internal_faces]
-        out.flags.writeable = False
-        return out
+        if self._file_faces is None:
+            out = self.index[self.internal_faces]
+            out.flags.writeable = False
+            self._file_faces = out
+        return self._file_faces
 
     @property
     def components(self) -> np.ndarray:
@@ -341,7 +349,8 @@ def _from_arrays(vertices, faces, weld="auto", where: str = "") -> Mesh:
     fp = mesh_fingerprint(verts, tris)
     # format-1 model files stored the fingerprint of the arrays as given; keep it to recognise them
     v1 = mesh_fingerprint(v, f) if (len(index) != len(v) and len(index) == len(used)) else fp
-    return Mesh(internal_vertices=verts, internal_faces=tris, index=index.astype(np.int64), n_input=len(v), center=center,
+    return Mesh(internal_vertices=verts, internal_faces=tris, index=index.astype(np.int64), n_input=len(v),
+                center=center,
                 scale=float(1.0 / radius), fingerprint=fp, _inverse=inverse, _v1_fingerprint=v1)
 
 

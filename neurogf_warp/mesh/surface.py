@@ -65,7 +65,8 @@ def warp_mesh(mesh, device=None) -> wp.Mesh:
     key = str(dev)
     if key not in per_device:
         per_device[key] = wp.Mesh(points=wp.array(m.internal_vertices.astype(np.float32), dtype=wp.vec3, device=dev),
-                                  indices=wp.array(m.internal_faces.reshape(-1).astype(np.int32), dtype=wp.int32, device=dev))
+                                  indices=wp.array(m.internal_faces.reshape(-1).astype(np.int32), dtype=wp.int32,
+                                                   device=dev))
     return per_device[key]
 
 

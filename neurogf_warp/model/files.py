@@ -23,7 +23,7 @@ import os
 import numpy as np
 import torch
 
-from neurogf_warp.common.files import atomic_write_bytes, check_input_file
+from neurogf_warp.common.files import atomic_write_bytes, check_input_file, note_input
 from neurogf_warp.mesh.mesh import Mesh, component_labels, load_mesh, mesh_fingerprint
 from neurogf_warp.common.checks import InputError
 from neurogf_warp.model.checkpoint_match import MeshMismatchError, warn_if_mesh_mismatch
@@ -209,6 +209,7 @@ def load_querier(path) -> SdfQuerier:
     path = _check_file(path)
     q = SdfQuerier()
     _strict_load(q, _read_torch(path), "SDF querier", path)
+    note_input(path)
     return q.eval()
 
 
@@ -217,7 +218,7 @@ def _check_file(path) -> str:
     if os.path.isdir(path):
         raise IsADirectoryError(f"model file {path} is a folder: give the model file itself (e.g. model.ngf or a "
                                 "*_final.pth)")
-    return check_input_file(path, "model file")
+    return check_input_file(path, "model file", note=False)  # noted once it has loaded
 
 
 def load(path, mesh=None, querier=None, check_mesh: bool = True) -> Model:
@@ -274,6 +275,7 @@ def load(path, mesh=None, querier=None, check_mesh: bool = True) -> Model:
     if querier is not None:
         model.querier = querier if isinstance(querier, SdfQuerier) else load_querier(querier)
         model.querier.eval()
+    note_input(path)  # an input of this command now: no output of it may replace the file
     return model
 
 
