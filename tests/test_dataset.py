@@ -179,7 +179,7 @@ def test_target_pool_all_reaches_vertices_outside_the_spread_set(two_blobs):
     m = load_mesh(two_blobs)
     opts = dict(SMALL, n_spread=100, n_global=64, n_path_global=16)
     spread = set(D.spread_vertices(m, min(100, len(m.vertices) // 2)).tolist())
-    V = m.normalized_vertices.astype(np.float32)
+    V = m.internal_normalized_vertices.astype(np.float32)
     for pool, want_outside in (("spread", False), ("all", True)):
         d = D.build_dataset(two_blobs, None, target_pool=pool, **opts)
         tgt = np.argmin(np.linalg.norm(V[None] - d.gd_global[:, :, 3:6].reshape(-1, 1, 3), axis=2), axis=1)
@@ -324,7 +324,7 @@ def test_coarse_training_rows_are_scaled_by_the_bias_the_held_out_rows_measure()
     assert c["k"] == 1 and c["pairs"] >= D.COARSE_MIN_PAIRS and 0 < c["bias"] < 0.01
     assert c["scale"] == pytest.approx(1 / (1 + c["bias"]))
     m = load_mesh(mesh)
-    P = m.normalized_vertices.astype(np.float32)
+    P = m.internal_normalized_vertices.astype(np.float32)
     exact = GeodesicSolver(m, k=DEFAULT_K, device="cpu").solve(d.gd_src)
     rough = GeodesicSolver(m, k=1, device="cpu").solve(d.gd_src)
     got, was = [], []

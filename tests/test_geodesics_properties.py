@@ -69,7 +69,7 @@ def test_metric_properties(case):
     d = G.geodesic_distances((V, F), idx, device="cpu").astype(np.float64)
     D = d[:, idx]
     assert np.all(D[np.arange(6), np.arange(6)] == 0.0)
-    same = msh.components[idx][:, None] == msh.components[None, :]
+    same = msh.internal_components[idx][:, None] == msh.internal_components[None, :]
     assert np.array_equal(np.isfinite(d), same)  # inf exactly across parts
     fin = np.isfinite(D)
     assert np.array_equal(fin, fin.T)

@@ -182,8 +182,6 @@ def test_integer_2d_sources_are_refused_by_every_query(tet_model):
 # ---- references and evaluation ----------------------------------------------------------------------------------
 
 def _reference(tmp_path, mesh, name, positions=True, key="file_index", idx=None):
-    from neurogf_warp.evaluation.evaluate import load_reference  # noqa: F401 - the reader under test
-
     used = mesh.index if idx is None else idx  # the stored numbering
     files = mesh.index[:len(used)]  # the same vertices in the file's numbering
     d = np.asarray(ngf.geodesic_distances(mesh, files[:2], device="cpu"))[:, files].astype(np.float32)

@@ -535,8 +535,6 @@ def _read_stl(data: bytes, path: str):
 # --- other formats --------------------------------------------------------------------------------------------
 
 def _read_other(data: bytes, kind: str, path: str):
-    import trimesh
-
     if kind not in _member_kinds():
         raise InputError(f"{path}: unsupported mesh format {('.' + kind) if kind else '(no suffix)'}; "
                          f"use {_formats_message()}")
