@@ -93,7 +93,7 @@ def test_source_in_a_component_without_spread_targets(two_blobs, monkeypatch):
     tet = np.array([[0, 0, 5.0], [0.3, 0, 5], [0, 0.3, 5], [0, 0, 5.3]])
     mesh = load_mesh((np.concatenate([v, tet]), np.concatenate([f, len(v) + np.array([[0, 1, 2], [0, 1, 3],
                                                                                      [0, 2, 3], [1, 2, 3]])])))
-    lone = len(mesh.vertices) - 4  # the tetrahedron's first internal vertex: the only spread vertex there
+    lone = len(mesh.internal_vertices) - 4  # the tetrahedron's first internal vertex: the only spread vertex there
     monkeypatch.setattr(D, "spread_vertices", lambda m, n: np.r_[np.arange(0, 324, 20), lone])
     d = D.build_dataset(mesh, None, **dict(SMALL, n_sources=18, n_test=0, n_path_sources=2, n_spread=18))
     assert lone in d.gd_src

@@ -370,4 +370,4 @@ def test_paths_projected_onto_the_mesh_or_the_sdf():
 
 def _file_faces(model):
     """The mesh's faces in the file's vertex numbering (what snap_to_mesh's face indices refer to)."""
-    return model.mesh.index[model.mesh.faces]
+    return model.mesh.faces
