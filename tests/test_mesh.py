@@ -162,12 +162,12 @@ def test_welding_rules(tmp_path):
     """Triangle soups are welded automatically; other input keeps its topology unless weld=True."""
     V, F, soup_v, soup_f = icosphere_soup(0)
     soup = ngf.load_mesh((soup_v, soup_f))
-    assert soup.welded and len(soup.vertices) == len(V) and soup.n_components == 1
+    assert soup.welded and len(soup.internal_vertices) == len(V) and soup.n_components == 1
     assert soup.n_input == len(soup_v)
-    np.testing.assert_array_equal(soup.vertices[soup.input_to_internal], soup_v)
+    np.testing.assert_array_equal(soup.internal_vertices[soup.input_to_internal], soup_v)
     # representatives are first occurrences, in input order
     assert np.all(np.diff(soup.index) > 0)
-    np.testing.assert_array_equal(soup.vertex(soup.index), np.arange(len(soup.vertices)))
+    np.testing.assert_array_equal(soup.vertex(soup.index), np.arange(len(soup.internal_vertices)))
     # two tetrahedra sharing a coordinate but not a vertex record: kept apart unless asked
     tet = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
     tf = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
@@ -175,13 +175,13 @@ def test_welding_rules(tmp_path):
     f2 = np.vstack([tf, tf + 4])
     assert ngf.load_mesh((v2, f2)).n_components == 2
     welded = ngf.load_mesh((v2, f2), weld=True)
-    assert welded.n_components == 1 and len(welded.vertices) == 7
+    assert welded.n_components == 1 and len(welded.internal_vertices) == 7
     assert welded.vertex(1) == welded.vertex(4)
     np.testing.assert_array_equal(welded.to_input(np.arange(7.0))[[1, 4]], [1, 1])
     # -0.0 and 0.0 are the same coordinate
     v3 = v2.copy()
     v3[4, 1:] = -0.0
-    assert len(ngf.load_mesh((v3, f2), weld=True).vertices) == 7
+    assert len(ngf.load_mesh((v3, f2), weld=True).internal_vertices) == 7
     # the same holds for files
     path = tmp_path / "two.obj"
     trimesh.Trimesh(v2, f2, process=False).export(path)
@@ -435,3 +435,13 @@ def test_truncated_binary_ply_and_stl_stay_refused(tmp_path):
         stl.write_bytes(data[:c])
         with pytest.raises(ValueError, match="declares 20 triangles"):
             read_mesh_file(stl)
+
+
+def test_welded_input_keeps_every_record_in_the_public_arrays():
+    """Mesh.vertices and Mesh.faces stay in the numbering as given when the mesh is welded."""
+    V, F, soup_v, soup_f = icosphere_soup(0)
+    soup = ngf.load_mesh((soup_v, soup_f))
+    np.testing.assert_array_equal(soup.vertices, soup_v)  # every corner record keeps its own position
+    assert soup.faces.shape == soup_f.shape and soup.faces.max() < len(soup_v)
+    np.testing.assert_array_equal(soup.vertices[soup.faces], soup_v[soup_f])
+    np.testing.assert_array_equal(soup.components, np.zeros(len(soup_v), np.int32))
