@@ -123,10 +123,10 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
     t_call = call_started("train", time.perf_counter())  # a fresh process's import of this stage counts too
     budget_seconds = check_budget(budget_seconds)
     files = RunFiles.for_model(out)
+    files.check_writable()
     from neurogf_warp.common.files import output_target
 
     output_target(out, inputs=(mesh, dataset), what="model file")  # never the mesh or dataset, even with force
-    files.check_writable()
     created = not os.path.isdir(files.folder)
     lock = files.lock()
     try:
