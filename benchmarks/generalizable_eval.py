@@ -130,7 +130,7 @@ def main(argv=None):
         files = files[: a.max_shapes]
         for f in files:
             mesh = ngf.load_mesh(str(f))
-            nv = len(mesh.vertices)
+            nv = len(mesh.internal_vertices)
             rng = shape_rng(f.name)
             src = rng.choice(nv, a.sources, replace=False)
             d = ngf.geodesic_distances(mesh, mesh.index[src], device=dev)[:, mesh.index]
@@ -142,15 +142,15 @@ def main(argv=None):
         for name in SHARED_EVAL:
             z = np.load(shared / "reference" / "exact" / name.replace(".obj", ".npz"))
             mesh = ngf.load_mesh(str(shared / "meshes" / name))
-            assert np.abs(mesh.vertices - z["positions"]).max() < 1e-5 * np.abs(z["positions"]).max()
-            nv = len(mesh.vertices)
+            assert np.abs(mesh.internal_vertices - z["positions"]).max() < 1e-5 * np.abs(z["positions"]).max()
+            nv = len(mesh.internal_vertices)
             prs = pairs_for(nv, z["sources"], a.targets, shape_rng(name))
             cases.append(("shared", name, mesh, [(s, t, z["dist"][i, t]) for i, (s, t) in enumerate(prs)]))
 
     rows = []
     n_coll = 0
     for group, name, mesh, prs in cases:
-        V = np.asarray(mesh.vertices)
+        V = np.asarray(mesh.internal_vertices)
         S = np.concatenate([np.repeat(V[s][None], len(t), 0) for s, t, _ in prs])
         T = np.concatenate([V[t] for _, t, _ in prs])
         gt = np.concatenate([g for _, _, g in prs]).astype(np.float64)
@@ -171,7 +171,7 @@ def main(argv=None):
             import potpourri3d as pp3d
 
             t0 = time.perf_counter()
-            solver = pp3d.MeshHeatMethodDistanceSolver(V, np.asarray(mesh.faces))
+            solver = pp3d.MeshHeatMethodDistanceSolver(V, np.asarray(mesh.internal_faces))
             hd = np.concatenate([solver.compute_distance(int(s))[t] for s, t, _ in prs])
             row["heat"] = float(np.mean(np.abs(hd[ok] - gt[ok]) / gt[ok]))
             row["heat_ms"] = (time.perf_counter() - t0) * 1e3

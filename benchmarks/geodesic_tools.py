@@ -88,31 +88,31 @@ def main(argv=None):
     ms = small.mesh
     k = a.heat_samples
     s, fps_s = timed(lambda: ngf.farthest_point_sampling(small, k, device=dev), sync)
-    row("bunny", len(ms.vertices), f"fps {k}", "neurogf", s)
+    row("bunny", len(ms.internal_vertices), f"fps {k}", "neurogf", s)
     s, _ = timed(lambda: ngf.voronoi(small, fps_s, device=dev), sync)
-    row("bunny", len(ms.vertices), f"voronoi {k} seeds", "neurogf", s)
+    row("bunny", len(ms.internal_vertices), f"voronoi {k} seeds", "neurogf", s)
     try:
         import potpourri3d as pp3d
 
         t = time.perf_counter()
-        solver = pp3d.MeshHeatMethodDistanceSolver(ms.vertices, ms.faces)
+        solver = pp3d.MeshHeatMethodDistanceSolver(ms.internal_vertices, ms.internal_faces)
         setup = time.perf_counter() - t
         start = int(ms.input_to_internal[0])
         t = time.perf_counter()
         hf = heat_fps(solver, start, k)
-        row("bunny", len(ms.vertices), f"fps {k}", "heat", time.perf_counter() - t, setup_s=setup)
+        row("bunny", len(ms.internal_vertices), f"fps {k}", "heat", time.perf_counter() - t, setup_s=setup)
         t = time.perf_counter()
         hv = heat_voronoi(solver, hf)
-        row("bunny", len(ms.vertices), f"voronoi {k} seeds", "heat", time.perf_counter() - t, setup_s=setup)
+        row("bunny", len(ms.internal_vertices), f"voronoi {k} seeds", "heat", time.perf_counter() - t, setup_s=setup)
         lab = ngf.voronoi(small, ms.index[hf], device=dev)[ms.index]
         res["voronoi_label_agreement_vs_heat"] = float(np.mean(lab == hv))
     except ImportError:
         res["heat"] = "potpourri3d not installed"
 
     s, (rv, rf) = timed(lambda: ngf.reconstruct(small, resolution=a.resolution, device=dev), sync)
-    m = surface_distances(rv, rf, ms.vertices, ms.faces)
-    extent = float(np.linalg.norm(ms.vertices.max(0) - ms.vertices.min(0)))
-    row("bunny", len(ms.vertices), f"reconstruct {a.resolution}^3", "neurogf", s, triangles=int(len(rf)),
+    m = surface_distances(rv, rf, ms.internal_vertices, ms.internal_faces)
+    extent = float(np.linalg.norm(ms.internal_vertices.max(0) - ms.internal_vertices.min(0)))
+    row("bunny", len(ms.internal_vertices), f"reconstruct {a.resolution}^3", "neurogf", s, triangles=int(len(rf)),
         chamfer_l1=m["chamfer_l1"], hausdorff=m["hausdorff"], diagonal=extent)
     print(f"reconstruction: Chamfer-L1 {m['chamfer_l1']:.3g}, Hausdorff {m['hausdorff']:.3g} "
           f"(bounding-box diagonal {extent:.3g})")

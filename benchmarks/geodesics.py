@@ -81,7 +81,7 @@ def rate(name, V, F, device, max_sources: int, out: dict, memory_fraction: float
     solver.vertex_distances()
     wp.synchronize_device(solver.device)
     dt = time.perf_counter() - t0
-    row = dict(mesh=name, memory_fraction=memory_fraction, vertices=len(m.vertices), faces=len(m.faces), nodes=solver.n_nodes, batch=solver.batch,
+    row = dict(mesh=name, memory_fraction=memory_fraction, vertices=len(m.internal_vertices), faces=len(m.internal_faces), nodes=solver.n_nodes, batch=solver.batch,
                sources=n, setup_s=setup, warmup_s=warm, solve_s=dt, sources_per_s=n / dt,
                iterations=solver.timings["iterations"][-1], relaxed_per_source=solver.work_stats()["relaxed_per_source"])
     out.setdefault(key, []).append(row)

@@ -111,7 +111,7 @@ def gradient_errors(model, rng, n=256) -> dict:
     import neurogf_warp as ngf
 
     net64 = model.net.double().eval()
-    v = model.mesh.normalized_vertices
+    v = model.mesh.internal_normalized_vertices
     p = v[rng.integers(0, len(v), n)] + rng.normal(0, 0.01, (n, 3))
     q = v[rng.integers(0, len(v), n)]
     P, Q = (wp.array(a.astype(np.float32), dtype=wp.vec3, device="cpu") for a in (p, q))
@@ -159,7 +159,7 @@ def main(argv=None):
     model = ngf.load(ck("bunny"), mesh=find_shared("meshes", "stanford-bunny.obj"))
     dev = a.device
     rng = np.random.default_rng(0)
-    v = model.mesh.normalized_vertices
+    v = model.mesh.internal_normalized_vertices
     n = a.points
     x = wp.array((v[rng.integers(0, len(v), n)] + rng.normal(0, 0.005, (n, 3))).astype(np.float32), dtype=wp.vec3,
                  device=dev)

@@ -70,8 +70,8 @@ def main(argv=None):
         rng = np.random.default_rng(0)
         per = -(-a.pairs // a.sources)
         gts = []
-        for s in rng.choice(len(mesh.vertices), a.sources, replace=False):
-            tg = rng.choice(len(mesh.vertices), per + 1, replace=False)
+        for s in rng.choice(len(mesh.internal_vertices), a.sources, replace=False):
+            tg = rng.choice(len(mesh.internal_vertices), per + 1, replace=False)
             tg = tg[tg != s][:per]
             g = ngf.geodesic_paths(mesh, mesh.index[s], mesh.index[tg], m=128, device=a.device)
             gts.append(g[np.isfinite(g).all(axis=(1, 2))])
@@ -96,7 +96,7 @@ def main(argv=None):
             variants[f"refine={a.refine} on SDF (no mesh)"] = (sub, x, t)
         head_cd = L.chamfer_l1(norm(variants["head (project=None)"][1]), gtn)
         rows = {}
-        print(f"\n{name} ({len(mesh.vertices)} vertices): {len(gt)} solver paths, device {a.device}")
+        print(f"\n{name} ({len(mesh.internal_vertices)} vertices): {len(gt)} solver paths, device {a.device}")
         print(f"{'variant':30s} {'pairs':>5s} {'Chamfer-L1':>11s} {'head, same':>11s} {'worse':>5s} "
               f"{'len/solver':>10s} {'off mesh':>9s} {'seconds':>8s} {'ms/pair':>8s}")
         for v, (sel, x, t) in variants.items():
@@ -113,7 +113,7 @@ def main(argv=None):
                        "mean_distance_to_mesh": float(off), "seconds": t, "ms_per_pair": 1e3 * t / len(sel)}
             print(f"{v:30s} {len(sel):5d} {cd.mean():11.4e} {head_cd[sel].mean():11.4e} {worse:5d} "
                   f"{np.median(ls):10.4f} {off:9.2e} {t:8.2f} {1e3 * t / len(sel):8.1f}")
-        res["models"][name] = {"vertices": len(mesh.vertices), "variants": rows}
+        res["models"][name] = {"vertices": len(mesh.internal_vertices), "variants": rows}
     if a.json:
         write_json(a.json, res, "path_snap", a.device)
     return res

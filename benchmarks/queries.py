@@ -325,7 +325,7 @@ def run(a) -> dict:
     torch_forms = TorchForms(model, device, [] if (quick or a.no_compile) else ["max-autotune-no-cudagraphs"])
     rng = np.random.default_rng(a.seed)
     mesh = model.mesh
-    xv = torch.from_numpy(mesh.normalize(mesh.vertices)).to(tdev)
+    xv = torch.from_numpy(mesh.normalize(mesh.internal_vertices)).to(tdev)
     scale = model.scale
     net64 = torch_forms.net(torch.float64)
 
@@ -412,19 +412,19 @@ def run(a) -> dict:
     warp_out = "warp" if not a.torch_out else "torch"
     # Warp distance queries run with raw=True: the references are the network's own values (float64 torch), and
     # the finishing rule (the straight-line bound, 0 at the source) costs the same either way
-    src = int(mesh.index[rng.integers(len(mesh.vertices))])
-    src_pt = mesh.vertices[mesh.vertex(src)]
+    src = int(mesh.index[rng.integers(len(mesh.internal_vertices))])
+    src_pt = mesh.internal_vertices[mesh.vertex(src)]
     xs = torch.from_numpy(mesh.normalize(src_pt)[None]).to(tdev)
     with torch.no_grad():
         ref = dist_build(net64, torch.float64)(xs, xv).cpu().numpy()
 
     want = set(a.queries.split(","))
-    lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
+    lo, hi = mesh.internal_vertices.min(0), mesh.internal_vertices.max(0)
     # SSAD, model bound to its mesh
     res["memory"] = bind_memory(ngf, model, src, device)
     bytes_kept = ngf.bind(model, device)
     res["memory"]["bound vertex embeddings (bytes)"] = bytes_kept
-    n = len(mesh.vertices)
+    n = len(mesh.internal_vertices)
     v1 = tuned("warp ssad, bound (fp16 tensor cores)" if cuda else "warp ssad, bound",
                lambda: ngf.ssad(model, src, device=device, output=warp_out, raw=True),
                [{"ssad": (1, False)}, {"ssad": (1, True)}, {"warps_ssad": 12}, {"warps_ssad": 24}])
@@ -437,7 +437,7 @@ def run(a) -> dict:
 
     # SSAD cold, source given as a point
     model.unbind()
-    pt = src_pt + 1e-3 * mesh.vertices.std()
+    pt = src_pt + 1e-3 * mesh.internal_vertices.std()
     xs_pt = torch.from_numpy(mesh.normalize(pt)[None]).to(tdev)
     with torch.no_grad():
         ref_pt = dist_build(net64, torch.float64)(xs_pt, xv).cpu().numpy()
@@ -451,7 +451,7 @@ def run(a) -> dict:
     # MSAD with 8 sources (bound)
     ngf.bind(model, device)
     srcs = mesh.index[rng.choice(n, sizes["S_msad"], replace=False)]
-    xss = torch.from_numpy(mesh.normalize(mesh.vertices[mesh.vertex(srcs)])).to(tdev)
+    xss = torch.from_numpy(mesh.normalize(mesh.internal_vertices[mesh.vertex(srcs)])).to(tdev)
 
     def sources_build(reduce_min: bool, cached: bool, chunk: int = 8):
         """S sources at once, `chunk` at a time: |e_s - e_v| as an (chunk, V, D) batch through the head."""
@@ -489,7 +489,7 @@ def run(a) -> dict:
     # distance matrix: S sources x every vertex (bound)
     S = sizes["S_matrix"]
     srcm = mesh.index[rng.choice(n, S, replace=False)]
-    xsm = torch.from_numpy(mesh.normalize(mesh.vertices[mesh.vertex(srcm)])).to(tdev)
+    xsm = torch.from_numpy(mesh.normalize(mesh.internal_vertices[mesh.vertex(srcm)])).to(tdev)
 
     if "matrix" in want:
         with torch.no_grad():
@@ -550,7 +550,7 @@ def run(a) -> dict:
     if "path" in want:
         N, m = sizes["paths"], sizes["m"]
         vi = rng.integers(0, n, (N, 2))
-        P, Q = mesh.vertices[vi[:, 0]].astype(np.float32), mesh.vertices[vi[:, 1]].astype(np.float32)
+        P, Q = mesh.internal_vertices[vi[:, 0]].astype(np.float32), mesh.internal_vertices[vi[:, 1]].astype(np.float32)
         Pt, Qt = torch.from_numpy(P).to(tdev), torch.from_numpy(Q).to(tdev)
         Pn, Qn = torch.from_numpy(mesh.normalize(P)).to(tdev), torch.from_numpy(mesh.normalize(Q)).to(tdev)
         center = torch.from_numpy(model.center).to(tdev)
@@ -574,8 +574,8 @@ def run(a) -> dict:
     if "refine" in want:
         N, m, sweeps = sizes["refine_pairs"], sizes["m"], sizes["refine"]
         vi = rng.integers(0, n, (N, 2))
-        P = wp.array(mesh.vertices[vi[:, 0]].astype(np.float32), dtype=wp.vec3, device=device)
-        Q = wp.array(mesh.vertices[vi[:, 1]].astype(np.float32), dtype=wp.vec3, device=device)
+        P = wp.array(mesh.internal_vertices[vi[:, 0]].astype(np.float32), dtype=wp.vec3, device=device)
+        Q = wp.array(mesh.internal_vertices[vi[:, 1]].astype(np.float32), dtype=wp.vec3, device=device)
         run16 = lambda: ngf.path(model, P, Q, m=m, refine=sweeps, device=device)
         out16 = run16().numpy()
         t16 = Timer(device, 2, 3)(run16)
@@ -608,7 +608,7 @@ def run(a) -> dict:
             import potpourri3d as pp3d
 
             t = time.perf_counter()
-            solver = pp3d.MeshHeatMethodDistanceSolver(mesh.vertices, mesh.faces.astype(np.int64))
+            solver = pp3d.MeshHeatMethodDistanceSolver(mesh.internal_vertices, mesh.internal_faces.astype(np.int64))
             setup = time.perf_counter() - t
             t = time.perf_counter()
             solver.compute_distance(int(mesh.vertex(src)))

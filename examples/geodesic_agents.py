@@ -157,9 +157,9 @@ def main(argv=None) -> int:
     model = ngf.load(model_path, mesh=mesh_path)
     mesh = model.mesh
     rng = np.random.default_rng(a.seed)
-    target = int(a.target if a.target is not None else mesh.index[rng.integers(len(mesh.vertices))])
-    starts = mesh.vertices[rng.choice(len(mesh.vertices), a.agents, replace=False)]
-    radius = float(np.linalg.norm(mesh.vertices - mesh.vertices.mean(0), axis=1).max())
+    target = int(a.target if a.target is not None else mesh.index[rng.integers(len(mesh.internal_vertices))])
+    starts = mesh.internal_vertices[rng.choice(len(mesh.internal_vertices), a.agents, replace=False)]
+    radius = float(np.linalg.norm(mesh.internal_vertices - mesh.internal_vertices.mean(0), axis=1).max())
     speed = a.speed * radius
     t1 = time.perf_counter()
     xs, ds = simulate(model, target, starts, a.steps, speed, a.device)
@@ -176,8 +176,9 @@ def main(argv=None) -> int:
 
     os.makedirs(a.out, exist_ok=True)
     field_values = ngf.ssad(model, target, device=a.device)
-    tv = mesh.vertices[mesh.vertex([target])][0]
-    view = View.toward(tv - (mesh.vertices.min(0) + mesh.vertices.max(0)) / 2, up="auto", vertices=mesh.vertices,
+    tv = mesh.internal_vertices[mesh.vertex([target])][0]
+    iv = mesh.internal_vertices
+    view = View.toward(tv - (iv.min(0) + iv.max(0)) / 2, up="auto", vertices=iv,
                        max_elevation=60.0)  # the target's side
     frames = []
     for f, k in enumerate(np.linspace(0, a.steps, a.frames).round().astype(int)):

@@ -48,9 +48,12 @@ def load(path, mesh=None, **kwargs):
     """
     # the dispatch lives at the package's top, above every stage: the model stage may not import the
     # generalizable one (tests/test_layers.py)
+    import os
+
     from neurogf_warp.generalizable.hooks import load_if_generalizable
 
-    gen = load_if_generalizable(path, mesh)
+    # only a regular file is looked into here: opening a FIFO would block (the model loader says what it is)
+    gen = load_if_generalizable(path, mesh) if os.path.isfile(path) else None
     if gen is not None:
         if kwargs:
             raise TypeError(f"a generalizable network takes no {', '.join(sorted(kwargs))}")

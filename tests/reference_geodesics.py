@@ -29,9 +29,9 @@ def steiner_graph(mesh, k: int):
     from neurogf_warp.ground_truth.steiner_graph import Topology
 
     m = load_mesh(mesh)
-    pos = m.normalized_vertices
+    pos = m.internal_normalized_vertices
     # the solver's own tables (its Steiner points per edge, k or more on thin faces), on the same positions
-    topo = Topology(pos.astype(np.float32), m.faces)
+    topo = Topology(pos.astype(np.float32), m.internal_faces)
     start, node_edge, node_t = topo.steiner_nodes(k)
     nv = len(pos)
     e0, e1 = pos[topo.edges[node_edge, 0]], pos[topo.edges[node_edge, 1]]

@@ -24,7 +24,7 @@ def net64(model):
 def _surface_points(model, n, seed):
     import trimesh
 
-    t = trimesh.Trimesh(model.mesh.vertices, model.mesh.faces, process=False)
+    t = trimesh.Trimesh(model.mesh.internal_vertices, model.mesh.internal_faces, process=False)
     return trimesh.sample.sample_surface(t, n, seed=seed)[0]
 
 
@@ -70,7 +70,7 @@ def test_sdf_gradient_matches_float64_autograd(model, net64):
 def test_ssad_and_msad_gradients_flow_to_their_sources(model, net64):
     rng = np.random.default_rng(9)
     src = _surface_points(model, 2, int(rng.integers(1 << 30)))
-    V = torch.tensor(model.mesh.vertices[:200], dtype=torch.float64)
+    V = torch.tensor(model.mesh.internal_vertices[:200], dtype=torch.float64)
     targets = model.mesh.index[:200]  # file indices of the first internal vertices
     w = torch.zeros(model.mesh.n_input)
     w[targets] = torch.rand(200, dtype=torch.float32)

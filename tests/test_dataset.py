@@ -93,7 +93,7 @@ def test_source_in_a_component_without_spread_targets(two_blobs, monkeypatch):
     tet = np.array([[0, 0, 5.0], [0.3, 0, 5], [0, 0.3, 5], [0, 0, 5.3]])
     mesh = load_mesh((np.concatenate([v, tet]), np.concatenate([f, len(v) + np.array([[0, 1, 2], [0, 1, 3],
                                                                                      [0, 2, 3], [1, 2, 3]])])))
-    lone = len(mesh.vertices) - 4  # the tetrahedron's first internal vertex: the only spread vertex there
+    lone = len(mesh.internal_vertices) - 4  # the tetrahedron's first internal vertex: the only spread vertex there
     monkeypatch.setattr(D, "spread_vertices", lambda m, n: np.r_[np.arange(0, 324, 20), lone])
     d = D.build_dataset(mesh, None, **dict(SMALL, n_sources=18, n_test=0, n_path_sources=2, n_spread=18))
     assert lone in d.gd_src
@@ -179,7 +179,7 @@ def test_target_pool_all_reaches_vertices_outside_the_spread_set(two_blobs):
     m = load_mesh(two_blobs)
     opts = dict(SMALL, n_spread=100, n_global=64, n_path_global=16)
     spread = set(D.spread_vertices(m, min(100, len(m.vertices) // 2)).tolist())
-    V = m.normalized_vertices.astype(np.float32)
+    V = m.internal_normalized_vertices.astype(np.float32)
     for pool, want_outside in (("spread", False), ("all", True)):
         d = D.build_dataset(two_blobs, None, target_pool=pool, **opts)
         tgt = np.argmin(np.linalg.norm(V[None] - d.gd_global[:, :, 3:6].reshape(-1, 1, 3), axis=2), axis=1)
@@ -328,7 +328,7 @@ def test_coarse_training_rows_are_scaled_by_the_bias_the_held_out_rows_measure()
     assert c["k"] == 1 and c["pairs"] >= D.COARSE_MIN_PAIRS and 0 < c["bias"] < 0.01
     assert c["scale"] == pytest.approx(1 / (1 + c["bias"]))
     m = load_mesh(mesh)
-    P = m.normalized_vertices.astype(np.float32)
+    P = m.internal_normalized_vertices.astype(np.float32)
     exact = GeodesicSolver(m, k=DEFAULT_K, device="cpu").solve(d.gd_src)
     rough = GeodesicSolver(m, k=1, device="cpu").solve(d.gd_src)
     got, was = [], []

@@ -96,9 +96,9 @@ def test_proxy_error_reads_the_fine_rows_on_each_proxy_vertex(fine_blobs):
     proxy, where = proxy_mesh(m, 700, "cpu")
     assert np.allclose(proxy.center, m.center) and proxy.scale == m.scale
     # the proxy's vertices are on the fine surface: their interpolated coordinates are themselves
-    xyz = np.stack([where.values(m.normalized_vertices[:, k][None])[0] for k in range(3)], 1)
-    np.testing.assert_allclose(xyz, proxy.normalized_vertices, atol=1e-5)
-    fine = np.abs(m.normalized_vertices[:, :1].T - 0.1) + 0.2  # any smooth field: linear in x away from a kink
+    xyz = np.stack([where.values(m.internal_normalized_vertices[:, k][None])[0] for k in range(3)], 1)
+    np.testing.assert_allclose(xyz, proxy.internal_normalized_vertices, atol=1e-5)
+    fine = np.abs(m.internal_normalized_vertices[:, :1].T - 0.1) + 0.2  # any smooth field: linear in x away from a kink
     e = proxy_error(where.values(fine) * 1.01, fine, where)
     assert e["pairs"] > 0 and abs(e["mre"] - 0.01) < 1e-6 and abs(e["bias"] - 0.01) < 1e-6
 
@@ -149,7 +149,7 @@ def test_cpu_builds_get_a_proxy_from_the_cpu_rates(V, k, limit, workers, expect)
     """On the CPU the proxy rule reads the CPU's rate tables at the build's k, shared by its processes; a batch
     set by hand (the caller sizes the solves) or a GPU with a batch set by hand keeps the mesh."""
     mesh = load_mesh(trimesh.creation.icosphere(subdivisions=1))
-    mesh = dataclasses.replace(mesh, vertices=np.zeros((V, 3)))  # only its size is read
+    mesh = dataclasses.replace(mesh, internal_vertices=np.zeros((V, 3)))  # only its size is read
     st = D.DatasetSettings(k=k, n_sources=768, workers=workers)
     n = D._auto_proxy(mesh, st, "cpu", limit)
     assert expect[0] <= n <= expect[1]

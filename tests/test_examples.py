@@ -35,9 +35,9 @@ def test_agents_reach_the_target_along_geodesics():
     k = int(rng.integers(len(ref["sources"])))
     target = int(ref["orig_index"][ref["sources"][k]])
     rows = rng.choice(len(ref["orig_index"]), 12, replace=False)
-    starts = mesh.vertices[mesh.vertex(ref["orig_index"][rows])]
+    starts = mesh.internal_vertices[mesh.vertex(ref["orig_index"][rows])]
     exact = ref["dist"][k][rows].astype(np.float64)
-    radius = float(np.linalg.norm(mesh.vertices - mesh.vertices.mean(0), axis=1).max())
+    radius = float(np.linalg.norm(mesh.internal_vertices - mesh.internal_vertices.mean(0), axis=1).max())
     speed = 0.025 * radius  # the example's default
     steps = int(np.ceil(exact.max() / speed * 1.3)) + 5
     xs, ds = ex.simulate(model, target, starts, steps, speed, DEV)
@@ -45,7 +45,7 @@ def test_agents_reach_the_target_along_geodesics():
     assert xs.shape == (steps + 1, 12, 3) and ds.shape == (steps + 1, 12)
     # every agent arrives: predicted distance within half a step, and it really is at the target vertex
     assert np.all(ds[-1] <= 0.5 * speed), msg
-    tv = mesh.vertices[mesh.vertex([target])][0]
+    tv = mesh.internal_vertices[mesh.vertex([target])][0]
     assert np.linalg.norm(xs[-1] - tv, axis=1).max() <= speed, msg
     # the predicted distance falls monotonically, up to 3/4 of a step: where the geodesic runs along one of the
     # fandisk's sharp creases an agent zigzags across it (both bounds hold with room over 300 random draws of

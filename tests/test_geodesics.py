@@ -204,7 +204,7 @@ def test_paths_resampled_on_the_device_equal_the_host_resampling(monkeypatch):
 
     got, flags = both(16)
     assert np.all(flags == 0) and np.isfinite(got[:297]).all() and np.isnan(got[297:]).all()
-    np.testing.assert_allclose(got[:297, 0], msh.normalized_vertices[msh.vertex(np.array([0, 40]))[rows[:297]]],
+    np.testing.assert_allclose(got[:297, 0], msh.internal_normalized_vertices[msh.vertex(np.array([0, 40]))[rows[:297]]],
                                atol=1e-6)  # from the source
     got, flags = both(5, max_steps=2)  # walks cut short
     assert np.sum(flags == -1) > 50 and np.isnan(got[flags == -1]).all()
@@ -233,8 +233,8 @@ def _check_paths(solver, msh, rows, tg, tol_len=1e-5, flat=False):
         return d
     from neurogf_warp.dataset.build import sdf_truth
 
-    wm = wp.Mesh(wp.array(msh.normalized_vertices.astype(np.float32), dtype=wp.vec3, device="cpu"),
-                 wp.array(msh.faces.reshape(-1).astype(np.int32), dtype=wp.int32, device="cpu"))
+    wm = wp.Mesh(wp.array(msh.internal_normalized_vertices.astype(np.float32), dtype=wp.vec3, device="cpu"),
+                 wp.array(msh.internal_faces.reshape(-1).astype(np.int32), dtype=wp.int32, device="cpu"))
     assert np.abs(sdf_truth(wm, pts.astype(np.float32), device="cpu")).max() < 1e-6  # normalized: mesh size 1
     return d
 
@@ -250,7 +250,7 @@ def test_degenerate_flat_mesh_upper_bound_and_paths():
     rows = np.repeat(np.arange(len(src)), solver.nv)
     tg = np.tile(np.arange(solver.nv), len(src))
     d = _check_paths(solver, msh, rows, tg, tol_len=1e-5, flat=True)  # 5.9e-7 measured (float64 walk)
-    P = msh.normalized_vertices
+    P = msh.internal_normalized_vertices
     ex = np.linalg.norm(P[None] - P[msh.vertex(np.array(src))][:, None], axis=2)
     assert np.all(d >= ex * (1 - 1e-5) - 1e-6)  # flat and convex: exact = Euclidean
     ref = steiner_dijkstra(msh, src) * msh.scale  # windows off: an upper bound by construction

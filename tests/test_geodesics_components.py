@@ -35,7 +35,7 @@ def test_two_spheres():
 def test_44_parts():
     V, F, part = M.scattered_parts(44)
     msh = load_mesh((V, F))
-    assert msh.n_components == 44 and np.array_equal(msh.components, part)
+    assert msh.n_components == 44 and np.array_equal(msh.internal_components, part)
     src = np.array([0, 14, 200, len(V) - 1])
     d = G.geodesic_distances((V, F), src, device="cpu")
     same = part[None, :] == part[src][:, None]

@@ -64,12 +64,12 @@ meshes = st.tuples(st.sampled_from(["grid", "ellipsoid", "holed", "parts"]), st.
 def test_metric_properties(case):
     V, F = random_mesh(*case)
     msh = load_mesh((V, F))
-    V, F = msh.vertices, msh.faces  # referenced vertices only (holes may leave some unused)
+    V, F = msh.internal_vertices, msh.internal_faces  # referenced vertices only (holes may leave some unused)
     idx = np.random.default_rng(case[1]).choice(len(V), 6, replace=False)
     d = G.geodesic_distances((V, F), idx, device="cpu").astype(np.float64)
     D = d[:, idx]
     assert np.all(D[np.arange(6), np.arange(6)] == 0.0)
-    same = msh.components[idx][:, None] == msh.components[None, :]
+    same = msh.internal_components[idx][:, None] == msh.internal_components[None, :]
     assert np.array_equal(np.isfinite(d), same)  # inf exactly across parts
     fin = np.isfinite(D)
     assert np.array_equal(fin, fin.T)

@@ -209,7 +209,7 @@ def test_projection_and_refinement_match_float64():
     mesh, net = model.mesh, model.net.double().eval()
     seed = int(np.random.SeedSequence().entropy % 2**31)
     rng = np.random.default_rng(seed)
-    v = mesh.normalized_vertices
+    v = mesh.internal_normalized_vertices
     x = v[rng.integers(0, len(v), 64)] + rng.normal(0, 0.01, (64, 3))
     with torch.no_grad():
         x_ref = _project_ref(net, torch.from_numpy(x), 2).numpy()
@@ -373,4 +373,4 @@ def test_paths_projected_onto_the_mesh_or_the_sdf():
 
 def _file_faces(model):
     """The mesh's faces in the file's vertex numbering (what snap_to_mesh's face indices refer to)."""
-    return model.mesh.index[model.mesh.faces]
+    return model.mesh.faces

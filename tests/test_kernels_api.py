@@ -261,7 +261,7 @@ def test_source_set_in_mesh_frame():
     np.testing.assert_array_equal(d, d3)
     net = model.net.double().eval()
     X = torch.from_numpy(mesh.normalize(x).astype(np.float32).astype(np.float64)).requires_grad_(True)
-    S = torch.from_numpy(mesh.normalize(mesh.vertices[mesh.vertex(srcs)]).astype(np.float32).astype(np.float64))
+    S = torch.from_numpy(mesh.normalize(mesh.internal_vertices[mesh.vertex(srcs)]).astype(np.float32).astype(np.float64))
     all_d = torch.stack([net.distance(X, S[k].expand_as(X)) for k in range(len(S))])  # (3, n)
     ref = all_d.min(0).values.detach().numpy() / mesh.scale  # MSAD in mesh units
     np.testing.assert_allclose(d, ref, rtol=1e-5, atol=1e-5 * ref.max(), err_msg=msg)

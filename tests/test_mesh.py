@@ -30,8 +30,8 @@ def test_obj_keeps_unused_vertices_in_file_numbering(tmp_path):
     """The issue's repro: vertex 0 unused stays in the numbering; vertex 1 is (0, 0, 0)."""
     path = write(tmp_path / "t.obj", TET_OBJ)
     m = ngf.load_mesh(path)
-    assert m.n_input == 5 and len(m.vertices) == 4
-    np.testing.assert_array_equal(m.vertices[m.vertex(1)], [0, 0, 0])
+    assert m.n_input == 5 and len(m.internal_vertices) == 4
+    np.testing.assert_array_equal(m.internal_vertices[m.vertex(1)], [0, 0, 0])
     np.testing.assert_array_equal(m.input_to_internal, [-1, 0, 1, 2, 3])
     d = ngf.geodesic_distances(path, [1], device="cpu")
     assert d.shape == (1, 5) and np.isnan(d[0, 0])
@@ -47,11 +47,11 @@ def test_obj_keeps_unused_vertices_in_file_numbering(tmp_path):
 def test_bunny_obj_numbering_and_fingerprint():
     path = shared_path("meshes", "stanford-bunny.obj")
     m = ngf.load_mesh(path)
-    assert m.n_input == 35947 and len(m.vertices) == 34834
+    assert m.n_input == 35947 and len(m.internal_vertices) == 34834
     assert np.count_nonzero(m.input_to_internal < 0) == 1113
     ref = np.load(shared_path("reference", "exact", "stanford-bunny.npz"))
     np.testing.assert_array_equal(m.index, ref["file_index"])  # the reference's own file numbering
-    np.testing.assert_array_equal(m.vertices.astype(np.float32), ref["positions"])
+    np.testing.assert_array_equal(m.internal_vertices.astype(np.float32), ref["positions"])
     # the fingerprint is that of the used vertices, the same as when trimesh (which drops unused ones) read it
     tm = trimesh.load(path, process=False, force="mesh")
     assert m.fingerprint == mesh_fingerprint(tm.vertices, tm.faces)
@@ -121,11 +121,11 @@ def test_ply_keeps_unused_vertices_and_order(tmp_path, binary):
     path = tmp_path / "q.ply"
     path.write_bytes(ply_text(V, F, binary))
     m = ngf.load_mesh(path)
-    assert m.n_input == 7 and len(m.vertices) == 5
+    assert m.n_input == 7 and len(m.internal_vertices) == 5
     np.testing.assert_array_equal(m.input_to_internal, [-1, 0, 1, 2, 3, 4, -1])
-    np.testing.assert_array_equal(m.vertices, V[1:6])
-    assert len(m.faces) == 6 and m.n_components == 1
-    np.testing.assert_array_equal(m.index[m.faces], [[1, 2, 3], [3, 4, 1], [1, 2, 5], [2, 3, 5], [3, 4, 5], [4, 1, 5]]
+    np.testing.assert_array_equal(m.internal_vertices, V[1:6])
+    assert len(m.internal_faces) == 6 and m.n_components == 1
+    np.testing.assert_array_equal(m.index[m.internal_faces], [[1, 2, 3], [3, 4, 1], [1, 2, 5], [2, 3, 5], [3, 4, 5], [4, 1, 5]]
                                   if binary else  # trimesh (ascii) lists triangles before split quads
                                   [[1, 2, 5], [2, 3, 5], [3, 4, 5], [4, 1, 5], [1, 2, 3], [3, 4, 1]])
     # a header that promises more vertices than the file holds is refused before parsing
@@ -145,9 +145,9 @@ def test_stl_of_closed_mesh_is_welded_with_the_map_kept(tmp_path):
     path = tmp_path / "sphere.stl"
     trimesh.Trimesh(V, F, process=False).export(path)
     m = ngf.load_mesh(path)
-    assert m.n_input == 3 * len(F) and len(m.vertices) == len(V) and m.welded and m.n_components == 1
+    assert m.n_input == 3 * len(F) and len(m.internal_vertices) == len(V) and m.welded and m.n_components == 1
     corners = read_mesh_file(path)[0]  # the file's own corners (float32 in the file)
-    np.testing.assert_array_equal(m.vertices[m.input_to_internal], corners)
+    np.testing.assert_array_equal(m.internal_vertices[m.input_to_internal], corners)
     d = ngf.geodesic_distances(path, [0], device="cpu")[0]
     assert d.shape == (3 * len(F),) and np.all(np.isfinite(d))
     # the same as on the indexed sphere, corner by corner
@@ -162,12 +162,12 @@ def test_welding_rules(tmp_path):
     """Triangle soups are welded automatically; other input keeps its topology unless weld=True."""
     V, F, soup_v, soup_f = icosphere_soup(0)
     soup = ngf.load_mesh((soup_v, soup_f))
-    assert soup.welded and len(soup.vertices) == len(V) and soup.n_components == 1
+    assert soup.welded and len(soup.internal_vertices) == len(V) and soup.n_components == 1
     assert soup.n_input == len(soup_v)
-    np.testing.assert_array_equal(soup.vertices[soup.input_to_internal], soup_v)
+    np.testing.assert_array_equal(soup.internal_vertices[soup.input_to_internal], soup_v)
     # representatives are first occurrences, in input order
     assert np.all(np.diff(soup.index) > 0)
-    np.testing.assert_array_equal(soup.vertex(soup.index), np.arange(len(soup.vertices)))
+    np.testing.assert_array_equal(soup.vertex(soup.index), np.arange(len(soup.internal_vertices)))
     # two tetrahedra sharing a coordinate but not a vertex record: kept apart unless asked
     tet = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
     tf = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
@@ -175,13 +175,13 @@ def test_welding_rules(tmp_path):
     f2 = np.vstack([tf, tf + 4])
     assert ngf.load_mesh((v2, f2)).n_components == 2
     welded = ngf.load_mesh((v2, f2), weld=True)
-    assert welded.n_components == 1 and len(welded.vertices) == 7
+    assert welded.n_components == 1 and len(welded.internal_vertices) == 7
     assert welded.vertex(1) == welded.vertex(4)
     np.testing.assert_array_equal(welded.to_input(np.arange(7.0))[[1, 4]], [1, 1])
     # -0.0 and 0.0 are the same coordinate
     v3 = v2.copy()
     v3[4, 1:] = -0.0
-    assert len(ngf.load_mesh((v3, f2), weld=True).vertices) == 7
+    assert len(ngf.load_mesh((v3, f2), weld=True).internal_vertices) == 7
     # the same holds for files
     path = tmp_path / "two.obj"
     trimesh.Trimesh(v2, f2, process=False).export(path)
@@ -209,7 +209,7 @@ def test_bad_meshes(tmp_path):
         ngf.load_mesh((np.ones((3, 3)), np.array([[0, 1, 2]])))
     # a NaN in a vertex no face uses is harmless: that vertex gets NaN anyway
     m = ngf.load_mesh((np.array([[np.nan] * 3, [0, 0, 0], [1, 0, 0], [0, 1, 0]]), np.array([[1, 2, 3]])))
-    assert m.n_input == 4 and len(m.vertices) == 3
+    assert m.n_input == 4 and len(m.internal_vertices) == 3
     # STL whose triangle count disagrees with its size
     stl = tmp_path / "short.stl"
     stl.write_bytes(b"\0" * 80 + struct.pack("<I", 1000) + b"\0" * 100)
@@ -277,12 +277,12 @@ def check_numbering(m, v, f, welded_ok):
     used[f.ravel()] = True
     assert m.n_input == len(v)
     assert np.all((inv >= 0) == used)
-    np.testing.assert_array_equal(m.vertices[inv[used]], v[used])
-    np.testing.assert_array_equal(m.faces, inv[f])
+    np.testing.assert_array_equal(m.internal_vertices[inv[used]], v[used])
+    np.testing.assert_array_equal(m.internal_faces, inv[f])
     if not welded_ok:
         assert len(np.unique(inv[used])) == used.sum()
     # a per-vertex value computed on the internal mesh comes back on the right input vertices
-    val = m.vertices @ np.array([1.0, 1e-3, 1e-6])
+    val = m.internal_vertices @ np.array([1.0, 1e-3, 1e-6])
     back = m.to_input(val)
     np.testing.assert_array_equal(back[used], v[used] @ np.array([1.0, 1e-3, 1e-6]))
     assert np.all(np.isnan(back[~used]))
@@ -435,3 +435,13 @@ def test_truncated_binary_ply_and_stl_stay_refused(tmp_path):
         stl.write_bytes(data[:c])
         with pytest.raises(ValueError, match="declares 20 triangles"):
             read_mesh_file(stl)
+
+
+def test_welded_input_keeps_every_record_in_the_public_arrays():
+    """Mesh.vertices and Mesh.faces stay in the numbering as given when the mesh is welded."""
+    V, F, soup_v, soup_f = icosphere_soup(0)
+    soup = ngf.load_mesh((soup_v, soup_f))
+    np.testing.assert_array_equal(soup.vertices, soup_v)  # every corner record keeps its own position
+    assert soup.faces.shape == soup_f.shape and soup.faces.max() < len(soup_v)
+    np.testing.assert_array_equal(soup.vertices[soup.faces], soup_v[soup_f])
+    np.testing.assert_array_equal(soup.components, np.zeros(len(soup_v), np.int32))

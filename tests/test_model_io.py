@@ -34,7 +34,7 @@ def test_load_mesh_normalization_and_index_map(tmp_path):
     m = ngf.load_mesh((v, f))
     assert m.n_input == 5 and list(m.index) == [1, 2, 3, 4]
     np.testing.assert_allclose(m.center, [1, 2, 0.5])
-    assert np.isclose(np.linalg.norm(m.normalized_vertices, axis=1).max(), 1.0)
+    assert np.isclose(np.linalg.norm(m.internal_normalized_vertices, axis=1).max(), 1.0)
     np.testing.assert_allclose(m.denormalize(m.normalize(v[1:])), v[1:])
     assert np.isnan(m.to_input(np.ones(4))[0])
 
@@ -45,7 +45,7 @@ def test_released_checkpoint_normalization_matches_reference():
     np.testing.assert_allclose(model.center, [-0.0168405, 0.110154, -0.001537], atol=1e-6)
     assert abs(model.scale - 9.543826404254942) < 1e-6
     # the mesh lies on the SDF head's zero level set
-    s = ngf.sdf(model, model.mesh.vertices[::50], device=DEV) * model.scale
+    s = ngf.sdf(model, model.mesh.internal_vertices[::50], device=DEV) * model.scale
     assert np.abs(s).mean() < 2e-3
 
 
@@ -212,7 +212,7 @@ def test_format_2_round_trip_keeps_numbering_map_and_labels(tmp_path):
         ngf.save(model, out)
         meta, tensors = read_raw(out)
         assert meta["format_version"] == 2
-        np.testing.assert_array_equal(tensors["mesh.components"].numpy(), model.mesh.components)
+        np.testing.assert_array_equal(tensors["mesh.components"].numpy(), model.mesh.internal_components)
         back = ngf.load(out)
         assert_same_model(model, back)
         assert back.mesh.welded == soup and back.mesh.n_components == 2
@@ -224,8 +224,8 @@ def test_format_1_files_still_load(tmp_path):
     ngf.save(model, out)
     meta, tensors = as_format_1(*read_raw(out))
     # format 1 stored the fingerprint of the arrays as given, unused vertex included
-    v = np.vstack([[[9, 9, 9]], model.mesh.vertices])
-    f = model.mesh.faces.astype(np.int64) + 1
+    v = np.vstack([[[9, 9, 9]], model.mesh.internal_vertices])
+    f = model.mesh.internal_faces.astype(np.int64) + 1
     meta["mesh_fingerprint"] = ngf.mesh.mesh.mesh_fingerprint(v, f)
     write_raw(out, meta, tensors)
     back = ngf.load(out)
@@ -370,9 +370,10 @@ def test_released_checkpoint_with_another_mesh_warns():
     assert mesh_sdf_residual(wrong) > MAX_MEAN_ABS_SDF * 3
     # the right surface with a stray triangle beyond its bounding box: the normalization moves
     m = ngf.load_mesh(mesh)
-    far = m.vertices.max(0) + 0.05 * (m.vertices.max(0) - m.vertices.min(0))
-    v = np.vstack([m.vertices, far, far + [1e-3, 0, 0], far + [0, 1e-3, 0]])
-    f = np.vstack([m.faces, [[len(m.vertices), len(m.vertices) + 1, len(m.vertices) + 2]]])
+    far = m.internal_vertices.max(0) + 0.05 * (m.internal_vertices.max(0) - m.internal_vertices.min(0))
+    v = np.vstack([m.internal_vertices, far, far + [1e-3, 0, 0], far + [0, 1e-3, 0]])
+    n = len(m.internal_vertices)
+    f = np.vstack([m.internal_faces, [[n, n + 1, n + 2]]])
     with pytest.warns(MeshMismatchWarning):
         ngf.load(ck, mesh=(v, f))
 
@@ -448,12 +449,12 @@ def test_saved_without_mesh_answers_in_the_same_frame(tmp_path, shift, stretch):
     mesh's coordinates and units as before saving (they answered in the unit-sphere frame, 1-10% off)."""
     ck, mesh = fandisk()
     m = ngf.load_mesh(mesh)
-    model = ngf.load(ck, mesh=(m.vertices * stretch + shift, m.faces))
+    model = ngf.load(ck, mesh=(m.internal_vertices * stretch + shift, m.internal_faces))
     path = tmp_path / "bare.ngf"
     ngf.save(model, path, include_mesh=False)
     bare = ngf.load(path)
     assert bare.mesh is None and bare.in_mesh_frame
-    v = model.mesh.vertices
+    v = model.mesh.internal_vertices
     rng = np.random.default_rng(0)
     p, q = v[rng.choice(len(v), 64)], v[rng.choice(len(v), 64)]
     for query in (lambda mo: ngf.distance(mo, p, q, device=DEV), lambda mo: ngf.sdf(mo, p, device=DEV),
@@ -464,7 +465,7 @@ def test_saved_without_mesh_answers_in_the_same_frame(tmp_path, shift, stretch):
         if got is not None:
             np.testing.assert_array_equal(got, want)
     # and the file loads with the mesh again, in the same frame
-    again = ngf.load(path, mesh=(m.vertices * stretch + shift, m.faces))
+    again = ngf.load(path, mesh=(m.internal_vertices * stretch + shift, m.internal_faces))
     np.testing.assert_array_equal(ngf.distance(again, p, q, device=DEV), ngf.distance(model, p, q, device=DEV))
     assert "mesh coordinates" in json.dumps(__import__("neurogf_warp.cli.main", fromlist=["x"]).model_summary(bare))
 

@@ -33,7 +33,7 @@ vertex = st.integers(min_value=1, max_value=2 * 42)  # the 84 used vertices (0 i
 @given(i=vertex, j=vertex, w=st.floats(0.0, 1.0))
 def test_pair_properties(two_parts, i, j, w):
     model, n = two_parts
-    V = model.mesh.vertices
+    V = model.mesh.internal_vertices
     p = V[model.mesh.vertex(i)]
     q = V[model.mesh.vertex(j)] * w + p * (1 - w)  # a point between them (on or near the surface)
     d_pq = ngf.distance(model, p, q, device=DEV)

@@ -248,7 +248,7 @@ def test_refinement_without_a_mesh_uses_the_sdf_surface():
     model = ngf.load(shared_path("checkpoints", "official", "NeuroGF_Pretrainer__fandisk_final.pth"))
     withmesh = ngf.load(shared_path("checkpoints", "official", "NeuroGF_Pretrainer__fandisk_final.pth"),
                         mesh=shared_path("meshes", "fandisk.obj"))
-    v = withmesh.mesh.normalized_vertices
+    v = withmesh.mesh.internal_normalized_vertices
     rng = np.random.default_rng(6)
     p, q = v[rng.integers(0, len(v), 6)], v[rng.integers(0, len(v), 6)]
     q[5] = p[5]

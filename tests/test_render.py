@@ -156,8 +156,8 @@ def test_radii_must_be_positive_numbers(name, value):
 
 
 def test_write_ply_round_trip(tmp_path):
-    """Vertex colours and values survive trimesh's PLY reader; the file's vertices are the referenced ones in
-    order, so values given in the file's numbering land on the right vertices."""
+    """Vertex colours and values survive trimesh's PLY reader; the file holds every vertex in the mesh's numbering
+    (vertex 0, in no face, with NaN coordinates and value), so values land on the right vertices."""
     import trimesh
 
     V, F = grid(5)
@@ -165,13 +165,16 @@ def test_write_ply_round_trip(tmp_path):
     values[7] = np.nan
     path = ngf.write_ply(tmp_path / "f.ply", (V, F), values, vrange=(0, len(V)))
     tm = trimesh.load(path, process=False)
-    assert len(tm.vertices) == len(V) - 1 and np.array_equal(tm.faces, F - 1)
-    np.testing.assert_allclose(tm.vertices, V[1:], atol=1e-6)
+    assert len(tm.vertices) == len(V) and np.array_equal(tm.faces, F)
+    assert np.isnan(tm.vertices[0]).all()
+    np.testing.assert_allclose(tm.vertices[1:], V[1:], atol=1e-6)
+    want = values.copy()
+    want[0] = np.nan  # no face uses vertex 0: no distance, no colour
     col = np.asarray(tm.visual.vertex_colors)
-    np.testing.assert_array_equal(col[:, :3], colorize(values[1:], (0, len(V))))
-    assert np.all(col[:, 3] == 255) and np.all(col[6, :3] == round(0.72 * 255))  # NaN: grey
+    np.testing.assert_array_equal(col[:, :3], colorize(want, (0, len(V))))
+    assert np.all(col[:, 3] == 255) and np.all(col[[0, 7], :3] == round(0.72 * 255))  # NaN: grey
     q = tm.metadata["_ply_raw"]["vertex"]["data"]["quality"]
-    np.testing.assert_array_equal(q, values[1:].astype(np.float32))
+    np.testing.assert_array_equal(q, want.astype(np.float32))
     # colours follow the map: low values dark indigo, high values cream
     np.testing.assert_array_equal(colorize([0.0, 1.0]), np.round(255 * COLOR_STOPS[[0, -1]]).astype(np.uint8))
     with pytest.raises(ValueError, match="one number per mesh vertex"):

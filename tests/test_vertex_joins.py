@@ -52,7 +52,7 @@ def test_patches_joined_at_vertices_are_found():
     j = vertex_joins(mesh)
     assert j.patches == 8 and j.joined_patches == 8 and j.pinch_vertices > 0 and j.coincident_vertices > 0
     welded = load_mesh(_patch_sphere(), weld=True)
-    assert edge_patches(welded.faces)[0] == 1 and not vertex_joins(welded).any
+    assert edge_patches(welded.internal_faces)[0] == 1 and not vertex_joins(welded).any
 
 
 def test_training_refuses_them_before_any_work_and_says_how_to_weld(tmp_path):

@@ -29,6 +29,7 @@ import warnings
 from neurogf_warp import __version__
 from neurogf_warp.cli.gen import GEN_COMMANDS
 from neurogf_warp.common.checks import InputError, number, say
+from neurogf_warp.common.files import input_guard, output_target
 from neurogf_warp.training.presets import DESCRIPTIONS, describe
 
 __all__ = ["main", "build_parser", "BadInput", "model_summary"]
@@ -370,6 +371,7 @@ def _check_output(path: str, formats: tuple, what: str = "output") -> str:
         raise InputError(f"cannot write {path}: folder {folder} does not exist")
     if not os.access(folder, os.W_OK) or (os.path.exists(full) and not os.access(full, os.W_OK)):
         raise InputError(f"cannot write {path}: permission denied")
+    output_target(path, what=what)  # a device, FIFO or socket is refused here, before any work
     return ext
 
 
@@ -548,7 +550,7 @@ def _cmd_data(args) -> int:
 
     dev = torch_device(args.device)
     mesh = ngf.load_mesh(args.mesh)
-    cfg = preset(args.preset or choose_preset(dev.type, len(mesh.vertices)))
+    cfg = preset(args.preset or choose_preset(dev.type, len(mesh.internal_vertices)))
     bad = [k for k in changes if k.split(".")[-1] not in {f for f in cfg.data.__dataclass_fields__}]
     if bad:
         raise InputError(f"--set {bad[0]}: not a dataset setting (see neurogf_warp.DatasetSettings)")
@@ -643,7 +645,7 @@ def _cmd_eval(args) -> int:
         _check_output(args.json, (".json",), "--json")
     if args.heat:
         _require_heat()
-    if args.reference is not None and not os.path.isfile(args.reference):
+    if args.reference is not None and not os.path.exists(args.reference):  # a FIFO etc.: the reader says what it is
         raise InputError(f"--reference {args.reference}: no such file")
     import json
 
@@ -806,8 +808,9 @@ def model_summary(model) -> dict:
                              "frame": "mesh coordinates" if model.in_mesh_frame else "normalized unit sphere"}}
     m = model.mesh
     if m is not None:
-        out["mesh"] = {"vertices_as_given": int(m.n_input), "vertices_used": int(len(m.vertices)),
-                       "faces": int(len(m.faces)), "components": int(m.n_components), "fingerprint": m.fingerprint}
+        out["mesh"] = {"vertices_as_given": int(m.n_input), "vertices_used": int(len(m.internal_vertices)),
+                       "faces": int(len(m.internal_faces)), "components": int(m.n_components),
+                       "fingerprint": m.fingerprint}
     cfg = dict(model.config or {})
     if cfg:
         out["training"] = cfg
@@ -882,14 +885,14 @@ def _cmd_render(args) -> int:
         elif args.heat:
             paths = fields.heat_paths(mesh, src[0], tg)
         else:
-            v = mesh.vertices[mesh.vertex(np.asarray(tg))]
-            s = np.repeat(mesh.vertices[mesh.vertex(np.asarray(src[:1]))], len(tg), axis=0)
+            v = mesh.internal_vertices[mesh.vertex(np.asarray(tg))]
+            s = np.repeat(mesh.internal_vertices[mesh.vertex(np.asarray(src[:1]))], len(tg), axis=0)
             paths = np.asarray(ngf.path(model, s, v, m=128, refine=args.refine, project="mesh", device=args.device))
     view = None if args.view is None else View(azimuth=args.view[0], elevation=args.view[1], up=args.up)
     if view is None and args.up != "auto":  # face the sources as render would, with the given up axis
         from neurogf_warp.pictures.render import SOURCE_VIEW_MAX_ELEVATION, source_side
 
-        side = source_side(mesh.vertices[mesh.vertex(np.asarray(src))], mesh.vertices)
+        side = source_side(mesh.internal_vertices[mesh.vertex(np.asarray(src))], mesh.internal_vertices)
         view = View(up=args.up) if side is None else View.toward(side, up=args.up,
                                                                  max_elevation=SOURCE_VIEW_MAX_ELEVATION)
     render(model, values, sources=src, paths=paths, view=view, style=Style(isolines=args.isolines, vrange=args.vrange),
@@ -1000,7 +1003,8 @@ def _run_guarded(args, run) -> int:
     """``run()``'s exit code, with every failure turned into a message on stderr and its exit code."""
     debug = args.verbose or os.environ.get("NEUROGF_DEBUG", "") not in ("", "0")
     try:
-        with _one_line_warnings(args):
+        # input_guard: no -o of a command may replace a file the command reads (mesh, model, reference, dataset)
+        with _one_line_warnings(args), input_guard():
             return run()
     except _StdoutClosed:
         _quiet_stdout_exit()

@@ -150,7 +150,7 @@ def _cmd_reconstruct(args) -> int:
     atomic_write(args.output, lambda fh: fh.write(data if isinstance(data, bytes) else data.encode()))
     msg = f"{len(f):,} triangles to {args.output}"
     if model.mesh is not None:
-        m = surface_distances(v, f, model.mesh.vertices, model.mesh.faces)
+        m = surface_distances(v, f, model.mesh.internal_vertices, model.mesh.internal_faces)
         msg += f"; against the mesh: Chamfer-L1 {m['chamfer_l1']:.4g}, Hausdorff {m['hausdorff']:.4g} (mesh units)"
     print(msg, file=__import__("sys").stderr)
     return 0

@@ -261,17 +261,17 @@ def load_dataset(path, mesh=None) -> Dataset:
 def check_trainable(mesh: Mesh, allow_vertex_joins: bool = False) -> None:
     """Raise ValueError unless ``mesh`` has a connected part large enough to sample training data from, and (unless
     ``allow_vertex_joins``) no patches that meet only at single vertices."""
-    V = len(mesh.vertices)
-    if len(mesh.faces) == 0:
+    V = len(mesh.internal_vertices)
+    if len(mesh.internal_faces) == 0:
         raise ValueError("the mesh has no faces: NeuroGF needs a triangle surface")
     if V < MIN_VERTICES:
         raise ValueError(f"the mesh has only {V} vertices; training needs at least {MIN_VERTICES} "
                          "to sample sources, targets and held-out test sources")
-    v = mesh.normalized_vertices[mesh.faces]
+    v = mesh.internal_normalized_vertices[mesh.internal_faces]
     area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1).sum()
     if not area > 1e-8:
         raise ValueError("the mesh has zero surface area (all faces degenerate); nothing to sample from")
-    largest = int(np.bincount(mesh.components).max())
+    largest = int(np.bincount(mesh.internal_components).max())
     if largest < MIN_VERTICES:
         raise ValueError(f"the mesh falls apart into {mesh.n_components} separate pieces of at most {largest} "
                          f"vertices each (a triangle soup?): geodesics cannot leave a piece, so there is nothing to "
@@ -307,14 +307,14 @@ def spread_vertices(mesh: Mesh, n: int) -> np.ndarray:
     mesh vertex (random vertices where QSlim refuses the mesh)."""
     from scipy.spatial import cKDTree
 
-    V = len(mesh.vertices)
+    V = len(mesh.internal_vertices)
     if n >= V:
         return np.arange(V)
-    pts = mesh.normalized_vertices.astype(np.float32)
+    pts = mesh.internal_normalized_vertices.astype(np.float32)
     try:
         import fast_simplification
 
-        vs, _ = fast_simplification.simplify(pts, mesh.faces.astype(np.int32), target_reduction=1.0 - n / V)
+        vs, _ = fast_simplification.simplify(pts, mesh.internal_faces.astype(np.int32), target_reduction=1.0 - n / V)
     except Exception:  # noqa: BLE001 - QSlim refuses some inputs (e.g. tiny or non-manifold meshes)
         vs = pts[np.random.default_rng(0).choice(V, n, replace=False)]
     _, idx = cKDTree(pts).query(vs)
@@ -323,7 +323,7 @@ def spread_vertices(mesh: Mesh, n: int) -> np.ndarray:
 
 def surface_samples(mesh: Mesh, n: int, rng: np.random.Generator) -> np.ndarray:
     """(n, 3) float32 points uniformly by area on the normalized surface."""
-    p = mesh.normalized_vertices[mesh.faces]
+    p = mesh.internal_normalized_vertices[mesh.internal_faces]
     area = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
     f = rng.choice(len(p), n, p=area / area.sum())
     r1, r2 = rng.random(n), rng.random(n)
@@ -389,10 +389,10 @@ def sdf_truth(mesh_or_wp_mesh, points, device=None, watertight: bool | None = No
     else:
         m = load_mesh(mesh_or_wp_mesh)
         if watertight is None:
-            watertight = _is_watertight(m.faces)
+            watertight = _is_watertight(m.internal_faces)
         winding = not watertight
-        wm = wp.Mesh(wp.array(m.normalized_vertices.astype(np.float32), dtype=wp.vec3, device=device),
-                     wp.array(m.faces.reshape(-1).astype(np.int32), dtype=wp.int32, device=device),
+        wm = wp.Mesh(wp.array(m.internal_normalized_vertices.astype(np.float32), dtype=wp.vec3, device=device),
+                     wp.array(m.internal_faces.reshape(-1).astype(np.int32), dtype=wp.int32, device=device),
                      support_winding_number=winding)
     pts = wp.array(np.asarray(points, dtype=np.float32).reshape(-1, 3), dtype=wp.vec3, device=wm.device)
     out = wp.zeros(len(pts), dtype=float, device=wm.device)
@@ -569,7 +569,7 @@ def _sample(m: Mesh, st: DatasetSettings, rng, surface_mesh: Mesh | None = None,
             test_src: np.ndarray | None = None) -> _Plan:
     """Phase 1: spread vertices (QSlim), test / distance / path sources, area-weighted surface points (on
     ``surface_mesh``, default ``m``). ``test_src``: held-out sources already chosen (left out of the others)."""
-    V = len(m.vertices)
+    V = len(m.internal_vertices)
     spread = spread_vertices(m, min(st.n_spread, max(V // 2, 1)))
     n_sources = min(st.n_sources, max(len(spread) - st.n_test, 1))
     perm = rng.permutation(spread)
@@ -594,14 +594,14 @@ def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _C
     Returns (kept source ids, {"global"|"local1"|"local2": [(n, 7) rows per kept source]}, sources solved,
     (T, V) test distances, worker batches, path sources traced).
     """
-    xyz = m.normalized_vertices.astype(np.float32)
+    xyz = m.internal_normalized_vertices.astype(np.float32)
     step = solver.batch
     split = lambda ids: [ids[i: i + step] for i in range(0, len(ids), step)]  # noqa: E731
     tests, sources = split(plan.test_src) if test_dist is None else [], split(plan.gd_src)
     batches = tests + sources
     kept, rows = [], {"global": [], "local1": [], "local2": []}
     if test_dist is None:
-        test_dist = np.zeros((len(plan.test_src), len(m.vertices)), np.float32)
+        test_dist = np.zeros((len(plan.test_src), len(m.internal_vertices)), np.float32)
     # marks: (time, sources back) per batch back; started: batch start times (batch 0 starts now, unasked)
     solved, marks, started = [0], [], [time.perf_counter()]
     traced = 0
@@ -790,12 +790,13 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     _check_held_out_time(m, st, device, time_limit_s)
     n_proxy = st.proxy if st.proxy is not None else _auto_proxy(m, st, device, time_limit_s)
     g, fine_of, proxy_meta = m, None, None  # g: the mesh the training sources are solved on
-    if n_proxy and 2 * n_proxy <= len(m.vertices):
+    if n_proxy and 2 * n_proxy <= len(m.internal_vertices):
         t0 = time.perf_counter()
         g, where = proxy_mesh(m, n_proxy, device)
         fine_of = where.nearest_vertex
         timings["proxy_s"] = time.perf_counter() - t0
-        proxy_meta = {"asked": int(n_proxy), "vertices": int(len(g.vertices)), "faces": int(len(g.faces))}
+        proxy_meta = {"asked": int(n_proxy), "vertices": int(len(g.internal_vertices)),
+                      "faces": int(len(g.internal_faces))}
 
     t0 = time.perf_counter()
     plan = _sample(g, st, rng, surface_mesh=m)
@@ -809,7 +810,7 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     def solver_for(mesh_):
         rows_cap = max(len(plan.gd_src), len(plan.test_src), 1)
         if batch is None and time_limit_s is not None:  # a GPU under a time limit: batches that fit inside it
-            per = gpu_seconds_per_source(len(mesh_.vertices))
+            per = gpu_seconds_per_source(len(mesh_.internal_vertices))
             rows_cap = min(rows_cap, limited_batch(DISTANCE_BATCH_SHARE * time_limit_s, per))
         return GeodesicSolver(mesh_, k=st.k, device=device, batch=batch, max_rows=rows_cap)
 
@@ -913,9 +914,9 @@ def _auto_proxy(m: Mesh, st: DatasetSettings, device, time_limit_s: float | None
     if st.batch is not None:
         return 0
     if not resolve_device(device).is_cpu:
-        return auto_proxy(len(m.vertices), st.n_sources, time_limit_s)
+        return auto_proxy(len(m.internal_vertices), st.n_sources, time_limit_s)
     procs = min(MAX_WORKERS, cpu_cores() if st.workers is None else st.workers)
-    return auto_proxy(len(m.vertices), st.n_sources, time_limit_s,
+    return auto_proxy(len(m.internal_vertices), st.n_sources, time_limit_s,
                       rate=lambda v: cpu_seconds_per_source(v, st.k) / procs)
 
 
@@ -926,7 +927,7 @@ def _check_held_out_time(m: Mesh, st: DatasetSettings, device, time_limit_s: flo
     if time_limit_s is None or st.n_test == 0:
         return
     cpu = resolve_device(device).is_cpu
-    n = len(m.vertices)
+    n = len(m.internal_vertices)
     est = st.n_test * seconds_per_source(n, CPU_S_PER_SOURCE if cpu else GPU_S_PER_SOURCE)
     if est <= time_limit_s + max(HELD_OUT_MARGIN * time_limit_s, HELD_OUT_SLACK_S):
         return
@@ -966,7 +967,7 @@ def _assemble(m: Mesh, st: DatasetSettings, seed: int, plan: _Plan, kept, rows, 
         "timings": timings,
     }
     return Dataset(
-        vertices=m.normalized_vertices.astype(np.float32), faces=m.faces.astype(np.int32),
+        vertices=m.internal_normalized_vertices.astype(np.float32), faces=m.internal_faces.astype(np.int32),
         center=np.asarray(m.center, np.float64), scale=float(m.scale),
         surface_points=plan.surface, gd_src=np.asarray(kept, dtype=np.int64),
         gd_global=np.stack(rows["global"]), gd_local1=np.stack(rows["local1"]), gd_local2=np.stack(rows["local2"]),

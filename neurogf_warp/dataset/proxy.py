@@ -35,9 +35,9 @@ def proxy_mesh(mesh: Mesh, n_vertices: int, device=None) -> tuple[Mesh, "Surface
     """
     import fast_simplification
 
-    x = mesh.normalized_vertices
+    x = mesh.internal_normalized_vertices
     try:
-        pts, tri = fast_simplification.simplify(x, mesh.faces.astype(np.int32),
+        pts, tri = fast_simplification.simplify(x, mesh.internal_faces.astype(np.int32),
                                                 target_count=max(2 * int(n_vertices), 4))
     except Exception as e:  # noqa: BLE001 - QSlim's own errors (non-manifold input and the like)
         raise ValueError(f"the mesh could not be decimated to {n_vertices} vertices for a proxy: {e}") from e
@@ -45,7 +45,7 @@ def proxy_mesh(mesh: Mesh, n_vertices: int, device=None) -> tuple[Mesh, "Surface
     proxy = load_mesh((where.points / mesh.scale + mesh.center, np.asarray(tri, np.int64)), weld=False)
     # the fine mesh's frame, so that rows and distances need no conversion
     proxy = dataclasses.replace(proxy, center=np.asarray(mesh.center, np.float64), scale=float(mesh.scale))
-    if len(proxy.vertices) != len(pts):  # QSlim left vertices no face uses: keep the ones the proxy has
+    if len(proxy.internal_vertices) != len(pts):  # QSlim left vertices no face uses: keep the ones the proxy has
         where = where.take(proxy.index)
     return proxy, where
 
@@ -56,12 +56,12 @@ def pin_vertices(proxy: Mesh, where: "Surface", ids: np.ndarray, mesh: Mesh) -> 
     fine edge) is an error of its own, larger than the proxy's on small meshes."""
     ids = np.asarray(ids, np.int64)
     fine = where.nearest_vertex[ids]
-    v = proxy.vertices.copy()
-    v[ids] = mesh.vertices[fine]
-    where.points[ids] = mesh.normalized_vertices[fine]
+    v = proxy.internal_vertices.copy()
+    v[ids] = mesh.internal_vertices[fine]
+    where.points[ids] = mesh.internal_normalized_vertices[fine]
     where.corners[ids] = fine[:, None]
     where.weights[ids] = (1.0, 0.0, 0.0)
-    return dataclasses.replace(proxy, vertices=v, fingerprint=mesh_fingerprint(v, proxy.faces))
+    return dataclasses.replace(proxy, internal_vertices=v, fingerprint=mesh_fingerprint(v, proxy.internal_faces))
 
 
 @dataclasses.dataclass
@@ -82,15 +82,16 @@ class Surface:
         from neurogf_warp.kernels.mesh import surface as kernels
 
         dev = resolve_device(device)
-        x = mesh.normalized_vertices.astype(np.float32)
+        x = mesh.internal_normalized_vertices.astype(np.float32)
         wm = wp.Mesh(wp.array(x, dtype=wp.vec3, device=dev),
-                     wp.array(mesh.faces.reshape(-1).astype(np.int32), dtype=wp.int32, device=dev))
+                     wp.array(mesh.internal_faces.reshape(-1).astype(np.int32), dtype=wp.int32, device=dev))
         q = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=dev)
         p, f, b = (wp.empty(len(q), dtype=t, device=dev) for t in (wp.vec3, wp.int32, wp.vec3))
         if len(q):
             wp.launch(kernels.snap_points, len(q), inputs=[wm.id, q, 1.0e18], outputs=[p, f, b], device=dev)
         face = f.numpy()
-        return cls(p.numpy().astype(np.float64), mesh.faces[face].astype(np.int64), b.numpy().astype(np.float64))
+        return cls(p.numpy().astype(np.float64), mesh.internal_faces[face].astype(np.int64),
+                   b.numpy().astype(np.float64))
 
     def take(self, idx) -> "Surface":
         return Surface(self.points[idx], self.corners[idx], self.weights[idx])

@@ -18,49 +18,92 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from neurogf_warp.dataset.heat import HEAT_HINT, heat_distances, require_heat  # noqa: F401 - re-exported
+from neurogf_warp.common.checks import InputError
 from neurogf_warp.evaluation import metrics
 from neurogf_warp.mesh.mesh import Mesh, load_mesh
 
 if TYPE_CHECKING:
     from neurogf_warp.model.model import Model
 
-__all__ = ["evaluate", "load_reference", "format_table", "require_heat"]
+__all__ = ["evaluate", "load_reference", "format_table", "require_heat", "json_safe"]
+
+REFERENCE_HELP = ("a distance reference is an .npz with arrays sources (S,), dist (S, Vr) and file_index or "
+                  "orig_index (Vr,), plus positions (Vr, 3), which may be left out when it covers every vertex of "
+                  "the mesh (shared/reference/README.md)")
+
 
 def load_reference(path: "str | os.PathLike", mesh: Mesh) -> tuple:
     """Exact distances of a reference ``.npz`` on the mesh's internal vertices.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        An ``.npz`` with ``sources`` (S,) indexing its vertices, ``dist`` (S, Vr) in mesh units, and
+        ``file_index`` (the file's vertex numbering) or ``orig_index`` (trimesh's, unused vertices dropped),
+        (Vr,). ``positions`` (Vr, 3) confirm it belongs to ``mesh``; without them the reference must cover
+        every vertex that a face uses (Vr = the mesh's used vertices), numbered by ``file_index`` (or by
+        ``orig_index`` on a mesh with no unused vertices, where both numberings agree).
+    mesh : Mesh
+        The mesh evaluated on.
 
     Returns
     -------
     vertex_ids : (Vr,) int64 internal vertex ids; source_ids : (S,) int64 internal ids;
     dist : (S, Vr) float64 exact distances in mesh units (inf between components).
-    """
-    from neurogf_warp.dataset.build import read_npz
 
-    path = os.fspath(path)
+    Raises
+    ------
+    InputError (a ValueError)
+        The file is not a reference (a mesh file, another ``.npz``) or belongs to another mesh.
+    """
+    from neurogf_warp.common.files import check_input_file
+    from neurogf_warp.dataset.build import read_npz
+    from neurogf_warp.mesh.files import MESH_SUFFIXES
+
+    path = check_input_file(path, "reference file")
+    with open(path, "rb") as fh:
+        head = fh.read(4)
+    if head[:2] != b"PK":  # every .npz is a zip archive
+        mesh_like = os.path.splitext(path)[1].lower() in MESH_SUFFIXES or head[:3] == b"ply"
+        what = "a mesh file" if mesh_like else "not an .npz file"
+        raise InputError(f"reference {path} is {what}, not a distance reference: {REFERENCE_HELP}"
+                         + ("; the mesh itself goes to mesh= (--mesh)" if mesh_like else ""))
     data = read_npz(path, "reference")
-    missing = [k for k in ("positions", "sources", "dist") if k not in data]
+    missing = [k for k in ("sources", "dist") if k not in data]
     if missing or not ({"orig_index", "file_index"} & set(data)):
-        raise ValueError(f"{path} is not a distance reference: it needs positions, orig_index or file_index, sources "
-                         f"and dist (missing {missing or ['orig_index/file_index']})")
-    pos, src, dist = data["positions"], data["sources"].astype(np.int64), data["dist"]
-    tol = 1e-4 * max(1.0, float(np.abs(pos).max()) if len(pos) else 1.0)
+        raise InputError(f"{path} is not a distance reference (missing {missing or ['file_index/orig_index']}): "
+                         f"{REFERENCE_HELP}")
+    src, dist = data["sources"].astype(np.int64), data["dist"]
+    pos = data.get("positions")
+    used = len(mesh.internal_vertices)
+    tol = 1e-4 * max(1.0, float(np.abs(pos).max()) if pos is not None and len(pos) else 1.0)
     for key in ("file_index", "orig_index"):  # whichever numbering this mesh's loader uses
         if key not in data:
             continue
-        idx = data[key].astype(np.int64)
+        if pos is None and key == "orig_index" and mesh.n_input != used:
+            continue  # trimesh's numbering differs from the file's here, and nothing can tell them apart
+        idx = data[key].astype(np.int64).reshape(-1)
         if len(idx) and (idx.min() < 0 or idx.max() >= mesh.n_input):
             continue
         inv = mesh.input_to_internal[idx] if len(idx) else idx
         if np.any(inv < 0):
             continue
-        if len(inv) == 0 or np.abs(mesh.vertices[inv] - pos).max() <= tol:
+        if pos is None:
+            fits = len(np.unique(inv)) == used
+        else:
+            fits = len(inv) == 0 or (pos.shape == (len(inv), 3)
+                                     and np.abs(mesh.internal_vertices[inv] - pos).max() <= tol)
+        if fits:
             if src.size and (src.min() < 0 or src.max() >= len(inv)):
-                raise ValueError(f"{path}: source ids must index its {len(inv)} positions")
+                raise InputError(f"{path}: source ids must index its {len(inv)} vertices")
             if dist.shape != (len(src), len(inv)):
-                raise ValueError(f"{path}: dist has shape {dist.shape}, expected ({len(src)}, {len(inv)})")
+                raise InputError(f"{path}: dist has shape {dist.shape}, expected ({len(src)}, {len(inv)})")
             return inv, inv[src], dist.astype(np.float64)
-    raise ValueError(f"{path} is a reference for another mesh: its {len(pos)} vertices do not match this mesh "
-                     f"({mesh.n_input} vertices as given, {len(mesh.vertices)} used by faces)")
+    if pos is None:
+        raise InputError(f"{path} has no positions and its {key} does not cover the {used} vertices this mesh's faces "
+                         "use: it is a reference for another mesh, or a part of one (store positions to use a part)")
+    raise InputError(f"{path} is a reference for another mesh: its {len(pos)} vertices do not match this mesh "
+                     f"({mesh.n_input} vertices as given, {used} used by faces)")
 
 
 def _with_mesh(model, mesh):
@@ -91,7 +134,7 @@ def _solver_truth(mesh: Mesh, sids, k, device, progress):
 
     kw = {} if k is None else {"k": k}
     solver = GeodesicSolver(mesh, device=device, max_rows=len(sids), batch=solver_batch(None, device), **kw)
-    out = np.empty((len(sids), len(mesh.vertices)), np.float64)
+    out = np.empty((len(sids), len(mesh.internal_vertices)), np.float64)
     with _bar(len(sids), "ground truth", progress) as bar:
         for i in range(0, len(sids), solver.batch):
             s = sids[i: i + solver.batch]
@@ -126,14 +169,15 @@ def _rel_stats(pred, gt) -> dict:
         return {"pairs": 0, "nonfinite": int(bad.sum())}
     return {"mre": float(r.mean()), "max_rel": float(r.max()), "median_rel": float(np.median(r)),
             "p99_rel": float(np.percentile(r, 99)), "pairs": int(r.size), "nonfinite": int(bad.sum()),
-            "per_source_mre": [float(x.mean()) if x.size else float("nan") for x in per]}
+            "per_source_mre": [float(x.mean()) if x.size else None for x in per]}
 
 
 def _heat(mesh: Mesh, source_ids, vertex_ids, progress):
     """Heat-method distances (potpourri3d defaults) from each source: (S, Vr) float64, mesh units."""
     require_heat()
     with _bar(len(source_ids), "heat method", progress) as bar:
-        d = heat_distances(mesh.normalized_vertices, mesh.faces, source_ids, on_row=lambda: bar.update(1))
+        d = heat_distances(mesh.internal_normalized_vertices, mesh.internal_faces, source_ids,
+                           on_row=lambda: bar.update(1))
     return d[:, vertex_ids] / mesh.scale
 
 
@@ -143,7 +187,7 @@ def _paths(model, mesh: Mesh, rng, n_sources, n_targets, device, k, refine, prog
     from neurogf_warp.ground_truth.geodesics import geodesic_paths
     from neurogf_warp.inference.queries import path
 
-    V, comp = len(mesh.vertices), mesh.components
+    V, comp = len(mesh.internal_vertices), mesh.internal_components
     gts = []
     with _bar(n_sources, "solver paths", progress) as bar:
         for s in rng.choice(V, min(n_sources, V), replace=False):
@@ -171,14 +215,45 @@ def _paths(model, mesh: Mesh, rng, n_sources, n_targets, device, k, refine, prog
                 bar.update(len(gt[i: i + chunk]))
         return norm(out)
 
-    cd = metrics.chamfer_l1(predicted(0, "paths"), norm(gt))
-    res = {"chamfer_l1": float(cd.mean()), "chamfer_l1_median": float(np.median(cd)), "paths": int(len(cd))}
+    res = {"paths": int(len(gt))}
+    res.update(_chamfer(metrics.chamfer_l1(predicted(0, "paths"), norm(gt)), "chamfer_l1"))
     if refine:
         t0 = time.perf_counter()
-        cd = metrics.chamfer_l1(predicted(int(refine), f"paths, {refine} sweeps"), norm(gt))
-        res.update(chamfer_l1_refined=float(cd.mean()), chamfer_l1_refined_median=float(np.median(cd)),
-                   refine_sweeps=int(refine), refine_s=time.perf_counter() - t0)
+        res.update(_chamfer(metrics.chamfer_l1(predicted(int(refine), f"paths, {refine} sweeps"), norm(gt)),
+                            "chamfer_l1_refined"))
+        res.update(refine_sweeps=int(refine), refine_s=time.perf_counter() - t0)
     return res
+
+
+def _chamfer(cd: np.ndarray, key: str) -> dict:
+    """Mean and median Chamfer-L1 over the predicted paths that are finite; the others counted, with the reason.
+
+    ``path()`` answers a NaN row when it finds the two ends on different connected parts of the mesh, which can
+    happen on a mesh of several parts although the solver's path joins them; such a row has no Chamfer distance.
+    """
+    ok = np.isfinite(cd)
+    out = {key: float(cd[ok].mean()) if ok.any() else None,
+           f"{key}_median": float(np.median(cd[ok])) if ok.any() else None,
+           f"{key}_nonfinite": int((~ok).sum())}
+    if not ok.all():
+        left = f"the value is over the other {int(ok.sum())}" if ok.any() else "no path is left to score"
+        out[f"{key}_note"] = (f"{int((~ok).sum())} of {len(cd)} predicted paths are NaN (path() found their two "
+                              f"ends on different parts of the mesh); {left}")
+    return out
+
+
+def json_safe(value):
+    """``value`` with every NaN or infinite float replaced by None, so that ``json.dumps`` writes valid JSON
+    (the results keep a ``*_note`` or count beside each value that can be missing, saying why)."""
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if np.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
 
 
 def _sdf(model, mesh: Mesh, rng, n, device) -> dict:
@@ -237,14 +312,14 @@ def evaluate(model: "Model | str | os.PathLike", mesh=None, reference: "str | os
     model, mesh = _with_mesh(model, mesh)
     dev = str(resolve_device(device))
     rng = np.random.default_rng(seed)
-    res = {"vertices": int(len(mesh.vertices))}
+    res = {"vertices": int(len(mesh.internal_vertices))}
 
     t0 = time.perf_counter()
     if reference is not None:
         vids, sids, gt = load_reference(reference, mesh)
         res["reference"] = os.path.basename(os.fspath(reference))
     else:
-        vids = np.arange(len(mesh.vertices))
+        vids = np.arange(len(mesh.internal_vertices))
         sids = np.sort(rng.choice(len(vids), min(n_sources, len(vids)), replace=False))
         gt = _solver_truth(mesh, sids, solver_k, dev, progress)
         res["reference"] = "solver"
@@ -263,6 +338,7 @@ def evaluate(model: "Model | str | os.PathLike", mesh=None, reference: "str | os
         res.update(_paths(model, mesh, rng, n_path_sources, n_path_targets, dev, solver_k, path_refine, progress))
     if sdf:
         res.update(_sdf(model, mesh, rng, n_sdf, dev))
+    res = json_safe(res)  # valid JSON as it is: a missing value is None, with its reason beside it
     if verbose:
         print(format_table(res))
     return res
@@ -285,12 +361,17 @@ def format_table(res: dict) -> str:
     if cc.get("pairs"):
         lines.append(f"pairs in different components: {cc['pairs']} (exact distance inf); the model answered "
                      f"{cc['finite']} of them with a finite distance" + (" (must be 0)" if cc["finite"] else ""))
-    if "chamfer_l1" in res:
-        lines.append(f"path Chamfer-L1 {res['chamfer_l1']:.4e} (median {res['chamfer_l1_median']:.4e}, "
-                     f"{res['paths']} solver paths)")
-    if "chamfer_l1_refined" in res:
-        lines.append(f"path Chamfer-L1 after {res['refine_sweeps']} shortening sweeps {res['chamfer_l1_refined']:.4e} "
-                     f"(median {res['chamfer_l1_refined_median']:.4e}, {res['refine_s']:.1f} s)")
+    refined = f"path Chamfer-L1 after {res.get('refine_sweeps')} shortening sweeps"
+    for key, what in (("chamfer_l1", "path Chamfer-L1"), ("chamfer_l1_refined", refined)):
+        if key not in res:
+            continue
+        if res[key] is None:
+            lines.append(f"{what}: none ({res.get(key + '_note', 'no finite predicted path')})")
+            continue
+        tail = f"{res['paths']} solver paths" if key == "chamfer_l1" else f"{res['refine_s']:.1f} s"
+        lines.append(f"{what} {res[key]:.4e} (median {res[key + '_median']:.4e}, {tail})")
+        if res.get(key + "_note"):
+            lines.append(f"note: {res[key + '_note']}")
     if "sdf_l1" in res:
         q = f", querier {res['querier_l1']:.4e}" if "querier_l1" in res else ""
         lines.append(f"SDF L1 {res['sdf_l1']:.4e}{q}")

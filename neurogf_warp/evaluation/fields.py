@@ -41,7 +41,7 @@ def exact_field(reference: "str | os.PathLike", mesh: Mesh, sources) -> np.ndarr
             raise InputError(f"source {s} is not one of {reference}'s sources "
                              f"({', '.join(map(str, mesh.index[sids]))})")
         rows.append(dist[hit[0]])
-    out = np.full(len(mesh.vertices), np.nan)
+    out = np.full(len(mesh.internal_vertices), np.nan)
     out[vids] = np.min(rows, axis=0)
     return mesh.to_input(out)
 
@@ -52,7 +52,7 @@ def heat_field(mesh: Mesh, sources) -> np.ndarray:
     the parts of the mesh that hold no source (as the solver's and the model's fields)."""
     import potpourri3d as pp3d
 
-    solver = pp3d.MeshHeatMethodDistanceSolver(mesh.vertices, mesh.faces.astype(np.int64))
+    solver = pp3d.MeshHeatMethodDistanceSolver(mesh.internal_vertices, mesh.internal_faces.astype(np.int64))
     ids = mesh.vertex(np.asarray(sources).reshape(-1))
     d = np.asarray(solver.compute_distance_multisource([int(i) for i in ids]), dtype=np.float64)
     # the heat method's values on a part that no source reaches are numbers without meaning
@@ -65,6 +65,6 @@ def heat_paths(mesh: Mesh, source: int, targets) -> list:
     edge-flip solver: a list of (m_i, 3) float64 polylines, mesh units."""
     import potpourri3d as pp3d
 
-    flip = pp3d.EdgeFlipGeodesicSolver(mesh.vertices, mesh.faces.astype(np.int64))
+    flip = pp3d.EdgeFlipGeodesicSolver(mesh.internal_vertices, mesh.internal_faces.astype(np.int64))
     s0 = int(mesh.vertex(np.asarray([int(source)]))[0])
     return [np.asarray(flip.find_geodesic_path(s0, int(t))) for t in mesh.vertex(np.asarray(targets).reshape(-1))]

@@ -233,7 +233,7 @@ class GeneralizableModel:
         check_cloud_size(n_points, wn.kk, limit, what=f"n_points={n_points}: the sampled cloud")
         pts, _ = sample_surface(mesh, n_points, seed)
         check_cloud_spread(pts, wn.kk, what="the cloud sampled on the mesh")
-        fcomp = mesh.components[mesh.faces[:, 0]].astype(np.int32)
+        fcomp = mesh.internal_components[mesh.internal_faces[:, 0]].astype(np.int32)
         return Conditioned(self, wn, pts, np.asarray(mesh.center, np.float64), float(mesh.scale), mesh, fcomp)
 
 
@@ -328,7 +328,7 @@ def sample_surface(mesh, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """n points on the mesh surface (area-weighted, trimesh's sampler, ``seed``) -> (points (n, 3), face (n,))."""
     import trimesh
 
-    tm = trimesh.Trimesh(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces), process=False)
+    tm = trimesh.Trimesh(np.asarray(mesh.internal_vertices, np.float64), np.asarray(mesh.internal_faces), process=False)
     pts, face = trimesh.sample.sample_surface(tm, n, seed=seed)
     return np.asarray(pts, np.float64), np.asarray(face, np.int64)
 
@@ -355,9 +355,9 @@ class Conditioned:
         self._wpmesh = None
         self._multi = mesh is not None and mesh.n_components > 1
         if self._multi:
-            v = ((np.asarray(mesh.vertices) - self.center) * self.scale).astype(np.float32)
+            v = ((np.asarray(mesh.internal_vertices) - self.center) * self.scale).astype(np.float32)
             self._wpmesh = wp.Mesh(wp.array(v, dtype=wp.vec3, device=self.device),
-                                   wp.array(np.asarray(mesh.faces, np.int32).ravel(), dtype=wp.int32,
+                                   wp.array(np.asarray(mesh.internal_faces, np.int32).ravel(), dtype=wp.int32,
                                             device=self.device))
             self._face_comp = wp.array(face_comp, dtype=wp.int32, device=self.device)
         self._targets = None
@@ -390,8 +390,8 @@ class Conditioned:
             idx = a.reshape(-1).astype(np.int64)
             if self.mesh is not None:
                 j = self.mesh.vertex(idx)  # input numbering -> internal (clear IndexError otherwise)
-                comp = self.mesh.components[j].astype(np.int32) if self._multi else None
-                return self.mesh.vertices[j], comp, single
+                comp = self.mesh.internal_components[j].astype(np.int32) if self._multi else None
+                return self.mesh.internal_vertices[j], comp, single
             if idx.size and (idx.min() < 0 or idx.max() >= len(self.points)):
                 raise IndexError(f"{name}: point index out of range 0 .. {len(self.points) - 1}")
             return self.points[idx], None, single
@@ -420,8 +420,8 @@ class Conditioned:
         and components precomputed once (reused by every ssad/msad/distance_matrix call)."""
         if self._targets is None:
             if self.mesh is not None:
-                pts = np.asarray(self.mesh.vertices, np.float64)
-                comp = self.mesh.components.astype(np.int32) if self._multi else None
+                pts = np.asarray(self.mesh.internal_vertices, np.float64)
+                comp = self.mesh.internal_components.astype(np.int32) if self._multi else None
             else:
                 pts, comp = self.points, None
             T = self._dev(pts)

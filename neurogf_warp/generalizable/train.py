@@ -141,7 +141,7 @@ def shape_ground_truth(path, cfg: GenTrainConfig, device=None, deadline: float |
 
     path = Path(path)
     mesh = ngf.load_mesh(str(path))
-    nv = len(mesh.vertices)
+    nv = len(mesh.internal_vertices)
     rng = np.random.default_rng([cfg.seed, int(hashlib.sha256(path.name.encode()).hexdigest()[:8], 16)])
     src = np.sort(rng.choice(nv, min(cfg.sources, nv), replace=False))
     # the plain solve, as the per-mesh training datasets use (near_source costs 1.3-2x on small CPU meshes)
@@ -173,15 +173,14 @@ def shape_ground_truth(path, cfg: GenTrainConfig, device=None, deadline: float |
     dist = np.take_along_axis(d[keep], tgt, axis=1).astype(np.float32)
     cloud, _ = sample_surface(mesh, cfg.cloud_points, cfg.seed)
     return {"cloud": ((cloud - mesh.center) * mesh.scale).astype(np.float32),
-            "verts": mesh.normalized_vertices.astype(np.float32), "src": src.astype(np.int32), "tgt": tgt,
+            "verts": mesh.internal_normalized_vertices.astype(np.float32), "src": src.astype(np.int32), "tgt": tgt,
             "dist": dist, "complete": np.bool_(complete)}
 
 
 def _atomic_savez(path: Path, **arrays):
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    with open(tmp, "wb") as f:
-        np.savez(f, **arrays)
-    os.replace(tmp, path)
+    from neurogf_warp.common.files import atomic_write
+
+    atomic_write(path, lambda f: np.savez(f, **arrays))
 
 
 def _complete(path: Path) -> bool:
@@ -364,9 +363,9 @@ class BudgetSteps:
 # ---- checkpoints ---------------------------------------------------------------------------------------------
 
 def atomic_torch_save(obj, path: Path):
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    from neurogf_warp.common.files import atomic_write  # the package's one rule for every file it writes
+
+    atomic_write(path, lambda f: torch.save(obj, f), what="model file")
 
 
 def _trained_on(folder, train, val, cfg):

@@ -60,7 +60,7 @@ def refine_near_sources(solver: GeodesicSolver, sources: np.ndarray, dist: np.nd
     out = np.array(dist, dtype=np.float32, copy=True)
     if len(src) == 0:
         return out
-    P = solver.mesh.normalized_vertices
+    P = solver.mesh.internal_normalized_vertices
     F = solver._order[solver.topo.faces]  # mesh numbering, in the solver's face order
     limit = (radius + 2.0) * solver.mean_edge
     # chunks of sources whose patches together stay under NODE_CAP nodes (about V + 1.5 k F per patch)

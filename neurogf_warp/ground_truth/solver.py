@@ -165,12 +165,12 @@ class GeodesicSolver:
         # numbering is restored at run / vertex_distances / trace. Bunny subdivided once (139K vertices), one
         # source on the CPU: 5.4-5.8 s against 6.6-8.2 s in file order, same results up to the order-dependence of
         # the windows.
-        self.nv = len(self.mesh.vertices)
-        x32 = self.mesh.normalized_vertices.astype(np.float32)
+        self.nv = len(self.mesh.internal_vertices)
+        x32 = self.mesh.internal_normalized_vertices.astype(np.float32)
         self._order = spatial_order(x32) if REORDER else np.arange(self.nv)  # solver id -> mesh id
         self._solver_id = np.empty(self.nv, dtype=np.int64)  # mesh id -> solver id
         self._solver_id[self._order] = np.arange(self.nv)
-        faces = self._solver_id[np.asarray(self.mesh.faces, dtype=np.int64)]
+        faces = self._solver_id[np.asarray(self.mesh.internal_faces, dtype=np.int64)]
         if REORDER:
             faces = faces[np.argsort(faces.min(axis=1), kind="stable")]
         self._positions = x32[self._order]
@@ -178,7 +178,7 @@ class GeodesicSolver:
         self.topo = Topology(self._positions, faces)
         # delta-stepping bucket width, in mean edge lengths (normalized frame)
         e = self.topo.edges
-        nvx = self.mesh.normalized_vertices[self._order]
+        nvx = self.mesh.internal_normalized_vertices[self._order]
         mean_len = float(np.linalg.norm(nvx[e[:, 0]] - nvx[e[:, 1]], axis=1).mean()) if len(e) else 1.0
         self.mean_edge = mean_len  # normalized frame
         self.delta = float(delta) * mean_len if delta > 0 else float("inf")

@@ -109,7 +109,7 @@ def _vertices_like(model, x: torch.Tensor) -> torch.Tensor:
     m = model.mesh
     v = np.full((m.n_input, 3), np.nan)
     used = m.input_to_internal >= 0
-    v[used] = m.vertices[m.input_to_internal[used]]
+    v[used] = m.internal_vertices[m.input_to_internal[used]]
     return torch.as_tensor(v, dtype=torch.float32, device=x.device)
 
 

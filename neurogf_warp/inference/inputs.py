@@ -9,6 +9,12 @@ Coordinates: numpy arrays and lists (host input) are made relative to the mesh c
 become float32 (``QueryState.frame``), so a mesh far from the origin loses nothing; torch tensors and
 ``wp.array``s are used as float32 mesh coordinates (``QueryState.user_frame``), the kernels subtracting the
 float64 centre, so they are exact to their own float32 resolution.
+
+One reading of every argument, for every query: a *source* argument (``ssad``, ``msad``, ``distance_matrix``
+sources and targets) that is integer is vertex indices in the mesh file's numbering (a single integer or a 1-D
+array; a 2-D integer array is refused rather than guessed), and float is points (S, 3); a *point* argument
+(``distance``, ``sdf``, ``path``, ``project``) is coordinates, (N, 3) or (3,), of any real dtype. Torch tensors
+without values (the ``meta`` device) or sparse ones are refused, naming the argument.
 """
 from __future__ import annotations
 
@@ -17,12 +23,13 @@ import torch
 import warp as wp
 
 from neurogf_warp.common.arrays import _is_torch, as_points, resolve_device
+from neurogf_warp.common.checks import InputError
 from neurogf_warp.inference.state import DOMAIN, query_state, to_relative
 from neurogf_warp.kernels.inference import finish
 from neurogf_warp.model.model import Model
 
-__all__ = ["DOMAIN", "check_domain", "points_in", "sources_in", "pair_inputs", "pair_components", "single_answer",
-           "check_points_in_frame"]
+__all__ = ["DOMAIN", "check_domain", "check_tensor", "points_in", "sources_in", "pair_inputs", "pair_components",
+           "single_answer", "check_points_in_frame"]
 
 _NO_BAD = 2**31 - 1
 _OUTSIDE = "outside the model's domain (the cube of half-side 1.5 bounding radii around the mesh's bounding-box centre)"
@@ -56,6 +63,16 @@ def check_domain(model: Model, pts: wp.array, name: str, frame, other: wp.array 
             raise ValueError(f"{label}[{i - 1}] = {x.tolist()} is {where}")
 
 
+def check_tensor(x, name: str) -> None:
+    """Refuse a torch tensor that holds no values (on the ``meta`` device) or is sparse, naming ``name``."""
+    if _is_torch(x):
+        if x.is_meta:
+            raise InputError(f"{name} is a torch tensor on the 'meta' device, which holds no values: pass a tensor "
+                             "with data (on 'cpu' or 'cuda'), a numpy array or a list")
+        if x.layout != torch.strided:
+            raise InputError(f"{name} is a sparse torch tensor ({x.layout}): pass a dense one (x.to_dense())")
+
+
 def _on_host(x) -> bool:
     return not isinstance(x, wp.array) and not _is_torch(x)
 
@@ -64,6 +81,7 @@ def points_in(model: Model, x, name: str, dev, check: bool = True, host: bool | 
     """(wp.array of vec3 on dev, kind, single, frame) for (N, 3) or (3,) input: host input relative to the mesh
     centre (made in float64) with ``state.frame``, device input as given with ``state.user_frame``. ``host``:
     force the host route on (True) or off (False; host input then becomes float32 mesh coordinates)."""
+    check_tensor(x, name)
     st = query_state(model, dev)
     single = _is_single_point(x)
     if host is None:
@@ -93,8 +111,10 @@ def _is_single_point(x) -> bool:
 
 def sources_in(model: Model, src, name: str, dev, one: bool = False):
     """Sources as (points relative to the mesh centre (S, 3) float64, internal vertex ids or None, component labels
-    or None). Vertex indices are integers ((S,) or one int); points are floats of shape (S, 3), or (3,) for the one
-    source of ``ssad`` (``one``): a flat list of floats is never read as points or indices by its length."""
+    or None). Vertex indices are integers, one or a 1-D list/array (S,), in the mesh file's numbering; points are
+    floats of shape (S, 3), or (3,) for the one source of ``ssad`` (``one``): a flat list of floats is never read as
+    points or indices by its length, and a 2-D integer array (indices or points?) is refused, for every query."""
+    check_tensor(src, name)
     st = query_state(model, dev)
     if isinstance(src, (int, np.integer)) and not isinstance(src, (bool, np.bool_)) and model.mesh is not None:
         m = model.mesh  # the common single-vertex case without array machinery
@@ -102,7 +122,7 @@ def sources_in(model: Model, src, name: str, dev, one: bool = False):
         if 0 <= i < m.n_input and m.input_to_internal[i] >= 0:
             j = int(m.input_to_internal[i])
             return (st.mesh(name).rel64[j:j + 1], np.array([j]),
-                    (m.components[j:j + 1] if m.n_components > 1 else None))
+                    (m.internal_components[j:j + 1] if m.n_components > 1 else None))
     if isinstance(src, wp.array):
         src = src.numpy()
     elif isinstance(src, torch.Tensor):
@@ -116,6 +136,10 @@ def sources_in(model: Model, src, name: str, dev, one: bool = False):
     if np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.bool_):
         if np.issubdtype(a.dtype, np.bool_):
             raise TypeError(f"{name} must be vertex indices (integers) or points (floats), got booleans")
+        if a.ndim > 1:  # (S, 3) integers could be 3*S indices or S points: neither reading is taken silently
+            raise InputError(f"{name} is an integer array of shape {a.shape}: vertex indices are a single integer or a "
+                             "1-D list/array of them (e.g. [0, 10, 200]), points are floats of shape (S, 3); for "
+                             f"points write np.asarray({name}, dtype=float), for indices {name}.ravel()")
         if model.mesh is None:
             raise ValueError(f"{name} given as vertex indices, but this model has no mesh: pass points instead")
         if one and a.size != 1:
@@ -125,8 +149,8 @@ def sources_in(model: Model, src, name: str, dev, one: bool = False):
             raise IndexError(f"{name}: vertex index {int(flat[flat < 0][0])} is negative; indices run from 0 to "
                              f"{model.mesh.n_input - 1} in the mesh file's numbering")
         ids = model.mesh.vertex(flat)
-        comp = model.mesh.components[ids] if model.mesh.n_components > 1 else None
-        return to_relative(st, model.mesh.vertices[ids]), ids, comp
+        comp = model.mesh.internal_components[ids] if model.mesh.n_components > 1 else None
+        return to_relative(st, model.mesh.internal_vertices[ids]), ids, comp
     if not np.issubdtype(a.dtype, np.floating):
         raise TypeError(f"{name} must be vertex indices (integers) or points (floats), got dtype {a.dtype}")
     if one:
@@ -173,6 +197,8 @@ def check_points_in_frame(points: np.ndarray, center, scale: float, name: str, s
 def pair_inputs(model, p, q, device, check: bool = True):
     """(dev, P, Q, kind, single, frame): both on the host route when both are host arrays, else both as float32
     mesh coordinates (a host array paired with a device one is rounded to float32 first)."""
+    check_tensor(p, "p")
+    check_tensor(q, "q")
     dev = resolve_device(device, like=p)
     host = _on_host(p) and _on_host(q)
     P, kind, single_p, frame = points_in(model, p, "p", dev, False, host)

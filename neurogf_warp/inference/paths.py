@@ -15,7 +15,7 @@ import warp as wp
 
 from neurogf_warp.common.arrays import Output, resolve_device
 from neurogf_warp.inference.backends import backend_of
-from neurogf_warp.inference.inputs import pair_components, pair_inputs, points_in, relative_points
+from neurogf_warp.inference.inputs import check_tensor, pair_components, pair_inputs, points_in, relative_points
 from neurogf_warp.inference.state import QueryState, query_state
 from neurogf_warp.kernels.inference import finish, mlp
 from neurogf_warp.kernels.inference import refine as refine_kernels
@@ -144,7 +144,7 @@ def _relative_mesh(st: QueryState) -> wp.Mesh:
     refinement), made once per state."""
     md = st.mesh("refined paths")
     if md._wp_mesh is None:  # a one-part mesh has none yet (components need no closest points there)
-        faces = st.model.mesh.faces.reshape(-1).astype(np.int32)
+        faces = st.model.mesh.internal_faces.reshape(-1).astype(np.int32)
         md._wp_mesh = wp.Mesh(points=md.verts, indices=wp.array(faces, dtype=wp.int32, device=st.device))
     return md._wp_mesh
 
@@ -332,6 +332,7 @@ def project(model: Model, x, steps: int = PROJECT_STEPS, device=None):
     """Points moved onto the surface of the network's SDF head (Newton steps on its zero level set): (N, 3) -> (N, 3)."""
     if not isinstance(steps, (int, np.integer)) or isinstance(steps, bool) or steps < 0:
         raise ValueError(f"steps must be an integer >= 0, got {steps!r}")
+    check_tensor(x, "x")
     dev = resolve_device(device, like=x)
     X, kind, single, frame = points_in(model, x, "x", dev)
     out = Output(kind, dev)

@@ -49,7 +49,8 @@ from neurogf_warp.common.checks import InputError
 from neurogf_warp.inference import autograd
 from neurogf_warp.inference.autograd import wants_grad
 from neurogf_warp.inference.backends import PerThread, backend_of, bind, in_chunks
-from neurogf_warp.inference.inputs import DOMAIN, pair_components, pair_inputs, points_in, single_answer, sources_in
+from neurogf_warp.inference.inputs import (DOMAIN, check_tensor, pair_components, pair_inputs, points_in, single_answer,
+                                          sources_in)
 from neurogf_warp.inference.paths import PROJECT_STEPS, path, project  # noqa: F401  (public through this module)
 from neurogf_warp.inference.state import PRECISIONS, check_memory, query_state, unbind
 from neurogf_warp.kernels.inference import finish
@@ -285,6 +286,7 @@ def sdf(model: Model, x, device=None, precision: str = "auto", check: bool = Tru
     """Signed distance from the network's SDF head: (N, 3) -> (N,) float32 mesh units, negative inside; (3,) -> ().
 
     ``check``: refuse non-finite and out-of-domain points; with False their rows are NaN."""
+    check_tensor(x, "x")
     if wants_grad(x):
         return autograd.sdf(model, x, device=device, precision=precision, check=check)
     dev = resolve_device(device, like=x)
@@ -299,6 +301,7 @@ def sdf(model: Model, x, device=None, precision: str = "auto", check: bool = Tru
 
 def embed(model: Model, x, device=None) -> wp.array:
     """Point embeddings e(x) of the lifting network: (N, 3) -> (N, D) float32 wp.array on the device."""
+    check_tensor(x, "x")
     dev = resolve_device(device, like=x)
     pts, _, _, frame = points_in(model, x, "x", dev, check=False)
     return PerThread(query_state(model, dev)).embed(pts, frame)
@@ -316,7 +319,7 @@ def warmup(model: Model, device=None, precision: str = "auto") -> dict:
     dev = resolve_device(device)
     prec = backend_of(query_state(model, dev), precision).precision
     t0 = time.perf_counter()
-    x = model.mesh.vertices[:2] if model.mesh is not None else np.array([[0.1, 0.2, 0.3], [-0.3, 0.1, 0.0]])
+    x = model.mesh.internal_vertices[:2] if model.mesh is not None else np.array([[0.1, 0.2, 0.3], [-0.3, 0.1, 0.0]])
     kw = dict(device=dev, precision=prec)
     distance(model, x[:1], x[1:], **kw)
     sdf(model, x, **kw)

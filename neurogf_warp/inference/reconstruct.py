@@ -87,7 +87,8 @@ def reconstruct(model: Model, resolution: int = 256, level: float = 0.0, device=
 
 def _box(model: Model):
     if model.mesh is not None:
-        return model.mesh.vertices.min(0), model.mesh.vertices.max(0)
+        v = model.mesh.internal_vertices
+        return v.min(0), v.max(0)
     if model.in_mesh_frame:  # the unit sphere of the normalized frame, in mesh coordinates
         r = 1.0 / model.scale
         return model.center - r, model.center + r

@@ -87,7 +87,7 @@ def farthest_point_sampling(model: Model, k: int, start: int = 0, device=None, p
     """
     _needs_mesh(model, "farthest_point_sampling")
     m = model.mesh
-    n_used = len(m.vertices)
+    n_used = len(m.internal_vertices)
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= int(k) <= n_used:
         raise InputError(f"k must be an integer from 1 to {n_used} (the vertices that faces use), got {k!r}")
     start = int(_seed_ids(model, start, "start")[0])
@@ -105,7 +105,7 @@ def farthest_point_sampling(model: Model, k: int, start: int = 0, device=None, p
     chosen = [j]
     best = None
     for i in range(int(k)):
-        be.vertex_distances(md, md.rel64[j:j + 1], np.array([j]), m.components[j:j + 1] if multi else None, row,
+        be.vertex_distances(md, md.rel64[j:j + 1], np.array([j]), m.internal_components[j:j + 1] if multi else None, row,
                             False, False)
         best = row_t.clone() if best is None else torch.minimum(best, row_t, out=best)
         if i + 1 < int(k):
@@ -221,8 +221,8 @@ def isolines(model: Model, values, levels):
     lv = np.atleast_1d(np.asarray(levels, dtype=np.float64))
     if lv.ndim != 1 or not np.all(np.isfinite(lv)):
         raise InputError(f"levels must be finite numbers (a float or a 1-D list), got {levels!r}")
-    tri = m.faces[np.all(fin[m.faces], axis=1)]
-    return [_trace_level(m.vertices, tri, f, float(c)) for c in lv]
+    tri = m.internal_faces[np.all(fin[m.internal_faces], axis=1)]
+    return [_trace_level(m.internal_vertices, tri, f, float(c)) for c in lv]
 
 
 def _trace_level(V: np.ndarray, F: np.ndarray, f: np.ndarray, c: float) -> list[np.ndarray]:

@@ -34,11 +34,11 @@ class MeshOnDevice:
 
     def __init__(self, model: Model, dev):
         m = model.mesh
-        self.V, self.n_input = len(m.vertices), m.n_input
-        rel = np.asarray(m.vertices, np.float64) - model.center
+        self.V, self.n_input = len(m.internal_vertices), m.n_input
+        rel = np.asarray(m.internal_vertices, np.float64) - model.center
         self.verts = wp.array(rel.astype(np.float32), dtype=wp.vec3, device=dev)
         self.multi = m.n_components > 1
-        self.comp = wp.array(m.components.astype(np.int32), dtype=wp.int32, device=dev) if self.multi else None
+        self.comp = wp.array(m.internal_components.astype(np.int32), dtype=wp.int32, device=dev) if self.multi else None
         inv = m.input_to_internal
         self.identity = self.n_input == self.V and bool(np.array_equal(inv, np.arange(self.V)))
         self.inv = None if self.identity else wp.array(inv.astype(np.int32), dtype=wp.int32, device=dev)
@@ -47,9 +47,10 @@ class MeshOnDevice:
         self.lifted = None  # fp16 rows of the vertices embedded inside the kernels (no kept embeddings)
         self._wp_mesh = self._face_comp = None
         if self.multi:  # closest-point queries give a point's component (in these relative coordinates)
-            self._wp_mesh = wp.Mesh(points=self.verts, indices=wp.array(m.faces.reshape(-1).astype(np.int32),
+            self._wp_mesh = wp.Mesh(points=self.verts, indices=wp.array(m.internal_faces.reshape(-1).astype(np.int32),
                                                                          device=dev))
-            self._face_comp = wp.array(m.components[m.faces[:, 0]].astype(np.int32), dtype=wp.int32, device=dev)
+            self._face_comp = wp.array(m.internal_components[m.internal_faces[:, 0]].astype(np.int32), dtype=wp.int32,
+                                       device=dev)
 
     def components_of(self, pts: wp.array) -> wp.array:
         """Component label of each point, relative coordinates (that of its closest surface point; -1 for a

@@ -24,6 +24,9 @@ __all__ = ["read_mesh_file", "MESH_SUFFIXES"]
 
 # Suffixes read here; anything else goes to trimesh's own loaders as given.
 MESH_SUFFIXES = (".obj", ".ply", ".stl")
+# Archives holding one mesh file, and single compressed files, opened here so their mesh keeps its numbering.
+ARCHIVE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz", ".tar.bz2", ".tbz2", ".tar.xz", ".txz")
+COMPRESSED_SUFFIXES = (".gz", ".bz2", ".xz")
 # Bytes looked at to tell text from binary data.
 SNIFF_BYTES = 4096
 INT64_MIN, INT64_MAX = -2**63, 2**63 - 1
@@ -35,7 +38,9 @@ def read_mesh_file(path) -> tuple[np.ndarray, np.ndarray, str]:
     Parameters
     ----------
     path : str or os.PathLike
-        An ``.obj``, ``.ply`` or ``.stl`` file (other formats are passed to ``trimesh.load``).
+        An ``.obj``, ``.ply`` or ``.stl`` file (other formats are passed to ``trimesh.load``); or an archive
+        (``.zip``, ``.tar``, ``.tar.gz``/``.tgz``, ``.tar.bz2``/``.tbz2``, ``.tar.xz``/``.txz``) holding exactly one
+        mesh file, or one compressed mesh file (``bunny.obj.gz``, ``.bz2``, ``.xz``), read by the same readers.
 
     Returns
     -------
@@ -45,36 +50,113 @@ def read_mesh_file(path) -> tuple[np.ndarray, np.ndarray, str]:
         Triangles indexing ``vertices``; polygons are split into triangles (quads along their first
         diagonal, larger polygons as a fan from their first corner).
     kind : str
-        ``"obj"``, ``"ply"``, ``"stl"`` or the suffix of another format.
+        ``"obj"``, ``"ply"``, ``"stl"`` or the suffix of another format (of the mesh inside an archive).
 
     Raises
     ------
     FileNotFoundError
-        When ``path`` is not a file.
+        When nothing exists at ``path``.
     ValueError
-        When the file is not a mesh of its kind (the message names the file, and the line for OBJ).
+        When the file is not a mesh of its kind (the message names the file, and the line for OBJ), or not a
+        regular file (a folder, a device such as ``/dev/null``, a FIFO).
     """
+    from neurogf_warp.common.files import check_input_file, note_input
+
     path = os.fspath(path)
     if os.path.isdir(path):
         raise InputError(f"{path} is a folder, not a mesh file")
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"mesh file not found: {path}")
-    kind = os.path.splitext(path)[1].lower().lstrip(".")
-    with open(path, "rb") as fh:
-        data = fh.read()
-    if not data.strip():
-        raise InputError(f"mesh file {path} is empty")
-    if kind == "obj":
-        v, f = _read_obj(data, path)
-    elif kind == "ply":
-        v, f = _read_ply(data, path)
-    elif kind == "stl":
-        v, f = _read_stl(data, path)
+    check_input_file(path, "mesh file", note=False)
+    name = os.path.basename(path).lower()
+    archive = next((a for a in ARCHIVE_SUFFIXES if name.endswith(a)), None)
+    packed = next((c for c in COMPRESSED_SUFFIXES if name.endswith(c)), None)
+    where = path
+    if archive is not None:
+        data, member = _archive_member(path, archive)
+        kind, where = _suffix(member), f"{path} ({member})"
     else:
-        v, f = _read_other(path, kind)
+        with open(path, "rb") as fh:
+            data = fh.read()
+        if packed is not None:
+            data = _decompress(data, packed, path)
+            name = name[:-len(packed)]
+        kind = _suffix(name)
+    if not data.strip():
+        raise InputError(f"mesh file {where} is empty")
+    if kind == "obj":
+        v, f = _read_obj(data, where)
+    elif kind == "ply":
+        v, f = _read_ply(data, where)
+    elif kind == "stl":
+        v, f = _read_stl(data, where)
+    else:
+        v, f = _read_other(data, kind, where)
     if len(f) == 0:
-        raise InputError(f"mesh file {path} has no triangle faces: NeuroGF needs a triangle surface")
+        raise InputError(f"mesh file {where} has no triangle faces: NeuroGF needs a triangle surface")
+    note_input(path)  # an input of this command now: no output of it may replace the file
     return v, f, kind
+
+
+def _suffix(name: str) -> str:
+    return os.path.splitext(name)[1].lower().lstrip(".")
+
+
+def _formats_message() -> str:
+    """The formats ``read_mesh_file`` reads, for error messages."""
+    import trimesh
+
+    other = sorted(set(trimesh.available_formats()) - {"obj", "ply", "stl", "stl_ascii", "zip", "bz2", "tar.gz",
+                                                       "tar.bz2"})
+    return (f".obj, .ply, .stl, {', '.join('.' + o for o in other)} (through trimesh); an archive "
+            f"({', '.join(ARCHIVE_SUFFIXES)}) holding one of these; or one compressed mesh file "
+            f"({', '.join('.obj' + c for c in COMPRESSED_SUFFIXES)}, ...)")
+
+
+def _decompress(data: bytes, suffix: str, path: str) -> bytes:
+    import bz2
+    import gzip
+    import lzma
+
+    try:
+        return {".gz": gzip.decompress, ".bz2": bz2.decompress, ".xz": lzma.decompress}[suffix](data)
+    except (OSError, EOFError, ValueError, lzma.LZMAError) as e:
+        raise InputError(f"{path} is not a valid {suffix} compressed file ({e})") from None
+
+
+def _archive_member(path: str, suffix: str) -> tuple[bytes, str]:
+    """The bytes and name of the one mesh file in an archive (read by our own readers, in file order)."""
+    import tarfile
+    import zipfile
+
+    def is_mesh(name: str) -> bool:
+        base = os.path.basename(name)
+        return bool(base) and not base.startswith(".") and _suffix(base) in _member_kinds()
+
+    try:
+        if suffix == ".zip":
+            with zipfile.ZipFile(path) as z:
+                names = [i.filename for i in z.infolist() if not i.is_dir() and is_mesh(i.filename)]
+                if len(names) == 1:
+                    return z.read(names[0]), names[0]
+        else:
+            with tarfile.open(path, "r:*") as t:
+                members = [m for m in t.getmembers() if m.isfile() and is_mesh(m.name)]
+                names = [m.name for m in members]
+                if len(names) == 1:
+                    return t.extractfile(members[0]).read(), names[0]
+    except (zipfile.BadZipFile, tarfile.TarError, OSError, EOFError) as e:
+        raise InputError(f"{path} is not a valid {suffix} archive ({e})") from None
+    if not names:
+        kinds = ", ".join("." + k for k in _member_kinds())
+        raise InputError(f"archive {path} holds no mesh file (looked for {kinds})")
+    raise InputError(f"archive {path} holds {len(names)} mesh files ({', '.join(names[:5])}"
+                     f"{' ...' if len(names) > 5 else ''}); give an archive with one mesh, or the mesh file itself")
+
+
+def _member_kinds() -> list[str]:
+    import trimesh
+
+    return sorted(({"obj", "ply", "stl"} | set(trimesh.available_formats()))
+                  - {"zip", "bz2", "tar.gz", "tar.bz2", "stl_ascii"})
 
 
 # --- OBJ ------------------------------------------------------------------------------------------------------
@@ -263,16 +345,80 @@ def _read_ply(data: bytes, path: str):
         if need > body:
             raise InputError(f"{path}: the PLY header declares {need} bytes of fixed-size records but only {body} "
                              "bytes follow it: the file is truncated or corrupt")
-    try:
-        v, f = _trimesh_arrays(path, "ply")
-    except ValueError:
+    # trimesh splits vertices along seams when faces carry lists besides their corners (per-corner texture
+    # coordinates), which changes the vertex count and numbering: such files are read record by record here
+    extra = any(len(p) == 3 and not (name == "face" and p[0] in _PLY_FACE_LISTS) for name, _, props in elements
+                for p in props)
+    v = None
+    if not extra:
+        try:
+            v, f = _trimesh_arrays(data, "ply", path)
+        except ValueError:
+            if enc == "ascii":
+                raise
+        if v is not None and len(v) != n_vert:
+            v = None
+    if v is None:
         if enc == "ascii":
-            raise
-        # trimesh reads binary polygon lists of one length only; read mixed polygons record by record
-        v, f = _ply_binary(data, header_len, elements, "<" if enc == "binary_little_endian" else ">", path)
+            v, f = _ply_ascii(data[header_len:], elements, path)
+        else:  # also binary polygon lists of several lengths, which trimesh does not read
+            v, f = _ply_binary(data, header_len, elements, "<" if enc == "binary_little_endian" else ">", path)
     if len(v) != n_vert:
         raise InputError(f"{path}: the PLY header declares {n_vert} vertices but {len(v)} were read")
     return v, f
+
+
+def _ply_ascii(body: bytes, elements: list, path: str):
+    """Vertices and triangulated faces of an ASCII PLY body already checked by ``_check_ply_ascii``."""
+    tok = _decode_text(body, path, "ply").split()
+    pos, verts, counts, corners = 0, None, [], []
+    for name, count, props in elements:
+        names = [p[0] for p in props]
+        if name == "vertex" and not all(c in names for c in "xyz"):
+            raise InputError(f"{path}: the PLY vertex element has no x, y, z properties")
+        if all(len(p) == 2 for p in props):  # fixed-size records: one slice
+            block = tok[pos:pos + count * len(props)]
+            pos += count * len(props)
+            if name == "vertex":
+                try:
+                    a = np.array(block, dtype=np.float64).reshape(count, len(props))
+                except ValueError:
+                    raise InputError(f"{path}: a PLY vertex record holds a value that is not a number") from None
+                verts = a[:, [names.index(c) for c in "xyz"]]
+            continue
+        rows = []
+        for _ in range(count):
+            row = {}
+            for p in props:
+                if len(p) == 3:
+                    n = int(tok[pos])
+                    if name == "face" and p[0] in _PLY_FACE_LISTS:
+                        if n < 3:
+                            raise InputError(f"{path}: a PLY face has {n} vertices; a face needs at least 3")
+                        counts.append(n)
+                        corners.append(tok[pos + 1:pos + 1 + n])
+                    pos += 1 + n
+                else:
+                    row[p[0]] = tok[pos]
+                    pos += 1
+            if name == "vertex":
+                rows.append([row[c] for c in "xyz"])
+        if name == "vertex":
+            try:
+                verts = np.array(rows, dtype=np.float64).reshape(count, 3)
+            except ValueError:
+                raise InputError(f"{path}: a PLY vertex record holds a value that is not a number") from None
+    if verts is None:
+        raise InputError(f"{path}: could not read the PLY vertex element")
+    if not counts:
+        return verts, np.zeros((0, 3), dtype=np.int64)
+    try:
+        k = np.array([c for cs in corners for c in cs], dtype=np.int64)
+    except ValueError:
+        raise InputError(f"{path}: a PLY face holds a vertex index that is not an integer") from None
+    if k.min() < 0 or k.max() >= len(verts):
+        raise InputError(f"{path}: PLY face indices must lie in [0, {len(verts)}), found {k.min()}..{k.max()}")
+    return verts, _triangulate(k, np.asarray(counts, dtype=np.int64))
 
 
 def _check_ply_ascii(body: bytes, elements: list, path: str) -> None:
@@ -380,7 +526,7 @@ def _read_stl(data: bytes, path: str):
         if 84 + 50 * count > len(data):
             raise InputError(f"{path} is not a valid binary STL: it declares {count} triangles "
                              f"({84 + 50 * count} bytes) but has {len(data)} bytes")
-    v, f = _trimesh_arrays(path, "stl")
+    v, f = _trimesh_arrays(data, "stl", path)
     if len(v) != 3 * len(f):
         raise InputError(f"{path}: expected three corners per STL triangle, read {len(v)} for {len(f)}")
     return v, f
@@ -388,21 +534,22 @@ def _read_stl(data: bytes, path: str):
 
 # --- other formats --------------------------------------------------------------------------------------------
 
-def _read_other(path: str, kind: str):
-    import trimesh
-
-    if kind not in trimesh.available_formats():
-        raise InputError(f"{path}: unsupported mesh format {('.' + kind) if kind else '(no suffix)'}; use .obj, .ply, "
-                         f".stl or another format trimesh reads ({', '.join(sorted(trimesh.available_formats()))})")
-    return _trimesh_arrays(path, kind)
+def _read_other(data: bytes, kind: str, path: str):
+    if kind not in _member_kinds():
+        raise InputError(f"{path}: unsupported mesh format {('.' + kind) if kind else '(no suffix)'}; "
+                         f"use {_formats_message()}")
+    return _trimesh_arrays(data, kind, path)
 
 
-def _trimesh_arrays(path: str, kind: str):
-    """Vertices and faces as trimesh reads them with ``process=False`` (no merging, no reordering)."""
+def _trimesh_arrays(data: bytes, kind: str, path: str):
+    """Vertices and faces of the file's bytes as trimesh reads them with ``process=False`` (no merging, no
+    reordering)."""
+    import io
+
     import trimesh
 
     try:
-        tm = trimesh.load(path, file_type=kind or None, process=False, force="mesh")
+        tm = trimesh.load(io.BytesIO(data), file_type=kind, process=False, force="mesh")
     except ImportError as e:
         # trimesh reaches for an optional text-encoding detector when a file is not UTF-8: it is not text
         raise InputError(f"{path} is not a mesh file: it is not text that the {kind.upper()} reader understands") from None

@@ -1,10 +1,11 @@
 """Triangle meshes as NeuroGF sees them: referenced (optionally welded) vertices, plus the unit-sphere frame.
 
 Users keep their own coordinates and vertex numbering: the file's own vertex records in file order
-(``mesh_files``), or the arrays as given. Internally we drop vertices no face uses, weld STL and other
-triangle soups (exact duplicate coordinates), and work in the normalized frame the released models use:
-centre = bounding-box centre, scale so that the largest vertex norm is 1. ``Mesh.input_to_internal`` maps
-every input vertex to its internal vertex, so per-vertex results go back to the input numbering.
+(``mesh_files``), or the arrays as given; ``Mesh.vertices``, ``faces`` and ``components`` are in that numbering.
+Internally (``Mesh.internal_*``) we drop vertices no face uses, weld STL and other triangle soups (exact duplicate
+coordinates), and work in the normalized frame the released models use: centre = bounding-box centre, scale so
+that the largest vertex norm is 1. ``Mesh.input_to_internal`` maps every input vertex to its internal vertex, so
+per-vertex results go back to the input numbering.
 """
 from __future__ import annotations
 
@@ -16,14 +17,15 @@ import numpy as np
 
 from neurogf_warp.common.checks import InputError
 
-__all__ = ["Mesh", "load_mesh", "mesh_fingerprint", "component_labels"]
+__all__ = ["Mesh", "load_mesh", "mesh_fingerprint", "component_labels", "check_scale", "MIN_RADIUS", "MAX_RADIUS",
+           "MAX_COORDINATE"]
 
 
 def mesh_fingerprint(vertices: np.ndarray, faces: np.ndarray) -> str:
     """SHA-256 of a mesh (vertices as float32, faces as int64, little-endian): identifies a model's mesh.
 
-    ``Mesh.fingerprint`` is this hash of the internal mesh (used vertices in input order, welded where the
-    mesh was welded), so the same surface read from files that differ only in unused vertices has one
+    ``Mesh.fingerprint`` is this hash of the internal mesh (``internal_vertices``, ``internal_faces``: used vertices
+    in input order, welded where the mesh was welded), so the same surface read from files that differ only in unused vertices has one
     fingerprint, and a stored mesh's fingerprint can be recomputed from it.
     """
     h = hashlib.sha256()
@@ -36,12 +38,25 @@ def mesh_fingerprint(vertices: np.ndarray, faces: np.ndarray) -> str:
 class Mesh:
     """A cleaned triangle mesh and the map back to the vertices as given.
 
+    Two numberings: the **file's** (the vertex records as given, ``n_input`` of them), which is the only one the
+    public surface uses (``vertices``, ``faces``, ``components``, every per-vertex result and argument), and the
+    **internal** one (the vertices some face uses, welded where the input was welded, in input order), which
+    the kernels use; every name in the internal numbering starts with ``internal_``.
+
     Attributes
     ----------
-    vertices : (V, 3) float64, input units
+    vertices : (n_input, 3) float64, input units (read only)
+        The position of every input vertex, in the file's order; NaN rows for vertices no face uses (they are
+        not on the surface: their distances are NaN too). ``vertices[j]`` is the vertex of ``ssad(...)[j]``.
+    faces : (F, 3) int64 (read only)
+        The triangles, indexing ``vertices`` (file numbering); in a welded mesh a corner names the first of
+        the input vertices welded together (they share one position).
+    components : (n_input,) int32 (read only)
+        Connected-component label of every input vertex, -1 for vertices no face uses.
+    internal_vertices : (V, 3) float64, input units
         The internal vertices: those some face uses, welded where the input was welded, in input order.
-    faces : (F, 3) int32
-        Triangles indexing ``vertices``.
+    internal_faces : (F, 3) int32
+        Triangles indexing ``internal_vertices``.
     index : (V,) int64
         One input vertex per internal vertex (the first of those welded into it), strictly increasing.
     n_input : int
@@ -49,11 +64,11 @@ class Mesh:
     center : (3,) float64, input units; scale : float, 1 / input units
         ``normalized = (x - center) * scale`` puts the mesh in the unit sphere.
     fingerprint : str
-        ``mesh_fingerprint(vertices, faces)`` of the internal mesh.
+        ``mesh_fingerprint(internal_vertices, internal_faces)``.
     """
 
-    vertices: np.ndarray
-    faces: np.ndarray
+    internal_vertices: np.ndarray
+    internal_faces: np.ndarray
     index: np.ndarray
     n_input: int
     center: np.ndarray
@@ -62,6 +77,31 @@ class Mesh:
     _inverse: np.ndarray | None = field(default=None, repr=False)
     _components: np.ndarray | None = field(default=None, repr=False)
     _v1_fingerprint: str | None = field(default=None, repr=False)
+    # the file-order views, made on first use (init=False: dataclasses.replace starts them afresh)
+    _file_vertices: np.ndarray | None = field(default=None, init=False, repr=False)
+    _file_faces: np.ndarray | None = field(default=None, init=False, repr=False)
+
+    @property
+    def vertices(self) -> np.ndarray:
+        if self._file_vertices is None:
+            out = np.full((self.n_input, 3), np.nan)
+            used = self.input_to_internal >= 0
+            out[used] = self.internal_vertices[self.input_to_internal[used]]
+            out.flags.writeable = False  # derived: writing to it would change nothing the mesh uses
+            self._file_vertices = out
+        return self._file_vertices
+
+    @property
+    def faces(self) -> np.ndarray:
+        if self._file_faces is None:
+            out = self.index[self.internal_faces]
+            out.flags.writeable = False
+            self._file_faces = out
+        return self._file_faces
+
+    @property
+    def components(self) -> np.ndarray:
+        return self.to_input(self.internal_components, fill=-1)
 
     @property
     def input_to_internal(self) -> np.ndarray:
@@ -79,10 +119,10 @@ class Mesh:
     @property
     def welded(self) -> bool:
         """True when some internal vertex stands for several input vertices."""
-        return int(np.count_nonzero(self.input_to_internal >= 0)) > len(self.vertices)
+        return int(np.count_nonzero(self.input_to_internal >= 0)) > len(self.internal_vertices)
 
     @property
-    def components(self) -> np.ndarray:
+    def internal_components(self) -> np.ndarray:
         """(V,) int32 connected-component label of each internal vertex (0 .. n_components - 1).
 
         Two vertices share a label when mesh edges join them; faces that meet only at a vertex are joined
@@ -90,16 +130,17 @@ class Mesh:
         are numbered in order of each component's first vertex.
         """
         if self._components is None:
-            self._components = component_labels(len(self.vertices), self.faces)
+            self._components = component_labels(len(self.internal_vertices), self.internal_faces)
         return self._components
 
     @property
     def n_components(self) -> int:
-        return int(self.components.max()) + 1 if len(self.vertices) else 0
+        return int(self.internal_components.max()) + 1 if len(self.internal_vertices) else 0
 
     @property
-    def normalized_vertices(self) -> np.ndarray:
-        return (self.vertices - self.center) * self.scale
+    def internal_normalized_vertices(self) -> np.ndarray:
+        """(V, 3) float64: ``internal_vertices`` in the unit-sphere frame."""
+        return (self.internal_vertices - self.center) * self.scale
 
     def normalize(self, x: np.ndarray) -> np.ndarray:
         return (np.asarray(x, dtype=np.float64) - self.center) * self.scale
@@ -154,9 +195,9 @@ class Mesh:
         (..., n_input) array of ``values``' dtype; welded input vertices share their internal vertex's value.
         """
         values = np.asarray(values)
-        if values.shape[-1:] != (len(self.vertices),):
-            raise InputError(f"values must have one entry per internal vertex ({len(self.vertices)}) on the last "
-                             f"axis, got shape {values.shape}")
+        if values.shape[-1:] != (len(self.internal_vertices),):
+            raise InputError(f"values must have one entry per internal vertex ({len(self.internal_vertices)}) on "
+                             f"the last axis, got shape {values.shape}")
         inv = self.input_to_internal
         out = np.full(values.shape[:-1] + (self.n_input,), fill, dtype=values.dtype)
         used = inv >= 0
@@ -164,9 +205,47 @@ class Mesh:
         return out
 
     def to_trimesh(self):
+        """A ``trimesh.Trimesh`` of the surface: the internal vertices and faces (no unused vertices)."""
         import trimesh
 
-        return trimesh.Trimesh(self.vertices, self.faces, process=False)
+        return trimesh.Trimesh(self.internal_vertices, self.internal_faces, process=False)
+
+
+# The supported sizes. The kernels work in float32, in the unit sphere, and give results in mesh units: outside
+# these bounds distances (and squared lengths along paths) underflow to 0 or overflow to inf.
+MIN_RADIUS = 1e-20
+MAX_RADIUS = 1e30
+MAX_COORDINATE = 1e32
+
+
+def check_scale(radius: float, largest: float, pre: str = "") -> None:
+    """Refuse a mesh whose size or coordinates float32 cannot carry through the normalized computations.
+
+    Parameters
+    ----------
+    radius : float, input units
+        The largest distance of a used vertex from the bounding-box centre.
+    largest : float, input units
+        The largest absolute vertex coordinate.
+    pre : str
+        Prefix of the message (e.g. the file name).
+
+    Raises
+    ------
+    InputError
+        ``radius`` outside [MIN_RADIUS, MAX_RADIUS] or ``largest`` above MAX_COORDINATE.
+    """
+    if not largest <= MAX_COORDINATE and radius <= MAX_RADIUS:
+        raise InputError(f"{pre}the mesh's coordinates reach {largest:.3g}, beyond the supported {MAX_COORDINATE:g} "
+                         "(float32 could not hold them); move the mesh nearer the origin or rescale it")
+    if not MIN_RADIUS <= radius <= MAX_RADIUS:
+        raise InputError(f"{pre}the mesh's size is outside the supported range: its bounding radius is {radius:.3g} "
+                         f"units, and meshes from {MIN_RADIUS:g} to {MAX_RADIUS:g} units are supported (the "
+                         "float32 computations would give distances of 0 or inf); rescale the mesh, e.g. by "
+                         "expressing it in other units, and scale the results back")
+    if not largest <= MAX_COORDINATE:
+        raise InputError(f"{pre}the mesh's coordinates reach {largest:.3g}, beyond the supported {MAX_COORDINATE:g} "
+                         "(float32 could not hold them); move the mesh nearer the origin or rescale it")
 
 
 def _canonical_labels(labels: np.ndarray) -> np.ndarray:
@@ -258,13 +337,20 @@ def _from_arrays(vertices, faces, weld="auto", where: str = "") -> Mesh:
     tris = inverse[f].astype(np.int32)
     lo, hi = verts.min(0), verts.max(0)
     center = (lo + hi) / 2.0
-    radius = np.linalg.norm(verts - center, axis=1).max()
+    rel = verts - center
+    with np.errstate(over="ignore", under="ignore"):
+        radius = np.linalg.norm(rel, axis=1).max()
+    size = float(np.abs(rel).max())
+    if size > 0 and not (np.isfinite(radius) and radius > 0):  # squares overflowed (1e300) or underflowed (1e-200)
+        radius = size * float(np.linalg.norm(rel / size, axis=1).max())
     if not radius > 0:
         raise InputError(f"{pre}the mesh is degenerate: all referenced vertices coincide")
+    check_scale(radius, float(np.abs(verts).max()), pre)
     fp = mesh_fingerprint(verts, tris)
     # format-1 model files stored the fingerprint of the arrays as given; keep it to recognise them
     v1 = mesh_fingerprint(v, f) if (len(index) != len(v) and len(index) == len(used)) else fp
-    return Mesh(vertices=verts, faces=tris, index=index.astype(np.int64), n_input=len(v), center=center,
+    return Mesh(internal_vertices=verts, internal_faces=tris, index=index.astype(np.int64), n_input=len(v),
+                center=center,
                 scale=float(1.0 / radius), fingerprint=fp, _inverse=inverse, _v1_fingerprint=v1)
 
 

@@ -46,7 +46,7 @@ def points_of(mesh: Mesh | None, x, name: str) -> np.ndarray:
     if np.issubdtype(a.dtype, np.integer):
         if mesh is None:
             raise ValueError(f"{name} given as vertex indices, but there is no mesh: pass points instead")
-        return mesh.vertices[mesh.vertex(a.reshape(-1))]
+        return mesh.internal_vertices[mesh.vertex(a.reshape(-1))]
     if not np.issubdtype(a.dtype, np.floating):
         raise TypeError(f"{name} must be vertex indices (integers) or points (floats), got dtype {a.dtype}")
     a = a.reshape(1, 3) if a.shape == (3,) else a
@@ -64,8 +64,9 @@ def warp_mesh(mesh, device=None) -> wp.Mesh:
     per_device = _BVH.setdefault(m, {})
     key = str(dev)
     if key not in per_device:
-        per_device[key] = wp.Mesh(points=wp.array(m.vertices.astype(np.float32), dtype=wp.vec3, device=dev),
-                                  indices=wp.array(m.faces.reshape(-1).astype(np.int32), dtype=wp.int32, device=dev))
+        per_device[key] = wp.Mesh(points=wp.array(m.internal_vertices.astype(np.float32), dtype=wp.vec3, device=dev),
+                                  indices=wp.array(m.internal_faces.reshape(-1).astype(np.int32), dtype=wp.int32,
+                                                   device=dev))
     return per_device[key]
 
 

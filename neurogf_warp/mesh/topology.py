@@ -69,22 +69,22 @@ class VertexJoins:
 
 def vertex_joins(mesh: Mesh) -> VertexJoins:
     """Find patches joined only at single vertices (geodesics between them must pass through those vertices)."""
-    n, labels = edge_patches(mesh.faces)
+    n, labels = edge_patches(mesh.internal_faces)
     comp_of_patch = np.zeros(max(n, 1), dtype=np.int64)
-    comp_of_patch[labels] = mesh.components[mesh.faces[:, 0]]
+    comp_of_patch[labels] = mesh.internal_components[mesh.internal_faces[:, 0]]
     per_comp = np.bincount(comp_of_patch[:n], minlength=mesh.n_components) if n else np.zeros(0, np.int64)
     joined = int(per_comp[per_comp > 1].sum())
     if joined == 0:
         return VertexJoins(n, 0, 0, 0)
     # a vertex used by faces of several patches
     corner_patch = np.repeat(labels, 3)
-    corner_vertex = mesh.faces.reshape(-1)
+    corner_vertex = mesh.internal_faces.reshape(-1)
     pairs = np.unique(np.stack([corner_vertex, corner_patch], 1), axis=0)
-    pinch = int(np.count_nonzero(np.bincount(pairs[:, 0], minlength=len(mesh.vertices)) > 1))
+    pinch = int(np.count_nonzero(np.bincount(pairs[:, 0], minlength=len(mesh.internal_vertices)) > 1))
     # vertices of one patch lying exactly on a vertex of another: a seam that welding would close
-    v_patch = np.full(len(mesh.vertices), -1, dtype=np.int64)
+    v_patch = np.full(len(mesh.internal_vertices), -1, dtype=np.int64)
     v_patch[pairs[:, 0]] = pairs[:, 1]
-    _, first, inv = np.unique(mesh.vertices + 0.0, axis=0, return_index=True, return_inverse=True)
+    _, first, inv = np.unique(mesh.internal_vertices + 0.0, axis=0, return_index=True, return_inverse=True)
     inv = inv.reshape(-1)
     group_patches = np.stack([inv, v_patch], 1)
     distinct = np.unique(group_patches, axis=0)

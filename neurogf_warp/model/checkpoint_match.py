@@ -59,7 +59,7 @@ def mesh_sdf_residual(model, samples: int = SAMPLES) -> float:
     """
     if model.mesh is None:
         raise InputError("mesh_sdf_residual needs a model with a mesh")
-    x = (model.mesh.vertices - model.center) * model.scale
+    x = (model.mesh.internal_vertices - model.center) * model.scale
     idx = np.unique(np.linspace(0, len(x) - 1, min(len(x), int(samples))).round().astype(np.int64))
     net = model.net
     p = next(net.parameters())

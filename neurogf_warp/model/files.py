@@ -23,7 +23,7 @@ import os
 import numpy as np
 import torch
 
-from neurogf_warp.common.files import atomic_write_bytes
+from neurogf_warp.common.files import atomic_write_bytes, check_input_file, note_input
 from neurogf_warp.mesh.mesh import Mesh, component_labels, load_mesh, mesh_fingerprint
 from neurogf_warp.common.checks import InputError
 from neurogf_warp.model.checkpoint_match import MeshMismatchError, warn_if_mesh_mismatch
@@ -61,7 +61,9 @@ def save(model: Model, path, include_mesh: bool = True) -> str:
     model : Model
         The model; its mesh (if any) is stored with it unless ``include_mesh`` is False.
     path : str or os.PathLike
-        Target file (``.ngf`` by convention). A failed or killed save leaves any previous file as it was.
+        Target file (``.ngf`` by convention): a new path or a regular file, replaced atomically (a failed or
+        killed save leaves any previous file as it was); a link is written through to its target; a folder,
+        device or FIFO is refused (``common.files``).
     include_mesh : bool
         Store the mesh (vertices, faces, numbering map, component labels). Without it, loading needs
         ``mesh=`` to answer vertex queries; the fingerprint and the normalization are stored either way, so
@@ -70,9 +72,21 @@ def save(model: Model, path, include_mesh: bool = True) -> str:
     Returns
     -------
     str, the path written.
+
+    Raises
+    ------
+    TypeError
+        ``model`` is not a Model (None, a Mesh, ...).
+    InputError (a ValueError), IsADirectoryError, FileNotFoundError
+        ``path`` breaks the writing rule or its folder does not exist.
     """
     from safetensors.torch import save as st_save
 
+    if not isinstance(model, Model):
+        hint = (" (a Mesh is not a model: train one with neurogf_warp.train(mesh, path), which saves it)"
+                if isinstance(model, Mesh) else " (from neurogf_warp.train or neurogf_warp.load)")
+        raise TypeError(f"save(model, path): model must be a neurogf_warp Model, got "
+                        f"{'None' if model is None else type(model).__name__}{hint}")
     _check_frame(np.asarray(model.center, dtype=np.float64).tolist(), model.scale, "center", "scale", "model")
     tensors = {f"net.{k}": v.detach().cpu().contiguous() for k, v in model.net.state_dict().items()}
     if model.querier is not None:
@@ -89,11 +103,11 @@ def save(model: Model, path, include_mesh: bool = True) -> str:
     }
     if model.mesh is not None and include_mesh:
         m = model.mesh
-        tensors["mesh.vertices"] = torch.from_numpy(np.ascontiguousarray(m.vertices, dtype=np.float64))
-        tensors["mesh.faces"] = torch.from_numpy(np.ascontiguousarray(m.faces, dtype=np.int32))
+        tensors["mesh.vertices"] = torch.from_numpy(np.ascontiguousarray(m.internal_vertices, dtype=np.float64))
+        tensors["mesh.faces"] = torch.from_numpy(np.ascontiguousarray(m.internal_faces, dtype=np.int32))
         tensors["mesh.index"] = torch.from_numpy(np.ascontiguousarray(m.index, dtype=np.int64))
         tensors["mesh.input_to_internal"] = torch.from_numpy(np.ascontiguousarray(m.input_to_internal, dtype=np.int64))
-        tensors["mesh.components"] = torch.from_numpy(np.ascontiguousarray(m.components, dtype=np.int32))
+        tensors["mesh.components"] = torch.from_numpy(np.ascontiguousarray(m.internal_components, dtype=np.int32))
         meta["mesh_n_input"] = int(m.n_input)
         meta["mesh_center"] = [float(c) for c in m.center]
         meta["mesh_scale"] = float(m.scale)
@@ -103,7 +117,7 @@ def save(model: Model, path, include_mesh: bool = True) -> str:
         raise InputError(f"cannot save: the model's config must be JSON data (numbers, strings, lists, dicts): {e}") from e
     meta["checksums"] = {"tensors": {k: _digest_tensor(k, v) for k, v in tensors.items()},
                          "meta": {k: _digest_value(v) for k, v in meta.items()}}
-    return atomic_write_bytes(path, st_save(tensors, metadata={"neurogf": json.dumps(meta)}))
+    return atomic_write_bytes(path, st_save(tensors, metadata={"neurogf": json.dumps(meta)}), what="model file")
 
 
 def _strict_load(module: torch.nn.Module, state: dict, what: str, path: str):
@@ -195,6 +209,7 @@ def load_querier(path) -> SdfQuerier:
     path = _check_file(path)
     q = SdfQuerier()
     _strict_load(q, _read_torch(path), "SDF querier", path)
+    note_input(path)
     return q.eval()
 
 
@@ -203,11 +218,7 @@ def _check_file(path) -> str:
     if os.path.isdir(path):
         raise IsADirectoryError(f"model file {path} is a folder: give the model file itself (e.g. model.ngf or a "
                                 "*_final.pth)")
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"model file not found: {path}")
-    if not os.access(path, os.R_OK):
-        raise PermissionError(f"model file is not readable: {path}")
-    return path
+    return check_input_file(path, "model file", note=False)  # noted once it has loaded
 
 
 def load(path, mesh=None, querier=None, check_mesh: bool = True) -> Model:
@@ -264,6 +275,7 @@ def load(path, mesh=None, querier=None, check_mesh: bool = True) -> Model:
     if querier is not None:
         model.querier = querier if isinstance(querier, SdfQuerier) else load_querier(querier)
         model.querier.eval()
+    note_input(path)  # an input of this command now: no output of it may replace the file
     return model
 
 
@@ -439,6 +451,6 @@ def _stored_mesh(meta: dict, tensors: dict, version: int, fingerprint, path: str
         if not np.array_equal(comp, components):
             _fail(path, "tensor mesh.components does not match the connected components of mesh.faces")
         inverse = inv.astype(np.int64)
-    return Mesh(vertices=v.astype(np.float64), faces=f.astype(np.int32), index=idx.astype(np.int64),
+    return Mesh(internal_vertices=v.astype(np.float64), internal_faces=f.astype(np.int32), index=idx.astype(np.int64),
                 n_input=int(n_input), center=np.asarray(mc, dtype=np.float64), scale=float(ms),
                 fingerprint=fingerprint, _inverse=inverse, _components=components)

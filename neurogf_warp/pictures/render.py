@@ -244,7 +244,7 @@ def _spheres(points: np.ndarray, radius: float):
 def _vertex_values(mesh, values) -> np.ndarray:
     """Per-vertex values (the mesh's numbering, or internal order when that is the same length) -> internal."""
     v = as_numpy(values).astype(np.float64).reshape(-1) if np.ndim(as_numpy(values)) else None
-    if v is None or len(v) not in (mesh.n_input, len(mesh.vertices)):
+    if v is None or len(v) not in (mesh.n_input, len(mesh.internal_vertices)):
         raise InputError(f"values must hold one number per mesh vertex ({mesh.n_input} in the mesh's numbering), "
                          f"got shape {np.shape(as_numpy(values))}")
     return v[mesh.index] if len(v) == mesh.n_input else v
@@ -373,7 +373,7 @@ def render(model_or_mesh, values=None, *, sources=None, paths=None, points=None,
     isolines, vrange, supersample = st.isolines, st.vrange, st.supersample
     path_radius, marker_radius = st.path_radius, st.marker_radius
     dev = resolve_device(device)
-    V, F = mesh.vertices, mesh.faces.astype(np.int64)
+    V, F = mesh.internal_vertices, mesh.internal_faces.astype(np.int64)
     r0 = float(np.linalg.norm(V - (V.min(0) + V.max(0)) / 2, axis=1).max())
 
     if values is None and model is not None and sources is not None:
@@ -484,19 +484,21 @@ def write_ply(path, mesh, values, *, vrange=None) -> str:
     ----------
     path : output file, written atomically
     mesh : a Model with a mesh, or a mesh (Mesh, trimesh.Trimesh, (vertices, faces), file path)
-    values : (V,) per-vertex values in the mesh's numbering (e.g. ``ssad``'s result); NaN is drawn grey
+    values : (n_input,) per-vertex values in the mesh's numbering (e.g. ``ssad``'s result); NaN is drawn grey
     vrange : (low, high) at the colour map's ends (default: the values' min and max)
 
     Notes
     -----
-    The file holds the mesh's referenced vertices (those some face uses, in their order in the mesh as given;
-    unreferenced vertices are left out) as float32 x, y, z, uchar red, green, blue, alpha and float32 quality
-    (the value itself, which MeshLab shows as vertex quality), and the faces in their given order.
+    The file holds every vertex of the mesh as given, in its numbering (vertex j of the file is vertex j of the
+    mesh file and ``values[j]``), as float32 x, y, z, uchar red, green, blue, alpha and float32 quality (the value
+    itself, which MeshLab shows as vertex quality), and the faces in their given order, indexing those vertices.
+    Vertices no face uses have no position on the surface (``Mesh.vertices``): they are written with NaN
+    coordinates and quality, grey, and no face refers to them.
     """
     m = as_mesh(mesh)
-    v = _vertex_values(m, values)
+    v = m.to_input(_vertex_values(m, values))  # one value per vertex as given
     rgb = colorize(v, vrange)
-    n, f = len(m.vertices), len(m.faces)
+    n, f = m.n_input, len(m.internal_faces)
     vert = np.empty(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
                               ("blue", "u1"), ("alpha", "u1"), ("quality", "<f4")])
     vert["x"], vert["y"], vert["z"] = m.vertices.T.astype(np.float32)
@@ -504,7 +506,7 @@ def write_ply(path, mesh, values, *, vrange=None) -> str:
     vert["alpha"] = 255
     vert["quality"] = v.astype(np.float32)
     face = np.empty(f, dtype=[("n", "u1"), ("i", "<i4", (3,))])
-    face["n"], face["i"] = 3, m.faces
+    face["n"], face["i"] = 3, m.faces  # the file's numbering
     header = (f"ply\nformat binary_little_endian 1.0\ncomment neurogf_warp field colours\nelement vertex {n}\n"
               "property float x\nproperty float y\nproperty float z\nproperty uchar red\nproperty uchar green\n"
               "property uchar blue\nproperty uchar alpha\nproperty float quality\n"

@@ -97,7 +97,8 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
     dataset : None (the run folder's cache, else built), a Dataset, or a dataset ``.npz`` file
     resume : continue the checkpoint in the run folder with its own settings (the settings given here are not
         used); a finished run's checkpoint gives its model back
-    force : start over, replacing an existing run and model file
+    force : start over, replacing an existing run and model file (never the mesh or dataset file trained from:
+        an ``out`` that is one of them is refused, as is a device, FIFO or folder; a link is written through)
     budget_seconds : seconds for the whole run (dataset, set-up, all stages, saving; in a fresh process also the
         import of torch and the training stage that ``ngf.train`` triggers; under the command line, everything
         from the process start to its exit), a number > 0 and at most 30
@@ -130,6 +131,9 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
     budget_seconds = check_budget(budget_seconds)
     files = RunFiles.for_model(out)
     files.check_writable()
+    from neurogf_warp.common.files import output_target
+
+    output_target(out, inputs=(mesh, dataset), what="model file")  # never the mesh or dataset, even with force
     created = not os.path.isdir(files.folder)
     lock = files.lock()
     try:
@@ -156,7 +160,7 @@ def _train_locked(mesh, files, config, device, dataset, resume, force, budget_se
         dev = torch.device("cuda", torch.cuda.current_device())
     mesh = load_mesh(mesh)
     check_trainable(mesh, allow_vertex_joins)
-    cfg = resolve_config(config, dev.type, len(mesh.vertices), **settings)
+    cfg = resolve_config(config, dev.type, len(mesh.internal_vertices), **settings)
     request = {"config": cfg.to_dict(), "budget_seconds": budget_seconds,
                "dataset": None if dataset is None else os.path.abspath(dataset) if isinstance(dataset, (str, os.PathLike))
                else "given"}

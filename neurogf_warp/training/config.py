@@ -14,7 +14,7 @@ import math
 import os
 from dataclasses import dataclass, field
 
-from neurogf_warp.common.checks import integer
+from neurogf_warp.common.checks import InputError, integer
 from neurogf_warp.dataset.build import DatasetSettings
 from neurogf_warp.model.network import MAX_FOURIER, MAX_HASH_LEVELS, NORMS, SUPPORTED_D, NeuroGFNet
 
@@ -29,6 +29,8 @@ DIST_LOSSES = ("l1", "relative_global")
 # settings of older versions that did not improve training, with the value that meant "off":
 # old configs that carry that value still load; any other value is refused
 REMOVED = {"refine_amp": True, "refine_batch_paths": None}
+# dict settings (ratios, loss_weights) are flat; deeper nesting is refused before it can exhaust the stack
+MAX_NESTING = 8
 
 
 @dataclass
@@ -394,12 +396,33 @@ def _convert(name: str, typ: str, value):
         if isinstance(value, str):
             try:
                 value = json.loads(value)
+            except RecursionError:  # json recurses once per level
+                raise InputError(f"{name} is nested deeper than {MAX_NESTING} levels; give a flat JSON object such "
+                                 "as '{\"refine_dist\": 2}'") from None
             except json.JSONDecodeError:
                 raise ValueError(f"{name} must be a JSON object such as '{{\"refine_dist\": 2}}', got {value!r}") from None
         if not isinstance(value, dict):
-            raise ValueError(f"{name} must be a mapping, got {value!r}")
+            raise ValueError(f"{name} must be a mapping, got {str(value)[:80]!r}")
+        if not _shallow(value, MAX_NESTING):
+            raise InputError(f"{name} is nested deeper than {MAX_NESTING} levels (or refers to itself); give a flat "
+                             "mapping such as {\"refine_dist\": 2}")
         return dict(value)
     raise AssertionError(f"no conversion for {name}: {typ}")  # a new field kind: add it above
+
+
+def _shallow(value, limit: int) -> bool:
+    """True when the dicts and lists in ``value`` nest at most ``limit`` levels (walked without recursion, so a
+    deep or self-referring value cannot exhaust the stack here or later when the config is copied)."""
+    stack = [(value, 1)]
+    while stack:
+        v, depth = stack.pop()
+        items = v.values() if isinstance(v, dict) else v if isinstance(v, (list, tuple)) else None
+        if items is None:
+            continue
+        if depth > limit:
+            return False
+        stack.extend((x, depth + 1) for x in items)
+    return True
 
 
 def parse_assignments(items, flag: str = "--set") -> dict:

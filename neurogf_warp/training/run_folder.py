@@ -144,7 +144,7 @@ def call_key(mesh, config, device, dataset, budget_seconds, settings) -> dict | 
            "settings": settings}
     try:
         return json.loads(json.dumps(key))
-    except (TypeError, ValueError):  # a setting that is not plain data
+    except (TypeError, ValueError, RecursionError):  # a setting that is not plain data (or nested too deep)
         return None
 
 
