@@ -14,7 +14,7 @@ import numpy as np
 import warp as wp
 
 from neurogf_warp.common.arrays import resolve_device
-from neurogf_warp.ground_truth.steiner_graph import Topology
+from neurogf_warp.ground_truth.steiner_graph import Topology, stable_sort
 from neurogf_warp.mesh.mesh import load_mesh
 
 __all__ = ["GeodesicSolver", "load_kernels", "DEFAULT_K", "DEFAULT_DELTA", "PATH_DELTA", "PATH_TOLERANCE",
@@ -45,6 +45,15 @@ def points_per_path(m) -> int:
     return int(m)
 
 
+def _spread_bits(x: np.ndarray) -> np.ndarray:
+    """uint64 values below 2^21 with bit b moved to bit 3 b (the other bits 0)."""
+    x = x & np.uint64(0x1FFFFF)
+    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
+                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+        x = (x | (x << np.uint64(shift))) & np.uint64(mask)
+    return x
+
+
 def spatial_order(points: np.ndarray, bits: int = 16) -> np.ndarray:
     """(n,) int64: the points sorted along a Morton (Z-order) curve of 2^bits cells per axis, ties in input
     order. Nearby points get nearby ranks, so per-node state of neighbouring nodes shares cache lines."""
@@ -54,10 +63,14 @@ def spatial_order(points: np.ndarray, bits: int = 16) -> np.ndarray:
     lo = p.min(axis=0)
     span = float((p.max(axis=0) - lo).max())
     q = np.floor((p - lo) / (span if span > 0 else 1.0) * (2**bits - 1)).astype(np.uint64)
-    code = np.zeros(len(p), dtype=np.uint64)
-    for b in range(bits):
-        for axis in range(3):
-            code |= ((q[:, axis] >> np.uint64(b)) & np.uint64(1)) << np.uint64(3 * b + axis)
+    if bits <= 21:  # bit b of axis a goes to bit 3 b + a: five shift-and-mask steps per axis
+        code = _spread_bits(q[:, 0]) | (_spread_bits(q[:, 1]) << np.uint64(1)) | \
+            (_spread_bits(q[:, 2]) << np.uint64(2))
+    else:
+        code = np.zeros(len(p), dtype=np.uint64)
+        for b in range(bits):
+            for axis in range(3):
+                code |= ((q[:, axis] >> np.uint64(b)) & np.uint64(1)) << np.uint64(3 * b + axis)
     return np.argsort(code, kind="stable")
 
 
@@ -165,26 +178,40 @@ class GeodesicSolver:
         # numbering is restored at run / vertex_distances / trace. Bunny subdivided once (139K vertices), one
         # source on the CPU: 5.4-5.8 s against 6.6-8.2 s in file order, same results up to the order-dependence of
         # the windows.
+        phases = {}
+        t1 = t0
+
+        def lap(name):
+            nonlocal t1
+            now = time.perf_counter()
+            phases[name] = phases.get(name, 0.0) + now - t1
+            t1 = now
+
         self.nv = len(self.mesh.vertices)
-        x32 = self.mesh.normalized_vertices.astype(np.float32)
+        nv64 = self.mesh.normalized_vertices
+        x32 = nv64.astype(np.float32)
         self._order = spatial_order(x32) if REORDER else np.arange(self.nv)  # solver id -> mesh id
         self._solver_id = np.empty(self.nv, dtype=np.int64)  # mesh id -> solver id
         self._solver_id[self._order] = np.arange(self.nv)
         faces = self._solver_id[np.asarray(self.mesh.faces, dtype=np.int64)]
         if REORDER:
-            faces = faces[np.argsort(faces.min(axis=1), kind="stable")]
+            faces = faces[stable_sort(faces.min(axis=1), max(self.nv, 1))[1]]
         self._positions = x32[self._order]
+        lap("order")
         # window-face test on the float32 normalized positions the kernels use (see window_faces)
         self.topo = Topology(self._positions, faces)
+        lap("topology")
         # delta-stepping bucket width, in mean edge lengths (normalized frame)
         e = self.topo.edges
-        nvx = self.mesh.normalized_vertices[self._order]
+        nvx = nv64[self._order]
         mean_len = float(np.linalg.norm(nvx[e[:, 0]] - nvx[e[:, 1]], axis=1).mean()) if len(e) else 1.0
         self.mean_edge = mean_len  # normalized frame
         self.delta = float(delta) * mean_len if delta > 0 else float("inf")
         # Steiner points: k per edge, more on long edges of thin faces (steiner_graph.steiner_counts)
-        self.nodes = self.topo.steiner_nodes(self.k)
-        self.n_nodes = self.nv + len(self.nodes[1])
+        self._edge_node_start = self.topo.steiner_start(self.k)
+        self._nodes = None
+        self.n_nodes = self.nv + int(self._edge_node_start[-1])
+        lap("steiner_counts")
         if self.n_nodes >= 2**31 - 1:
             raise ValueError(f"mesh too large for int32 node ids at k={self.k} ({self.n_nodes} nodes); lower k")
         free = available_memory(self.device)
@@ -210,7 +237,8 @@ class GeodesicSolver:
                               f"({self.bytes_per_row / 1e9:.3f} GB per row at k={self.k}, {self.n_nodes:,} graph "
                               f"nodes) but {self.device} has {free / 1e9:.2f} GB available; lower batch or k, "
                               "or use a smaller (decimated) mesh")
-        self.timings = {"setup_s": time.perf_counter() - t0, "solve_s": 0.0, "iterations": []}
+        self.timings = {"setup_s": time.perf_counter() - t0, "solve_s": 0.0, "iterations": [],
+                        "setup_phases": phases}
         try:
             self._alloc()
         except Exception as e:  # noqa: BLE001 - allocation failures come as several types
@@ -224,6 +252,15 @@ class GeodesicSolver:
         self._chunk = 16  # loop iterations per CPU launch, adapted to CPU_CHUNK_SECONDS
         self.rows = None
         self._started = None  # (sources, start time) of a batch begun by start()
+        self.timings["setup_s"] = time.perf_counter() - t0
+
+    @property
+    def nodes(self):
+        """The Steiner nodes (``Topology.steiner_nodes``: edge_node_start, node_edge, node_t), host copies made on
+        first use (the solver's own tables are built on its device)."""
+        if self._nodes is None:
+            self._nodes = self.topo.steiner_nodes(self.k, start=self._edge_node_start)
+        return self._nodes
 
     @property
     def captured(self) -> bool:
@@ -239,7 +276,9 @@ class GeodesicSolver:
     def _alloc(self):
         kg = _kernels()
         d, b, n = self.device, self.batch, self.n_nodes
-        self.graph = self.topo.to_warp(self._positions, self.k, self.windows, d, self.nodes)
+        phases = self.timings["setup_phases"]
+        self.graph = self.topo.to_warp(self._positions, self.k, self.windows, d, self._edge_node_start, timings=phases)
+        t1 = time.perf_counter()
         z = lambda dt: wp.zeros((b, n), dtype=dt, device=d)  # noqa: E731
 
         def windows():
@@ -279,6 +318,7 @@ class GeodesicSolver:
                 setattr(f, name, value)
             self.fronts.append(f)
         self._front_shared = shared
+        phases["state"] = phases.get("state", 0.0) + time.perf_counter() - t1
 
     def _step(self, front):
         """One worklist iteration: relax front.active, build front.next."""
