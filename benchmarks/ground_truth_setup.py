@@ -243,8 +243,9 @@ def main(argv=None) -> int:
     for name, v in rows:
         print(f"{name:44s} {v:9.3f}")
     if not a.setup_only:
-        print(f"\nsolver alone {out['solver_sources_per_s']:.2f} sources/s; public call {out['public_first_sources_per_s']:.2f}"
-              f" sources/s first, {out['public_repeat_sources_per_s']:.2f} repeated (ratio "
+        print(f"\nsolver alone {out['solver_sources_per_s']:.2f} sources/s; public call "
+              f"{out['public_first_sources_per_s']:.2f} sources/s first, {out['public_repeat_sources_per_s']:.2f} "
+              "repeated (ratio "
               f"{out['public_first_ratio_to_solver']:.2f}x / {out['public_repeat_ratio_to_solver']:.2f}x)")
     if a.check:
         print("device tables equal to the numpy reference:", out["tables_identical"])

@@ -165,3 +165,54 @@ def test_patch_faces_of_all_rows_equal_row_by_row():
             np.testing.assert_array_equal(rows[r], patch_faces(s, d[r], limit))
         if limit == 4 * s.mean_edge:
             assert all(0 < len(x) < len(s.topo.faces) for x in rows)
+
+
+def test_repeated_public_calls_reuse_the_tables_and_give_the_same_distances():
+    import neurogf_warp.ground_truth.solver as S
+    from neurogf_warp.ground_truth.geodesics import clear_solver_cache, geodesic_distances, geodesic_paths
+
+    V, F = MESHES["needles"]
+    clear_solver_cache()
+    plain = GeodesicSolver((V, F), device="cpu", batch=4)
+    want = plain.solve(np.array([0, 3, 9, 30]))
+    assert len(S._SOLVER_CACHE) == 0  # only cache=True keeps tables
+    first = geodesic_distances((V, F), [0, 3, 9, 30], device="cpu", near_source=False)
+    assert len(S._SOLVER_CACHE) == 1
+    again = geodesic_distances((V, F), [0, 3, 9, 30], device="cpu", near_source=False)
+    np.testing.assert_array_equal(again, first)
+    m = plain.mesh
+    np.testing.assert_array_equal(first, m.to_input(want / np.float32(m.scale)))
+    cached = GeodesicSolver((V, F), device="cpu", batch=4, cache=True)
+    assert "cached_tables" in cached.timings["setup_phases"] and cached.graph is S._SOLVER_CACHE[
+        next(iter(S._SOLVER_CACHE))][-1]
+    np.testing.assert_array_equal(cached.solve(np.array([0, 3, 9, 30])), want)
+    # near_source and paths through the cache: the same as a fresh solver's
+    on = geodesic_distances((V, F), [1, 2], device="cpu")
+    clear_solver_cache()
+    assert len(S._SOLVER_CACHE) == 0
+    np.testing.assert_array_equal(geodesic_distances((V, F), [1, 2], device="cpu"), on)
+    p1 = geodesic_paths((V, F), 4, [10, 20, 40], device="cpu")
+    p2 = geodesic_paths((V, F), 4, [10, 20, 40], device="cpu")
+    for a, b in zip(p1, p2):
+        np.testing.assert_array_equal(a, b)
+    # other settings or another mesh: other entries, the least recent dropped beyond SOLVER_CACHE_SIZE
+    geodesic_distances((V, F), [0], device="cpu", k=2, near_source=False)
+    geodesic_distances(MESHES["book"], [0], device="cpu", near_source=False)
+    assert len(S._SOLVER_CACHE) == S.SOLVER_CACHE_SIZE
+    clear_solver_cache()
+
+
+def test_gather_rows_gives_mesh_order_rows():
+    import warp as wp
+
+    from neurogf_warp.kernels.ground_truth import build
+
+    rng = np.random.default_rng(0)
+    dist = rng.random((3, 50)).astype(np.float32)
+    dist[0, 7] = np.inf
+    ids = rng.permutation(40)
+    out = wp.empty((3, 40), dtype=float, device="cpu")
+    wp.launch(build.gather_rows, dim=(3, 40), inputs=[wp.array(dist, dtype=float, device="cpu"),
+                                                      wp.array(ids.astype(np.int32), dtype=int, device="cpu")],
+              outputs=[out], device="cpu")
+    np.testing.assert_array_equal(out.numpy(), dist[:, ids])

@@ -55,3 +55,11 @@ def face_slots(faces: wp.array2d(dtype=int), face_edges: wp.array2d(dtype=int), 
         for j in range(c):
             codes[off + j] = ((nv + s + j) << SLOT_EDGE_BITS) | (1 << le)
         off += c
+
+
+@wp.kernel
+def gather_rows(dist: wp.array2d(dtype=float), solver_id: wp.array(dtype=int), out: wp.array2d(dtype=float)):
+    """out[r, i] = dist[r, solver_id[i]]: rows of node distances as mesh-vertex rows in the mesh's numbering (on
+    the device, so only those V values per row are copied to the host, not the N of every node)."""
+    r, i = wp.tid()
+    out[r, i] = dist[r, solver_id[i]]

@@ -64,7 +64,7 @@ def patch_faces_rows(solver: GeodesicSolver, dist: np.ndarray, limit: float, row
 
 
 def refine_near_sources(solver: GeodesicSolver, sources: np.ndarray, dist: np.ndarray, k: int = PATCH_K,
-                        radius: float = PATCH_RADIUS) -> np.ndarray:
+                        radius: float = PATCH_RADIUS, copy: bool = True) -> np.ndarray:
     """Distances ``dist`` lowered near their sources by a solve at ``k`` of each source's patch.
 
     Parameters
@@ -75,13 +75,14 @@ def refine_near_sources(solver: GeodesicSolver, sources: np.ndarray, dist: np.nd
     dist : (S, V) float, distances from ``sources`` in the normalized frame (``GeodesicSolver.solve``)
     k : Steiner points per edge in the patches
     radius : patch radius in mean edge lengths (faces within radius + 2 of the source, by ``dist``)
+    copy : False to lower ``dist`` in place where it is a float32 array (saves a copy of all rows)
 
     Returns
     -------
     (S, V) float32, normalized frame: min(dist, patch distance) per vertex of each patch, ``dist`` elsewhere.
     """
     src = np.asarray(sources, dtype=np.int64).reshape(-1)
-    out = np.array(dist, dtype=np.float32, copy=True)
+    out = np.array(dist, dtype=np.float32, copy=True) if copy else np.asarray(dist, dtype=np.float32)
     if len(src) == 0:
         return out
     P = solver.mesh.normalized_vertices
