@@ -216,3 +216,17 @@ def test_gather_rows_gives_mesh_order_rows():
                                                       wp.array(ids.astype(np.int32), dtype=int, device="cpu")],
               outputs=[out], device="cpu")
     np.testing.assert_array_equal(out.numpy(), dist[:, ids])
+
+
+def test_a_changed_table_setting_builds_new_tables(monkeypatch):
+    from neurogf_warp.ground_truth.geodesics import clear_solver_cache
+
+    V, F = MESHES["stretched"]
+    clear_solver_cache()
+    a = GeodesicSolver((V, F), device="cpu", batch=1, cache=True)
+    assert "cached_tables" in GeodesicSolver((V, F), device="cpu", batch=1, cache=True).timings["setup_phases"]
+    monkeypatch.setattr(sg, "STEINER_ASPECT", 1e6)
+    b = GeodesicSolver((V, F), device="cpu", batch=1, cache=True)
+    assert "cached_tables" not in b.timings["setup_phases"]
+    assert b.n_nodes < a.n_nodes  # k points on every edge: the thin faces' long edges no longer get more
+    clear_solver_cache()

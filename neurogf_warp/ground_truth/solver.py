@@ -87,13 +87,17 @@ def clear_solver_cache() -> None:
 
 def _cache_key(mesh, k: int, windows: bool, device) -> tuple:
     """The solver tables' key: a hash of the mesh's exact vertices (float64), faces and normalization, with the
-    settings the tables depend on."""
+    settings the tables depend on (the module-level ones included, read now: a changed constant builds anew)."""
+    from neurogf_warp.ground_truth import steiner_graph as sg
+
     h = hashlib.blake2b(digest_size=20)
     for a in (mesh.vertices, mesh.faces, mesh.center, np.float64(mesh.scale)):
         a = np.ascontiguousarray(a)
         h.update(str((a.dtype.str, a.shape)).encode())
         h.update(a.data if a.ndim else a.tobytes())
-    return h.hexdigest(), int(k), bool(windows), str(device)
+    tunables = (REORDER, sg.STEINER_ASPECT, sg.MAX_STEINER, sg.GRAPH_ONLY_FACTOR, sg.WINDOW_FACE_MIN_RELATIVE_HEIGHT,
+                sg.WINDOW_FACE_MIN_HEIGHT, sg.SLOT_EDGE_BITS)
+    return h.hexdigest(), int(k), bool(windows), str(device), repr(tunables)
 
 
 def _count(name: str, value) -> int:
