@@ -87,6 +87,8 @@ def geodesic_distances(mesh, sources, device=None, k: int = DEFAULT_K, windows: 
         d = refine_near_sources(solver, src, d, copy=False)
     del solver  # its per-source state, before the output rows are made
     d /= np.float32(m.scale)
+    if m.n_input == len(m.index) and np.array_equal(m.index, np.arange(m.n_input)):
+        return d  # every input vertex is its own internal vertex: to_input would copy the rows unchanged
     return m.to_input(d)
 
 
