@@ -71,9 +71,9 @@ def geodesic_distances(mesh, sources, device=None, k: int = DEFAULT_K, windows: 
     -----
     The solver's mesh tables (vertex order and topology on the host, the Steiner graph on the device: by their
     sizes about 45 bytes per graph node on the device, 0.21 GB and 0.12 GB on the host for the 436K-vertex
-    benchmark bunny at k = 3) are kept for the last ``SOLVER_CACHE_SIZE`` (2) meshes, so that another call on the same mesh, device, ``k`` and
-    ``windows`` skips that set-up (``GeodesicSolver(cache=True)``); ``clear_solver_cache()`` frees them. The
-    per-source solver state is freed when the call returns.
+    benchmark bunny at k = 3) are kept for the last ``SOLVER_CACHE_SIZE`` (2) meshes, so that another call on
+    the same mesh, device, ``k`` and ``windows`` skips that set-up (``GeodesicSolver(cache=True)``);
+    ``clear_solver_cache()`` frees them. The per-source solver state is freed when the call returns.
     """
     m = load_mesh(mesh)
     src = _vertices(m, sources, "sources")

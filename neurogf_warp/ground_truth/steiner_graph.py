@@ -241,6 +241,12 @@ def node_positions(positions: np.ndarray, edges: np.ndarray, node_edge: np.ndarr
     return np.concatenate([p, a + t * (b - a)]).astype(np.float32)
 
 
+def _rowmax3(a: np.ndarray) -> np.ndarray:
+    """a.max(axis=1) of an (n, 3) array (NaN propagating as there), elementwise: several times faster than the
+    reduction over a short axis."""
+    return np.maximum(np.maximum(a[:, 0], a[:, 1]), a[:, 2])
+
+
 def face_geometry(vertices: np.ndarray, faces: np.ndarray):
     """(area2 (F,), elen (F, 3)) float64: twice each face's area and the length of its local edges (local edge le
     joins vertices le and (le + 1) % 3), in the units of `vertices`."""
@@ -271,7 +277,7 @@ def window_faces(vertices: np.ndarray, faces: np.ndarray, geometry=None) -> np.n
     if len(f) == 0:
         return np.zeros(0, np.int8)
     area2, elen = geometry if geometry is not None else face_geometry(vertices, f)
-    lmax = elen.max(axis=1)
+    lmax = _rowmax3(elen)
     hmin = area2 / np.maximum(lmax, 1e-300)
     ok = (hmin >= WINDOW_FACE_MIN_RELATIVE_HEIGHT * lmax) & (hmin >= WINDOW_FACE_MIN_HEIGHT) & np.isfinite(hmin)
     return ok.astype(np.int8)
@@ -297,7 +303,7 @@ def steiner_counts(vertices: np.ndarray, faces: np.ndarray, face_edges: np.ndarr
     if len(f) == 0:
         return counts
     area2, elen = geometry if geometry is not None else face_geometry(vertices, f)
-    h = area2 / np.maximum(elen.max(axis=1), 1e-300)
+    h = area2 / np.maximum(_rowmax3(elen), 1e-300)
     ok = np.ones(len(f), bool) if face_ok is None else np.asarray(face_ok) != 0
     ok &= h > 0
     # per (face, local edge): the points that face asks of the edge
