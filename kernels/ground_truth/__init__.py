@@ -7,11 +7,12 @@ length of a real surface path, so distances are upper bounds of the exact geodes
 - graph: the Steiner graph on the mesh (node ids, positions, face slots, edge frames), `SteinerGraph`;
 - unfolding: windows and the unfolding maths, `Windows`;
 - relax: the frontier-worklist relaxation (propose, decode, commit), `NodeState`, `PathRecords`, `Frontier`;
-- paths: distances made equal to the traced paths' lengths, and the path tracer, `PathQuery`.
+- paths: distances made equal to the traced paths' lengths, and the path tracer, `PathQuery`;
+- build: the graph's per-node and per-slot tables written on the device.
 """
-from . import graph, paths, relax, unfolding
+from . import build, graph, paths, relax, unfolding
 
-MODULES = (relax, paths)  # the modules that hold kernels (graph and unfolding hold functions only)
+MODULES = (relax, paths, build)  # the modules that hold kernels (graph and unfolding hold functions only)
 
 
 def load(device) -> None:

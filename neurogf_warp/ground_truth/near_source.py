@@ -18,7 +18,7 @@ import numpy as np
 from neurogf_warp.ground_truth.solver import GeodesicSolver
 from neurogf_warp.mesh.mesh import load_mesh
 
-__all__ = ["refine_near_sources", "PATCH_RADIUS", "PATCH_K"]
+__all__ = ["refine_near_sources", "patch_faces", "patch_faces_rows", "PATCH_RADIUS", "PATCH_K"]
 
 PATCH_RADIUS = 12.0  # mean edge lengths: beyond it the k = 3 worst pair was 0.38-0.44% on the tail meshes
 PATCH_K = 6  # k = 5 left the needle mesh's degenerate-face pair at 0.64%; k = 6 took every mesh to <= 0.45%
@@ -39,8 +39,32 @@ def patch_faces(solver: GeodesicSolver, dist_row: np.ndarray, limit: float) -> n
     return near[inside_s[t.faces[near]].all(axis=1)]
 
 
+def patch_faces_rows(solver: GeodesicSolver, dist: np.ndarray, limit: float, rows_per_block: int = 64) -> list:
+    """``patch_faces`` of every row of ``dist`` (S, V): a list of S sorted face-row arrays, the same as row by row,
+    gathered a block of rows at a time (one pass over the block, one sort of (row, face) keys)."""
+    t = solver.topo
+    nf = len(t.faces)
+    faces_mesh = solver._order[t.faces]  # mesh numbering of each face's vertices
+    out = []
+    for r0 in range(0, len(dist), rows_per_block):
+        block = dist[r0: r0 + rows_per_block]
+        with np.errstate(invalid="ignore"):
+            inside = np.isfinite(block) & (block <= limit)
+        rows, vm = np.nonzero(inside)
+        v = solver._solver_id[vm]
+        n = (t.vertex_face_start[v + 1] - t.vertex_face_start[v]).astype(np.int64)
+        at = np.repeat(t.vertex_face_start[v] - np.cumsum(n) + n, n) + np.arange(int(n.sum()))
+        key = np.unique(np.repeat(rows.astype(np.int64), n) * nf + t.vertex_faces[at])
+        row, face = np.divmod(key, nf)
+        keep = inside[row[:, None], faces_mesh[face]].all(axis=1)
+        row, face = row[keep], face[keep]
+        bounds = np.searchsorted(row, np.arange(len(block) + 1))
+        out += [face[bounds[i]: bounds[i + 1]] for i in range(len(block))]
+    return out
+
+
 def refine_near_sources(solver: GeodesicSolver, sources: np.ndarray, dist: np.ndarray, k: int = PATCH_K,
-                        radius: float = PATCH_RADIUS) -> np.ndarray:
+                        radius: float = PATCH_RADIUS, copy: bool = True) -> np.ndarray:
     """Distances ``dist`` lowered near their sources by a solve at ``k`` of each source's patch.
 
     Parameters
@@ -51,22 +75,25 @@ def refine_near_sources(solver: GeodesicSolver, sources: np.ndarray, dist: np.nd
     dist : (S, V) float, distances from ``sources`` in the normalized frame (``GeodesicSolver.solve``)
     k : Steiner points per edge in the patches
     radius : patch radius in mean edge lengths (faces within radius + 2 of the source, by ``dist``)
+    copy : False to lower ``dist`` in place where it is a float32 array (saves a copy of all rows)
 
     Returns
     -------
     (S, V) float32, normalized frame: min(dist, patch distance) per vertex of each patch, ``dist`` elsewhere.
     """
     src = np.asarray(sources, dtype=np.int64).reshape(-1)
-    out = np.array(dist, dtype=np.float32, copy=True)
+    out = np.array(dist, dtype=np.float32, copy=True) if copy else np.asarray(dist, dtype=np.float32)
     if len(src) == 0:
         return out
     P = solver.mesh.internal_normalized_vertices
     F = solver._order[solver.topo.faces]  # mesh numbering, in the solver's face order
     limit = (radius + 2.0) * solver.mean_edge
+    # every patch from the rows as given (a chunk's solve changes only its own rows)
+    patches = patch_faces_rows(solver, out, limit)
     # chunks of sources whose patches together stay under NODE_CAP nodes (about V + 1.5 k F per patch)
     chunk, size = [], 0
     for r in range(len(src)):
-        faces = patch_faces(solver, out[r], limit)
+        faces = patches[r]
         n = int(len(faces) * (0.5 + 1.5 * k))
         if chunk and size + n > NODE_CAP:
             _solve_chunk(P, F, src, out, chunk, k, solver.device)

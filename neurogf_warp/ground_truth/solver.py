@@ -8,17 +8,19 @@ plain Steiner graph. All solving happens in the mesh's normalized frame (float32
 """
 from __future__ import annotations
 
+import hashlib
 import time
+from collections import OrderedDict
 
 import numpy as np
 import warp as wp
 
 from neurogf_warp.common.arrays import resolve_device
-from neurogf_warp.ground_truth.steiner_graph import Topology
+from neurogf_warp.ground_truth.steiner_graph import Topology, stable_sort
 from neurogf_warp.mesh.mesh import load_mesh
 
-__all__ = ["GeodesicSolver", "load_kernels", "DEFAULT_K", "DEFAULT_DELTA", "PATH_DELTA", "PATH_TOLERANCE",
-           "BYTES_PER_NODE"]
+__all__ = ["GeodesicSolver", "load_kernels", "clear_solver_cache", "SOLVER_CACHE_SIZE", "DEFAULT_K", "DEFAULT_DELTA",
+           "PATH_DELTA", "PATH_TOLERANCE", "BYTES_PER_NODE"]
 
 DEFAULT_K = 3  # Steiner points per edge at default accuracy (windows on); accuracy per k: docs/design.md
 DEFAULT_DELTA = 2.0  # delta-stepping bucket (mean edge lengths): few iterations, ~2.4 improvements per node
@@ -45,6 +47,15 @@ def points_per_path(m) -> int:
     return int(m)
 
 
+def _spread_bits(x: np.ndarray) -> np.ndarray:
+    """uint64 values below 2^21 with bit b moved to bit 3 b (the other bits 0)."""
+    x = x & np.uint64(0x1FFFFF)
+    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
+                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+        x = (x | (x << np.uint64(shift))) & np.uint64(mask)
+    return x
+
+
 def spatial_order(points: np.ndarray, bits: int = 16) -> np.ndarray:
     """(n,) int64: the points sorted along a Morton (Z-order) curve of 2^bits cells per axis, ties in input
     order. Nearby points get nearby ranks, so per-node state of neighbouring nodes shares cache lines."""
@@ -54,11 +65,39 @@ def spatial_order(points: np.ndarray, bits: int = 16) -> np.ndarray:
     lo = p.min(axis=0)
     span = float((p.max(axis=0) - lo).max())
     q = np.floor((p - lo) / (span if span > 0 else 1.0) * (2**bits - 1)).astype(np.uint64)
-    code = np.zeros(len(p), dtype=np.uint64)
-    for b in range(bits):
-        for axis in range(3):
-            code |= ((q[:, axis] >> np.uint64(b)) & np.uint64(1)) << np.uint64(3 * b + axis)
+    if bits <= 21:  # bit b of axis a goes to bit 3 b + a: five shift-and-mask steps per axis
+        code = _spread_bits(q[:, 0]) | (_spread_bits(q[:, 1]) << np.uint64(1)) | \
+            (_spread_bits(q[:, 2]) << np.uint64(2))
+    else:
+        code = np.zeros(len(p), dtype=np.uint64)
+        for b in range(bits):
+            for axis in range(3):
+                code |= ((q[:, axis] >> np.uint64(b)) & np.uint64(1)) << np.uint64(3 * b + axis)
     return np.argsort(code, kind="stable")
+
+
+SOLVER_CACHE_SIZE = 2  # meshes whose solver tables GeodesicSolver(cache=True) keeps (clear_solver_cache frees them)
+_SOLVER_CACHE: OrderedDict = OrderedDict()  # (mesh content, k, windows, device) -> tables, least recent first
+
+
+def clear_solver_cache() -> None:
+    """Free the mesh tables that ``GeodesicSolver(cache=True)`` (the public calls) keeps between calls."""
+    _SOLVER_CACHE.clear()
+
+
+def _cache_key(mesh, k: int, windows: bool, device) -> tuple:
+    """The solver tables' key: a hash of the mesh's exact vertices (float64), faces and normalization, with the
+    settings the tables depend on (the module-level ones included, read now: a changed constant builds anew)."""
+    from neurogf_warp.ground_truth import steiner_graph as sg
+
+    h = hashlib.blake2b(digest_size=20)
+    for a in (mesh.internal_vertices, mesh.internal_faces, mesh.center, np.float64(mesh.scale)):
+        a = np.ascontiguousarray(a)
+        h.update(str((a.dtype.str, a.shape)).encode())
+        h.update(a.data if a.ndim else a.tobytes())
+    tunables = (REORDER, sg.STEINER_ASPECT, sg.MAX_STEINER, sg.GRAPH_ONLY_FACTOR, sg.WINDOW_FACE_MIN_RELATIVE_HEIGHT,
+                sg.WINDOW_FACE_MIN_HEIGHT, sg.SLOT_EDGE_BITS)
+    return h.hexdigest(), int(k), bool(windows), str(device), repr(tunables)
 
 
 def _count(name: str, value) -> int:
@@ -146,11 +185,16 @@ class GeodesicSolver:
         Safety cap on iterations.
     delta : float
         Delta-stepping bucket width in mean edge lengths (0: plain Bellman-Ford).
+    cache : bool
+        Keep this solver's mesh tables (vertex order, topology, Steiner graph on the device; not the per-source
+        state) for later solvers on the same mesh, k, windows and device, which then skip that set-up: the
+        last ``SOLVER_CACHE_SIZE`` meshes are kept, ``clear_solver_cache()`` frees them. The public calls
+        (``geodesic_distances``, ``geodesic_paths``) use it; the results are the same either way.
     """
 
     def __init__(self, mesh, k: int = DEFAULT_K, windows: bool = True, device=None, batch: int | None = None,
                  max_iter: int = 100000, memory_budget: float | None = None, max_rows: int | None = None,
-                 delta: float = DEFAULT_DELTA):
+                 delta: float = DEFAULT_DELTA, cache: bool = False):
         self.mesh = load_mesh(mesh)
         self.k = _count("k (Steiner points per edge)", k)
         self.windows = bool(windows)
@@ -165,26 +209,50 @@ class GeodesicSolver:
         # numbering is restored at run / vertex_distances / trace. Bunny subdivided once (139K vertices), one
         # source on the CPU: 5.4-5.8 s against 6.6-8.2 s in file order, same results up to the order-dependence of
         # the windows.
+        phases = {}
+        t1 = t0
+
+        def lap(name):
+            nonlocal t1
+            now = time.perf_counter()
+            phases[name] = phases.get(name, 0.0) + now - t1
+            t1 = now
+
         self.nv = len(self.mesh.internal_vertices)
-        x32 = self.mesh.internal_normalized_vertices.astype(np.float32)
-        self._order = spatial_order(x32) if REORDER else np.arange(self.nv)  # solver id -> mesh id
-        self._solver_id = np.empty(self.nv, dtype=np.int64)  # mesh id -> solver id
-        self._solver_id[self._order] = np.arange(self.nv)
-        faces = self._solver_id[np.asarray(self.mesh.internal_faces, dtype=np.int64)]
-        if REORDER:
-            faces = faces[np.argsort(faces.min(axis=1), kind="stable")]
-        self._positions = x32[self._order]
-        # window-face test on the float32 normalized positions the kernels use (see window_faces)
-        self.topo = Topology(self._positions, faces)
-        # delta-stepping bucket width, in mean edge lengths (normalized frame)
-        e = self.topo.edges
-        nvx = self.mesh.internal_normalized_vertices[self._order]
-        mean_len = float(np.linalg.norm(nvx[e[:, 0]] - nvx[e[:, 1]], axis=1).mean()) if len(e) else 1.0
+        self.graph = None
+        key = _cache_key(self.mesh, self.k, self.windows, self.device) if cache else None
+        tables = _SOLVER_CACHE.get(key) if cache else None
+        if tables is not None:
+            _SOLVER_CACHE.move_to_end(key)
+            self._order, self._solver_id, self._positions, self.topo, mean_len, self._edge_node_start, \
+                self.graph = tables
+            lap("cached_tables")
+        else:
+            nv64 = self.mesh.internal_normalized_vertices
+            x32 = nv64.astype(np.float32)
+            self._order = spatial_order(x32) if REORDER else np.arange(self.nv)  # solver id -> mesh id
+            self._solver_id = np.empty(self.nv, dtype=np.int64)  # mesh id -> solver id
+            self._solver_id[self._order] = np.arange(self.nv)
+            faces = self._solver_id[np.asarray(self.mesh.internal_faces, dtype=np.int64)]
+            if REORDER:
+                lowest = np.minimum(np.minimum(faces[:, 0], faces[:, 1]), faces[:, 2])  # faces.min(axis=1), faster
+                faces = faces[stable_sort(lowest, max(self.nv, 1))[1]]
+            self._positions = x32[self._order]
+            lap("order")
+            # window-face test on the float32 normalized positions the kernels use (see window_faces)
+            self.topo = Topology(self._positions, faces)
+            lap("topology")
+            # delta-stepping bucket width, in mean edge lengths (normalized frame)
+            e = self.topo.edges
+            nvx = nv64[self._order]
+            mean_len = float(np.linalg.norm(nvx[e[:, 0]] - nvx[e[:, 1]], axis=1).mean()) if len(e) else 1.0
+            # Steiner points: k per edge, more on long edges of thin faces (steiner_graph.steiner_counts)
+            self._edge_node_start = self.topo.steiner_start(self.k)
+            lap("steiner_counts")
         self.mean_edge = mean_len  # normalized frame
         self.delta = float(delta) * mean_len if delta > 0 else float("inf")
-        # Steiner points: k per edge, more on long edges of thin faces (steiner_graph.steiner_counts)
-        self.nodes = self.topo.steiner_nodes(self.k)
-        self.n_nodes = self.nv + len(self.nodes[1])
+        self._nodes = None
+        self.n_nodes = self.nv + int(self._edge_node_start[-1])
         if self.n_nodes >= 2**31 - 1:
             raise ValueError(f"mesh too large for int32 node ids at k={self.k} ({self.n_nodes} nodes); lower k")
         free = available_memory(self.device)
@@ -210,13 +278,19 @@ class GeodesicSolver:
                               f"({self.bytes_per_row / 1e9:.3f} GB per row at k={self.k}, {self.n_nodes:,} graph "
                               f"nodes) but {self.device} has {free / 1e9:.2f} GB available; lower batch or k, "
                               "or use a smaller (decimated) mesh")
-        self.timings = {"setup_s": time.perf_counter() - t0, "solve_s": 0.0, "iterations": []}
+        self.timings = {"setup_s": time.perf_counter() - t0, "solve_s": 0.0, "iterations": [],
+                        "setup_phases": phases}
         try:
             self._alloc()
         except Exception as e:  # noqa: BLE001 - allocation failures come as several types
             raise MemoryError(f"could not allocate the solver state on {self.device}: {need / 1e9:.2f} GB for "
                               f"{self.batch} source rows ({self.bytes_per_row / 1e9:.3f} GB per row at k={self.k}); "
                               f"lower batch or k ({e})") from e
+        if cache and tables is None:
+            _SOLVER_CACHE[key] = (self._order, self._solver_id, self._positions, self.topo, self.mean_edge,
+                                  self._edge_node_start, self.graph)
+            while len(_SOLVER_CACHE) > max(SOLVER_CACHE_SIZE, 0):
+                _SOLVER_CACHE.popitem(last=False)
         # what a second solver on the same mesh needs to give the same rows (solver_workers.py)
         self.settings = {"k": self.k, "windows": self.windows, "delta": float(delta), "max_iter": self.max_iter,
                          "batch": self.batch}
@@ -224,6 +298,16 @@ class GeodesicSolver:
         self._chunk = 16  # loop iterations per CPU launch, adapted to CPU_CHUNK_SECONDS
         self.rows = None
         self._started = None  # (sources, start time) of a batch begun by start()
+        self._solver_id_w = None  # device copy of _solver_id, made by the first vertex_distances on CUDA
+        self.timings["setup_s"] = time.perf_counter() - t0
+
+    @property
+    def nodes(self):
+        """The Steiner nodes (``Topology.steiner_nodes``: edge_node_start, node_edge, node_t), host copies made on
+        first use (the solver's own tables are built on its device)."""
+        if self._nodes is None:
+            self._nodes = self.topo.steiner_nodes(self.k, start=self._edge_node_start)
+        return self._nodes
 
     @property
     def captured(self) -> bool:
@@ -239,7 +323,11 @@ class GeodesicSolver:
     def _alloc(self):
         kg = _kernels()
         d, b, n = self.device, self.batch, self.n_nodes
-        self.graph = self.topo.to_warp(self._positions, self.k, self.windows, d, self.nodes)
+        phases = self.timings["setup_phases"]
+        if self.graph is None:
+            self.graph = self.topo.to_warp(self._positions, self.k, self.windows, d, self._edge_node_start,
+                                           timings=phases)
+        t1 = time.perf_counter()
         z = lambda dt: wp.zeros((b, n), dtype=dt, device=d)  # noqa: E731
 
         def windows():
@@ -279,6 +367,7 @@ class GeodesicSolver:
                 setattr(f, name, value)
             self.fronts.append(f)
         self._front_shared = shared
+        phases["state"] = phases.get("state", 0.0) + time.perf_counter() - t1
 
     def _step(self, front):
         """One worklist iteration: relax front.active, build front.next."""
@@ -465,7 +554,16 @@ class GeodesicSolver:
 
     def vertex_distances(self) -> np.ndarray:
         """(rows, V) float32 distances of the last run, normalized units (inf = unreachable)."""
-        return self.state.dist.numpy()[: len(self.rows), : self.nv][:, self._solver_id]
+        rows = len(self.rows)
+        if not self.device.is_cuda:  # a view of the host state: one numpy gather
+            return self.state.dist.numpy()[:rows, : self.nv][:, self._solver_id]
+        # on the device: copying every node of the whole batch to the host took longer than the gather
+        if self._solver_id_w is None:
+            self._solver_id_w = wp.array(self._solver_id.astype(np.int32), dtype=int, device=self.device)
+        out = wp.empty((rows, self.nv), dtype=float, device=self.device)
+        wp.launch(_kernels().build.gather_rows, dim=(rows, self.nv), inputs=[self.state.dist, self._solver_id_w],
+                  outputs=[out], device=self.device)
+        return out.numpy()
 
     def solve(self, sources: np.ndarray) -> np.ndarray:
         """(S, V) normalized distances for any number of internal source ids."""

@@ -322,7 +322,7 @@ def _from_arrays(vertices, faces, weld="auto", where: str = "") -> Mesh:
     if weld not in ("auto", True, False):
         raise InputError(f"weld must be 'auto', True or False, got {weld!r}")
     f = f.astype(np.int64, copy=False)
-    used = np.unique(f)
+    used = np.flatnonzero(np.bincount(f.ravel(), minlength=len(v)))  # np.unique(f), in O(V + F) (a sort)
     if not np.all(np.isfinite(v[used])):
         raise InputError(f"{pre}the mesh has non-finite vertex coordinates (NaN or inf); clean the file first")
     if weld == "auto":
