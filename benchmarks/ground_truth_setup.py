@@ -25,8 +25,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import gc
-import importlib.util
-import json
 import os
 import platform
 import statistics
@@ -37,50 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-SHARED_CANDIDATES = [Path(os.environ.get("NEUROGF_SHARED", ROOT.parent / "shared")), ROOT / "shared", ROOT / ".bench"]
-
-
-def _import_from_checkout():
-    """Import ``neurogf_warp`` from this checkout; map ``kernels/`` to ``neurogf_warp.kernels`` as the installed
-    package does (pyproject's package-dir), when no install provides it."""
-    sys.path.insert(0, str(ROOT))
-    import neurogf_warp
-
-    if importlib.util.find_spec("neurogf_warp.kernels") is None:
-        spec = importlib.util.spec_from_file_location("neurogf_warp.kernels", ROOT / "kernels" / "__init__.py",
-                                                      submodule_search_locations=[str(ROOT / "kernels")])
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules["neurogf_warp.kernels"] = mod
-        spec.loader.exec_module(mod)
-        neurogf_warp.kernels = mod
-    return neurogf_warp
-
-
-def shared(*parts) -> Path:
-    for base in SHARED_CANDIDATES:
-        p = base.joinpath(*parts)
-        if p.exists():
-            return p
-    raise FileNotFoundError(f"{Path(*parts)} not found under {', '.join(map(str, SHARED_CANDIDATES))}")
-
-
-def benchmark_mesh(target: int):
-    """A conforming ~target-vertex bunny: midpoint-subdivide the shared bunny, then QSlim back down."""
-    import fast_simplification
-    import trimesh
-
-    tm = trimesh.load(shared("meshes", "stanford-bunny.obj"), process=False, force="mesh")
-    v, f = np.asarray(tm.vertices), np.asarray(tm.faces)
-    used = np.unique(f)
-    remap = np.full(len(v), -1)
-    remap[used] = np.arange(len(used))
-    v, f = v[used], remap[f]
-    while len(v) < target:
-        v, f = trimesh.remesh.subdivide(v, f)
-    if len(v) > 1.02 * target:
-        v, f = fast_simplification.simplify(v.astype(np.float32), f.astype(np.int32), 1.0 - target / len(v))
-    return np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64)
+import _bootstrap  # noqa: E402,F401  (this checkout's neurogf_warp, installed or not)
+from common import ROOT, subdivided_bunny as benchmark_mesh, write_json  # noqa: E402
 
 
 def _sync(device):
@@ -131,7 +87,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
 
-    ngf = _import_from_checkout()
+    import neurogf_warp as ngf
     import warp as wp
 
     from neurogf_warp.ground_truth.near_source import refine_near_sources
@@ -241,6 +197,7 @@ def main(argv=None) -> int:
             gc.collect()
             rows.append((f"ngf.geodesic_distances ({'first' if i == 0 else 'repeat'} call)", dt))
     out["load_average_end"] = list(os.getloadavg())
+    out["rows"] = rows
 
     print(f"\n{'phase':44s} {'seconds':>9s}")
     for name, v in rows:
@@ -258,7 +215,7 @@ def main(argv=None) -> int:
                       f"(largest relative difference {out[key + '_max_rel_diff_to_solver']:.2e})")
     print(f"load average {out['load_average_start']} -> {out['load_average_end']} on {os.cpu_count()} cores")
     if a.json:
-        Path(a.json).write_text(json.dumps(out, indent=1, default=float))
+        write_json(a.json, out, "ground_truth_setup", str(device))
     return 0
 
 

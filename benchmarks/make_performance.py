@@ -26,7 +26,7 @@ PAGE = ROOT / "docs" / "performance.md"
 
 FORMATTERS: dict = {}  # benchmark name -> (title, function(runs) -> list of Markdown lines)
 PLOTTERS: dict = {}  # benchmark name -> function(runs, png path): a figure beside the table (matplotlib)
-ORDER = ["queries", "released", "kernel_api", "path_snap", "geodesic_tools", "geodesics", "time_to_accuracy",
+ORDER = ["queries", "released", "kernel_api", "path_snap", "geodesic_tools", "ground_truth_setup", "geodesics", "time_to_accuracy",
          "bakeoff", "generalizable",
          "generalizable_collection", "generalizable_eval", "generalizable_scaling"]
 
@@ -288,6 +288,23 @@ def fmt_bakeoff(runs):
     out += ["", "A row of 35% is a call that compiled Warp's ground-truth kernels for 26 s and trained no step; it "
                 "says nothing of its design.", "",
             "![MRE against the call's seconds per mesh and design](performance/bakeoff_h200_2026-11-28.png)"]
+    return out
+
+
+@formatter("ground_truth_setup", "Ground truth: the public call against the solver alone")
+def fmt_ground_truth_setup(runs):
+    out = []
+    for run in runs:
+        out += [f"`ngf.geodesic_distances` on the benchmark bunny ({run['vertices']:,} vertices), {run['sources']} "
+                "sources, set-up included, against the solver's own solve of the same sources.", ""]
+        out += table(["what", "seconds"], [(name.replace(" ", "&nbsp;", 2 if name.startswith("  ") else 0), f"{t:.3f}")
+                                           for name, t in run.get("rows", [])])
+        if "public_first_sources_per_s" in run:
+            out += ["", f"Solver alone {run['solver_sources_per_s']:.1f} sources/s; the public call "
+                        f"{run['public_first_sources_per_s']:.1f} sources/s on its first call and "
+                        f"{run['public_repeat_sources_per_s']:.1f} on a repeated one (its tables cached): "
+                        f"{run['public_first_ratio_to_solver']:.2f}x and {run['public_repeat_ratio_to_solver']:.2f}x "
+                        "the solver's time."]
     return out
 
 

@@ -19,7 +19,8 @@ BENCH = ROOT / "benchmarks"
 # importing torch and compiling Warp kernel definitions at import make these two slow on a busy 2-core machine
 HEAVY = {"queries", "kernel_api"}
 SCRIPTS = ["released", "path_snap", "geodesics", "time_to_accuracy", "generalizable", "generalizable_collection",
-           "generalizable_eval", "generalizable_scaling", "queries", "kernel_api", "geodesic_tools", "bakeoff"]
+           "generalizable_eval", "generalizable_scaling", "queries", "kernel_api", "geodesic_tools", "bakeoff",
+           "ground_truth_setup"]
 
 PROBE = textwrap.dedent("""
     import json, runpy, sys
