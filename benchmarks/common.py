@@ -82,7 +82,8 @@ def provenance(device: str | None = None, argv: list[str] | None = None) -> dict
         "torch": torch.__version__,
         "python": platform.python_version(),
         "date_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M:%S"),
-        "commit": _git("rev-parse", "--short", "HEAD"),
+        # a copy of the tree without its history (the GPU machine) names its commit in NEUROGF_COMMIT
+        "commit": os.environ.get("NEUROGF_COMMIT") or _git("rev-parse", "--short", "HEAD"),
         "dirty": bool(_git("status", "--porcelain", "--untracked-files=no")),
         "cpu_cores": os.cpu_count(),
     }
