@@ -304,7 +304,7 @@ def fmt_ground_truth_setup(runs):
                         f"{run['public_first_sources_per_s']:.1f} sources/s on its first call and "
                         f"{run['public_repeat_sources_per_s']:.1f} on a repeated one (its tables cached): "
                         f"{run['public_first_ratio_to_solver']:.2f}x and {run['public_repeat_ratio_to_solver']:.2f}x "
-                        "the solver's time."]
+                        "the solver's time.", ""]
     return out
 
 
