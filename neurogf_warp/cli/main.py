@@ -136,7 +136,7 @@ def build_parser() -> argparse.ArgumentParser:
         add(sub, common)
     from neurogf_warp.cli import tools
 
-    tools.add_commands(sub, common)
+    tools.add_commands(sub, common, sys.modules[__name__])
     # listed here; main() hands their arguments to their own parsers (`neurogf-warp gen-train -h`)
     for name, line in GEN_COMMANDS.items():
         sub.add_parser(name, help=line, add_help=False)

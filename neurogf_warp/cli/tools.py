@@ -1,15 +1,18 @@
 """The geodesic-tool commands: ``sample``, ``voronoi``, ``isolines``, ``reconstruct``."""
 from __future__ import annotations
 
-from neurogf_warp.cli import main as cli
 from neurogf_warp.common.checks import InputError
+
+cli = None  # the command line's module (cli.main), handed in by add_commands: its argument and output utilities
 
 INDEX_FORMATS = (".npy", ".csv")
 LINE_FORMATS = (".obj", ".csv")
 MESH_FORMATS = (".obj", ".ply", ".stl")
 
 
-def add_commands(sub, common):
+def add_commands(sub, common, main_module):
+    global cli
+    cli = main_module
     s = sub.add_parser("sample", parents=[common], help="farthest point sampling of mesh vertices by the field",
                        description="Farthest point sampling: K vertices, each the one geodesically farthest from "
                        "those chosen before it (every part of a mesh gets a sample before any gets a second).")

@@ -7,7 +7,8 @@ kernels of ``kernels/inference/mlp.py`` (the in-kernel API's ``distance_and_grad
 bit for bit. Where the answer is the straight line (the network's value fell below |p - q|), the gradient is the
 straight line's; at p = q, across parts of the mesh (+inf) and for NaN rows it is 0.
 
-Gradients with respect to the network's weights are not offered: the queries run on folded, frozen weights
+The query module passes its plain functions in (this module sits below it). Gradients with respect to the
+network's weights are not offered: the queries run on folded, frozen weights
 (BatchNorm folded in, fp16 packed on tensor cores); to train through distances use ``model.net`` in torch.
 """
 from __future__ import annotations
@@ -88,9 +89,7 @@ def _pair_gradients(model, P: torch.Tensor, Q: torch.Tensor, d: torch.Tensor, go
 
 class _Distance(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, p, q, model, kw):
-        from neurogf_warp.inference.queries import distance as plain
-
+    def forward(ctx, p, q, model, kw, plain):
         d = plain(model, p.detach(), q.detach(), **kw)
         ctx.model, ctx.raw = model, kw["raw"]
         ctx.save_for_backward(p, q, d)
@@ -101,7 +100,7 @@ class _Distance(torch.autograd.Function):
         p, q, d = ctx.saved_tensors
         P, Q = p.reshape(-1, 3), q.reshape(-1, 3)
         gP, gQ = _pair_gradients(ctx.model, P, Q, d.reshape(-1), g.reshape(-1), ctx.raw)
-        return gP.reshape(p.shape).to(p.dtype), gQ.reshape(q.shape).to(q.dtype), None, None
+        return gP.reshape(p.shape).to(p.dtype), gQ.reshape(q.shape).to(q.dtype), None, None, None
 
 
 def _vertices_like(model, x: torch.Tensor) -> torch.Tensor:
@@ -117,12 +116,9 @@ class _Sources(torch.autograd.Function):
     """ssad from one point / msad from points: (S, 3) sources -> (n_input,) distances to the nearest source."""
 
     @staticmethod
-    def forward(ctx, src, model, kw, one):
-        from neurogf_warp.inference.queries import msad as plain_msad, ssad as plain_ssad
-
-        s = src.detach()
-        d = plain_ssad(model, s, output="torch", **kw) if one else plain_msad(model, s, output="torch", **kw)
-        ctx.model, ctx.kw, ctx.one = model, kw, one
+    def forward(ctx, src, model, kw, one, plain, matrix):
+        d = plain(model, src.detach(), output="torch", **kw)
+        ctx.model, ctx.kw, ctx.one, ctx.matrix = model, kw, one, matrix
         ctx.save_for_backward(src, d)
         return d
 
@@ -134,21 +130,17 @@ class _Sources(torch.autograd.Function):
         if ctx.one or S.shape[0] == 1:
             nearest = torch.zeros(V.shape[0], dtype=torch.int64, device=S.device)
         else:  # each vertex's gradient goes to its nearest source
-            from neurogf_warp.inference.queries import distance_matrix
-
-            M = distance_matrix(ctx.model, S.detach(), output="torch", **ctx.kw)
+            M = ctx.matrix(ctx.model, S.detach(), output="torch", **ctx.kw)
             nearest = torch.argmin(torch.nan_to_num(M, nan=float("inf")), 0)
         gP, _ = _pair_gradients(ctx.model, S[nearest].detach(), V, d.reshape(-1), g.reshape(-1),
                                 ctx.kw.get("raw", False))
         gS = torch.zeros_like(S, dtype=torch.float32).index_add_(0, nearest, torch.nan_to_num(gP))
-        return gS.reshape(src.shape).to(src.dtype), None, None, None
+        return gS.reshape(src.shape).to(src.dtype), None, None, None, None, None
 
 
 class _Sdf(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x, model, kw):
-        from neurogf_warp.inference.queries import sdf as plain
-
+    def forward(ctx, x, model, kw, plain):
         s = plain(model, x.detach(), **kw)
         ctx.model = model
         ctx.save_for_backward(x, s)
@@ -166,7 +158,7 @@ class _Sdf(torch.autograd.Function):
                                                      wp.from_torch(s.detach().reshape(-1).float().contiguous()),
                                                      wp.from_torch(g.detach().reshape(-1).float().contiguous())],
                       outputs=[wp.from_torch(gX, dtype=wp.vec3)], device=dev)
-        return gX.reshape(x.shape).to(x.dtype), None, None
+        return gX.reshape(x.shape).to(x.dtype), None, None, None
 
 
 def _float_tensor(x, name: str) -> torch.Tensor:
@@ -175,23 +167,24 @@ def _float_tensor(x, name: str) -> torch.Tensor:
     return x
 
 
-def distance(model, p, q, **kw):
-    """``queries.distance`` with gradients to whichever of p, q requires one (torch tensors)."""
+def distance(model, p, q, plain, **kw):
+    """``plain`` (``queries.distance``) with gradients to whichever of p, q requires one (torch tensors)."""
     p = p if isinstance(p, torch.Tensor) else torch.as_tensor(np.asarray(p, np.float32), device=q.device)
     q = q if isinstance(q, torch.Tensor) else torch.as_tensor(np.asarray(q, np.float32), device=p.device)
-    return _Distance.apply(_float_tensor(p, "p"), _float_tensor(q, "q"), model, kw)
+    return _Distance.apply(_float_tensor(p, "p"), _float_tensor(q, "q"), model, kw, plain)
 
 
-def ssad(model, source, **kw):
-    """``queries.ssad`` from a point source tensor (3,) with gradients to it."""
-    return _Sources.apply(_float_tensor(source, "source"), model, kw, True)
+def ssad(model, source, plain, **kw):
+    """``plain`` (``queries.ssad``) from a point source tensor (3,) with gradients to it."""
+    return _Sources.apply(_float_tensor(source, "source"), model, kw, True, plain, None)
 
 
-def msad(model, sources, **kw):
-    """``queries.msad`` from point sources (S, 3) with gradients to them (each vertex's to its nearest)."""
-    return _Sources.apply(_float_tensor(sources, "sources"), model, kw, False)
+def msad(model, sources, plain, matrix, **kw):
+    """``plain`` (``queries.msad``) from point sources (S, 3) with gradients to them (each vertex's to its nearest
+    source, found by ``matrix``, ``queries.distance_matrix``)."""
+    return _Sources.apply(_float_tensor(sources, "sources"), model, kw, False, plain, matrix)
 
 
-def sdf(model, x, **kw):
-    """``queries.sdf`` with gradients to x."""
-    return _Sdf.apply(_float_tensor(x, "x"), model, kw)
+def sdf(model, x, plain, **kw):
+    """``plain`` (``queries.sdf``) with gradients to x."""
+    return _Sdf.apply(_float_tensor(x, "x"), model, kw, plain)

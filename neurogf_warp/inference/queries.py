@@ -196,7 +196,7 @@ def ssad(model: Model, source, device=None, output: str = "numpy", precision: st
     if gen is not None:
         return gen
     if wants_grad(source):
-        return autograd.ssad(model, source, device=device, precision=precision, cache=cache, raw=raw)
+        return autograd.ssad(model, source, ssad, device=device, precision=precision, cache=cache, raw=raw)
     return _vertex_distances(model, source, "source", device, output, precision, cache, False, one=True, raw=raw)
 
 
@@ -212,7 +212,7 @@ def msad(model: Model, sources, device=None, output: str = "numpy", precision: s
     if gen is not None:
         return gen
     if wants_grad(sources):
-        return autograd.msad(model, sources, device=device, precision=precision, cache=cache, raw=raw)
+        return autograd.msad(model, sources, msad, distance_matrix, device=device, precision=precision, cache=cache, raw=raw)
     return _vertex_distances(model, sources, "sources", device, output, precision, cache, True, raw=raw)
 
 
@@ -268,7 +268,7 @@ def distance(model: Model, p, q, device=None, precision: str = "auto", check: bo
     if gen is not None:
         return gen
     if wants_grad(p, q):
-        return autograd.distance(model, p, q, device=device, precision=precision, check=check, raw=raw)
+        return autograd.distance(model, p, q, distance, device=device, precision=precision, check=check, raw=raw)
     dev, P, Q, kind, single, frame = pair_inputs(model, p, q, device, check)
     be = backend_of(query_state(model, dev), precision)
     out = Output(kind, dev)
@@ -288,7 +288,7 @@ def sdf(model: Model, x, device=None, precision: str = "auto", check: bool = Tru
     ``check``: refuse non-finite and out-of-domain points; with False their rows are NaN."""
     check_tensor(x, "x")
     if wants_grad(x):
-        return autograd.sdf(model, x, device=device, precision=precision, check=check)
+        return autograd.sdf(model, x, sdf, device=device, precision=precision, check=check)
     dev = resolve_device(device, like=x)
     X, kind, single, frame = points_in(model, x, "x", dev, check)
     be = backend_of(query_state(model, dev), precision)
