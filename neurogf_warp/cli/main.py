@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import math
 import os
 import sys
 import time
@@ -28,7 +27,7 @@ import warnings
 
 from neurogf_warp import __version__
 from neurogf_warp.cli.gen import GEN_COMMANDS
-from neurogf_warp.common.checks import InputError, number, say
+from neurogf_warp.common.checks import InputError, finite_arg, number, say
 from neurogf_warp.common.files import input_guard, output_target
 from neurogf_warp.training.presets import DESCRIPTIONS, describe
 
@@ -108,17 +107,7 @@ def _budget(text: str) -> float:
 
 def _finite(flag: str):
     """An argparse type: a finite number (nan and inf refused, naming ``flag``)."""
-    def convert(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-        if not math.isfinite(value):
-            raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
-        return value
-
-    convert.__name__ = f"finite number for {flag}"
-    return convert
+    return finite_arg(flag)
 
 
 def build_parser() -> argparse.ArgumentParser:

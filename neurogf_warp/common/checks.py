@@ -11,7 +11,7 @@ import sys
 
 import numpy as np
 
-__all__ = ["InputError", "integer", "number", "say"]
+__all__ = ["InputError", "integer", "number", "finite_arg", "say"]
 
 
 class InputError(ValueError):
@@ -45,6 +45,23 @@ def number(name: str, value, minimum: float | None = None, maximum: float | None
     if above is not None and v <= above:
         raise InputError(f"{name} must be > {above}, got {v}")
     return v
+
+
+def finite_arg(flag: str = "the option"):
+    """An argparse type: a finite number (nan and inf refused, naming ``flag``)."""
+    import argparse
+
+    def convert(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+        return value
+
+    convert.__name__ = f"finite number for {flag}"
+    return convert
 
 
 def say(on: bool, msg: str, stream=None) -> None:

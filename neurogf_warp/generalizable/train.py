@@ -51,6 +51,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from neurogf_warp.common.checks import finite_arg
 from neurogf_warp.common.shards import balanced_shard, file_sizes
 from neurogf_warp.generalizable.network import GenNeuroGF
 
@@ -622,14 +623,7 @@ def torchrun_command(prog: str, args: str) -> str:
     return f"torchrun --nproc_per_node N --no-python {prog} {args}"
 
 
-def _finite(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
-    return v
+_finite = finite_arg()
 
 
 # the command line's help of each GenTrainConfig setting (its default is appended)
