@@ -27,6 +27,7 @@ _EXPORTS = {
     **{name: "inference.queries" for name in ("ssad", "msad", "distance_matrix", "distance", "sdf", "path", "project",
                                               "embed", "warmup", "warp_weights", "bind", "unbind")},
     "geodesic_distances": "ground_truth.geodesics", "geodesic_paths": "ground_truth.geodesics",
+    "clear_solver_cache": "ground_truth.geodesics",
     **{name: "dataset.build" for name in ("Dataset", "DatasetSettings", "build_dataset", "load_dataset", "sdf_truth")},
     "train": "training", "ModelQualityWarning": "training", "TrainConfig": "training", "preset": "training", "TrainingInterrupted": "training",
     "evaluate": "evaluation.evaluate",
@@ -69,7 +70,7 @@ __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
 if TYPE_CHECKING:  # for type checkers and IDEs; at run time the names load lazily above
     from neurogf_warp.dataset.build import Dataset, DatasetSettings, build_dataset, load_dataset, sdf_truth
     from neurogf_warp.evaluation.evaluate import evaluate
-    from neurogf_warp.ground_truth.geodesics import geodesic_distances, geodesic_paths
+    from neurogf_warp.ground_truth.geodesics import clear_solver_cache, geodesic_distances, geodesic_paths
     from neurogf_warp.inference.queries import (
         bind,
         distance,
