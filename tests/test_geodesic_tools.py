@@ -117,3 +117,10 @@ def test_bad_arguments_are_refused(fandisk):
         ngf.reconstruct(fandisk, resolution=4)
     with pytest.raises(InputError, match="one entry per vertex"):
         ngf.isolines(fandisk, np.zeros(3), 2)
+
+
+def test_evaluate_reports_the_reconstructed_surface(fandisk):
+    res = ngf.evaluate(fandisk, n_sources=1, paths=False, sdf=False, surface=24, device="cpu", verbose=False)
+    s = res["surface"]
+    extent = float(np.linalg.norm(fandisk.mesh.internal_vertices.max(0) - fandisk.mesh.internal_vertices.min(0)))
+    assert s["triangles"] > 100 and 0 < s["chamfer_l1"] < 0.02 * extent and s["hausdorff"] < 0.1 * extent

@@ -215,6 +215,9 @@ def _add_eval(sub, common):
     e.add_argument("--path-refine", type=int, default=0, metavar="N",
                    help="also score the paths after N shortening sweeps per level (e.g. 50; "
                         + REFINE_COST + ")")
+    e.add_argument("--surface", type=int, default=0, metavar="N",
+                   help="also reconstruct the SDF head's surface with N grid samples along the longest side (e.g. "
+                        "256) and report its Chamfer-L1 and Hausdorff distance to the mesh")
     e.add_argument("--seed", type=int, default=0, help="random seed of the solver sources and path pairs")
     e.add_argument("--json", default=None, help="also write the results to this .json file")
     e.set_defaults(run=_cmd_eval)
@@ -644,7 +647,8 @@ def _cmd_eval(args) -> int:
     model = _load_model(args, needs_mesh=True)
     res = evaluate(model, reference=args.reference, heat=args.heat, n_sources=args.sources,
                    n_path_sources=args.path_sources, n_path_targets=args.path_targets, paths=not args.no_paths,
-                   sdf=not args.no_sdf, path_refine=args.path_refine, device=args.device, seed=args.seed,
+                   sdf=not args.no_sdf, path_refine=args.path_refine, surface=args.surface, device=args.device,
+                   seed=args.seed,
                    progress=not args.quiet, verbose=True)
     if args.json:
         text = json.dumps(res, indent=1).encode()

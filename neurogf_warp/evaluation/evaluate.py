@@ -276,8 +276,8 @@ def _sdf(model, mesh: Mesh, rng, n, device) -> dict:
 def evaluate(model: "Model | str | os.PathLike", mesh=None, reference: "str | os.PathLike | None" = None, *,
              heat: bool = False, n_sources: int = 8,
              n_path_sources: int = 8, n_path_targets: int = 8, n_sdf: int = 30000, paths: bool = True,
-             sdf: bool = True, solver_k: int | None = None, path_refine: int = 0, device=None, seed: int = 0,
-             progress: bool = False, verbose: bool = True) -> dict:
+             sdf: bool = True, solver_k: int | None = None, path_refine: int = 0, surface: int = 0, device=None,
+             seed: int = 0, progress: bool = False, verbose: bool = True) -> dict:
     """Accuracy of ``model`` on ``mesh``.
 
     Parameters
@@ -289,6 +289,8 @@ def evaluate(model: "Model | str | os.PathLike", mesh=None, reference: "str | os
     n_path_sources, n_path_targets : random path pairs, each within one connected component
     solver_k : Steiner points per edge for the solver's distances and paths (None: its default)
     path_refine : also score the paths after that many shortening sweeps per level (``path(..., refine=)``)
+    surface : also reconstruct the SDF head's surface on a grid of this many samples along the longest side
+        (``reconstruct``; 0: not) and measure its Chamfer-L1 and Hausdorff distance to the mesh, in mesh units
     device : Warp device of every query and of the solver
     progress : progress bars on stderr; verbose : print the table
 
@@ -297,7 +299,8 @@ def evaluate(model: "Model | str | os.PathLike", mesh=None, reference: "str | os
     dict: ``neurogf`` (and ``heat``) with mre / max_rel / median_rel / p99_rel as fractions over the pairs of
     finite exact distance, ``nonfinite`` predictions among them; ``cross_component`` with the pairs of infinite
     exact distance and how many of them the model answered finite (they must be inf); ``chamfer_l1`` (normalized
-    frame) and ``sdf_l1``; timings in seconds.
+    frame) and ``sdf_l1``; with ``surface``, ``surface`` holds ``chamfer_l1`` and ``hausdorff`` (mesh units) of
+    the reconstruction; timings in seconds.
     """
     from neurogf_warp.common.arrays import resolve_device
 
@@ -338,6 +341,14 @@ def evaluate(model: "Model | str | os.PathLike", mesh=None, reference: "str | os
         res.update(_paths(model, mesh, rng, n_path_sources, n_path_targets, dev, solver_k, path_refine, progress))
     if sdf:
         res.update(_sdf(model, mesh, rng, n_sdf, dev))
+    if surface:
+        from neurogf_warp.inference.reconstruct import reconstruct, surface_distances
+
+        t0 = time.perf_counter()
+        rv, rf = reconstruct(model, resolution=int(surface), device=dev)
+        res["surface"] = {"resolution": int(surface), "triangles": int(len(rf)),
+                          **surface_distances(rv, rf, mesh.internal_vertices, mesh.internal_faces, seed=seed),
+                          "seconds": time.perf_counter() - t0}
     res = json_safe(res)  # valid JSON as it is: a missing value is None, with its reason beside it
     if verbose:
         print(format_table(res))
@@ -375,4 +386,10 @@ def format_table(res: dict) -> str:
     if "sdf_l1" in res:
         q = f", querier {res['querier_l1']:.4e}" if "querier_l1" in res else ""
         lines.append(f"SDF L1 {res['sdf_l1']:.4e}{q}")
+    srf = res.get("surface")
+    if srf and srf.get("chamfer_l1") is not None:
+        lines.append(f"reconstructed surface ({srf['resolution']} samples, {srf['triangles']} triangles): Chamfer-L1 "
+                     f"{srf['chamfer_l1']:.4e}, Hausdorff {srf['hausdorff']:.4e} (mesh units)")
+    elif srf:
+        lines.append(f"reconstructed surface: none ({srf.get('note', 'no triangles')})")
     return "\n".join(lines)
