@@ -187,3 +187,13 @@ def test_collection_does_not_depend_on_where_the_package_is(tmp_path, capsys):
     meshes = shared_path("meshes")
     with pytest.raises(ValueError, match="without the deformed family's source meshes"):
         write_collection(tmp_path / "a", n=i + 2, seed=0, start=i + 1, shared_meshes=str(meshes), progress=False)
+
+
+
+def test_a_two_dimensional_integer_array_is_refused_as_on_a_per_mesh_model(cond):
+    """The per-mesh rule: integers are indices (one, or 1-D), floats are points; (M, 3) integers are not guessed at."""
+    two_d = np.array([[0, 1, 2], [3, 4, 5]])
+    for call in (lambda: cond.distance(two_d, two_d), lambda: cond.msad(two_d), lambda: cond.distance_matrix(two_d)):
+        with pytest.raises(InputError, match="integer array of shape"):
+            call()
+    assert np.isfinite(cond.msad([0, 1])).any()  # 1-D integers are still indices

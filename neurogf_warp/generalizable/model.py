@@ -333,6 +333,13 @@ def sample_surface(mesh, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(pts, np.float64), np.asarray(face, np.int64)
 
 
+def _no_2d_integers(a: np.ndarray, name: str) -> None:
+    """The per-mesh rule: indices are one integer or 1-D, points are floats; a 2-D integer array is not guessed at."""
+    if a.dtype.kind in "iu" and a.ndim >= 2:
+        raise InputError(f"{name} is an integer array of shape {a.shape}: vertex or point indices are one integer or "
+                         "a 1-D list; points are floats of shape (M, 3) (e.g. np.asarray(x, dtype=float))")
+
+
 class Conditioned:
     """A generalizable model conditioned on one shape: queries in the shape's own units.
 
@@ -385,7 +392,9 @@ class Conditioned:
         """(user-unit points (M, 3) float64, components (M,) or None, single?) from indices or points."""
         arr = x.detach().cpu().numpy() if hasattr(x, "detach") else x
         a = np.asarray(arr)
-        if allow_index and a.dtype.kind in "iu" and a.ndim <= 1:  # indices; an (M, 3) int array is points
+        if allow_index:
+            _no_2d_integers(a, name)
+        if allow_index and a.dtype.kind in "iu":  # indices
             single = a.ndim == 0
             idx = a.reshape(-1).astype(np.int64)
             if self.mesh is not None:
@@ -495,6 +504,7 @@ class Conditioned:
             raise ValueError("sources is empty: give at least one source")
         if a.dtype.kind not in "iuf":
             raise ValueError(f"sources must be integer indices or (S, 3) float points, got dtype {a.dtype}")
+        _no_2d_integers(a, "sources")
         a = a.reshape(-1, 3) if a.dtype.kind == "f" else a.reshape(-1)
         best = None
         for i in range(0, len(a), chunk):
