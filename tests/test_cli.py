@@ -21,7 +21,7 @@ def test_every_option_has_help_and_version(capsys):
     parser = cli.build_parser()
     subs = next(a for a in parser._actions if a.dest == "command").choices
     assert set(subs) == {"demo", "data", "train", "eval", "ssad", "msad", "distance", "path", "info", "render",
-                         "gen-shapes", "gen-train", "gen-per-mesh"}
+                         "sample", "voronoi", "isolines", "reconstruct", "gen-shapes", "gen-train", "gen-per-mesh"}
     for name, sub in subs.items():
         if name.startswith("gen-"):  # listed only: their own parsers are checked in test_cli_help.py
             continue

@@ -67,7 +67,12 @@ class _Worker:
         self.closing = False
         self.failed = False  # it stopped answering: no more batches for it
         self._ready = False
-        self._send(("mesh", mesh, settings))
+        try:
+            self._send(("mesh", mesh, settings))
+        except OSError:
+            # it exited before reading (its import failed, say): its first batch fails and the warning then
+            # quotes its own error from its log, not this broken pipe
+            pass
 
     def _send(self, msg):
         pickle.dump(msg, self.proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
