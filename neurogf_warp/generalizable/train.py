@@ -531,12 +531,14 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
     shared_frac = None  # rank 0's fraction of the run, as last shared (DDP)
     next_share = 0  # the step at which rank 0's clock is shared next
     plan = BudgetSteps(cfg.shapes_per_step, train_end)
+    done_frac = 0.0  # the largest fraction of the run reached so far
     try:
         while True:
             step = state["step"]
             elapsed = time.perf_counter() - t_start
             stop = step >= cfg.steps or plan.stop(step - first_step)
-            frac = progress(step, elapsed)
+            # the schedule only moves forward: a step faster than the last estimate must not raise the rate again
+            frac = done_frac = max(progress(step, elapsed), done_frac)
             if distributed:  # every rank stops at the same step and follows one schedule (rank 0's clock)
                 if step >= next_share or shared_frac is None:
                     flag = torch.tensor([1.0 if stop else 0.0, frac, plan.shapes, plan.share_every()], device=dev,
