@@ -180,18 +180,38 @@ class TensorCores(_Backend):
             if S == 1:
                 eng.distances(rows, table, out, V, row0=int(ids[0]), **kw)
             else:
-                eng.distances(rows, table, out, V, ids=wp.array(ids.astype(np.int32), dtype=wp.int32, device=dev),
-                              **kw)
+                eng.distances(rows, table, out, V, ids=self.state.ids_on_device(ids), **kw)
             return
-        src_pos = wp.array(pts.astype(np.float32), dtype=wp.vec3, device=dev)
-        src_comp = wp.array(comp.astype(np.int32), dtype=wp.int32, device=dev) if comp is not None else None
         if bound is not None:
             rows = self._tables(md, bound)[0]
         else:
             if md.lifted is None:
                 md.lifted = eng.rows(md.verts, None, md.comp)
             rows = md.lifted
+        if S == 1:
+            eng.distances(rows, self._point_source(pts, comp), out, V, **kw)
+            return
+        src_pos = wp.array(pts.astype(np.float32), dtype=wp.vec3, device=dev)
+        src_comp = wp.array(comp.astype(np.int32), dtype=wp.int32, device=dev) if comp is not None else None
         eng.distances(rows, eng.sources(eng.embed(src_pos), src_pos, src_comp), out, V, **kw)
+
+    def _point_source(self, pts: np.ndarray, comp):
+        """The table of one source point: the state's kept (position, label, embedding) buffers, filled by two
+        recorded launches (the point travels as a launch parameter), so a single-source query makes no copy from
+        the host and no allocation. Later queries on the stream overwrite the buffers after this one's kernels."""
+        st, eng = self.state, self.eng
+        if st.point_source is None:
+            pos = wp.empty(1, dtype=wp.vec3, device=self.device)
+            lab = wp.empty(1, dtype=wp.int32, device=self.device)
+            emb = wp.empty(eng.D // 2, dtype=wp.uint32, device=self.device)
+            st.point_source = (pos, lab, emb, (eng.sources(emb, pos, None), eng.sources(emb, pos, lab)))
+        pos, lab, emb, tables = st.point_source
+        p = pts.astype(np.float32)[0]
+        multi = comp is not None
+        st.launches.run(finish.store_source, 1, {"p": wp.vec3(p[0], p[1], p[2]), "c": int(comp[0]) if multi else 0,
+                                                 "pos": pos, "comp": lab if multi else st.no_ints})
+        eng.embed(pos, emb)
+        return tables[multi]
 
     def target_distances(self, src_pos, tgt_pos, src_comp, tgt_comp, out: wp.array, raw: bool):
         eng = self.eng

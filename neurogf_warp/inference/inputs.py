@@ -18,6 +18,8 @@ without values (the ``meta`` device) or sparse ones are refused, naming the argu
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 import warp as wp
@@ -123,6 +125,15 @@ def sources_in(model: Model, src, name: str, dev, one: bool = False):
             j = int(m.input_to_internal[i])
             return (st.mesh(name).rel64[j:j + 1], np.array([j]),
                     (m.internal_components[j:j + 1] if m.n_components > 1 else None))
+    if one and type(src) is np.ndarray and src.shape == (3,) and src.dtype.kind == "f":
+        # the common single-point case: the checks below in float64 scalars, without array machinery
+        rel = (src.astype(np.float64) - st.center).reshape(1, 3)
+        _check_point_host(st, src, rel[0], name)
+        comp = None
+        if model.mesh is not None and model.mesh.n_components > 1:
+            pts = wp.array(rel.astype(np.float32), dtype=wp.vec3, device=dev)
+            comp = st.mesh(name).components_of(pts).numpy()
+        return rel, None, comp
     if isinstance(src, wp.array):
         src = src.numpy()
     elif isinstance(src, torch.Tensor):
@@ -178,6 +189,16 @@ def _check_domain_host(st, a: np.ndarray, rel: np.ndarray, name: str):
         i = int(np.argmax(bad))
         where = _OUTSIDE if np.all(np.isfinite(a[i])) else "non-finite (NaN or inf)"
         raise ValueError(f"{name}[{i}] = {a[i].tolist()} is {where}")
+
+
+def _check_point_host(st, a: np.ndarray, rel: np.ndarray, name: str):
+    """_check_domain_host for one point (3,), with Python floats (float64, the same arithmetic)."""
+    s = float(st.frame.xscale)
+    for c in rel.tolist():
+        x = c * s
+        if not (math.isfinite(x) and abs(x) <= DOMAIN):
+            where = _OUTSIDE if np.all(np.isfinite(a)) else "non-finite (NaN or inf)"
+            raise ValueError(f"{name}[0] = {a.tolist()} is {where}")
 
 
 def check_points_in_frame(points: np.ndarray, center, scale: float, name: str, shape: str = "shape"):

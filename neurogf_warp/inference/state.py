@@ -25,6 +25,7 @@ from neurogf_warp.model.model import Model
 __all__ = ["PRECISIONS", "DOMAIN", "QueryState", "MeshOnDevice", "query_state", "to_relative", "unbind", "check_memory"]
 
 PRECISIONS = ("auto", "fp16", "fp32")
+_KEPT_ID_SETS, _KEPT_ID_LEN = 8, 4096  # vertex-index sets kept on the device per state, and their largest size
 DOMAIN = 1.5  # half-side of the domain cube, normalized frame (the networks were trained within [-1.01, 1.01]^3)
 
 
@@ -100,6 +101,8 @@ class QueryState:
         self.no_points = wp.empty(0, dtype=wp.vec3, device=dev)
         self.no_ints = wp.empty(0, dtype=wp.int32, device=dev)
         self.launches = Recorded(dev)  # the public queries' own recorded launches (finishing passes)
+        self.point_source = None  # fp16 buffers of one source point (backends.TensorCores._point_source)
+        self._ids = {}  # vertex-index arrays of recent many-source queries on the device (ids_on_device)
 
     # -- parts made on first use ----------------------------------------------------------------------------
     @property
@@ -153,9 +156,24 @@ class QueryState:
         self.tuning = tuning
         self._engine = None
         self.tables = None
+        self.point_source = None
         if self._mesh is not None:
             self._mesh.lifted = None
         self.backends.clear()
+
+    def ids_on_device(self, ids: np.ndarray) -> wp.array:
+        """Internal vertex indices (S,) as an int32 array on the device, kept for the last few index sets: a
+        repeated query (the same sources) makes no copy from the host, which would wait for the stream's work."""
+        if len(ids) > _KEPT_ID_LEN:
+            return wp.array(ids.astype(np.int32), dtype=wp.int32, device=self.device)
+        key = ids.astype(np.int64, copy=False).tobytes()
+        arr = self._ids.pop(key, None)
+        if arr is None:
+            arr = wp.array(ids.astype(np.int32), dtype=wp.int32, device=self.device)
+            while len(self._ids) >= _KEPT_ID_SETS:
+                del self._ids[next(iter(self._ids))]  # the oldest first (dicts keep insertion order)
+        self._ids[key] = arr  # most recent last
+        return arr
 
     # -- freeing -----------------------------------------------------------------------------------------------
     def unbind(self):
@@ -163,6 +181,7 @@ class QueryState:
         self.bound.clear()
         self.tables = None
         self.launches.clear()
+        self._ids.clear()
         if self._engine is not None:
             self._engine.forget_launches()
 
@@ -170,6 +189,7 @@ class QueryState:
         """Free everything this state holds on its device."""
         self.unbind()
         self._weights = self._head_weights = self._engine = self._mesh = self.tile_head = None
+        self.point_source = None
         self.backends.clear()
 
 
@@ -186,6 +206,10 @@ def query_state(model: Model, device=None) -> QueryState:
     """The model's ``QueryState`` on ``device`` (made on first use; Warp's preferred device when None)."""
     if isinstance(device, wp.Device):  # the queries' own calls: no device resolution on the hot path
         st = model._states.get(str(device))
+        if st is not None:
+            return st
+    elif type(device) is str and device != "cuda":  # "cpu", "cuda:N" name one device whatever the current one
+        st = model._states.get(device)
         if st is not None:
             return st
     dev = resolve_device(device)
