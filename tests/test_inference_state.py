@@ -152,3 +152,58 @@ def test_replayed_path_launches_answer_each_call(precision, monkeypatch):
         del st
         model.invalidate()
         assert dead(held), "invalidate left the recorded path scratch alive"
+
+
+def test_kept_source_buffers_and_index_sets_answer_each_call_and_each_model():
+    """A single source point goes through buffers the state keeps (no copy from the host), and many-source index
+    sets stay on the device: back-to-back calls still each give their own answer, a second model on the same
+    device its own, and unbind / retune / invalidate drop what was kept."""
+    from neurogf_warp.kernels.inference import tensorcore as tc
+
+    a, b = small_model(seed=0), small_model(seed=1)
+    kw = dict(device=DEV, precision="fp16", raw=True)
+    v = a.mesh.vertices
+    p, q = v[4] + [0.01, -0.02, 0.0], v[9] + [0.0, 0.01, 0.02]
+    ref_a = ngf.distance_matrix(a, np.stack([p, q]), **kw)  # two sources: rows uploaded, not the kept buffers
+    ref_b = ngf.distance_matrix(b, np.stack([p, q]), **kw)
+    assert not np.array_equal(ref_a[0], ref_b[0])
+    for bound in (False, True):
+        if bound:
+            ngf.bind(a, DEV, "fp16")
+            ngf.bind(b, DEV, "fp16")
+        ra_p = ngf.ssad(a, p, output="warp", cache=bound, **kw)  # no synchronization between the calls
+        ra_q = ngf.ssad(a, q, output="warp", cache=bound, **kw)
+        rb_p = ngf.ssad(b, p, output="warp", cache=bound, **kw)
+        np.testing.assert_allclose(ra_p.numpy(), ref_a[0], rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(ra_q.numpy(), ref_a[1], rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(rb_p.numpy(), ref_b[0], rtol=1e-6, atol=1e-6)
+    st = query_state(a, DEV)
+    assert st.point_source is not None
+    sets = [[1, 5, 9], [2, 6], [1, 5, 9]]
+    first = [ngf.msad(a, s, **kw) for s in sets]
+    np.testing.assert_array_equal(first[0], first[2])
+    assert len(st._ids) == 2  # the repeated set was found again
+    for k in range(12):
+        ngf.msad(a, [k, k + 1], **kw)
+    assert len(st._ids) <= 8
+    np.testing.assert_array_equal(ngf.msad(b, sets[0], **kw), ngf.msad(b, sets[0], cache=False, **kw))
+    assert not np.array_equal(ngf.msad(b, sets[0], **kw), first[0])
+    ngf.unbind(a, DEV)
+    assert st._ids == {}
+    np.testing.assert_array_equal(ngf.msad(a, sets[1], **kw), first[1])
+    st.retune(tc.Tuning(source_group=1))
+    assert st.point_source is None
+    np.testing.assert_array_equal(ngf.ssad(a, p, **kw), ra_p.numpy())
+    a.invalidate()
+    np.testing.assert_array_equal(ngf.ssad(a, p, **kw), ra_p.numpy())
+
+
+def test_single_point_source_checks_match_the_general_ones():
+    """The single-point route of sources_in refuses the same points with the same messages as the general one."""
+    model = small_model()
+    far = model.mesh.center + 10.0 / model.scale
+    for bad, what in ((np.array([np.nan, 0.0, 0.0]), "non-finite"), (far, "outside the model's domain")):
+        with pytest.raises(ValueError, match=r"source\[0\] = .*" + what):
+            ngf.ssad(model, bad, device=DEV)
+        with pytest.raises(ValueError, match=r"source\[0\] = .*" + what):
+            ngf.ssad(model, bad.tolist(), device=DEV)  # a list takes the general route

@@ -82,15 +82,6 @@ def min_rows(d: wp.array2d(dtype=wp.float32), out: wp.array(dtype=wp.float32)):
 
 
 @wp.kernel(enable_backward=False)
-def store_source(p: wp.vec3, c: int, pos: wp.array(dtype=wp.vec3), comp: wp.array(dtype=wp.int32)):
-    """One source point (and its component label where ``comp`` has room) written from launch parameters: a
-    single-source query's upload without a host-to-device copy, which would wait for the stream's earlier work."""
-    pos[0] = p
-    if comp.shape[0] > 0:
-        comp[0] = c
-
-
-@wp.kernel(enable_backward=False)
 def to_input(internal: wp.array2d(dtype=wp.float32), inv: wp.array(dtype=wp.int32), out: wp.array2d(dtype=wp.float32)):
     """Per-vertex results in the user's numbering: out[s, j] = internal[s, inv[j]], NaN where inv[j] < 0."""
     s, j = wp.tid()

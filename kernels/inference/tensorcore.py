@@ -404,6 +404,35 @@ def embed_kernel(D: int, ks0: int):
 
 
 @functools.lru_cache(maxsize=None)
+def embed_point_kernel(D: int, ks0: int):
+    """Packed fp16 embedding (D/2 uint32) of one point given as a launch parameter, which is also written to
+    pos[0] (and the label c to comp[0] when comp is not empty): a single source's tables, made without a copy from
+    the host (which would wait for the stream's earlier work) in one launch."""
+    snippet = _STRUCTS_CPP + _frame_cpp("frame") + f"""
+    const float p[3] = {{pt[0], pt[1], pt[2]}};
+    if (tid == 0)
+    {{
+        pos.data[0] = pt;
+        if (comp.shape[0] > 0)
+            comp.data[0] = c;
+    }}
+    ngf::embed_rows<{D}, {ks0}>(L, F, p, 1, (ngf::u32x4*)out.data, tid >> 5, n_warps);
+"""
+
+    def body(lift: Lifting, head: Head, frame: mlp.Frame, pt: wp.vec3, c: int, pos: wp.array(dtype=wp.vec3),
+             comp: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.uint32), tid: int, n_warps: int): ...
+
+    native = wp.func_native(snippet)(_unique(body, f"ngf_embed_point_{D}_{ks0}"))
+
+    @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
+    def embed_point(lift: Lifting, head: Head, frame: mlp.Frame, pt: wp.vec3, c: int, pos: wp.array(dtype=wp.vec3),
+                    comp: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.uint32), n_warps: int):
+        native(lift, head, frame, pt, c, pos, comp, out, wp.tid(), n_warps)
+
+    return embed_point
+
+
+@functools.lru_cache(maxsize=None)
 def pair_kernel(D: int, ks0: int, nc: int = 4):
     """Distances between point pairs (p_i, q_i), both lifted in the same warp."""
     snippet = _STRUCTS_CPP + _frame_cpp("frame") + f"""

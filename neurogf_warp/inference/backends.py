@@ -196,8 +196,8 @@ class TensorCores(_Backend):
         eng.distances(rows, eng.sources(eng.embed(src_pos), src_pos, src_comp), out, V, **kw)
 
     def _point_source(self, pts: np.ndarray, comp):
-        """The table of one source point: the state's kept (position, label, embedding) buffers, filled by two
-        recorded launches (the point travels as a launch parameter), so a single-source query makes no copy from
+        """The table of one source point: the state's kept (position, label, embedding) buffers, filled by one
+        recorded launch (the point travels as a launch parameter), so a single-source query makes no copy from
         the host and no allocation. Later queries on the stream overwrite the buffers after this one's kernels."""
         st, eng = self.state, self.eng
         if st.point_source is None:
@@ -208,9 +208,8 @@ class TensorCores(_Backend):
         pos, lab, emb, tables = st.point_source
         p = pts.astype(np.float32)[0]
         multi = comp is not None
-        st.launches.run(finish.store_source, 1, {"p": wp.vec3(p[0], p[1], p[2]), "c": int(comp[0]) if multi else 0,
-                                                 "pos": pos, "comp": lab if multi else st.no_ints})
-        eng.embed(pos, emb)
+        eng.embed_point(wp.vec3(p[0], p[1], p[2]), int(comp[0]) if multi else 0, pos, lab if multi else st.no_ints,
+                        emb)
         return tables[multi]
 
     def target_distances(self, src_pos, tgt_pos, src_comp, tgt_comp, out: wp.array, raw: bool):

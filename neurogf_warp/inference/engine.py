@@ -95,6 +95,17 @@ class Engine:
             self.launches.replay(key, {"pts": pts, "out": out, "frame": frame or self.frame})
         return out
 
+    def embed_point(self, p: wp.vec3, c: int, pos: wp.array, comp: wp.array, out: wp.array):
+        """The packed embedding of one point p (frame coordinates) into ``out`` (D/2 uint32), p into pos[0] and the
+        label c into comp[0] (comp may be empty): one recorded launch, the point a launch parameter."""
+        key = ("embed_point",)
+        if key not in self.launches:
+            kernel = tc.embed_point_kernel(self.D, self.ks0)
+            cmd = self._launch(kernel, 1, [self.lifting, self.dist_head, self.frame, p, c, pos, comp, out],
+                               self.tuning.warps_other, record=True)
+            self.launches.record(key, cmd, kernel, cpu_blocks=True)
+        self.launches.replay(key, {"pt": p, "c": int(c), "pos": pos, "comp": comp, "out": out})
+
     # -- distances from sources to rows ------------------------------------------------------------------------
     def rows(self, pts: wp.array, cached: wp.array | None, comp: wp.array | None) -> tc.Rows:
         """Rows of a distance query: points, with their kept embeddings or None (embedded in the kernel)."""

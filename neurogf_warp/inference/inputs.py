@@ -124,13 +124,13 @@ def sources_in(model: Model, src, name: str, dev, one: bool = False):
         if 0 <= i < m.n_input and m.input_to_internal[i] >= 0:
             j = int(m.input_to_internal[i])
             return (st.mesh(name).rel64[j:j + 1], np.array([j]),
-                    (m.internal_components[j:j + 1] if m.n_components > 1 else None))
+                    (m.internal_components[j:j + 1] if st.multi else None))
     if one and type(src) is np.ndarray and src.shape == (3,) and src.dtype.kind == "f":
         # the common single-point case: the checks below in float64 scalars, without array machinery
         rel = (src.astype(np.float64) - st.center).reshape(1, 3)
         _check_point_host(st, src, rel[0], name)
         comp = None
-        if model.mesh is not None and model.mesh.n_components > 1:
+        if st.multi:
             pts = wp.array(rel.astype(np.float32), dtype=wp.vec3, device=dev)
             comp = st.mesh(name).components_of(pts).numpy()
         return rel, None, comp
@@ -160,7 +160,7 @@ def sources_in(model: Model, src, name: str, dev, one: bool = False):
             raise IndexError(f"{name}: vertex index {int(flat[flat < 0][0])} is negative; indices run from 0 to "
                              f"{model.mesh.n_input - 1} in the mesh file's numbering")
         ids = model.mesh.vertex(flat)
-        comp = model.mesh.internal_components[ids] if model.mesh.n_components > 1 else None
+        comp = model.mesh.internal_components[ids] if st.multi else None
         return to_relative(st, model.mesh.internal_vertices[ids]), ids, comp
     if not np.issubdtype(a.dtype, np.floating):
         raise TypeError(f"{name} must be vertex indices (integers) or points (floats), got dtype {a.dtype}")
@@ -175,7 +175,7 @@ def sources_in(model: Model, src, name: str, dev, one: bool = False):
     rel = to_relative(st, a)
     _check_domain_host(st, a, rel, name)
     comp = None
-    if model.mesh is not None and model.mesh.n_components > 1:
+    if st.multi:
         pts = wp.array(rel.astype(np.float32), dtype=wp.vec3, device=dev)
         comp = st.mesh(name).components_of(pts).numpy()
     return rel, None, comp
@@ -243,9 +243,10 @@ def relative_points(model: Model, pts: wp.array, frame) -> wp.array:
 
 
 def pair_components(model: Model, P, Q, dev, frame):
-    if model.mesh is None or model.mesh.n_components == 1:
+    st = query_state(model, dev)
+    if not st.multi:
         return None
-    md = query_state(model, dev).mesh("distance")
+    md = st.mesh("distance")
     return md.components_of(relative_points(model, P, frame)), md.components_of(relative_points(model, Q, frame))
 
 

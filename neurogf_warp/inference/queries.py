@@ -89,7 +89,7 @@ def _vertex_distances(model: Model, src, name: str, device, output: str, precisi
                                                  raw=raw) for src_chunk in _source_chunks(src, pts, ids, step)])
     check_memory(dev, need, f"a ({rows_out}, {md.n_input}) result", "use output='numpy' (computed in chunks of "
                   "sources) or fewer sources per call")
-    if cache:
+    if cache and be.kept is None:
         try:
             bind(model, dev, precision)
         except MemoryError as e:  # the query still runs, embedding the vertices as it goes

@@ -91,7 +91,7 @@ class QueryState:
                              "the kernels' number type: rescale the mesh (and its units) into float32's range")
         self.frame = _make_frame(np.zeros(3), scale)
         self.user_frame = _make_frame(self.center, scale)
-        self._weights = self._head_weights = self._engine = self._mesh = None
+        self._weights = self._head_weights = self._engine = self._mesh = self._multi = None
         self.backends = {}  # precision asked for -> backend (backends.backend_of)
         self.bound = {}
         self.tables = None
@@ -141,6 +141,14 @@ class QueryState:
         if self._engine is None:
             self._engine = Engine(self.layers, self.shape, self.options, self.frame, self.device, self.tuning)
         return self._engine
+
+    @property
+    def multi(self) -> bool:
+        """Whether the model's mesh has several connected components (read once: the count is a pass over every
+        vertex label, too slow for each query)."""
+        if self._multi is None:
+            self._multi = self.model.mesh is not None and self.model.mesh.n_components > 1
+        return self._multi
 
     def mesh(self, what: str) -> MeshOnDevice:
         """The mesh's tables on this device; ``what`` names the query for the error without a mesh."""
