@@ -44,6 +44,10 @@ class Tuning:
 
     ssad: tuple = (2, False)   # (m-tiles per warp, prefetch) of the single-source kernel on kept embeddings
     source_group: int = 2      # sources that share each weight load in the multi-source kernels
+    # registers per thread at most (0: the compiler's choice) of the single-source kernel on kept embeddings and of
+    # the multi-source kernels: fewer registers, more resident warps per multiprocessor
+    regs_ssad: int = 0
+    regs_distance: int = 0
     lift_ssad: tuple = (1, 8)  # (m-tiles per warp, n-tiles per chunk) of the single-source kernel, rows lifted
     sdf_tile: tuple = (2, 4)   # (m-tiles per warp, n-tiles per chunk) of the SDF kernel
     pair_nc: int = 8           # n-tiles per chunk of the pair kernel (two m-tiles: p and q)
@@ -322,17 +326,19 @@ _DISTANCE_CPP = native_init("Sources", "S", {
         "row_comp": "rows.comp.shape[0] ? (const int*)rows.comp.data : nullptr", "raw": f"(flags & {RAW}) ? 1 : 0"})
 
 
-def _distance_kernel(call: str, name: str):
-    """A distance kernel around the native call ``call`` (uses L, H, F, S, O and rows)."""
+def _distance_kernel(call: str, name: str, max_regs: int = 0):
+    """A distance kernel around the native call ``call`` (uses L, H, F, S, O and rows); ``max_regs``: registers per
+    thread at most (0: the compiler's choice), spilling to shared memory, for more resident warps."""
     snippet = _STRUCTS_CPP + _frame_cpp("frame") + _DISTANCE_CPP + call
 
     def body(lift: Lifting, head: Head, frame: mlp.Frame, rows: Rows, src: Sources, src_ids: wp.array(dtype=wp.int32),
              src_row: int, n_src: int, out: wp.array(dtype=wp.float32), ld: int, flags: int, euclid: float, tid: int,
              n_warps: int): ...
 
-    native = wp.func_native(snippet)(_unique(body, name))
+    native = wp.func_native(snippet)(_unique(body, name + (f"_r{max_regs}" if max_regs else "")))
+    regs = dict(cuda_max_registers=max_regs, enable_cuda_smem_spilling=True) if max_regs else {}
 
-    @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
+    @wp.kernel(module="unique", module_options=MODULE_OPTIONS, **regs)
     def distance_rows(lift: Lifting, head: Head, frame: mlp.Frame, rows: Rows, src: Sources,
                       src_ids: wp.array(dtype=wp.int32), src_row: int, n_src: int, out: wp.array(dtype=wp.float32),
                       ld: int, flags: int, euclid: float, n_warps: int):
@@ -348,25 +354,25 @@ def param_index(kernel) -> dict:
 
 
 @functools.lru_cache(maxsize=None)
-def distance_kernel(D: int, ks0: int, lift: bool, sp: int = 1):
+def distance_kernel(D: int, ks0: int, lift: bool, sp: int = 1, max_regs: int = 0):
     """Distances from S sources to N rows: lifted points (``lift``) or kept packed vertex embeddings; ``sp``
-    sources share each weight load."""
+    sources share each weight load; ``max_regs`` as in ``_distance_kernel``."""
     call = f"""
     ngf::distance_rows<{D}, {ks0}, {'true' if lift else 'false'}, {sp}>(L, H, F, (const float*)rows.pts.data,
         (const ngf::u32x4*)rows.cached.data, rows.n, S, O, tid >> 5, n_warps);
 """
-    return _distance_kernel(call, f"ngf_distance_rows_{D}_{ks0}_{int(lift)}_{sp}")
+    return _distance_kernel(call, f"ngf_distance_rows_{D}_{ks0}_{int(lift)}_{sp}", max_regs)
 
 
 @functools.lru_cache(maxsize=None)
-def ssad_kernel(D: int, mt: int = 1, prefetch: bool = False):
+def ssad_kernel(D: int, mt: int = 1, prefetch: bool = False, max_regs: int = 0):
     """One source to every row of kept packed embeddings, mt m-tiles per warp, optionally loading the next tile
     during this one (same arguments as distance_kernel)."""
     call = f"""
     ngf::ssad_rows<{D}, {mt}, {'true' if prefetch else 'false'}>(H, F, (const float*)rows.pts.data,
         (const ngf::u32x4*)rows.cached.data, rows.n, S, O, tid >> 5, n_warps);
 """
-    return _distance_kernel(call, f"ngf_ssad_rows_{D}_{mt}_{int(prefetch)}")
+    return _distance_kernel(call, f"ngf_ssad_rows_{D}_{mt}_{int(prefetch)}", max_regs)
 
 
 @functools.lru_cache(maxsize=None)

@@ -136,11 +136,12 @@ class Engine:
         t = self.tuning
         cached = rows.cached.shape[0] > 0
         if count == 1 and cached:
-            kernel, mt, warps = tc.ssad_kernel(self.D, *t.ssad), t.ssad[0], t.warps_ssad
+            kernel, mt, warps = tc.ssad_kernel(self.D, *t.ssad, t.regs_ssad), t.ssad[0], t.warps_ssad
         elif count == 1:
             kernel, mt, warps = tc.lift_ssad_kernel(self.D, self.ks0, *t.lift_ssad), t.lift_ssad[0], t.warps_lift_ssad
         else:
-            kernel, mt, warps = tc.distance_kernel(self.D, self.ks0, not cached, t.source_group), 1, t.warps_distance
+            kernel, mt, warps = (tc.distance_kernel(self.D, self.ks0, not cached, t.source_group, t.regs_distance), 1,
+                                 t.warps_distance)
         key = kernel  # one recorded launch per kernel, re-recorded when the rows change
         if key not in self.launches or self.launches.held(key) is not rows:
             tiles = -(-n // (16 * mt))
