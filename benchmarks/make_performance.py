@@ -176,9 +176,11 @@ def fmt_queries(runs):
                 speed.append(best["ms"] / w["ms"])
         if not warp:
             continue
+        form = "; ".join(sorted(torch_name)) or "-"
+        if torch_name and not compiled:  # the runs of this query all ran with --no-compile
+            form += " (torch.compile not timed)"
         rows.append((q, span(warp, unit=" ms"), span(unchecked, unit=" ms"), span(torch_best, unit=" ms"),
-                     "; ".join(sorted(torch_name)) or "-", span(speed, "{:.1f}", "x"), span(err, "{:.1e}"),
-                     len(warp)))
+                     form, span(speed, "{:.1f}", "x"), span(err, "{:.1e}"), len(warp)))
     sizes = runs[0].get("sizes", {})
     mesh = runs[0].get("mesh", {})
     out = [f"Released bunny network (D = 256) on a {mesh.get('vertices', 0):,}-vertex mesh; device arrays in and "
