@@ -45,7 +45,8 @@ class Tuning:
     ssad: tuple = (2, False)   # (m-tiles per warp, prefetch) of the single-source kernel on kept embeddings
     source_group: int = 2      # sources that share each weight load in the multi-source kernels
     # registers per thread at most (0: the compiler's choice) of the single-source kernel on kept embeddings and of
-    # the multi-source kernels: fewer registers, more resident warps per multiprocessor
+    # the multi-source kernels: more resident warps, but on an H200 the spills (or one source per weight load) cost
+    # more than the warps gain, so the default leaves the compiler's choice (255 and 254 registers, 8 warps per SM)
     regs_ssad: int = 0
     regs_distance: int = 0
     lift_ssad: tuple = (1, 8)  # (m-tiles per warp, n-tiles per chunk) of the single-source kernel, rows lifted
