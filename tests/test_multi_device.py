@@ -193,3 +193,83 @@ def test_gloo_ranks_with_fewer_sources_than_ranks(mesh, small_chunks, tmp_path):
     one = G.geodesic_distances(mesh, SOURCES[:2], device="cpu")
     for got in _ranks(3, tmp_path, SOURCES[:2]):
         np.testing.assert_array_equal(got, one)
+
+
+@pytest.fixture
+def no_capture(monkeypatch):
+    """Solvers run their programs from the host (two solvers on the one CPU device cannot capture at once), and
+    the main thread's solver is slowed down, so that a second device's thread has batches left to take."""
+    import threading
+    import time
+
+    class Refused:
+        def __init__(self, *a, **k):
+            pass
+
+        def __enter__(self):
+            raise RuntimeError("capture refused by the test")
+
+        def __exit__(self, *exc):
+            return False
+
+    monkeypatch.setattr(wp, "ScopedCapture", Refused)
+    run = G.GeodesicSolver.run
+
+    def slow(self, sources):
+        if threading.current_thread() is threading.main_thread():
+            time.sleep(0.3)
+        return run(self, sources)
+
+    monkeypatch.setattr(G.GeodesicSolver, "run", slow)
+
+
+@pytest.mark.filterwarnings("ignore:the geodesic solver's")
+def test_distance_rows_on_a_second_device_are_the_same_in_order(mesh, no_capture):
+    from neurogf_warp.ground_truth.workers import DistanceRows
+
+    solver = G.GeodesicSolver(mesh, k=2, device="cpu", batch=4)
+    src = np.random.default_rng(3).choice(solver.nv, 40, replace=False)
+    batches = [src[i: i + 4] for i in range(0, 40, 4)]
+    expect = [G.GeodesicSolver(mesh, k=2, device="cpu", batch=4).solve(b) for b in batches]
+    by_device = []
+    real = G.GeodesicSolver.vertex_distances
+
+    def recorded(self):
+        by_device.append((self is solver, self.rows[0]))
+        return real(self)
+
+    G.GeodesicSolver.vertex_distances = recorded
+    try:
+        with DistanceRows(solver, workers=1, devices=[wp.get_device("cpu")], own=3) as pool:
+            got = list(pool.rows(batches))
+    finally:
+        G.GeodesicSolver.vertex_distances = real
+    assert [i for i, _ in got] == list(range(len(batches)))
+    for (_, d), e in zip(got, expect):
+        np.testing.assert_array_equal(d, e)
+    assert pool.device_batches > 0  # the second device took part
+    first = {int(b[0]): i for i, b in enumerate(batches)}
+    assert all(mine for mine, s in by_device if first[int(s)] < 3)  # the first `own` batches stay with `solver`
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore:the geodesic solver's")
+def test_dataset_is_the_same_with_a_second_device(mesh, no_capture, monkeypatch):
+    from neurogf_warp.dataset.build import DatasetSettings, build_dataset
+
+    settings = DatasetSettings(n_sources=32, n_global=64, n_local1=8, n_local2=16, n_path_sources=4, n_test=3,
+                               n_surface=1000, n_spread=400, k=2, batch=4, workers=1)
+    one = build_dataset(mesh, None, settings, seed=5, device="cpu", progress=False)
+    cpu = wp.get_device("cpu")
+    monkeypatch.setattr(dv, "resolve_devices", lambda devices=None, device=None: [cpu, cpu])
+    two = build_dataset(mesh, None, settings, seed=5, device="cpu", progress=False)
+    assert two.meta["timings"]["worker_batches"] > 0 and two.meta["timings"]["devices"] == ["cpu", "cpu"]
+    for k in one.array_names():
+        np.testing.assert_array_equal(getattr(one, k), getattr(two, k), err_msg=k)
+
+
+def test_dataset_devices_are_checked(mesh):
+    from neurogf_warp.dataset.build import build_dataset
+
+    with pytest.raises(InputError, match="devices names cpu twice"):
+        build_dataset(mesh, None, device="cpu", progress=False, devices=["cpu", "cpu"])

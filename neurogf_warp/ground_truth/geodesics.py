@@ -133,6 +133,11 @@ def _spread_distances(m: Mesh, src: np.ndarray, devs: list, group, k: int, windo
     parts = dv.split_blocks(len(own), len(devs))
     rows = np.empty((len(own), len(m.internal_vertices)), dtype=np.float32)
     solvers = [None] * len(devs)
+    if len(devs) > 1:  # every module loaded on each device before the threads (no two compile the same module)
+        from neurogf_warp.ground_truth.solver import load_for_capture
+
+        for d in devs:
+            load_for_capture(d)
 
     def solve(j):
         block = own[parts[j]]

@@ -137,9 +137,13 @@ class DistanceRows:
 
     workers : processes in all, the caller included (None: the cores this process may use, at most
         ``MAX_WORKERS``); always 1 on a GPU, where one solver fills the device
+    devices : further devices (GPUs), each solving batches in a thread of this process with its own solver of the
+        same mesh and settings (``solver.settings``: the same batches, so the same rows)
+    own : the first ``own`` batches are solved by ``solver`` only (the caller reads more than their distances from
+        it, e.g. traces their paths); the other devices start on the batches after them
     """
 
-    def __init__(self, solver, workers: int | None = None):
+    def __init__(self, solver, workers: int | None = None, devices=(), own: int = 0):
         if workers is not None:
             workers = integer("workers", workers, minimum=1)
         self.solver = solver
@@ -148,6 +152,9 @@ class DistanceRows:
         self.workers = min(MAX_WORKERS, cpu_cores() if workers is None else int(workers))
         self._pool: list[_Worker] = []
         self.worker_batches = 0  # batches the worker processes solved
+        self.devices = list(devices)
+        self.own = int(own)
+        self.device_batches = 0  # batches the other devices solved
         self._prefetch = None
 
     def __enter__(self):
@@ -237,6 +244,8 @@ class DistanceRows:
                 i = claim()
                 if i is None:
                     break
+                if not feeders and self.devices and i + 1 < n:
+                    feeders = self._start_devices(batches, claim, done, state)
                 took = solve_here(i)
                 if not feeders and self.workers > 1 and took * (n - i - 1) > START_COST_S:
                     feeders = self._start(batches, claim, done)
@@ -262,6 +271,37 @@ class DistanceRows:
                 t.join()
             if early:
                 self.close()
+
+    def _start_devices(self, batches, claim, done, state) -> list:
+        """A thread per further device: its solver is built at once, and it takes batches from ``own`` on."""
+        threads = [threading.Thread(target=self._feed_device, args=(d, batches, claim, done, state), daemon=True)
+                   for d in self.devices]
+        for t in threads:
+            t.start()
+        return threads
+
+    def _feed_device(self, device, batches, claim, done, state):
+        """Solve batches on ``device`` until none are left; a failure hands its batch back to the caller."""
+        from neurogf_warp.ground_truth.solver import GeodesicSolver
+
+        i = None
+        try:
+            solver = GeodesicSolver(self.solver.mesh, device=device, **self.solver.settings)
+            while not state["stop"] and state["next"] < self.own:
+                time.sleep(0.005)
+            while True:
+                i = claim()
+                if i is None:
+                    return
+                solver.run(batches[i])
+                done.put((i, solver.vertex_distances()))
+                self.device_batches += 1
+                i = None
+        except Exception as e:  # noqa: BLE001 - the caller solves the batch; the run goes on with fewer devices
+            if i is not None:
+                done.put((i, None))
+            warnings.warn(f"ground truth on {device} failed ({type(e).__name__}: {e}); its batches are solved on "
+                          f"{self.solver.device}", RuntimeWarning, stacklevel=2)
 
     def _start(self, batches, claim, done) -> list:
         """Start the workers (once per DistanceRows) and a feeding thread for each; returns the threads."""
