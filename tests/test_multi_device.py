@@ -273,3 +273,19 @@ def test_dataset_devices_are_checked(mesh):
 
     with pytest.raises(InputError, match="devices names cpu twice"):
         build_dataset(mesh, None, device="cpu", progress=False, devices=["cpu", "cpu"])
+
+
+def test_train_and_the_command_line_check_devices_before_any_work(tmp_path, capsys):
+    import neurogf_warp as ngf
+    from neurogf_warp.cli import main as cli
+
+    tm = trimesh.creation.icosphere(subdivisions=2)
+    tm.export(tmp_path / "s.obj")
+    with pytest.raises(InputError, match="devices names cpu twice"):
+        ngf.train(tmp_path / "s.obj", tmp_path / "m.ngf", device="cpu", devices="cpu,cpu")
+    assert not (tmp_path / "m.train").exists() and not (tmp_path / "m.ngf").exists()
+    for cmd in (["data", tmp_path / "s.obj", "-o", tmp_path / "d.npz"],
+                ["train", tmp_path / "s.obj", "-o", tmp_path / "m.ngf", "--device", "cpu"]):
+        assert cli.main([str(a) for a in cmd] + ["--devices", "cpu,cuda:9"]) == 2
+        assert "devices: unknown device 'cuda:9'" in capsys.readouterr().err
+    assert not (tmp_path / "d.npz").exists() and not (tmp_path / "m.ngf").exists()
