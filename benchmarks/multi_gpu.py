@@ -12,6 +12,10 @@ Stages:
   sources: seconds, sources/s, speed-up over one GPU, and whether the rows equal the one-GPU rows bit for bit
   (else the largest relative difference). Kernels are loaded on every GPU first (not timed). ``--determinism``
   also solves the first 32 sources of the 436K mesh twice on one GPU: whether one GPU repeats itself bit for bit.
+- ``train``: ``ngf.train(mesh, out, budget_seconds=B, device="cuda:0", devices=[cuda:0 .. cuda:N-1])`` (the
+  dataset's ground truth over N GPUs, the steps on cuda:0) for each ``--budgets`` B, then ``ngf.evaluate`` against
+  the exact reference (``--train-mesh``, default igea): MRE, p99, distance sources, the dataset's seconds. A first
+  run of the smallest budget on one GPU warms the compile caches and is not kept.
 - ``collection``: the generalizable network's ground truth on a generated collection (``--shapes`` shapes) with one
   rank, ``--repeats`` times (the command of ``generalizable_scaling.py``, ``--gt-only``): median and spread of the
   ranks' ground-truth seconds and shapes/s, and each run's process wall time.
@@ -113,6 +117,44 @@ def gt_stage(a, out: dict) -> None:
         del ref
 
 
+def train_stage(a, out: dict) -> None:
+    import json
+    import tempfile
+
+    import warp as wp
+
+    import neurogf_warp as ngf
+    from neurogf_warp.training.checkpoint import RunFiles
+
+    cuda = [str(d) for d in wp.get_cuda_devices()]
+    gpus = [g for g in a.gpus if g <= len(cuda)]
+    files = {"igea": "igea.ply", "bunny": "stanford-bunny.obj", "spot": "spot.obj"}
+    mesh = common.find_shared("meshes", files[a.train_mesh])
+    ref = common.find_shared("reference", "exact", Path(files[a.train_mesh]).stem + ".npz")
+    work = Path(tempfile.mkdtemp(prefix="multi_gpu_train_"))
+    rows = out.setdefault("train", [])
+    plan = [(min(a.budgets), gpus[0], False)] + [(b, g, True) for b in a.budgets for g in gpus]
+    for budget, g, keep in plan:
+        target = work / f"{a.train_mesh}_{budget:g}s_{g}gpu.ngf"
+        t0 = time.perf_counter()
+        model = ngf.train(str(mesh), target, budget_seconds=budget, device=cuda[0], devices=cuda[:g], force=True,
+                          progress=False)
+        call_s = time.perf_counter() - t0
+        log = json.loads(Path(RunFiles.for_model(target).log).read_text())
+        res = ngf.evaluate(model, reference=ref, heat=False, paths=False, sdf=False, device=cuda[0], progress=False,
+                           verbose=False)
+        n = res["neurogf"]
+        row = {"mesh": a.train_mesh, "vertices": res["vertices"], "budget_s": budget, "gpus": g, "call_s": call_s,
+               "mre": n["mre"], "p99": n["p99_rel"], "sources": log["history"].get("sources"),
+               "dataset_s": log["timings"].get("dataset_s"), "steps": log["config"].get("steps"),
+               "proxy": (log["history"].get("proxy") or {}).get("vertices")}
+        print(f"train {a.train_mesh} {budget:g} s on {g} GPU(s) for the ground truth: MRE {100 * row['mre']:.3f}% "
+              f"p99 {100 * row['p99']:.2f}%, {row['sources']['distance']} sources in {row['dataset_s']:.1f} s"
+              + ("" if keep else " (warm-up, not kept)"), flush=True)
+        if keep:
+            rows.append(row)
+
+
 def collection_stage(a, out: dict) -> None:
     coll = Path(a.collection)
     if not coll.exists():
@@ -152,11 +194,14 @@ def collection_stage(a, out: dict) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--stages", nargs="+", default=["gt", "collection"], choices=["gt", "collection"])
+    ap.add_argument("--stages", nargs="+", default=["gt", "train", "collection"],
+                    choices=["gt", "train", "collection"])
     ap.add_argument("--gpus", type=int, nargs="+", default=[1, 2, 4], help="GPU counts (those present)")
     ap.add_argument("--meshes", nargs="+", default=list(MESHES), choices=list(MESHES))
     ap.add_argument("--sources", type=int, default=None, help="sources per mesh (default: 256 at 436K, 64 at 2.2M)")
     ap.add_argument("--determinism", action="store_true", help="also one GPU twice on 32 sources of the 436K mesh")
+    ap.add_argument("--budgets", type=float, nargs="+", default=[20.0, 60.0], help="train stage budgets (s)")
+    ap.add_argument("--train-mesh", default="igea", choices=["igea", "bunny", "spot"])
     ap.add_argument("--collection", default="multi_gpu_collection", help="collection folder (made if missing)")
     ap.add_argument("--shapes", type=int, default=128)
     ap.add_argument("--repeats", type=int, default=3)
@@ -166,12 +211,17 @@ def main(argv=None) -> int:
     out: dict = {"args": vars(a)}
     if "gt" in a.stages:
         gt_stage(a, out)
+    if "train" in a.stages:
+        train_stage(a, out)
     if "collection" in a.stages:
         collection_stage(a, out)
     print(f"\n{'mesh':>11}{'sources':>8}{'GPUs':>6}{'seconds':>9}{'sources/s':>11}{'speed-up':>10}  identical")
     for r in out.get("gt", []):
         print(f"{r['mesh']:>11}{r['sources']:>8}{r['gpus']:>6}{r['seconds']:>9.2f}{r['sources_per_s']:>11.2f}"
               f"{r['speedup']:>9.2f}x  {r['identical']}")
+    for r in out.get("train", []):
+        print(f"train {r['mesh']} {r['budget_s']:g} s, ground truth on {r['gpus']} GPU(s): MRE {100 * r['mre']:.3f}%, "
+              f"{r['sources']['distance']} sources")
     if "collection" in out:
         c = out["collection"]
         print(f"collection, one rank x{len(c['runs'])}: median {c['median_s']:.1f} s "

@@ -148,7 +148,7 @@ def _spread_distances(m: Mesh, src: np.ndarray, devs: list, group, k: int, windo
 
     dv.run_on_devices(solve, len(devs))
     d = dv.all_gather_rows(rows, S, group[0]) if group is not None else rows
-    del rows
+    rows = None  # this rank's block: a copy of it is in d
     if not near:
         return d
     ref = next((s for s in solvers if s is not None), None)
