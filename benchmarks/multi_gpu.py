@@ -101,10 +101,16 @@ def gt_stage(a, out: dict) -> None:
                 fin = np.isfinite(ref) & (ref > 0)
                 rel = float(np.max(np.abs(d[fin] - ref[fin]) / ref[fin])) if fin.any() else 0.0
                 row.update(identical=bool(same), max_rel_diff=rel)
+            if g > 1:  # per GPU (start s, end s, sources or chunks) of its solve and of its near-source patches
+                from neurogf_warp.ground_truth.devices import LAST_RUN
+
+                row["spans"] = dict(LAST_RUN)
             rows.append(row)
             print(f"{name:>11} {S:>4} sources {g} GPU(s): {sec:7.2f} s  {S / sec:7.2f} sources/s  "
                   f"x{row['speedup']:.2f}  identical={row['identical']} (max rel diff {row['max_rel_diff']:.2e})",
                   flush=True)
+            if "spans" in row:
+                print(f"            spans: {row['spans']}", flush=True)
             del d
         if a.determinism and name == "bunny-436K":
             twice = [ngf.geodesic_distances(m, src[:32], devices=cuda[:1]) for _ in range(2)]

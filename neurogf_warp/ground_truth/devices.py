@@ -20,10 +20,13 @@ import warp as wp
 from neurogf_warp.common.arrays import resolve_device
 from neurogf_warp.common.checks import InputError
 
-__all__ = ["ENV", "resolve_devices", "split_blocks", "run_on_devices", "process_group", "all_gather_rows",
+__all__ = ["ENV", "LAST_RUN", "resolve_devices", "split_blocks", "run_on_devices", "process_group", "all_gather_rows",
            "all_gather_objects"]
 
 ENV = "NEUROGF_DEVICES"  # default of ``devices``: "all", or a comma-separated list such as "cuda:0,cuda:1"
+# Where the last call of geodesic_distances over several devices (or ranks) spent its time, for benchmarks: per
+# device (start s, end s, sources or chunks) of its solve and of its near-source patches, from the call's start
+LAST_RUN: dict = {}
 
 
 def _parse(devices, name: str) -> list:

@@ -124,9 +124,15 @@ def _spread_distances(m: Mesh, src: np.ndarray, devs: list, group, k: int, windo
     contiguous blocks per device, the rows all-gathered; then the near-source patches of all rows planned alike on
     every rank and their union solves split the same way (their updates all-gathered), so that every solve is one
     that a single device would have made."""
+    import time
+
     from neurogf_warp.ground_truth import devices as dv
     from neurogf_warp.ground_truth import near_source as ns
 
+    t0 = time.perf_counter()
+    spans = dv.LAST_RUN
+    spans.clear()
+    spans.update(devices=[str(d) for d in devs], solve=[None] * len(devs), refine=[None] * len(devs))
     S = len(src)
     mine = dv.split_blocks(S, group[2])[group[1]] if group is not None else slice(0, S)
     own = src[mine]
@@ -142,12 +148,17 @@ def _spread_distances(m: Mesh, src: np.ndarray, devs: list, group, k: int, windo
     def solve(j):
         block = own[parts[j]]
         if len(block):
+            t1 = time.perf_counter()
             solvers[j] = GeodesicSolver(m, k=k, windows=windows, device=devs[j], batch=batch, max_rows=len(block),
                                         delta=delta, cache=True)
             rows[parts[j]] = solvers[j].solve(block)
+            spans["solve"][j] = (t1 - t0, time.perf_counter() - t0, len(block))
 
+    spans["load_s"] = time.perf_counter() - t0
     dv.run_on_devices(solve, len(devs))
+    t1 = time.perf_counter()
     d = dv.all_gather_rows(rows, S, group[0]) if group is not None else rows
+    spans["gather_s"] = time.perf_counter() - t1
     rows = None  # this rank's block: a copy of it is in d
     if not near:
         return d
@@ -156,6 +167,7 @@ def _spread_distances(m: Mesh, src: np.ndarray, devs: list, group, k: int, windo
         ref = GeodesicSolver(m, k=k, windows=windows, device=devs[0], batch=1, delta=delta, cache=True)
     for j in range(1, len(solvers)):
         solvers[j] = None  # their per-source state: the patch solves need the room
+    t1 = time.perf_counter()
     chunks = ns.plan_chunks(ref, src, d)
     mine = dv.split_blocks(len(chunks), group[2])[group[1]] if group is not None else slice(0, len(chunks))
     own = chunks[mine]
@@ -163,14 +175,18 @@ def _spread_distances(m: Mesh, src: np.ndarray, devs: list, group, k: int, windo
     updates = [[] for _ in devs]
 
     def refine(j):
+        t1 = time.perf_counter()
         for chunk in own[parts[j]]:
             updates[j] += ns.solve_chunk(ref, src, chunk, ns.PATCH_K, devs[j])
+        spans["refine"][j] = (t1 - t0, time.perf_counter() - t0, len(own[parts[j]]))
 
+    spans["plan_s"] = time.perf_counter() - t1
     dv.run_on_devices(refine, len(devs))
     mine_updates = [u for part in updates for u in part]
     every = dv.all_gather_objects(mine_updates, group[0]) if group is not None else [mine_updates]
     for part in every:
         ns.apply_updates(d, part)
+    spans["total_s"] = time.perf_counter() - t0
     return d
 
 
