@@ -139,6 +139,10 @@ def _spread_distances(m: Mesh, src: np.ndarray, devs: list, group, k: int, windo
     parts = dv.split_blocks(len(own), len(devs))
     rows = np.empty((len(own), len(m.internal_vertices)), dtype=np.float32)
     solvers = [None] * len(devs)
+    # the tables of every device fit in the solver cache, or no device uses it (threads evicting each other's
+    # entries would race)
+    cache = len(devs) <= SOLVER_CACHE_SIZE
+    patches = [[] for _ in devs]
     if len(devs) > 1:  # every module loaded on each device before the threads (no two compile the same module)
         from neurogf_warp.ground_truth.solver import load_for_capture
 
@@ -150,16 +154,18 @@ def _spread_distances(m: Mesh, src: np.ndarray, devs: list, group, k: int, windo
         if len(block):
             t1 = time.perf_counter()
             sol = GeodesicSolver(m, k=k, windows=windows, device=devs[j], batch=batch, max_rows=len(block),
-                                 delta=delta, cache=True)
+                                 delta=delta, cache=cache)
             n_batches = -(-len(block) // sol.batch)
             even = -(-len(block) // n_batches)
             if batch is None and even < sol.batch:
                 # equal batches: a short last batch is padded to the full batch and costs as much (2.2M vertices,
                 # 32 sources in batches of 14: 42 rows of work, in batches of 11: 33); the tables are cached
                 sol = None
-                sol = GeodesicSolver(m, k=k, windows=windows, device=devs[j], batch=even, delta=delta, cache=True)
+                sol = GeodesicSolver(m, k=k, windows=windows, device=devs[j], batch=even, delta=delta, cache=cache)
             solvers[j] = sol
             rows[parts[j]] = sol.solve(block)
+            if near and group is None:  # its rows' patches, while the other devices may still solve
+                patches[j] = ns.patch_faces_rows(sol, rows[parts[j]], ns.patch_limit(sol))
             spans["solve"][j] = (t1 - t0, time.perf_counter() - t0, len(block))
 
     spans["load_s"] = time.perf_counter() - t0
@@ -172,11 +178,11 @@ def _spread_distances(m: Mesh, src: np.ndarray, devs: list, group, k: int, windo
         return d
     ref = next((s for s in solvers if s is not None), None)
     if ref is None:  # this rank had no sources: its host tables still plan the chunks (one row of state)
-        ref = GeodesicSolver(m, k=k, windows=windows, device=devs[0], batch=1, delta=delta, cache=True)
+        ref = GeodesicSolver(m, k=k, windows=windows, device=devs[0], batch=1, delta=delta, cache=cache)
     for j in range(1, len(solvers)):
         solvers[j] = None  # their per-source state: the patch solves need the room
     t1 = time.perf_counter()
-    chunks = ns.plan_chunks(ref, src, d)
+    chunks = ns.plan_chunks(ref, src, d, patches=None if group is not None else [p for ps in patches for p in ps])
     mine = dv.split_blocks(len(chunks), group[2])[group[1]] if group is not None else slice(0, len(chunks))
     own = chunks[mine]
     parts = dv.split_blocks(len(own), len(devs))

@@ -18,8 +18,8 @@ import numpy as np
 from neurogf_warp.ground_truth.solver import GeodesicSolver
 from neurogf_warp.mesh.mesh import load_mesh
 
-__all__ = ["refine_near_sources", "plan_chunks", "solve_chunk", "apply_updates", "patch_faces", "patch_faces_rows",
-           "PATCH_RADIUS", "PATCH_K"]
+__all__ = ["refine_near_sources", "plan_chunks", "patch_limit", "solve_chunk", "apply_updates", "patch_faces",
+           "patch_faces_rows", "PATCH_RADIUS", "PATCH_K"]
 
 PATCH_RADIUS = 12.0  # mean edge lengths: beyond it the k = 3 worst pair was 0.38-0.44% on the tail meshes
 PATCH_K = 6  # k = 5 left the needle mesh's degenerate-face pair at 0.64%; k = 6 took every mesh to <= 0.45%
@@ -91,17 +91,23 @@ def refine_near_sources(solver: GeodesicSolver, sources: np.ndarray, dist: np.nd
     return out
 
 
-def plan_chunks(solver: GeodesicSolver, sources: np.ndarray, dist: np.ndarray, k: int = PATCH_K,
-                radius: float = PATCH_RADIUS) -> list:
+def patch_limit(solver: GeodesicSolver, radius: float = PATCH_RADIUS) -> float:
+    """The distance (normalized frame) within which a source's patch takes faces: radius + 2 mean edges."""
+    return (radius + 2.0) * solver.mean_edge
+
+
+def plan_chunks(solver: GeodesicSolver, sources: np.ndarray, dist: np.ndarray | None, k: int = PATCH_K,
+                radius: float = PATCH_RADIUS, patches: list | None = None) -> list:
     """The union solves of ``refine_near_sources``: a list of chunks, each a list of (row, (n,) face rows of
     ``solver.topo.faces``), the rows in order, each chunk's patches together under NODE_CAP nodes. The chunks
-    depend only on the mesh and ``dist``, so devices that split them between them reproduce one device's solves."""
+    depend only on the mesh and ``dist``, so devices that split them between them reproduce one device's solves.
+    ``patches``: the rows' ``patch_faces_rows`` at ``patch_limit``, where already made (``dist`` is then unused)."""
     src = np.asarray(sources, dtype=np.int64).reshape(-1)
     if len(src) == 0:
         return []
-    limit = (radius + 2.0) * solver.mean_edge
     # every patch from the rows as given (a chunk's solve changes only its own rows)
-    patches = patch_faces_rows(solver, np.asarray(dist, dtype=np.float32), limit)
+    if patches is None:
+        patches = patch_faces_rows(solver, np.asarray(dist, dtype=np.float32), patch_limit(solver, radius))
     # chunks of sources whose patches together stay under NODE_CAP nodes (about V + 1.5 k F per patch)
     chunks, chunk, size = [], [], 0
     for r in range(len(src)):
