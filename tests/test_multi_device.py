@@ -225,31 +225,30 @@ def no_capture(monkeypatch):
 
 @pytest.mark.filterwarnings("ignore:the geodesic solver's")
 def test_distance_rows_on_a_second_device_are_the_same_in_order(mesh, no_capture):
+    # held batches (the dataset's traced ones): the solver that made each, on either device, still holds its
+    # state when the batch is yielded, so its paths can be traced from it
+    import time
+
     from neurogf_warp.ground_truth.workers import DistanceRows
 
     solver = G.GeodesicSolver(mesh, k=2, device="cpu", batch=4)
     src = np.random.default_rng(3).choice(solver.nv, 40, replace=False)
     batches = [src[i: i + 4] for i in range(0, 40, 4)]
     expect = [G.GeodesicSolver(mesh, k=2, device="cpu", batch=4).solve(b) for b in batches]
-    by_device = []
-    real = G.GeodesicSolver.vertex_distances
-
-    def recorded(self):
-        by_device.append((self is solver, self.rows[0]))
-        return real(self)
-
-    G.GeodesicSolver.vertex_distances = recorded
-    try:
-        with DistanceRows(solver, workers=1, devices=[wp.get_device("cpu")], own=3) as pool:
-            got = list(pool.rows(batches))
-    finally:
-        G.GeodesicSolver.vertex_distances = real
+    got, where = [], []
+    with DistanceRows(solver, workers=1, devices=[wp.get_device("cpu")]) as pool:
+        for i, d in pool.rows(batches, hold=lambda i: i < 7):
+            got.append((i, d))
+            holder = pool.solver_of(i)
+            where.append(holder is solver)
+            if i < 7:
+                np.testing.assert_array_equal(holder.rows, batches[i])
+                np.testing.assert_array_equal(holder.vertex_distances(), d)
+            time.sleep(0.1)  # the other device gets ahead and waits on its kept batch
     assert [i for i, _ in got] == list(range(len(batches)))
     for (_, d), e in zip(got, expect):
         np.testing.assert_array_equal(d, e)
-    assert pool.device_batches > 0  # the second device took part
-    first = {int(b[0]): i for i, b in enumerate(batches)}
-    assert all(mine for mine, s in by_device if first[int(s)] < 3)  # the first `own` batches stay with `solver`
+    assert pool.device_batches > 0 and not all(where)  # the second device took part, held batches too
 
 
 @pytest.mark.slow
@@ -257,13 +256,26 @@ def test_distance_rows_on_a_second_device_are_the_same_in_order(mesh, no_capture
 def test_dataset_is_the_same_with_a_second_device(mesh, no_capture, monkeypatch):
     from neurogf_warp.dataset.build import DatasetSettings, build_dataset
 
-    settings = DatasetSettings(n_sources=32, n_global=64, n_local1=8, n_local2=16, n_path_sources=4, n_test=3,
+    from neurogf_warp.dataset import build
+
+    # the GPU's way: paths traced in the distance pass, from whichever device solved their batch
+    monkeypatch.setattr(build, "trace_with_distances", lambda device: True)
+    settings = DatasetSettings(n_sources=32, n_global=64, n_local1=8, n_local2=16, n_path_sources=20, n_test=3,
                                n_surface=1000, n_spread=400, k=2, batch=4, workers=1)
     one = build_dataset(mesh, None, settings, seed=5, device="cpu", progress=False)
+    assert one.meta["timings"]["paths_traced_with_distances"]
     cpu = wp.get_device("cpu")
     monkeypatch.setattr(dv, "resolve_devices", lambda devices=None, device=None: [cpu, cpu])
+    tracers, trace = set(), build._PathSet.trace
+
+    def recorded(self, solver, *args, **kwargs):
+        tracers.add(id(solver))
+        return trace(self, solver, *args, **kwargs)
+
+    monkeypatch.setattr(build._PathSet, "trace", recorded)
     two = build_dataset(mesh, None, settings, seed=5, device="cpu", progress=False)
     assert two.meta["timings"]["worker_batches"] > 0 and two.meta["timings"]["devices"] == ["cpu", "cpu"]
+    assert len(tracers) == 2  # paths traced from both devices' solvers
     for k in one.array_names():
         np.testing.assert_array_equal(getattr(one, k), getattr(two, k), err_msg=k)
 

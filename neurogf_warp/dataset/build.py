@@ -589,8 +589,8 @@ def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _C
     """Phase 2: the test sources' full rows (unless given as ``test_dist``), then distance sources in order, as
     many as the time limit allows (at least one batch) while keeping its last ``PATH_SHARE`` for phase 3's paths.
     With ``found`` (``trace_with_distances``) the paths of the first ``plan.n_path_sources`` sources are traced
-    from the same runs into it, and no time is kept for phase 3. ``devices``: further GPUs that solve the batches
-    after those (``DistanceRows``), the rows the same as ``solver``'s.
+    from the same runs into it, and no time is kept for phase 3. ``devices``: further GPUs that share the batches
+    (``DistanceRows``), their rows and paths the same as ``solver``'s.
 
     Returns (kept source ids, {"global"|"local1"|"local2": [(n, 7) rows per kept source]}, sources solved,
     (T, V) test distances, worker batches, path sources traced).
@@ -607,9 +607,10 @@ def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _C
     solved, marks, started = [0], [], [time.perf_counter()]
     traced = 0
     keep = 0.0 if found is not None else PATH_SHARE  # of the limit, for phase 3
-    # batches whose paths are traced must be solved by `solver` itself (their path records stay on its device)
-    own = len(tests) + (-(-plan.n_path_sources // step) if found is not None else 0)
-    with DistanceRows(solver, st.workers, devices=devices, own=own) as rows_of:
+    # the batches whose paths are traced: their solver (on whichever device) keeps its path records until then
+    n_traced = len(tests) + (-(-plan.n_path_sources // step) if found is not None else 0)
+    hold = lambda i: len(tests) <= i < n_traced  # noqa: E731
+    with DistanceRows(solver, st.workers, devices=devices) as rows_of:
         if found is not None and rows_of.workers != 1:  # a worker's rows would be traced on this solver's run
             raise RuntimeError("paths are traced in the distance pass only when this process solves every row")
 
@@ -627,7 +628,7 @@ def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _C
             started.append(now)
             return True
 
-        for b, D in rows_of.rows(batches, more):
+        for b, D in rows_of.rows(batches, more, hold):
             marks.append((time.perf_counter(), (marks[-1][1] if marks else 0) + len(D)))
             if b < len(tests):
                 test_dist[b * step: b * step + len(D)] = D
@@ -641,7 +642,8 @@ def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _C
             n_trace = min(len(src), plan.n_path_sources - first) if found is not None else 0
             if n_trace > 0:  # the solver still holds this batch's path records (DistanceRows yields before the next)
                 targets = {j: _Targets(D[j], src[j], plan.target_set, plan.nball) for j in range(n_trace)}
-                found.trace(solver, D[:n_trace], src[:n_trace], plan, st, rng, [targets[j] for j in range(n_trace)])
+                found.trace(rows_of.solver_of(b), D[:n_trace], src[:n_trace], plan, st, rng,
+                            [targets[j] for j in range(n_trace)])
                 traced += n_trace
                 bar.update(n_trace)
             # the next batch solves on the GPU while this one's rows are drawn here (the host's share of a GPU
@@ -756,9 +758,10 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     progress : a progress bar on stderr
     devices : GPUs that share the distance sources ("all", a list such as ["cuda:0", "cuda:1"], or None: the
         environment variable ``NEUROGF_DEVICES`` where set and ``device`` is a GPU, else ``device`` alone; checked
-        as in ``geodesic_distances``): ``device`` (else the first of them) does everything else and the batches
-        whose paths are traced, the others take the further distance batches, each with a solver of the same
-        settings, so the dataset is the one ``device`` alone builds (under a time limit, with more sources)
+        as in ``geodesic_distances``): ``device`` (else the first of them) does the single-device work, and
+        every GPU takes distance batches with a solver of the same settings (a batch's paths are traced on the
+        GPU that solved it; the rows come back in order), so the dataset is the one ``device`` alone builds
+        (under a time limit, with more sources)
     time_limit_s : seconds (from the start of the call) that the whole build may take: distance sources stop
         between solver batches when the next batch would end past it (on the CPU: in its last ``PATH_SHARE``, and
         the path sources stop between batches at the limit); at least one batch of each is solved. The dataset
