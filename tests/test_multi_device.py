@@ -301,3 +301,19 @@ def test_train_and_the_command_line_check_devices_before_any_work(tmp_path, caps
         assert cli.main([str(a) for a in cmd] + ["--devices", "cpu,cuda:9"]) == 2
         assert "devices: unknown device 'cuda:9'" in capsys.readouterr().err
     assert not (tmp_path / "d.npz").exists() and not (tmp_path / "m.ngf").exists()
+
+
+def test_lock_captures_holds_the_lock_for_first_launches_only():
+    class Fake:
+        def __init__(self):
+            self._graphs = {}
+            self.locked = []
+
+        def _launch(self, name, program):
+            self.locked.append((name, dv._CAPTURE_LOCK.locked()))
+            self._graphs.setdefault(name, object())
+
+    s = dv.lock_captures(Fake())
+    for name in ("start", "loop", "start"):
+        s._launch(name, None)
+    assert s.locked == [("start", True), ("loop", True), ("start", False)]

@@ -20,8 +20,8 @@ import warp as wp
 from neurogf_warp.common.arrays import resolve_device
 from neurogf_warp.common.checks import InputError
 
-__all__ = ["ENV", "LAST_RUN", "resolve_devices", "split_blocks", "run_on_devices", "process_group", "all_gather_rows",
-           "all_gather_objects"]
+__all__ = ["ENV", "LAST_RUN", "lock_captures", "resolve_devices", "split_blocks", "run_on_devices",
+           "process_group", "all_gather_rows", "all_gather_objects"]
 
 ENV = "NEUROGF_DEVICES"  # default of ``devices``: "all", or a comma-separated list such as "cuda:0,cuda:1"
 # Where the last call of geodesic_distances over several devices (or ranks) spent its time, for benchmarks: per
@@ -101,6 +101,25 @@ def resolve_devices(devices=None, device=None, name: str = "devices") -> list:
             out.append(first)
         out = [first] + [d for d in out if str(d) != str(first)]
     return out
+
+
+_CAPTURE_LOCK = threading.Lock()
+
+
+def lock_captures(solver):
+    """``solver`` with its programs captured one solver at a time across threads (its first launch of each):
+    two threads capturing CUDA graphs at once on two H200s made one capture fail (CUDA error 901), and that solver
+    then ran its loop from the host. Replays are not locked."""
+    launch = solver._launch
+
+    def locked(name, program):
+        if solver._graphs.get(name) is not None:
+            return launch(name, program)
+        with _CAPTURE_LOCK:
+            return launch(name, program)
+
+    solver._launch = locked
+    return solver
 
 
 def split_blocks(n: int, parts: int) -> list:

@@ -117,6 +117,22 @@ def _to_output(m: Mesh, d: np.ndarray) -> np.ndarray:
     return m.to_input(d)
 
 
+def _share_tables(m: Mesh, k: int, windows: bool, devs: list) -> None:
+    """The solver cache's host tables of ``devs[0]`` (built by its solver just now) entered for the other devices
+    as well, without the device graph (each of their solvers builds its own from them). Where the cache's entries
+    are not what this expects, nothing is shared (each device then builds its own tables)."""
+    from neurogf_warp.ground_truth import solver as sv
+
+    try:
+        tables = sv._SOLVER_CACHE.get(sv._cache_key(m, k, windows, devs[0]))
+        if tables is None or len(tables) != 7:
+            return
+        for d in devs[1:]:
+            sv._SOLVER_CACHE[sv._cache_key(m, k, windows, d)] = tuple(tables[:6]) + (None,)
+    except (AttributeError, TypeError):
+        return
+
+
 def _spread_distances(m: Mesh, src: np.ndarray, devs: list, group, k: int, windows: bool, batch, delta: float,
                       near: bool) -> np.ndarray:
     """``geodesic_distances``' rows (normalized, internal numbering) over ``devs`` (one thread each) and, with
@@ -149,12 +165,22 @@ def _spread_distances(m: Mesh, src: np.ndarray, devs: list, group, k: int, windo
         for d in devs:
             load_for_capture(d)
 
+    first = None
+    if len(devs) > 1 and cache and len(own[parts[0]]):
+        # the host tables (vertex order, topology, Steiner counts) once, for every device: built in each thread
+        # they cost the 2.2M-vertex bunny's two H200s more than one build (the threads contend for the host)
+        first = GeodesicSolver(m, k=k, windows=windows, device=devs[0], batch=batch, max_rows=len(own[parts[0]]),
+                               delta=delta, cache=True)
+        _share_tables(m, k, windows, devs)
+    spans["first_s"] = time.perf_counter() - t0
+
     def solve(j):
         block = own[parts[j]]
         if len(block):
             t1 = time.perf_counter()
-            sol = GeodesicSolver(m, k=k, windows=windows, device=devs[j], batch=batch, max_rows=len(block),
-                                 delta=delta, cache=cache)
+            sol = first if j == 0 and first is not None else \
+                GeodesicSolver(m, k=k, windows=windows, device=devs[j], batch=batch, max_rows=len(block),
+                               delta=delta, cache=cache)
             n_batches = -(-len(block) // sol.batch)
             even = -(-len(block) // n_batches)
             if batch is None and even < sol.batch:
@@ -162,11 +188,14 @@ def _spread_distances(m: Mesh, src: np.ndarray, devs: list, group, k: int, windo
                 # 32 sources in batches of 14: 42 rows of work, in batches of 11: 33); the tables are cached
                 sol = None
                 sol = GeodesicSolver(m, k=k, windows=windows, device=devs[j], batch=even, delta=delta, cache=cache)
+            if len(devs) > 1:
+                dv.lock_captures(sol)
             solvers[j] = sol
+            t2 = time.perf_counter()
             rows[parts[j]] = sol.solve(block)
             if near and group is None:  # its rows' patches, while the other devices may still solve
                 patches[j] = ns.patch_faces_rows(sol, rows[parts[j]], ns.patch_limit(sol))
-            spans["solve"][j] = (t1 - t0, time.perf_counter() - t0, len(block))
+            spans["solve"][j] = (t1 - t0, t2 - t0, time.perf_counter() - t0, len(block), sol.batch, sol.captured)
 
     spans["load_s"] = time.perf_counter() - t0
     dv.run_on_devices(solve, len(devs))
@@ -191,7 +220,8 @@ def _spread_distances(m: Mesh, src: np.ndarray, devs: list, group, k: int, windo
     def refine(j):
         t1 = time.perf_counter()
         for chunk in own[parts[j]]:
-            updates[j] += ns.solve_chunk(ref, src, chunk, ns.PATCH_K, devs[j])
+            updates[j] += ns.solve_chunk(ref, src, chunk, ns.PATCH_K, devs[j],
+                                         prepare=dv.lock_captures if len(devs) > 1 else None)
         spans["refine"][j] = (t1 - t0, time.perf_counter() - t0, len(own[parts[j]]))
 
     spans["plan_s"] = time.perf_counter() - t1

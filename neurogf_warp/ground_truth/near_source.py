@@ -128,8 +128,9 @@ def apply_updates(out: np.ndarray, updates: list) -> None:
         out[r, used] = np.minimum(out[r, used], d)
 
 
-def solve_chunk(solver: GeodesicSolver, src: np.ndarray, chunk: list, k: int, device) -> list:
-    """One union of patches (disjoint copies, numbered one after the other), one multi-seed solve on ``device``.
+def solve_chunk(solver: GeodesicSolver, src: np.ndarray, chunk: list, k: int, device, prepare=None) -> list:
+    """One union of patches (disjoint copies, numbered one after the other), one multi-seed solve on ``device``
+    (``prepare(solver)``, if given, first: ``devices.lock_captures`` where other threads solve at the same time).
 
     Returns a list of (row, (n,) vertex ids, (n,) float32 patch distances in the normalized frame), for
     ``apply_updates``."""
@@ -150,6 +151,8 @@ def solve_chunk(solver: GeodesicSolver, src: np.ndarray, chunk: list, k: int, de
         return []
     union = load_mesh((np.concatenate(verts), np.concatenate(faces)), weld=False)
     ps = GeodesicSolver(union, k=k, device=device, max_rows=1)
+    if prepare is not None:
+        prepare(ps)
     ps.run_seeds(np.asarray(seeds))
     d = ps.vertex_distances()[0] / np.float32(union.scale)  # units of P: the normalized frame
     return [(r, used, d[b: b + len(used)]) for r, used, b in owners]

@@ -328,6 +328,9 @@ class DistanceRows:
 
     def _start_devices(self, batches, claim, done, state, held) -> list:
         """A thread per further device; each builds its solver at once."""
+        from neurogf_warp.ground_truth.devices import lock_captures
+
+        lock_captures(self.solver)  # its first captures may come while a device's thread captures
         threads = [threading.Thread(target=self._feed_device, args=(d, batches, claim, done, state, held),
                                     daemon=True) for d in self.devices]
         for t in threads:
@@ -337,11 +340,12 @@ class DistanceRows:
     def _feed_device(self, device, batches, claim, done, state, held):
         """Solve batches on ``device`` until none are left, keeping a held batch's state until the caller is done
         with it; a failure hands its batch back to the caller."""
+        from neurogf_warp.ground_truth.devices import lock_captures
         from neurogf_warp.ground_truth.solver import GeodesicSolver
 
         i = None
         try:
-            solver = GeodesicSolver(self.solver.mesh, device=device, **self.solver.settings)
+            solver = lock_captures(GeodesicSolver(self.solver.mesh, device=device, **self.solver.settings))
             while True:
                 i = claim()
                 if i is None:
