@@ -15,7 +15,7 @@ Stages:
 - ``train``: ``ngf.train(mesh, out, budget_seconds=B, device="cuda:0", devices=[cuda:0 .. cuda:N-1])`` (the
   dataset's ground truth over N GPUs, the steps on cuda:0) for each ``--budgets`` B, then ``ngf.evaluate`` against
   the exact reference (``--train-mesh``, default igea): MRE, p99, distance sources, the dataset's seconds. A first
-  run of the smallest budget on one GPU warms the compile caches and is not kept.
+  run of ``--warmup`` seconds on one GPU warms the compile caches and is not kept.
 - ``collection``: the generalizable network's ground truth on a generated collection (``--shapes`` shapes) with one
   rank, ``--repeats`` times (the command of ``generalizable_scaling.py``, ``--gt-only``): median and spread of the
   ranks' ground-truth seconds and shapes/s, and each run's process wall time.
@@ -59,6 +59,23 @@ def make_mesh(name: str):
     raise SystemExit(f"unknown mesh {name!r}: one of {', '.join(MESHES)}")
 
 
+def _release(devices) -> None:
+    """Memory the last call freed handed back to the devices, so that each call sizes its batches from the same
+    free memory (Warp's memory pool keeps freed blocks otherwise)."""
+    import gc
+
+    import warp as wp
+
+    gc.collect()
+    for d in devices:
+        try:
+            wp.synchronize_device(d)
+            wp.set_mempool_release_threshold(d, 0)
+            wp.synchronize_device(d)
+        except Exception:  # noqa: BLE001 - a device without a memory pool: nothing to hand back
+            pass
+
+
 def gt_stage(a, out: dict) -> None:
     import warp as wp
 
@@ -87,6 +104,7 @@ def gt_stage(a, out: dict) -> None:
         ref, base = None, None
         for g in gpus:
             clear_solver_cache()
+            _release(cuda)
             t0 = time.perf_counter()
             d = ngf.geodesic_distances(m, src, devices=cuda[:g])
             sec = time.perf_counter() - t0
@@ -139,7 +157,8 @@ def train_stage(a, out: dict) -> None:
     ref = common.find_shared("reference", "exact", Path(files[a.train_mesh]).stem + ".npz")
     work = Path(tempfile.mkdtemp(prefix="multi_gpu_train_"))
     rows = out.setdefault("train", [])
-    plan = [(min(a.budgets), gpus[0], False)] + [(b, g, True) for b in a.budgets for g in gpus]
+    plan = [(a.warmup, gpus[0], False)] if a.warmup > 0 else []
+    plan += [(b, g, True) for b in a.budgets for g in gpus]
     for budget, g, keep in plan:
         target = work / f"{a.train_mesh}_{budget:g}s_{g}gpu.ngf"
         t0 = time.perf_counter()
@@ -207,6 +226,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sources", type=int, default=None, help="sources per mesh (default: 256 at 436K, 64 at 2.2M)")
     ap.add_argument("--determinism", action="store_true", help="also one GPU twice on 32 sources of the 436K mesh")
     ap.add_argument("--budgets", type=float, nargs="+", default=[20.0, 60.0], help="train stage budgets (s)")
+    ap.add_argument("--warmup", type=float, default=20.0, help="train stage: a first run of this budget, not kept "
+                    "(compiles every kernel; 0: none)")
     ap.add_argument("--train-mesh", default="igea", choices=["igea", "bunny", "spot"])
     ap.add_argument("--collection", default="multi_gpu_collection", help="collection folder (made if missing)")
     ap.add_argument("--shapes", type=int, default=128)

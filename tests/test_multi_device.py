@@ -303,6 +303,24 @@ def test_train_and_the_command_line_check_devices_before_any_work(tmp_path, caps
     assert not (tmp_path / "d.npz").exists() and not (tmp_path / "m.ngf").exists()
 
 
+def _held_elsewhere(lock) -> bool:
+    """Whether another thread would have to wait for ``lock``."""
+    import threading
+
+    got = []
+
+    def probe():
+        ok = lock.acquire(blocking=False)
+        got.append(ok)
+        if ok:
+            lock.release()
+
+    t = threading.Thread(target=probe)
+    t.start()
+    t.join()
+    return not got[0]
+
+
 def test_lock_captures_holds_the_lock_for_first_launches_only():
     class Fake:
         def __init__(self):
@@ -310,7 +328,7 @@ def test_lock_captures_holds_the_lock_for_first_launches_only():
             self.locked = []
 
         def _launch(self, name, program):
-            self.locked.append((name, dv._CAPTURE_LOCK.locked()))
+            self.locked.append((name, _held_elsewhere(dv.capture_lock())))
             self._graphs.setdefault(name, object())
 
     s = dv.lock_captures(Fake())

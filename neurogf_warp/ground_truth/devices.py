@@ -20,7 +20,7 @@ import warp as wp
 from neurogf_warp.common.arrays import resolve_device
 from neurogf_warp.common.checks import InputError
 
-__all__ = ["ENV", "LAST_RUN", "lock_captures", "resolve_devices", "split_blocks", "run_on_devices",
+__all__ = ["ENV", "LAST_RUN", "capture_lock", "lock_captures", "resolve_devices", "split_blocks", "run_on_devices",
            "process_group", "all_gather_rows", "all_gather_objects"]
 
 ENV = "NEUROGF_DEVICES"  # default of ``devices``: "all", or a comma-separated list such as "cuda:0,cuda:1"
@@ -103,13 +103,19 @@ def resolve_devices(devices=None, device=None, name: str = "devices") -> list:
     return out
 
 
-_CAPTURE_LOCK = threading.Lock()
+_CAPTURE_LOCK = threading.RLock()
+
+
+def capture_lock():
+    """The lock that graph captures (``lock_captures``) and solver set-ups of the device threads take: on two
+    H200s a capture on one device failed (CUDA error 901; that program then ran from the host) while another
+    thread captured, or built its solver, on the other."""
+    return _CAPTURE_LOCK
 
 
 def lock_captures(solver):
-    """``solver`` with its programs captured one solver at a time across threads (its first launch of each):
-    two threads capturing CUDA graphs at once on two H200s made one capture fail (CUDA error 901), and that solver
-    then ran its loop from the host. Replays are not locked."""
+    """``solver`` with its programs captured under ``capture_lock`` (its first launch of each); replays are not
+    locked."""
     launch = solver._launch
 
     def locked(name, program):

@@ -178,16 +178,18 @@ def _spread_distances(m: Mesh, src: np.ndarray, devs: list, group, k: int, windo
         block = own[parts[j]]
         if len(block):
             t1 = time.perf_counter()
-            sol = first if j == 0 and first is not None else \
-                GeodesicSolver(m, k=k, windows=windows, device=devs[j], batch=batch, max_rows=len(block),
-                               delta=delta, cache=cache)
-            n_batches = -(-len(block) // sol.batch)
-            even = -(-len(block) // n_batches)
-            if batch is None and even < sol.batch:
-                # equal batches: a short last batch is padded to the full batch and costs as much (2.2M vertices,
-                # 32 sources in batches of 14: 42 rows of work, in batches of 11: 33); the tables are cached
-                sol = None
-                sol = GeodesicSolver(m, k=k, windows=windows, device=devs[j], batch=even, delta=delta, cache=cache)
+            with dv.capture_lock():  # its uploads and allocations never during another device's graph capture
+                sol = first if j == 0 and first is not None else \
+                    GeodesicSolver(m, k=k, windows=windows, device=devs[j], batch=batch, max_rows=len(block),
+                                   delta=delta, cache=cache)
+                n_batches = -(-len(block) // sol.batch)
+                even = -(-len(block) // n_batches)
+                if batch is None and even < sol.batch:
+                    # equal batches: a short last batch is padded to the full batch and costs as much (2.2M
+                    # vertices, 32 sources in batches of 14: 42 rows of work, in batches of 11: 33); tables cached
+                    sol = None
+                    sol = GeodesicSolver(m, k=k, windows=windows, device=devs[j], batch=even, delta=delta,
+                                         cache=cache)
             if len(devs) > 1:
                 dv.lock_captures(sol)
             solvers[j] = sol

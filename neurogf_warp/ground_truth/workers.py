@@ -340,12 +340,13 @@ class DistanceRows:
     def _feed_device(self, device, batches, claim, done, state, held):
         """Solve batches on ``device`` until none are left, keeping a held batch's state until the caller is done
         with it; a failure hands its batch back to the caller."""
-        from neurogf_warp.ground_truth.devices import lock_captures
+        from neurogf_warp.ground_truth.devices import capture_lock, lock_captures
         from neurogf_warp.ground_truth.solver import GeodesicSolver
 
         i = None
         try:
-            solver = lock_captures(GeodesicSolver(self.solver.mesh, device=device, **self.solver.settings))
+            with capture_lock():  # its uploads and allocations never during another device's graph capture
+                solver = lock_captures(GeodesicSolver(self.solver.mesh, device=device, **self.solver.settings))
             while True:
                 i = claim()
                 if i is None:
