@@ -426,28 +426,35 @@ def fmt_generalizable_scaling(runs):
 @formatter("multi_gpu", "One mesh's ground truth on several GPUs")
 def fmt_multi_gpu(runs):
     out = []
+    gt = [(run, r) for run in runs for r in run.get("gt", [])]
+    if gt:
+        present = sorted({run.get("gpus_present") for run, _ in gt if run.get("gpus_present") is not None})
+        skipped = sorted({g for run, _ in gt for g in run.get("gpus_skipped") or []})
+        out += ["The public call `ngf.geodesic_distances(mesh, sources, devices=[...])` at its defaults, set-up "
+                "included (solver cache cleared before each call); the sources split in balanced contiguous blocks, "
+                "one thread and one solver per GPU. Same rows: whether the rows equal one GPU's bit for bit, else "
+                "the largest relative difference."
+                + (f" The machine had {', '.join(map(str, present))} GPUs" if present else "")
+                + (f"; no machine of {', '.join(map(str, skipped))} GPUs was lent." if skipped else "."), ""]
+        out += table(["mesh", "vertices", "sources", "GPUs", "seconds", "sources / s", "speed-up", "same rows",
+                      "commit"],
+                     [(r["mesh"], f"{r['vertices']:,}", r["sources"], r["gpus"], f"{r['seconds']:.2f}",
+                       f"{r['sources_per_s']:.2f}", f"{r['speedup']:.2f}x",
+                       "(reference)" if r["speedup"] == 1.0 and r["max_rel_diff"] == 0.0 and r["identical"]
+                       else "yes" if r["identical"] else f"no ({r['max_rel_diff']:.1e})",
+                       f"`{run.get('provenance', {}).get('commit')}`") for run, r in gt])
+        reps = [run["one_gpu_repeat"] for run in runs if run.get("one_gpu_repeat")]
+        if reps:
+            same = [r["identical"] for r in reps]
+            out += ["", f"One GPU twice on the first {reps[0]['sources']} sources of {reps[0]['mesh']} "
+                    f"({len(reps)} runs): " + ("bit-identical every time." if all(same) else
+                                               "not bit-identical (largest relative difference "
+                                               + span([r["max_rel_diff"] for r in reps], "{:.1e}") + "): the "
+                                               "GPU's solve varies from run to run (the order in which threads "
+                                               "propose unfolding windows), by about as much as the split over "
+                                               "GPUs differs from one GPU.")]
+        out.append("")
     for run in runs:
-        gt = run.get("gt", [])
-        if gt:
-            present = run.get("gpus_present")
-            skipped = run.get("gpus_skipped") or []
-            out += ["The public call `ngf.geodesic_distances(mesh, sources, devices=[...])` at its defaults, set-up "
-                    "included (solver cache cleared before each call); sources split in balanced contiguous blocks, "
-                    "one thread and one solver per GPU. Identical: the rows equal the fewest GPUs' rows bit for bit "
-                    "(else the largest relative difference)."
-                    + (f" The machine had {present} GPU{'s' if present != 1 else ''}" if present is not None else "")
-                    + (f"; no machine of {', '.join(map(str, skipped))} GPUs was lent for this run." if skipped
-                       else "."), ""]
-            out += table(["mesh", "vertices", "sources", "GPUs", "seconds", "sources / s", "speed-up", "identical"],
-                         [(r["mesh"], f"{r['vertices']:,}", r["sources"], r["gpus"], f"{r['seconds']:.2f}",
-                           f"{r['sources_per_s']:.2f}", f"{r['speedup']:.2f}x",
-                           "yes" if r["identical"] else f"no (max rel. diff {r['max_rel_diff']:.1e})") for r in gt])
-            rep = run.get("one_gpu_repeat")
-            if rep:
-                out += ["", f"One GPU twice on the first {rep['sources']} sources of {rep['mesh']}: "
-                        + ("bit-identical." if rep["identical"]
-                           else f"not bit-identical (max rel. diff {rep['max_rel_diff']:.1e}).")]
-            out.append("")
         tr = run.get("train", [])
         if tr:
             out += ["`ngf.train(mesh, out, budget_seconds=B, devices=[...])`: the dataset's ground truth over the GPUs, "
@@ -459,7 +466,8 @@ def fmt_multi_gpu(runs):
         c = run.get("collection")
         if c:
             out += [f"The generalizable network's ground truth, one rank, {len(c['runs'])} runs "
-                    f"(`generalizable_scaling.py`'s `--gt-only` command): median {c['median_s']:.1f} s "
+                    f"(`generalizable_scaling.py`'s `--gt-only` command, commit "
+                    f"`{run.get('provenance', {}).get('commit')}`): median {c['median_s']:.1f} s "
                     f"({c['median_shapes_per_s']:.2f} shapes/s), min {c['min_s']:.1f} s, max {c['max_s']:.1f} s "
                     f"(spread {100 * c['spread']:.0f}% of the median).", ""]
             out += table(["run", "shapes", "ground truth s", "shapes / s", "process s"],
