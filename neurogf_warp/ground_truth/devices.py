@@ -107,9 +107,9 @@ _CAPTURE_LOCK = threading.RLock()
 
 
 def capture_lock():
-    """The lock that graph captures (``lock_captures``) and solver set-ups of the device threads take: on two
-    H200s a capture on one device failed (CUDA error 901; that program then ran from the host) while another
-    thread captured, or built its solver, on the other."""
+    """The lock that graph captures (``lock_captures``) and the device threads' solver set-ups take, so that no
+    capture overlaps another thread's captures or allocations: a precaution, as a program whose capture fails
+    runs from the host (slower; the solver warns)."""
     return _CAPTURE_LOCK
 
 
