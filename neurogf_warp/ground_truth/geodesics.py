@@ -168,7 +168,7 @@ def _spread_distances(m: Mesh, src: np.ndarray, devs: list, group, k: int, windo
     first = None
     if len(devs) > 1 and cache and len(own[parts[0]]):
         # the host tables (vertex order, topology, Steiner counts) built once for every device: one copy in host
-        # memory (about 1 GB at 2.2M vertices), and each other device builds only its device graph from them
+        # memory (0.33 GB at 436K vertices), and each other device builds only its device graph from them
         first = GeodesicSolver(m, k=k, windows=windows, device=devs[0], batch=batch, max_rows=len(own[parts[0]]),
                                delta=delta, cache=True)
         _share_tables(m, k, windows, devs)
