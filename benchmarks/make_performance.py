@@ -28,7 +28,7 @@ FORMATTERS: dict = {}  # benchmark name -> (title, function(runs) -> list of Mar
 PLOTTERS: dict = {}  # benchmark name -> function(runs, png path): a figure beside the table (matplotlib)
 ORDER = ["queries", "released", "kernel_api", "path_snap", "geodesic_tools", "ground_truth_setup", "geodesics", "time_to_accuracy",
          "bakeoff", "generalizable",
-         "generalizable_collection", "generalizable_eval", "generalizable_scaling"]
+         "generalizable_collection", "generalizable_eval", "generalizable_scaling", "multi_gpu"]
 
 
 def formatter(name: str, title: str):
@@ -423,6 +423,60 @@ def fmt_generalizable_scaling(runs):
              "rank (weak scaling); times exclude process start-up.", ""]
             + table(["ranks", "shapes", "ground truth shapes / s", "speed-up", "training shapes / s", "speed-up"],
                     rows))
+
+
+@formatter("multi_gpu", "One mesh's ground truth on several GPUs")
+def fmt_multi_gpu(runs):
+    out = []
+    gt = [(run, r) for run in runs for r in run.get("gt", [])]
+    if gt:
+        present = sorted({run.get("gpus_present") for run, _ in gt if run.get("gpus_present") is not None})
+        skipped = sorted({g for run, _ in gt for g in run.get("gpus_skipped") or []})
+        out += ["The public call `ngf.geodesic_distances(mesh, sources, devices=[...])` at its defaults, set-up "
+                "included (solver cache cleared before each call); the sources split in balanced contiguous blocks, "
+                "one thread and one solver per GPU. Same rows: whether the rows equal one GPU's bit for bit, else "
+                "the largest relative difference."
+                + (f" The machine had {', '.join(map(str, present))} GPUs" if present else "")
+                + (f"; no machine of {', '.join(map(str, skipped))} GPUs was lent." if skipped else "."), ""]
+        out += table(["mesh", "vertices", "sources", "GPUs", "seconds", "sources / s", "speed-up", "same rows",
+                      "commit"],
+                     [(r["mesh"], f"{r['vertices']:,}", r["sources"], r["gpus"], f"{r['seconds']:.2f}",
+                       f"{r['sources_per_s']:.2f}", f"{r['speedup']:.2f}x",
+                       "(reference)" if r["speedup"] == 1.0 and r["max_rel_diff"] == 0.0 and r["identical"]
+                       else "yes" if r["identical"] else f"no ({r['max_rel_diff']:.1e})",
+                       f"`{run.get('provenance', {}).get('commit')}`") for run, r in gt])
+        reps = [run["one_gpu_repeat"] for run in runs if run.get("one_gpu_repeat")]
+        if reps:
+            same = [r["identical"] for r in reps]
+            out += ["", f"One GPU twice on the first {reps[0]['sources']} sources of {reps[0]['mesh']} "
+                    f"({len(reps)} runs): " + ("bit-identical every time." if all(same) else
+                                               "not bit-identical (largest relative difference "
+                                               + span([r["max_rel_diff"] for r in reps], "{:.1e}") + "): the "
+                                               "GPU's solve varies from run to run (the order in which threads "
+                                               "propose unfolding windows), by about as much as the split over "
+                                               "GPUs differs from one GPU.")]
+        out.append("")
+    for run in runs:
+        tr = run.get("train", [])
+        if tr:
+            out += ["`ngf.train(mesh, out, budget_seconds=B, devices=[...])`: the dataset's ground truth over the GPUs, "
+                    "the steps on one; MRE and p99 against the exact reference.", ""]
+            out += table(["mesh", "budget", "GPUs (ground truth)", "distance sources", "dataset s", "MRE", "p99"],
+                         [(r["mesh"], f"{r['budget_s']:g} s", r["gpus"], r["sources"]["distance"],
+                           num(r.get("dataset_s"), "{:.1f}"), pct(r["mre"]), pct(r["p99"], 2)) for r in tr])
+            out.append("")
+        c = run.get("collection")
+        if c:
+            out += [f"The generalizable network's ground truth, one rank, {len(c['runs'])} runs "
+                    f"(`generalizable_scaling.py`'s `--gt-only` command, commit "
+                    f"`{run.get('provenance', {}).get('commit')}`): median {c['median_s']:.1f} s "
+                    f"({c['median_shapes_per_s']:.2f} shapes/s), min {c['min_s']:.1f} s, max {c['max_s']:.1f} s "
+                    f"(spread {100 * c['spread']:.0f}% of the median).", ""]
+            out += table(["run", "shapes", "ground truth s", "shapes / s", "process s"],
+                         [(i + 1, r["shapes"], f"{r['gt_s']:.1f}", f"{r['shapes_per_s']:.2f}", f"{r['wall_s']:.1f}")
+                          for i, r in enumerate(c["runs"])])
+            out.append("")
+    return out[:-1] if out and out[-1] == "" else out
 
 
 def plot_time_to_accuracy(runs, path: Path) -> None:

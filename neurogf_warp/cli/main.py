@@ -146,6 +146,10 @@ def _add_demo(sub, common):
     d.set_defaults(run=_cmd_demo)
 
 
+DEVICES_HELP = ("GPUs that share the ground truth: all, or a list such as cuda:0,cuda:1 (default: the environment "
+                "variable NEUROGF_DEVICES where set, else --device alone)")
+
+
 def _add_data(sub, common):
     t = sub.add_parser("data", parents=[common], help="build a training dataset (ground-truth geodesics and paths)",
                        description="Compute NeuroGF training data for a mesh with the Warp geodesic solver: distance "
@@ -158,6 +162,7 @@ def _add_data(sub, common):
     t.add_argument("--test-sources", type=int, default=None, help="held-out test sources (default: the preset's)")
     t.add_argument("--k", type=int, default=None, help="Steiner points per edge of the solver (default 3)")
     t.add_argument("--seed", type=int, default=0, help="random seed of every draw (default 0)")
+    t.add_argument("--devices", default=None, help=DEVICES_HELP)
     t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="any other dataset setting, e.g. --set n_global=2048 (repeatable)")
     t.set_defaults(run=_cmd_data)
@@ -179,6 +184,7 @@ def _add_train(sub, common):
                    help="continue the run in <model>.train with its own settings (also a finished one)")
     g.add_argument("--force", action="store_true", help="start over, replacing an existing run and model file")
     t.add_argument("--dataset", default=None, help="train on this dataset .npz instead of building one")
+    t.add_argument("--devices", default=None, help=DEVICES_HELP + "; the steps run on --device, else the first")
     t.add_argument("--weld", action="store_true",
                    help="merge vertices with exactly equal coordinates first (seams stored twice)")
     t.add_argument("--allow-vertex-joins", action="store_true",
@@ -540,6 +546,10 @@ def _cmd_data(args) -> int:
     from neurogf_warp.training import choose_preset, preset
     from neurogf_warp.training.api import torch_device
 
+    if args.devices is not None and args.device is None:  # the first of them does the single-device work
+        from neurogf_warp.ground_truth.devices import resolve_devices
+
+        args.device = str(resolve_devices(args.devices)[0])
     dev = torch_device(args.device)
     mesh = ngf.load_mesh(args.mesh)
     cfg = preset(args.preset or choose_preset(dev.type, len(mesh.internal_vertices)))
@@ -548,7 +558,8 @@ def _cmd_data(args) -> int:
         raise InputError(f"--set {bad[0]}: not a dataset setting (see neurogf_warp.DatasetSettings)")
     settings = cfg.set(**changes).data
     t0 = time.perf_counter()
-    ds = ngf.build_dataset(mesh, args.output, settings, seed=args.seed, device=str(dev), progress=not args.quiet)
+    ds = ngf.build_dataset(mesh, args.output, settings, seed=args.seed, device=str(dev), progress=not args.quiet,
+                           devices=args.devices)
     m = ds.meta
     _say(args, f"wrote {args.output}: {_plural(len(ds.gd_src), 'source')}, "
                f"{_plural(len(ds.path_global) + len(ds.path_local), 'path')} ({m['dropped_paths']} untraceable left "
@@ -595,7 +606,8 @@ def _cmd_train(args) -> int:
     try:
         model = ngf.train(mesh, args.output, config=config, device=args.device, dataset=args.dataset,
                           resume=args.resume, force=args.force, budget_seconds=args.budget_seconds,
-                          progress=not args.quiet, allow_vertex_joins=args.allow_vertex_joins, **changes)
+                          progress=not args.quiet, allow_vertex_joins=args.allow_vertex_joins, devices=args.devices,
+                          **changes)
     except ValueError as e:
         raise InputError(_in_cli_terms(str(e))) from None
     print(_quality_line(model.config), file=sys.stderr)  # also with -q: the one line that says how good it is

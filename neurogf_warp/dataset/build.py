@@ -585,11 +585,12 @@ def _sample(m: Mesh, st: DatasetSettings, rng, surface_mesh: Mesh | None = None,
 
 
 def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _Clock, bar,
-               test_dist: np.ndarray | None = None, found: _PathSet | None = None) -> tuple:
+               test_dist: np.ndarray | None = None, found: _PathSet | None = None, devices=()) -> tuple:
     """Phase 2: the test sources' full rows (unless given as ``test_dist``), then distance sources in order, as
     many as the time limit allows (at least one batch) while keeping its last ``PATH_SHARE`` for phase 3's paths.
     With ``found`` (``trace_with_distances``) the paths of the first ``plan.n_path_sources`` sources are traced
-    from the same runs into it, and no time is kept for phase 3.
+    from the same runs into it, and no time is kept for phase 3. ``devices``: further GPUs that share the batches
+    (``DistanceRows``), their rows and paths the same as ``solver``'s.
 
     Returns (kept source ids, {"global"|"local1"|"local2": [(n, 7) rows per kept source]}, sources solved,
     (T, V) test distances, worker batches, path sources traced).
@@ -606,7 +607,10 @@ def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _C
     solved, marks, started = [0], [], [time.perf_counter()]
     traced = 0
     keep = 0.0 if found is not None else PATH_SHARE  # of the limit, for phase 3
-    with DistanceRows(solver, st.workers) as rows_of:
+    # the batches whose paths are traced: their solver (on whichever device) keeps its path records until then
+    n_traced = len(tests) + (-(-plan.n_path_sources // step) if found is not None else 0)
+    hold = lambda i: len(tests) <= i < n_traced  # noqa: E731
+    with DistanceRows(solver, st.workers, devices=devices) as rows_of:
         if found is not None and rows_of.workers != 1:  # a worker's rows would be traced on this solver's run
             raise RuntimeError("paths are traced in the distance pass only when this process solves every row")
 
@@ -624,7 +628,7 @@ def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _C
             started.append(now)
             return True
 
-        for b, D in rows_of.rows(batches, more):
+        for b, D in rows_of.rows(batches, more, hold):
             marks.append((time.perf_counter(), (marks[-1][1] if marks else 0) + len(D)))
             if b < len(tests):
                 test_dist[b * step: b * step + len(D)] = D
@@ -638,7 +642,8 @@ def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _C
             n_trace = min(len(src), plan.n_path_sources - first) if found is not None else 0
             if n_trace > 0:  # the solver still holds this batch's path records (DistanceRows yields before the next)
                 targets = {j: _Targets(D[j], src[j], plan.target_set, plan.nball) for j in range(n_trace)}
-                found.trace(solver, D[:n_trace], src[:n_trace], plan, st, rng, [targets[j] for j in range(n_trace)])
+                found.trace(rows_of.solver_of(b), D[:n_trace], src[:n_trace], plan, st, rng,
+                            [targets[j] for j in range(n_trace)])
                 traced += n_trace
                 bar.update(n_trace)
             # the next batch solves on the GPU while this one's rows are drawn here (the host's share of a GPU
@@ -656,7 +661,7 @@ def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _C
                 rows["local1"].append(_rows(xyz, s, near, tg.d))
                 rows["local2"].append(_rows(xyz, s, _pick(rng, pool, st.n_local2), tg.d))
             bar.update(len(src))
-        worker_batches = rows_of.worker_batches
+        worker_batches = rows_of.worker_batches + rows_of.device_batches
     if not kept:
         raise ValueError("no training source reaches any other vertex: the mesh has no usable connected part")
     return kept, rows, solved[0], test_dist, worker_batches, traced
@@ -738,7 +743,7 @@ def trace_with_distances(device) -> bool:
 
 
 def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, *, seed: int = 0, device=None,
-                  progress: bool = True, time_limit_s: float | None = None, **overrides) -> Dataset:
+                  progress: bool = True, time_limit_s: float | None = None, devices=None, **overrides) -> Dataset:
     """Compute the NeuroGF training data for one mesh with the Warp geodesic solver.
 
     Parameters
@@ -751,6 +756,12 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     device : Warp device of the solver (on the CPU, the distance sources are solved by ``settings.workers``
         processes, one per core by default; the result does not depend on how many: ``ground_truth/workers.py``)
     progress : a progress bar on stderr
+    devices : GPUs that share the distance sources ("all", a list such as ["cuda:0", "cuda:1"], or None: the
+        environment variable ``NEUROGF_DEVICES`` where set and ``device`` is a GPU, else ``device`` alone; checked
+        as in ``geodesic_distances``): ``device`` (else the first of them) does the single-device work, and
+        every GPU takes distance batches with a solver of the same settings (a batch's paths are traced on the
+        GPU that solved it; the rows come back in order), so the dataset is the one ``device`` alone builds
+        (under a time limit, with more sources)
     time_limit_s : seconds (from the start of the call) that the whole build may take: distance sources stop
         between solver batches when the next batch would end past it (on the CPU: in its last ``PATH_SHARE``, and
         the path sources stop between batches at the limit); at least one batch of each is solved. The dataset
@@ -786,6 +797,12 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     rng = np.random.default_rng(seed)
     timings = {}
 
+    from neurogf_warp.ground_truth.devices import resolve_devices
+
+    devs = resolve_devices(devices, device)
+    if len(devs) > 1:
+        device = str(devs[0])
+        timings["devices"] = [str(d) for d in devs]
     batch = solver_batch(st.batch, device)
     _check_held_out_time(m, st, device, time_limit_s)
     n_proxy = st.proxy if st.proxy is not None else _auto_proxy(m, st, device, time_limit_s)
@@ -850,7 +867,7 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     found = _PathSet()
     here = trace_with_distances(device)
     kept, rows, solved, test_dist, timings["worker_batches"], n_path_done = _distances(
-        g, st, plan, rng, solver, clock, bar, test_dist, found if here else None)
+        g, st, plan, rng, solver, clock, bar, test_dist, found if here else None, devs[1:])
     if solved < len(plan.gd_src):  # the time limit cut the sources short
         bar.set_total(solved + len(plan.test_src) + min(plan.n_path_sources, solved))
     timings["distances_s"] = time.perf_counter() - t0  # with the paths traced in the pass, when ``here``

@@ -40,8 +40,8 @@ def _vertices(mesh: Mesh, indices, name: str) -> np.ndarray:
 
 def geodesic_distances(mesh, sources, device=None, k: int = DEFAULT_K, windows: bool = True,
                        batch: int | None = None, delta: float = DEFAULT_DELTA,
-                       near_source: bool | None = None) -> np.ndarray:
-    """Geodesic distances from mesh vertices to every vertex.
+                       near_source: bool | None = None, devices=None, distributed=False) -> np.ndarray:
+    """Geodesic distances from mesh vertices to every vertex, on one device or spread over several.
 
     Parameters
     ----------
@@ -60,12 +60,22 @@ def geodesic_distances(mesh, sources, device=None, k: int = DEFAULT_K, windows: 
         a few thousand vertices (docs/performance.md). None (the default) means on with
         ``windows`` and off for the plain Steiner graph (``windows=False``, which stays exactly that graph's
         shortest paths); False gives the plain solve at ``k``, which is what the training datasets use.
+    devices : "all", a list such as ["cuda:0", "cuda:1"] (or "cuda:0,cuda:1"), or None: the sources are split in
+        balanced contiguous blocks, one per device, solved at the same time (one thread and one solver per device;
+        ``ground_truth/devices.py``). None means the environment variable ``NEUROGF_DEVICES`` (same forms) where
+        it is set and ``device`` is not the CPU, else ``device`` alone. ``device``, if given, must be one of them.
+        Unknown devices, a device given twice and the CPU mixed with GPUs are refused (InputError).
+    distributed : bool or torch.distributed ProcessGroup, every rank of the process group (True: the default one)
+        calls with the same mesh and sources; each solves its block of the sources on its own ``device`` /
+        ``devices`` (under torchrun, typically ``device=f"cuda:{LOCAL_RANK}"``), and every rank returns all rows
+        (all-gathered). False (default): no collective, as ranks that work on different meshes need.
 
     Returns
     -------
     (S, V_input) float32, mesh units: inf between parts no surface path joins, NaN at vertices no face uses.
     Every value is the length of a real surface path (an upper bound of the exact distance). An empty
-    `sources` gives a (0, V_input) array.
+    `sources` gives a (0, V_input) array. Each row is solved on its own, so the rows do not depend on ``devices``
+    or the number of ranks (bit for bit on the CPU; docs/guides/multi-gpu.md for GPUs).
 
     Notes
     -----
@@ -75,22 +85,155 @@ def geodesic_distances(mesh, sources, device=None, k: int = DEFAULT_K, windows: 
     the same mesh, device, ``k`` and ``windows`` skips that set-up (``GeodesicSolver(cache=True)``);
     ``clear_solver_cache()`` frees them. The per-source solver state is freed when the call returns.
     """
+    from neurogf_warp.ground_truth.devices import process_group, resolve_devices
+
     m = load_mesh(mesh)
     src = _vertices(m, sources, "sources")
+    devs = resolve_devices(devices, device)
+    group = process_group(distributed)
     if len(src) == 0:
         return np.zeros((0, m.n_input), dtype=np.float32)
+    near = windows if near_source is None else near_source
+    if len(devs) > 1 or group is not None:
+        d = _spread_distances(m, src, devs, group, k=k, windows=windows, batch=batch, delta=delta, near=near)
+        return _to_output(m, d)
+    device = devs[0]
     solver = GeodesicSolver(m, k=k, windows=windows, device=device, batch=batch, max_rows=len(src),
                             delta=delta, cache=True)
     d = solver.solve(src)
-    if windows if near_source is None else near_source:
+    if near:
         from neurogf_warp.ground_truth.near_source import refine_near_sources
 
         d = refine_near_sources(solver, src, d, copy=False)
     del solver  # its per-source state, before the output rows are made
+    return _to_output(m, d)
+
+
+def _to_output(m: Mesh, d: np.ndarray) -> np.ndarray:
+    """Normalized internal rows (S, V) -> mesh units, the input's numbering (in place where it can)."""
     d /= np.float32(m.scale)
     if m.n_input == len(m.index) and np.array_equal(m.index, np.arange(m.n_input)):
         return d  # every input vertex is its own internal vertex: to_input would copy the rows unchanged
     return m.to_input(d)
+
+
+def _share_tables(m: Mesh, k: int, windows: bool, devs: list) -> None:
+    """The solver cache's host tables of ``devs[0]`` (built by its solver just now) entered for the other devices
+    as well, without the device graph (each of their solvers builds its own from them). Where the cache's entries
+    are not what this expects, nothing is shared (each device then builds its own tables)."""
+    from neurogf_warp.ground_truth import solver as sv
+
+    try:
+        tables = sv._SOLVER_CACHE.get(sv._cache_key(m, k, windows, devs[0]))
+        if tables is None or len(tables) != 7:
+            return
+        for d in devs[1:]:
+            sv._SOLVER_CACHE[sv._cache_key(m, k, windows, d)] = tuple(tables[:6]) + (None,)
+    except (AttributeError, TypeError):
+        return
+
+
+def _spread_distances(m: Mesh, src: np.ndarray, devs: list, group, k: int, windows: bool, batch, delta: float,
+                      near: bool) -> np.ndarray:
+    """``geodesic_distances``' rows (normalized, internal numbering) over ``devs`` (one thread each) and, with
+    ``group`` = (process group, rank, world), over the ranks: this rank's block of ``src`` solved in balanced
+    contiguous blocks per device, the rows all-gathered; then the near-source patches of all rows planned alike on
+    every rank and their union solves split the same way (their updates all-gathered), so that every solve is one
+    that a single device would have made."""
+    import time
+
+    from neurogf_warp.ground_truth import devices as dv
+    from neurogf_warp.ground_truth import near_source as ns
+
+    t0 = time.perf_counter()
+    spans = dv.LAST_RUN
+    spans.clear()
+    spans.update(devices=[str(d) for d in devs], solve=[None] * len(devs), refine=[None] * len(devs))
+    S = len(src)
+    mine = dv.split_blocks(S, group[2])[group[1]] if group is not None else slice(0, S)
+    own = src[mine]
+    parts = dv.split_blocks(len(own), len(devs))
+    rows = np.empty((len(own), len(m.internal_vertices)), dtype=np.float32)
+    solvers = [None] * len(devs)
+    # the tables of every device fit in the solver cache, or no device uses it (threads evicting each other's
+    # entries would race)
+    cache = len(devs) <= SOLVER_CACHE_SIZE
+    patches = [[] for _ in devs]
+    if len(devs) > 1:  # every module loaded on each device before the threads (no two compile the same module)
+        from neurogf_warp.ground_truth.solver import load_for_capture
+
+        for d in devs:
+            load_for_capture(d)
+
+    first = None
+    if len(devs) > 1 and cache and len(own[parts[0]]):
+        # the host tables (vertex order, topology, Steiner counts) built once for every device: one copy in host
+        # memory (0.33 GB at 436K vertices), and each other device builds only its device graph from them
+        first = GeodesicSolver(m, k=k, windows=windows, device=devs[0], batch=batch, max_rows=len(own[parts[0]]),
+                               delta=delta, cache=True)
+        _share_tables(m, k, windows, devs)
+    spans["first_s"] = time.perf_counter() - t0
+
+    def solve(j):
+        block = own[parts[j]]
+        if len(block):
+            t1 = time.perf_counter()
+            with dv.capture_lock():  # its uploads and allocations never during another device's graph capture
+                sol = first if j == 0 and first is not None else \
+                    GeodesicSolver(m, k=k, windows=windows, device=devs[j], batch=batch, max_rows=len(block),
+                                   delta=delta, cache=cache)
+                n_batches = -(-len(block) // sol.batch)
+                even = -(-len(block) // n_batches)
+                if batch is None and even < sol.batch:
+                    # equal batches: a short last batch is padded to the full batch and costs as much (2.2M
+                    # vertices, 32 sources in batches of 14: 42 rows of work, in batches of 11: 33); tables cached
+                    sol = None
+                    sol = GeodesicSolver(m, k=k, windows=windows, device=devs[j], batch=even, delta=delta,
+                                         cache=cache)
+            if len(devs) > 1:
+                dv.lock_captures(sol)
+            solvers[j] = sol
+            t2 = time.perf_counter()
+            rows[parts[j]] = sol.solve(block)
+            if near and group is None:  # its rows' patches, while the other devices may still solve
+                patches[j] = ns.patch_faces_rows(sol, rows[parts[j]], ns.patch_limit(sol))
+            spans["solve"][j] = (t1 - t0, t2 - t0, time.perf_counter() - t0, len(block), sol.batch, sol.captured)
+
+    spans["load_s"] = time.perf_counter() - t0
+    dv.run_on_devices(solve, len(devs))
+    t1 = time.perf_counter()
+    d = dv.all_gather_rows(rows, S, group[0]) if group is not None else rows
+    spans["gather_s"] = time.perf_counter() - t1
+    rows = None  # this rank's block: a copy of it is in d
+    if not near:
+        return d
+    ref = next((s for s in solvers if s is not None), None)
+    if ref is None:  # this rank had no sources: its host tables still plan the chunks (one row of state)
+        ref = GeodesicSolver(m, k=k, windows=windows, device=devs[0], batch=1, delta=delta, cache=cache)
+    for j in range(1, len(solvers)):
+        solvers[j] = None  # their per-source state: the patch solves need the room
+    t1 = time.perf_counter()
+    chunks = ns.plan_chunks(ref, src, d, patches=None if group is not None else [p for ps in patches for p in ps])
+    mine = dv.split_blocks(len(chunks), group[2])[group[1]] if group is not None else slice(0, len(chunks))
+    own = chunks[mine]
+    parts = dv.split_blocks(len(own), len(devs))
+    updates = [[] for _ in devs]
+
+    def refine(j):
+        t1 = time.perf_counter()
+        for chunk in own[parts[j]]:
+            updates[j] += ns.solve_chunk(ref, src, chunk, ns.PATCH_K, devs[j],
+                                         prepare=dv.lock_captures if len(devs) > 1 else None)
+        spans["refine"][j] = (t1 - t0, time.perf_counter() - t0, len(own[parts[j]]))
+
+    spans["plan_s"] = time.perf_counter() - t1
+    dv.run_on_devices(refine, len(devs))
+    mine_updates = [u for part in updates for u in part]
+    every = dv.all_gather_objects(mine_updates, group[0]) if group is not None else [mine_updates]
+    for part in every:
+        ns.apply_updates(d, part)
+    spans["total_s"] = time.perf_counter() - t0
+    return d
 
 
 def resample_polyline(points: np.ndarray, offsets: np.ndarray, m: int, device=None) -> np.ndarray:

@@ -18,7 +18,8 @@ import numpy as np
 from neurogf_warp.ground_truth.solver import GeodesicSolver
 from neurogf_warp.mesh.mesh import load_mesh
 
-__all__ = ["refine_near_sources", "patch_faces", "patch_faces_rows", "PATCH_RADIUS", "PATCH_K"]
+__all__ = ["refine_near_sources", "plan_chunks", "patch_limit", "solve_chunk", "apply_updates", "patch_faces",
+           "patch_faces_rows", "PATCH_RADIUS", "PATCH_K"]
 
 PATCH_RADIUS = 12.0  # mean edge lengths: beyond it the k = 3 worst pair was 0.38-0.44% on the tail meshes
 PATCH_K = 6  # k = 5 left the needle mesh's degenerate-face pair at 0.64%; k = 6 took every mesh to <= 0.45%
@@ -85,27 +86,56 @@ def refine_near_sources(solver: GeodesicSolver, sources: np.ndarray, dist: np.nd
     out = np.array(dist, dtype=np.float32, copy=True) if copy else np.asarray(dist, dtype=np.float32)
     if len(src) == 0:
         return out
-    P = solver.mesh.internal_normalized_vertices
-    F = solver._order[solver.topo.faces]  # mesh numbering, in the solver's face order
-    limit = (radius + 2.0) * solver.mean_edge
+    for chunk in plan_chunks(solver, src, out, k, radius):
+        apply_updates(out, solve_chunk(solver, src, chunk, k, solver.device))
+    return out
+
+
+def patch_limit(solver: GeodesicSolver, radius: float = PATCH_RADIUS) -> float:
+    """The distance (normalized frame) within which a source's patch takes faces: radius + 2 mean edges."""
+    return (radius + 2.0) * solver.mean_edge
+
+
+def plan_chunks(solver: GeodesicSolver, sources: np.ndarray, dist: np.ndarray | None, k: int = PATCH_K,
+                radius: float = PATCH_RADIUS, patches: list | None = None) -> list:
+    """The union solves of ``refine_near_sources``: a list of chunks, each a list of (row, (n,) face rows of
+    ``solver.topo.faces``), the rows in order, each chunk's patches together under NODE_CAP nodes. The chunks
+    depend only on the mesh and ``dist``, so devices that split them between them reproduce one device's solves.
+    ``patches``: the rows' ``patch_faces_rows`` at ``patch_limit``, where already made (``dist`` is then unused)."""
+    src = np.asarray(sources, dtype=np.int64).reshape(-1)
+    if len(src) == 0:
+        return []
     # every patch from the rows as given (a chunk's solve changes only its own rows)
-    patches = patch_faces_rows(solver, out, limit)
+    if patches is None:
+        patches = patch_faces_rows(solver, np.asarray(dist, dtype=np.float32), patch_limit(solver, radius))
     # chunks of sources whose patches together stay under NODE_CAP nodes (about V + 1.5 k F per patch)
-    chunk, size = [], 0
+    chunks, chunk, size = [], [], 0
     for r in range(len(src)):
         faces = patches[r]
         n = int(len(faces) * (0.5 + 1.5 * k))
         if chunk and size + n > NODE_CAP:
-            _solve_chunk(P, F, src, out, chunk, k, solver.device)
+            chunks.append(chunk)
             chunk, size = [], 0
         chunk.append((r, faces))
         size += n
-    _solve_chunk(P, F, src, out, chunk, k, solver.device)
-    return out
+    chunks.append(chunk)
+    return chunks
 
 
-def _solve_chunk(P, F, src, out, chunk, k, device):
-    """One union of patches (disjoint copies, numbered one after the other), one multi-seed solve, min into out."""
+def apply_updates(out: np.ndarray, updates: list) -> None:
+    """Lower ``out`` (S, V) by ``solve_chunk``'s updates: min in place."""
+    for r, used, d in updates:
+        out[r, used] = np.minimum(out[r, used], d)
+
+
+def solve_chunk(solver: GeodesicSolver, src: np.ndarray, chunk: list, k: int, device, prepare=None) -> list:
+    """One union of patches (disjoint copies, numbered one after the other), one multi-seed solve on ``device``
+    (``prepare(solver)``, if given, first: ``devices.lock_captures`` where other threads solve at the same time).
+
+    Returns a list of (row, (n,) vertex ids, (n,) float32 patch distances in the normalized frame), for
+    ``apply_updates``."""
+    P = solver.mesh.internal_normalized_vertices
+    F = solver._order[solver.topo.faces]  # mesh numbering, in the solver's face order
     verts, faces, seeds, owners = [], [], [], []
     base = 0
     for r, fi in chunk:
@@ -118,10 +148,11 @@ def _solve_chunk(P, F, src, out, chunk, k, device):
         owners.append((r, used, base))
         base += len(used)
     if not owners:
-        return
+        return []
     union = load_mesh((np.concatenate(verts), np.concatenate(faces)), weld=False)
-    solver = GeodesicSolver(union, k=k, device=device, max_rows=1)
-    solver.run_seeds(np.asarray(seeds))
-    d = solver.vertex_distances()[0] / np.float32(union.scale)  # units of P: the normalized frame
-    for r, used, b in owners:
-        out[r, used] = np.minimum(out[r, used], d[b: b + len(used)])
+    ps = GeodesicSolver(union, k=k, device=device, max_rows=1)
+    if prepare is not None:
+        prepare(ps)
+    ps.run_seeds(np.asarray(seeds))
+    d = ps.vertex_distances()[0] / np.float32(union.scale)  # units of P: the normalized frame
+    return [(r, used, d[b: b + len(used)]) for r, used, b in owners]

@@ -137,9 +137,11 @@ class DistanceRows:
 
     workers : processes in all, the caller included (None: the cores this process may use, at most
         ``MAX_WORKERS``); always 1 on a GPU, where one solver fills the device
+    devices : further devices (GPUs), each solving batches in a thread of this process with its own solver of the
+        same mesh and settings (``solver.settings``: the same batches, so the same rows)
     """
 
-    def __init__(self, solver, workers: int | None = None):
+    def __init__(self, solver, workers: int | None = None, devices=()):
         if workers is not None:
             workers = integer("workers", workers, minimum=1)
         self.solver = solver
@@ -148,6 +150,9 @@ class DistanceRows:
         self.workers = min(MAX_WORKERS, cpu_cores() if workers is None else int(workers))
         self._pool: list[_Worker] = []
         self.worker_batches = 0  # batches the worker processes solved
+        self.devices = list(devices)
+        self.device_batches = 0  # batches the other devices solved
+        self._holds: dict = {}  # batch -> (device solver, event set when the caller is done with the batch)
         self._prefetch = None
 
     def __enter__(self):
@@ -168,14 +173,17 @@ class DistanceRows:
         programs not captured yet."""
         return bool(self._prefetch and self._prefetch())
 
-    def rows(self, batches: list, more=None):
+    def rows(self, batches: list, more=None, hold=None):
         """Yield ``(i, D)`` for batch ``i`` of ``batches`` (arrays of internal source ids), in order, with ``D``
         the (len(batches[i]), V) float32 normalized distances. ``more(i)``, if given, is asked before batch
         ``i > 0`` is started; once it says False no further batch starts (those started are still yielded). On a
-        GPU the caller may start the next batch early (``prefetch``)."""
+        GPU the caller may start the next batch early (``prefetch``). ``hold(i)``: whether the solver that made
+        batch ``i`` keeps its state until the caller asks for the next batch (``solver_of(i)`` is that solver,
+        e.g. to trace the batch's paths)."""
         n = len(batches)
         lock = threading.Lock()
-        state = {"next": 0, "stop": False}
+        state = {"next": 0, "stop": False, "closed": False}
+        held = hold or (lambda i: False)
 
         def claim():
             with lock:
@@ -190,21 +198,38 @@ class DistanceRows:
         ready: dict = {}
         want = 0
         feeders: list[threading.Thread] = []
+        redo: list = []  # batches a worker or device failed on: solved here
+        mine = {"i": None}  # a batch whose state this process's solver must keep until it is yielded
+        yielding = {"i": None}  # the batch the caller has now
 
         def solve_here(i):
             t0 = time.perf_counter()
             self.solver.run(batches[i])
             ready[i] = self.solver.vertex_distances()
+            if held(i):
+                mine["i"] = i
             return time.perf_counter() - t0
+
+        def solve_again():
+            # the batch that holds up the others first; a kept state of this solver is given up (solved again
+            # later), as the solve overwrites it
+            if mine["i"] is not None:
+                ready.pop(mine["i"], None)
+                redo.append(mine["i"])
+                mine["i"] = None
+            redo.sort()
+            solve_here(redo.pop(redo.index(want)) if want in redo else redo.pop(0))
 
         started: dict = {}  # the batch prefetch began on the GPU
 
         def prefetch():
-            if started or self.workers > 1 or not self.solver.can_start:
+            # this solver's kept batch may be the one being yielded: the caller, asking, is done with it
+            if started or mine["i"] not in (None, yielding["i"]) or self.workers > 1 or not self.solver.can_start:
                 return False
             i = claim()
             if i is None:
                 return False
+            mine["i"] = None
             self.solver.start(batches[i])
             started["i"] = i
             return True
@@ -214,36 +239,64 @@ class DistanceRows:
         def collect(block: bool):
             while True:
                 try:
-                    i, d = done.get(timeout=0.2) if block else done.get_nowait()
+                    item = done.get(timeout=0.2) if block else done.get_nowait()
                 except queue.Empty:
                     return
-                if d is None:  # its worker failed: solve it here
-                    solve_here(i)
+                i, d = item[0], item[1]
+                if d is None:  # its worker or device failed: solve it here
+                    redo.append(i)
                 else:
                     ready[i] = d
+                    if len(item) > 2 and item[2] is not None:
+                        self._holds[i] = item[2]
                 block = False
+
+        def emit(i):
+            d = ready.pop(i)
+            yielding["i"] = i
+            try:
+                yield i, d
+            finally:  # the caller is done with batch i: its solver may go on
+                yielding["i"] = None
+                if mine["i"] == i:
+                    mine["i"] = None
+                h = self._holds.pop(i, None)
+                if h is not None:
+                    h[1].set()
 
         try:
             while True:
                 collect(block=False)
                 while want in ready:
-                    yield want, ready.pop(want)
+                    yield from emit(want)
                     want += 1
                 if started:  # prefetched: wait for it
                     i = started.pop("i")
                     self.solver.wait()
                     ready[i] = self.solver.vertex_distances()
+                    if held(i):
+                        mine["i"] = i
+                    continue
+                if redo and (mine["i"] is None or want in redo):
+                    solve_again()
+                    continue
+                if mine["i"] is not None:  # this solver keeps a batch that earlier ones, solved elsewhere, hold up
+                    collect(block=True)
                     continue
                 i = claim()
                 if i is None:
                     break
+                if not feeders and self.devices and i + 1 < n:
+                    feeders = self._start_devices(batches, claim, done, state, held)
                 took = solve_here(i)
                 if not feeders and self.workers > 1 and took * (n - i - 1) > START_COST_S:
                     feeders = self._start(batches, claim, done)
             while want < state["next"]:
                 if want in ready:
-                    yield want, ready.pop(want)
+                    yield from emit(want)
                     want += 1
+                elif redo and (mine["i"] is None or want in redo):
+                    solve_again()
                 else:
                     collect(block=True)
         finally:
@@ -254,6 +307,10 @@ class DistanceRows:
                     self.solver.wait()
             with lock:
                 state["stop"] = True
+            state["closed"] = True  # devices waiting on a kept batch stop waiting
+            for h in self._holds.values():
+                h[1].set()
+            self._holds.clear()
             early = want < state["next"]  # left early (an error, Ctrl-C, the caller stopped): stop the workers
             if early:
                 for w in self._pool:
@@ -262,6 +319,57 @@ class DistanceRows:
                 t.join()
             if early:
                 self.close()
+
+    def solver_of(self, i: int):
+        """The solver that holds batch ``i``'s state while it is yielded (``rows(..., hold=...)``): this process's
+        own, or a further device's."""
+        h = self._holds.get(i)
+        return self.solver if h is None else h[0]
+
+    def _start_devices(self, batches, claim, done, state, held) -> list:
+        """A thread per further device; each builds its solver at once."""
+        from neurogf_warp.ground_truth.devices import lock_captures
+
+        lock_captures(self.solver)  # its first captures may come while a device's thread captures
+        threads = [threading.Thread(target=self._feed_device, args=(d, batches, claim, done, state, held),
+                                    daemon=True) for d in self.devices]
+        for t in threads:
+            t.start()
+        return threads
+
+    def _feed_device(self, device, batches, claim, done, state, held):
+        """Solve batches on ``device`` until none are left, keeping a held batch's state until the caller is done
+        with it; a failure hands its batch back to the caller."""
+        from neurogf_warp.ground_truth.devices import capture_lock, lock_captures
+        from neurogf_warp.ground_truth.solver import GeodesicSolver
+
+        i = None
+        try:
+            with capture_lock():  # its uploads and allocations never during another device's graph capture
+                solver = lock_captures(GeodesicSolver(self.solver.mesh, device=device, **self.solver.settings))
+            while True:
+                i = claim()
+                if i is None:
+                    return
+                solver.run(batches[i])
+                d = solver.vertex_distances()
+                if not held(i):
+                    done.put((i, d, None))
+                    self.device_batches += 1
+                    i = None
+                    continue
+                kept = threading.Event()
+                done.put((i, d, (solver, kept)))
+                self.device_batches += 1
+                i = None
+                while not kept.wait(0.05):
+                    if state["closed"]:
+                        return
+        except Exception as e:  # noqa: BLE001 - the caller solves the batch; the run goes on with fewer devices
+            if i is not None:
+                done.put((i, None, None))
+            warnings.warn(f"ground truth on {device} failed ({type(e).__name__}: {e}); its batches are solved on "
+                          f"{self.solver.device}", RuntimeWarning, stacklevel=2)
 
     def _start(self, batches, claim, done) -> list:
         """Start the workers (once per DistanceRows) and a feeding thread for each; returns the threads."""

@@ -83,7 +83,7 @@ def resolve_config(config=None, device=None, n_vertices: int = 0, **settings) ->
 
 def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = None, device=None, dataset=None,
           resume: bool = False, force: bool = False, budget_seconds: float | None = None, progress: bool = True,
-          callback=None, allow_vertex_joins: bool = False, **settings) -> "Model":
+          callback=None, allow_vertex_joins: bool = False, devices=None, **settings) -> "Model":
     """Train a NeuroGF for ``mesh`` and write it to ``out``; returns the saved Model.
 
     Parameters
@@ -109,6 +109,10 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
     callback : ``callback(stage, step, terms)`` after every step (raise KeyboardInterrupt there to stop like Ctrl-C)
     allow_vertex_joins : train a mesh whose patches meet only at single vertices (refused by default, before any
         work: geodesics through such vertices are fitted poorly; the error says how to weld seams stored twice)
+    devices : GPUs that share the dataset's ground truth ("all", a list such as ["cuda:0", "cuda:1"], or None:
+        the environment variable ``NEUROGF_DEVICES`` where set, else ``device`` alone; ``build_dataset``); the
+        steps run on ``device`` (default: the first of them). The same dataset as on ``device`` alone; under a
+        budget its share of the time solves more sources.
     **settings : any TrainConfig setting by name, e.g. ``D=128, lr=3e-3, n_sources=256, epochs=20``
 
     Notes
@@ -142,7 +146,7 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
         if model is not None:
             return model
         return _train_locked(mesh, files, config, device, dataset, resume, force, budget_seconds, progress,
-                             callback, settings, key, t_call, allow_vertex_joins)
+                             callback, settings, key, t_call, allow_vertex_joins, devices)
     except BaseException:
         if created and os.path.isdir(files.folder) and not os.listdir(files.folder):
             os.rmdir(files.folder)  # refused before anything was written: leave no empty run folder
@@ -152,9 +156,14 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
 
 
 def _train_locked(mesh, files, config, device, dataset, resume, force, budget_seconds, progress, callback,
-                  settings, key, t_call, allow_vertex_joins=False):
+                  settings, key, t_call, allow_vertex_joins=False, devices=None):
     import torch
 
+    if devices is not None:  # checked before any work; the steps run on `device`, else the first of them
+        from neurogf_warp.ground_truth.devices import resolve_devices
+
+        devices = [str(d) for d in resolve_devices(devices, device)]
+        device = devices[0]
     dev = torch_device(device)
     if dev.type == "cuda" and dev.index is None:  # generators and tensors must agree on the index
         dev = torch.device("cuda", torch.cuda.current_device())
@@ -176,7 +185,7 @@ def _train_locked(mesh, files, config, device, dataset, resume, force, budget_se
     if cfg.runtime.threads:
         torch.set_num_threads(cfg.runtime.threads)
     try:
-        return _run(mesh, files, cfg, request, ck, dataset, dev, progress, callback, t_call, key)
+        return _run(mesh, files, cfg, request, ck, dataset, dev, progress, callback, t_call, key, devices)
     finally:
         torch.set_num_threads(threads)
 
@@ -234,7 +243,7 @@ def _plan_compile(cfg: TrainConfig, dev, deadline: float, timings: dict) -> str 
 
 
 def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, dev, progress, callback,
-         t_call: float, key):
+         t_call: float, key, devices=None):
     """Dataset, set-up, budget, the stages and the model file of a run (new, or continued from ``ck``).
 
     The budget (``request["budget_seconds"]``) covers every call of a run: a continued run gets what the earlier
@@ -250,7 +259,7 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     limit = None if budget_seconds is None or ck is not None else \
         max(0.0, DATA_SHARE * budget_seconds - (t_data - t_call))
     ds = obtain_dataset(mesh, dataset, files.dataset if dataset is None else None, cfg.data, cfg.seed, dev, progress,
-                        time_limit_s=limit, partial_ok=ck is not None)
+                        time_limit_s=limit, partial_ok=ck is not None, devices=devices)
     dataset_s = time.perf_counter() - t_data
     # the dataset's own phases (sampling, distances, paths; a cached dataset's are those of its build)
     timings = {"dataset_s": dataset_s, "dataset_phases": dict(ds.meta.get("timings") or {}),

@@ -55,7 +55,7 @@ def warp_device(device) -> str:
 
 
 def obtain_dataset(mesh: Mesh, dataset, cache: str | None, settings, seed: int, device, progress: bool,
-                   time_limit_s: float | None = None, partial_ok: bool = False) -> Dataset:
+                   time_limit_s: float | None = None, partial_ok: bool = False, devices=None) -> Dataset:
     """The dataset to train on.
 
     dataset : a Dataset, a dataset file, or None: the ``cache`` file when it was built for this mesh with these
@@ -63,6 +63,7 @@ def obtain_dataset(mesh: Mesh, dataset, cache: str | None, settings, seed: int, 
     time_limit_s : seconds a fresh build may take in all (``build_dataset``: fewer sources and paths then)
     partial_ok : reuse a cached dataset that a time limit cut short (a run being continued trains on the data it
         started with); otherwise such a cache is rebuilt, since this call may have more time for it
+    devices : GPUs that share a fresh build's distance sources (``build_dataset``)
     """
     if isinstance(dataset, Dataset):
         return _checked(dataset, mesh, "the given dataset")
@@ -82,7 +83,7 @@ def obtain_dataset(mesh: Mesh, dataset, cache: str | None, settings, seed: int, 
             say(True, f"dataset cache {cache} is unreadable ({e}); rebuilding it")
     say(progress, "building the training dataset" + (f" -> {cache}" if cache else ""))
     return build_dataset(mesh, cache, settings, seed=seed, device=warp_device(device), progress=progress,
-                         time_limit_s=time_limit_s)
+                         time_limit_s=time_limit_s, devices=devices)
 
 
 def _checked(ds: Dataset, mesh: Mesh, what: str) -> Dataset:
