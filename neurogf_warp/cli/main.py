@@ -608,6 +608,9 @@ def _quality_line(q: dict) -> str:
     if v is None:
         return "accuracy: not measured (a run that predates validation)"
     line = f"accuracy: validation MRE {100 * v:.3f}% on held-out sources"
+    up, n = q.get("validation_mre_upper"), q.get("validation_sources")
+    if up is not None:
+        line += f" ({100 * q.get('validation_level', 0.95):.0f}% upper bound {100 * up:.3f}% over {n} sources)"
     if h is not None:
         line += f" (heat method {100 * h:.3f}% on the same pairs)"
         if q.get("worse_than_heat"):

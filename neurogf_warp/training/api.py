@@ -32,7 +32,8 @@ from neurogf_warp.training.data import TrainingData, make_sdf_pool, obtain_datas
 from neurogf_warp.training.loop import Runner
 from neurogf_warp.training.presets import choose_preset, preset
 from neurogf_warp.training.run_folder import call_key, finished_log
-from neurogf_warp.training.quality import HeatBaseline, ModelQualityWarning, budget_verdict, final_verdict
+from neurogf_warp.training.quality import (HeatBaseline, ModelQualityWarning, budget_verdict, final_verdict,
+                                          mre_estimate)
 
 if TYPE_CHECKING:
     import torch
@@ -118,10 +119,12 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
     ValueError. Ctrl-C writes a checkpoint and raises ``TrainingInterrupted``. A second process training to the
     same ``out`` while one runs gets an InputError (the run folder is locked with ``flock``).
 
-    The dataset's held-out sources score the final model (``validation_mre``) and, with potpourri3d installed, the
-    heat method on the same pairs (``heat_mre``); both, ``worse_than_heat`` and ``quality_warning`` go into the
-    model's ``config`` (the file's metadata) and the run's log. A model worse than the heat method, or a budget
-    predicted too small before the steps start, gives a ``ModelQualityWarning`` (``training.quality``).
+    The dataset's held-out sources (uniformly random vertices, as ``evaluate`` draws its sources) score the final
+    model: ``validation_mre`` over all their pairs and ``validation_mre_upper``, a 95% upper bound over sources
+    drawn the same way (``training.quality.mre_estimate``); with potpourri3d installed, the heat method on the same
+    pairs (``heat_mre``). These, ``worse_than_heat`` and ``quality_warning`` go into the model's ``config`` (the
+    file's metadata) and the run's log. A model worse than the heat method, one whose upper bound reaches the heat
+    method's MRE, or a budget predicted too small before the steps start, gives a ``ModelQualityWarning``.
     """
     from neurogf_warp.common.clock import budget_start
     from neurogf_warp.common.lazy import call_started
@@ -377,13 +380,14 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
         history["threads"] = chooser.chosen
         say(progress, "torch threads (timed fastest on the first steps): "
             + ", ".join(f"{k} {v}" for k, v in chooser.chosen.items()))
-    val_mre, heat_note = trainer.validate(), None
+    estimate, heat_note = mre_estimate(*trainer.source_errors()), None
+    val_mre = estimate["mre"]
     if heat is not None:  # wait for the heat method at most until the deadline
         t0 = time.perf_counter()
         heat_mre, heat_note = heat.mre(None if deadline is None else max(0.0, deadline - t0))
         timings.update(heat_wait_s=time.perf_counter() - t0, heat_s=heat.seconds)
         history["heat_mre"] = heat_mre
-    quality = final_verdict(val_mre, heat_mre, progress, heat_note, n_test=len(ds.test_src))
+    quality = final_verdict(val_mre, heat_mre, progress, heat_note, n_test=len(ds.test_src), estimate=estimate)
     if "planned_steps" in history:  # fill_budget=False: did the budget cut the preset's steps?
         planned = history["planned_steps"]
         quality["budget_bound"] = any(trainer.steps[s] < planned[s] for s in STAGES)
