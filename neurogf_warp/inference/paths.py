@@ -14,7 +14,7 @@ import numpy as np
 import warp as wp
 
 from neurogf_warp.common.arrays import Output, resolve_device
-from neurogf_warp.inference.backends import backend_of
+from neurogf_warp.inference.backends import CPU_CHUNK_ALIGN, backend_of, in_chunks
 from neurogf_warp.inference.inputs import check_tensor, pair_components, pair_inputs, points_in, relative_points
 from neurogf_warp.inference.state import QueryState, query_state
 from neurogf_warp.kernels.inference import finish, mlp
@@ -95,34 +95,47 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None 
         # iterated points (refinement, Newton steps) live relative to the mesh centre, where float32 resolves the
         # mesh's own scale; device input is moved there once (float64 arithmetic) and the result moved back below
         P, Q, frame = relative_points(model, P, frame), relative_points(model, Q, frame), st.frame
-    left = None
-    if n and not refine:
-        be.paths(P, Q, res, frame)
-    elif n:
-        left = _refined_paths(st, be, P, Q, res, int(refine), dev, frame)
-    if n:  # NaN rows for unchecked ends outside the domain (before any projection: NaN stays NaN), p == q rows
-        st.launches.run(finish.finish_paths, n, {"ps": P, "qs": Q, "frame": frame, "test_domain": int(not check),
-                                                 "x": res}, group="finish_paths")
-    if n and project == "sdf":
-        flat = res.reshape(-1)
-        wp.launch(mlp.project_points, flat.shape[0], inputs=[st.weights, flat, frame, 2 * PROJECT_STEPS],
-                  outputs=[flat], device=dev)
-    if n:
+    faces = bary = None
+    if project == "mesh":
+        faces = wp.empty((n, m), dtype=wp.int32, device=dev)
+        bary = wp.empty((n, m), dtype=wp.vec3, device=dev)
+    left = []  # refined pairs whose every candidate left the surface: (count, largest excess) per chunk
+
+    def rows(lo, hi):  # pairs lo..hi: every pair's path depends on its own ends only
+        k, p_, q_, r = hi - lo, P[lo:hi], Q[lo:hi], res[lo:hi]
+        chunk_left = None
+        if not refine:
+            be.paths(p_, q_, r, frame)
+        else:
+            chunk_left = _refined_paths(st, be, p_, q_, r, int(refine), dev, frame)
+        # NaN rows for unchecked ends outside the domain (before any projection: NaN stays NaN), p == q rows
+        st.launches.run(finish.finish_paths, k, {"ps": p_, "qs": q_, "frame": frame, "test_domain": int(not check),
+                                                 "x": r}, group="finish_paths")
+        flat = r.reshape(-1)
+        if project == "sdf":
+            wp.launch(mlp.project_points, flat.shape[0], inputs=[st.weights, flat, frame, 2 * PROJECT_STEPS],
+                      outputs=[flat], device=dev)
         # host input ran relative to the mesh centre: back to mesh coordinates (float64 sum) before anything below
         # reads the points
         if frame is st.frame and st.model.in_mesh_frame:
-            flat = res.reshape(-1)
             wp.launch(finish.shift_points, flat.shape[0], inputs=[flat, wp.vec3d(*st.center)], outputs=[flat],
                       device=dev)
-    faces = None
-    if n and project == "mesh":
-        snapped, faces, bary = snap_to_mesh(model, res, device=dev, check=False)  # NaN rows stay NaN
-        wp.copy(res, snapped)
-    comps = pair_components(model, P, Q, dev, frame) if n else None
-    if comps is not None:
-        wp.launch(finish.split_paths, (n, m), inputs=[*comps, res], device=dev)
-    if left is not None:
-        _warn_left(left, P, Q, comps)
+        if project == "mesh":
+            snapped, f, b = snap_to_mesh(model, r, device=dev, check=False)  # NaN rows stay NaN
+            wp.copy(r, snapped)
+            wp.copy(faces[lo:hi], f)
+            wp.copy(bary[lo:hi], b)
+        comps = pair_components(model, p_, q_, dev, frame)
+        if comps is not None:
+            wp.launch(finish.split_paths, (k, m), inputs=[*comps, r], device=dev)
+        if chunk_left is not None:
+            left.append(_left_pairs(chunk_left, p_, q_, comps))
+
+    # CPU: chunks of pairs, so that Ctrl-C stops a long query within about a second (results as one launch)
+    first = max(1, (1 << 14) // (m * (5 * (1 + int(refine)) if refine else 1)))
+    in_chunks(dev, n, rows, first=first, align=CPU_CHUNK_ALIGN if be.precision == "fp16" else 1)
+    if left:
+        _warn_left([c for c, _ in left], [x for _, x in left], n)
     if kind == "torch":
         r = wp.to_torch(res).view(n, m, 3)
     elif kind == "warp":
@@ -303,18 +316,25 @@ def _fit(be, x, dev, frame, mesh_id, off=None):
     return length, excess
 
 
-def _warn_left(left, P, Q, comps):
-    """A PathWarning for the pairs (of one component, p != q) whose every candidate path left the surface."""
+def _left_pairs(left, P, Q, comps) -> tuple:
+    """(how many pairs (of one component, p != q) had every candidate path leave the surface, the largest such
+    excess, mesh units) of one chunk of refined paths."""
     ex = left.numpy()
     if not np.any(ex > 0):
-        return
+        return 0, 0.0
     keep = np.any(P.numpy() != Q.numpy(), axis=1)
     if comps is not None:
         keep &= comps[0].numpy() == comps[1].numpy()
     bad = (ex > 0) & keep
-    if bad.any():
-        warnings.warn(f"{int(bad.sum())} of {len(ex)} refined paths leave the surface: no candidate path of those "
-                      f"pairs followed it (chord midpoints up to {float(ex[bad].max()):.3g} mesh units farther from "
+    return int(bad.sum()), float(ex[bad].max()) if bad.any() else 0.0
+
+
+def _warn_left(counts, worst, total: int | None = None):
+    """A PathWarning for the pairs whose every candidate path left the surface (counts and worst excess by chunk)."""
+    n_bad = int(sum(counts))
+    if n_bad:
+        warnings.warn(f"{n_bad} of {total} refined paths leave the surface: no candidate path of those "
+                      f"pairs followed it (chord midpoints up to {max(worst):.3g} mesh units farther from "
                       f"the surface than their ends); they come back as the candidate that left it least",
                       PathWarning, stacklevel=3)
 
