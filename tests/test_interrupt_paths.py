@@ -159,3 +159,18 @@ def test_sigint_stops_a_long_generalizable_query(conditioned, monkeypatch, ctrl_
         conditioned.distance(p, p[::-1].copy())
     t.join(5)
     assert third.is_set() and 3 <= len(seen) <= 12, f"{len(seen)} of 40 chunks ran after the interrupt"
+
+
+def test_project_and_surface_fit_in_chunks_give_the_same_bits(fandisk, monkeypatch):
+    import neurogf_warp as ngf
+    from neurogf_warp.inference.paths import project, surface_fit
+
+    x = fandisk.mesh.vertices[:300] + 0.02
+    p, q = _ends(fandisk, 40, 8)
+    pts = ngf.path(fandisk, p, q, m=16, device="cpu", precision="fp32")
+    one = (project(fandisk, x, device="cpu"), *surface_fit(fandisk, pts, device="cpu", precision="fp32"))
+    seen = _chunks_of(monkeypatch, 16)
+    many = (project(fandisk, x, device="cpu"), *surface_fit(fandisk, pts, device="cpu", precision="fp32"))
+    assert len(seen) >= 300 // 16 + 40 // 16
+    for a, b in zip(one, many):
+        _same(a, b)

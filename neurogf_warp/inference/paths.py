@@ -291,7 +291,15 @@ def surface_fit(model: Model, paths, device=None, precision: str = "auto"):
         return out.result(out.empty(0)), out.result(out.empty(0))
     st = query_state(model, dev)
     mesh_id = warp_mesh(model.mesh, dev).id if model.mesh is not None else None  # mesh coordinates, as the paths
-    length, excess = _fit(backend_of(st, precision), x.reshape(lead), dev, st.user_frame, mesh_id)
+    be, x = backend_of(st, precision), x.reshape(lead)
+    length, excess = out.empty(n), out.empty(n)
+
+    def rows(lo, hi):  # CPU: chunks of paths (Ctrl-C within about a second); every path on its own
+        a, b = _fit(be, x[lo:hi], dev, st.user_frame, mesh_id)
+        wp.copy(length[lo:hi], a)
+        wp.copy(excess[lo:hi], b)
+
+    in_chunks(dev, n, rows, first=max(1, (1 << 14) // lead[1]), align=1)
     return out.result(length), out.result(excess)
 
 
@@ -360,11 +368,14 @@ def project(model: Model, x, steps: int = PROJECT_STEPS, device=None):
     if X.shape[0]:
         st = query_state(model, dev)
         X, frame = relative_points(model, X, frame), st.frame  # Newton steps relative to the mesh centre
-        wp.launch(mlp.project_points, X.shape[0], inputs=[st.weights, X, frame, int(steps)], outputs=[res],
-                  device=dev)
-        if frame is st.frame and st.model.in_mesh_frame:  # host input ran relative to the mesh centre
-            wp.launch(finish.shift_points, X.shape[0], inputs=[res, wp.vec3d(*st.center)], outputs=[res],
-                      device=dev)
+        def rows(lo, hi):  # CPU: chunks (Ctrl-C within about a second); every point on its own
+            wp.launch(mlp.project_points, hi - lo, inputs=[st.weights, X[lo:hi], frame, int(steps)],
+                      outputs=[res[lo:hi]], device=dev)
+            if frame is st.frame and st.model.in_mesh_frame:  # host input ran relative to the mesh centre
+                wp.launch(finish.shift_points, hi - lo, inputs=[res[lo:hi], wp.vec3d(*st.center)],
+                          outputs=[res[lo:hi]], device=dev)
+
+        in_chunks(dev, X.shape[0], rows, first=1 << 12, align=1)
     if kind == "torch":
         r = wp.to_torch(res).view(-1, 3)
     elif kind == "warp":
