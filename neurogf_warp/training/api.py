@@ -18,7 +18,7 @@ from neurogf_warp.dataset.build import check_trainable
 from neurogf_warp.ground_truth.solver import load_seconds
 from neurogf_warp.mesh.mesh import load_mesh
 from neurogf_warp.training.budget import (MIN_SDF_SCALE, Budget, ThreadChooser, calibrate, fit_budget,
-                                         short_budget_scale)
+                                         short_budget_done, short_budget_said, short_budget_scale)
 from neurogf_warp.training.checkpoint import (
     CKPT_VERSION,
     RunFiles,
@@ -332,8 +332,8 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
                 left = deadline - time.perf_counter()
                 fitted = fit_budget(cfg, per, max(left, 0.0))
             if shrunk:
-                say(progress, f"short budget: batches x{scale:g} for more steps (about {fitted.joint_steps:,} joint "
-                              "steps planned at the measured step time; the count follows the actual speed)")
+                history["short_budget"] = {"scale": scale, "planned_joint_steps": int(fitted.joint_steps)}
+                say(progress, short_budget_said(scale))
             timings["calibrate_s"] = time.perf_counter() - t0
             cap = None
             if not cfg.runtime.fill_budget:  # the preset's own steps, the budget only a cap
@@ -402,6 +402,8 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     timings.update(call_s=call_s, spent_s=spent_before + call_s, budget_seconds=budget_seconds,
                    calibrated_s_per_step=per)
     _write_log(files, info, history, timings, key)
+    if "short_budget" in history:
+        say(progress, short_budget_done(history["short_budget"], trainer.steps["joint"]))
     say(progress, f"saved {files.model} ({call_s:.0f} s; {trainer.steps['joint']:,} joint steps, "
                   f"{sum(trainer.steps.values()):,} in all)")
     return model
