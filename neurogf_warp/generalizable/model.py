@@ -55,7 +55,7 @@ def _finite_points(x, name: str, allow_single: bool = False) -> tuple[np.ndarray
         raise ValueError(f"{name} must have shape {want} (x, y, z per row), got shape {a.shape}")
     if not np.isfinite(a).all():
         bad = int(np.argwhere(~np.isfinite(a).all(axis=1))[0, 0])
-        raise ValueError(f"{name} holds a non-finite coordinate (NaN or inf), first at row {bad}; remove or fix "
+        raise InputError(f"{name} holds a non-finite coordinate (NaN or inf), first at row {bad}; remove or fix "
                          f"those points")
     return a, single
 
@@ -300,11 +300,11 @@ def _condition_on_device(model, wn: WarpGenNet, t, from_torch: bool) -> Conditio
         if not np.isfinite(stats[:3]).all():
             bad = (~torch.isfinite(x64).all(dim=1)).nonzero()
             if bad.numel():
-                raise ValueError(f"points holds a non-finite coordinate (NaN or inf), first at row {int(bad[0, 0])}; "
+                raise InputError(f"points holds a non-finite coordinate (NaN or inf), first at row {int(bad[0, 0])}; "
                                  f"remove or fix those points")
     r = float(np.sqrt(stats[3]))
-    if not r > 0:
-        raise ValueError("all points coincide: a shape needs points spread in space to be normalized")
+    if not r > 0:  # the host path's refusal, word for word
+        raise InputError(cloud_spread_refusal(1, np.zeros(3), wn.kk))
     with torch.cuda.stream(ts):  # distinct points and the spread, as check_cloud_spread on the host
         d = x64 - torch.from_numpy(stats[:3].copy()).to(x64.device)
         sv = torch.linalg.svdvals(d).cpu().numpy()
