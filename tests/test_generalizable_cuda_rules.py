@@ -117,3 +117,12 @@ def test_device_conditioned_shapes_keep_the_domain(torch_cuda, model):
             c.distance_matrix(c.points[:1], far[None])
     with pytest.raises(ValueError, match="non-finite"):
         dev.distance(torch_cuda.tensor([[np.nan, 0.0, 0.0]], device="cuda:0"), dev.points[:1])
+
+
+@pytest.mark.parametrize("scale", [1e-30, 1e31])
+def test_device_clouds_beyond_float32_are_refused_as_host_ones(torch_cuda, model, scale):
+    pts = _cloud(300) * scale
+    host = _host_error(model, pts)
+    with pytest.raises(InputError, match="outside the supported range") as dev:
+        model.condition(torch_cuda.as_tensor(pts, dtype=torch_cuda.float64, device="cuda:0"), device="cuda:0")
+    assert str(dev.value) == str(host.value)

@@ -1018,10 +1018,10 @@ def _run_guarded(args, run) -> int:
             raise
         print(f"{PROG} {args.command}: error: {e}", file=sys.stderr)
         return 2
-    except OSError as e:  # the machine, not the input and not our code: a full disk, a device error
+    except (OSError, MemoryError) as e:  # the machine, not the input and not our code: a full disk, too little memory
         if debug:
             raise
-        print(f"{PROG} {args.command}: failed: {e}", file=sys.stderr)
+        print(f"{PROG} {args.command}: failed: {e or 'out of memory'}", file=sys.stderr)
         return 1
     except Exception as e:  # noqa: BLE001 - the one place that turns failures into an exit code
         if debug:

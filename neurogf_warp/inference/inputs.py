@@ -22,7 +22,7 @@ import numpy as np
 import torch
 import warp as wp
 
-from neurogf_warp.common.arrays import _is_torch, as_points, resolve_device
+from neurogf_warp.common.arrays import _is_torch, as_array, as_points, resolve_device
 from neurogf_warp.common.checks import InputError
 from neurogf_warp.inference.state import DOMAIN, query_state, to_relative
 from neurogf_warp.kernels.inference import finish
@@ -87,7 +87,7 @@ def points_in(model: Model, x, name: str, dev, check: bool = True, host: bool | 
     if host is None:
         host = _on_host(x)
     if host and _on_host(x):
-        a = np.asarray(x)
+        a = as_array(x, name)
         if np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer):
             a = a.astype(np.float64)
             if a.ndim >= 1 and a.shape[-1] == 3:
@@ -103,7 +103,10 @@ def points_in(model: Model, x, name: str, dev, check: bool = True, host: bool | 
 
 
 def _is_single_point(x) -> bool:
-    shape = tuple(x.shape) if hasattr(x, "shape") else np.shape(x)
+    try:
+        shape = tuple(x.shape) if hasattr(x, "shape") else np.shape(x)
+    except ValueError:  # ragged: refused by the caller, naming the argument
+        return False
     if isinstance(x, wp.array):
         return x.ndim == 1 and x.dtype != wp.vec3 and shape == (3,)
     return shape == (3,)
@@ -127,7 +130,10 @@ def sources_in(model: Model, src, name: str, dev, one: bool = False):
         src = src.numpy()
     elif isinstance(src, torch.Tensor):
         src = src.detach().cpu().numpy()
-    a = np.asarray(src)
+    try:
+        a = np.asarray(src)
+    except ValueError:  # ragged lists (indices mixed with points, rows of different lengths)
+        a = np.asarray(None, dtype=object)
     if a.size == 0:
         raise ValueError(f"{name} is empty: give a vertex index, a list of indices or (S, 3) points")
     if a.dtype == object:  # None, an integer beyond int64, ragged lists, ...
@@ -154,6 +160,9 @@ def sources_in(model: Model, src, name: str, dev, one: bool = False):
     if not np.issubdtype(a.dtype, np.floating):
         raise TypeError(f"{name} must be vertex indices (integers) or points (floats), got dtype {a.dtype}")
     if one:
+        if a.ndim == 0:  # a float where an index was meant
+            raise TypeError(f"{name}: a vertex index must be an integer, got {src!r}; a source point is 3 floats "
+                            "[x, y, z]")
         if a.shape not in ((3,), (1, 3)):
             raise ValueError(f"ssad takes one source point of 3 coordinates, shape (3,), got shape {a.shape}; use "
                              "msad or distance_matrix for several")

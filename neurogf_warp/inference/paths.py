@@ -16,7 +16,7 @@ import warp as wp
 from neurogf_warp.common.arrays import Output, resolve_device
 from neurogf_warp.inference.backends import CPU_CHUNK_ALIGN, backend_of, in_chunks
 from neurogf_warp.inference.inputs import check_tensor, pair_components, pair_inputs, points_in, relative_points
-from neurogf_warp.inference.state import QueryState, query_state
+from neurogf_warp.inference.state import QueryState, check_memory, query_state
 from neurogf_warp.kernels.inference import finish, mlp
 from neurogf_warp.kernels.inference import refine as refine_kernels
 from neurogf_warp.mesh.surface import _flat_points, snap_to_mesh, warp_mesh
@@ -89,6 +89,7 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None 
     st = query_state(model, dev)
     be = backend_of(st, precision)
     n, m = P.shape[0], int(m)
+    _check_memory(dev, n, m, refine, return_faces or project == "mesh")
     out = Output(kind, dev)
     res = out.empty((n, m), dtype=wp.vec3)
     if n and (refine or project == "sdf") and frame is not st.frame:
@@ -150,6 +151,26 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None 
             b = b.view(n, m, 3)
         return (r[0], f[0], b[0]) if single else (r, f, b)
     return r[0] if single else r
+
+
+def _check_memory(dev, n: int, m: int, refine: int, snapped: bool):
+    """A MemoryError naming ``m`` and the pairs, before any allocation, where the paths cannot fit: the result
+    (12 bytes a point), the faces and weights of snapped points (16), and refinement's five candidates (~9x)."""
+    per_point = 12 * (9 if refine else 1) + (16 if snapped else 0)
+    need = n * m * per_point
+    what = f"{n:,} paths of m={m:,} points"
+    hint = "ask fewer points per path (m=) or pass fewer pairs per call"
+    if dev.is_cuda:
+        check_memory(dev, need, what, hint)
+        return
+    import os
+
+    try:
+        free = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):  # not reported on this system
+        return
+    if need > 0.9 * free:
+        raise MemoryError(f"{what} need {need / 1e9:.2f} GB, but {free / 1e9:.2f} GB of memory is free: {hint}")
 
 
 def _relative_mesh(st: QueryState) -> wp.Mesh:

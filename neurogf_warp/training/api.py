@@ -137,6 +137,9 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
     from neurogf_warp.common.files import output_target
 
     output_target(out, inputs=(mesh, dataset), what="model file")  # never the mesh or dataset, even with force
+    from neurogf_warp.model.files import _not_a_mesh_name
+
+    _not_a_mesh_name(out)  # the rule save() applies at the end, checked before the work
     created = not os.path.isdir(files.folder)
     lock = files.lock()
     try:
@@ -378,7 +381,7 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     timings["steps_s"] = time.perf_counter() - t0
     if chooser is not None:
         history["threads"] = chooser.chosen
-        say(progress, "torch threads (timed fastest on the first steps): "
+        say(progress and bool(chooser.chosen), "torch threads (timed fastest on the first steps): "
             + ", ".join(f"{k} {v}" for k, v in chooser.chosen.items()))
     estimate, heat_note = mre_estimate(*trainer.source_errors()), None
     val_mre = estimate["mre"]
@@ -395,6 +398,8 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
             say(progress, f"note: the budget bound: {sum(trainer.steps.values()):,} of the preset's "
                           f"{sum(planned.values()):,} steps ran (the machine was slower than the budget allows)")
     history["quality"] = quality
+    # the checkpoint keeps the verdict too: a model file written again from it (lost or unreadable) says the same
+    save(stage_i, step, history, elapsed)
     info = dict(trainer.cfg.to_dict(), steps=trainer.steps, train_seconds=round(elapsed, 2), **quality,
                 budget_warning=history.get("budget_warning"))
     model = save_model(trainer.net, trainer.querier, mesh, files.model, info)
@@ -406,6 +411,11 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
         say(progress, short_budget_done(history["short_budget"], trainer.steps["joint"]))
     say(progress, f"saved {files.model} ({call_s:.0f} s; {trainer.steps['joint']:,} joint steps, "
                   f"{sum(trainer.steps.values()):,} in all)")
+    over = spent_before + call_s - budget_seconds if budget_seconds else 0.0
+    if over > max(1.0, 0.02 * budget_seconds if budget_seconds else 0.0):
+        say(progress, f"the run took {over:.0f} s more than its {budget_seconds:g} s budget: loading, the held-out "
+                  "ground truth and saving take at least that long on this machine; give a larger budget_seconds "
+                  "(--budget-seconds)")
     return model
 
 
