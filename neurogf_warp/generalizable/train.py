@@ -440,6 +440,10 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
 
     t_call = budget_start(time.perf_counter())
     cfg = config or GenTrainConfig()
+    if cfg.budget_seconds is not None:  # the per-mesh rule, before any work (a NaN budget would never end the run)
+        from neurogf_warp.training.api import check_budget
+
+        cfg = dataclasses.replace(cfg, budget_seconds=check_budget(cfg.budget_seconds))
     rank, world, dev, distributed = _dist_setup(device)
     log = log or (lambda s: print(s, flush=True))
     say = (lambda s: log(s)) if rank == 0 else (lambda s: None)
