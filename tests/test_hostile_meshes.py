@@ -59,6 +59,8 @@ BROKEN = {
     "quads": ((V, np.c_[F, F[:, :1]]), InputError, "triangulate"),
     "NaN vertex": ((np.r_[V[:-1], [[np.nan, 0, 0]]], F), InputError, "non-finite vertex"),
     "no faces": ((V, np.zeros((0, 3), int)), InputError, "no faces"),
+    "ragged faces": ((V, [[0, 1, 2], [0, 1]]), InputError, "equal-length rows"),
+    "ragged vertices": (([[0, 0, 0], [1, 0]], F[:1]), InputError, "equal-length rows"),
     "2-D vertices": ((V[:, :2], F), InputError, r"vertices must have shape \(V, 3\)"),
 }
 

@@ -73,6 +73,9 @@ REFUSED = {
     "device tpu": (lambda m, P, Q: ngf.sdf(m, P, device="tpu"), InputError, "unknown device 'tpu'"),
     "fps k float": (lambda m, P, Q: ngf.farthest_point_sampling(m, 2.0), InputError, "k must be an integer"),
     "voronoi repeated seed": (lambda m, P, Q: ngf.voronoi(m, [1, 1]), InputError, "repeats a vertex"),
+    "check as text (sdf)": (lambda m, P, Q: ngf.sdf(m, P, check="no"), InputError, "check must be True or False"),
+    "check as text (distance)": (lambda m, P, Q: ngf.distance(m, P, Q, check="no"), InputError, "check must be"),
+    "check as text (path)": (lambda m, P, Q: ngf.path(m, P, Q, check=0), InputError, "check must be True or False"),
     "isolines nan level": (lambda m, P, Q: ngf.isolines(m, ngf.ssad(m, 0), [np.nan]), InputError, "finite"),
 }
 

@@ -73,6 +73,12 @@ def check_tensor(x, name: str) -> None:
             raise InputError(f"{name} is a sparse torch tensor ({x.layout}): pass a dense one (x.to_dense())")
 
 
+def check_flag(check) -> None:
+    """``check`` must be a bool: a string such as "no" would read as True."""
+    if not isinstance(check, (bool, np.bool_)):
+        raise InputError(f"check must be True or False, got {check!r}")
+
+
 def _on_host(x) -> bool:
     return not isinstance(x, wp.array) and not _is_torch(x)
 
@@ -82,6 +88,7 @@ def points_in(model: Model, x, name: str, dev, check: bool = True, host: bool | 
     centre (made in float64) with ``state.frame``, device input as given with ``state.user_frame``. ``host``:
     force the host route on (True) or off (False; host input then becomes float32 mesh coordinates)."""
     check_tensor(x, name)
+    check_flag(check)
     st = query_state(model, dev)
     single = _is_single_point(x)
     if host is None:
@@ -208,6 +215,7 @@ def pair_inputs(model, p, q, device, check: bool = True):
     mesh coordinates (a host array paired with a device one is rounded to float32 first)."""
     check_tensor(p, "p")
     check_tensor(q, "q")
+    check_flag(check)
     dev = resolve_device(device, like=p)
     host = _on_host(p) and _on_host(q)
     P, kind, single_p, frame = points_in(model, p, "p", dev, False, host)
