@@ -129,3 +129,16 @@ def test_cli_train_refuses_a_mesh_name_for_its_model(tmp_path, capsys):
     tm.export(tmp_path / "ico.obj")
     assert main(["train", str(tmp_path / "ico.obj"), "-o", str(tmp_path / "m.ply"), "-q"]) == 2
     assert ".ngf" in capsys.readouterr().err and sorted(os.listdir(tmp_path)) == ["ico.obj"]
+
+
+def test_generalizable_training_never_writes_over_a_mesh(tmp_path):
+    """The collection's own meshes sit beside a typo'd output: refused before any ground truth is computed."""
+    from neurogf_warp.generalizable.train import train_generalizable
+
+    trimesh.creation.icosphere(subdivisions=1).export(tmp_path / "shape.obj")
+    before = _digest(tmp_path / "shape.obj")
+    with pytest.raises(InputError, match=r"mesh file's.*save to a \.pt path"):
+        train_generalizable(tmp_path, tmp_path / "shape.obj", device="cpu")
+    with pytest.raises(InputError, match="must be a file name"):
+        train_generalizable(tmp_path, None, device="cpu")
+    assert _digest(tmp_path / "shape.obj") == before and os.listdir(tmp_path) == ["shape.obj"]

@@ -444,6 +444,9 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
         from neurogf_warp.training.api import check_budget
 
         cfg = dataclasses.replace(cfg, budget_seconds=check_budget(cfg.budget_seconds))
+    from neurogf_warp.model.files import _not_a_mesh_name
+
+    _not_a_mesh_name(output, ".pt")  # never over a mesh of the collection (the model is written at the end)
     rank, world, dev, distributed = _dist_setup(device)
     log = log or (lambda s: print(s, flush=True))
     say = (lambda s: log(s)) if rank == 0 else (lambda s: None)

@@ -121,7 +121,7 @@ def save(model: Model, path, include_mesh: bool = True) -> str:
     return atomic_write_bytes(path, st_save(tensors, metadata={"neurogf": json.dumps(meta)}), what="model file")
 
 
-def _not_a_mesh_name(path) -> None:
+def _not_a_mesh_name(path, suffix: str = ".ngf") -> None:
     """Refuse a model path named like a mesh file: saving there would replace a mesh (``save(m, "bunny.obj")``),
     and the file would later be read as one."""
     from neurogf_warp.common.files import output_target
@@ -131,7 +131,7 @@ def _not_a_mesh_name(path) -> None:
     bad = [s for s in MESH_SUFFIXES + ARCHIVE_SUFFIXES + COMPRESSED_SUFFIXES if name.endswith(s)]
     if bad:
         raise InputError(f"cannot write model file {os.fspath(path)}: a '{bad[0]}' name is a mesh file's (saving "
-                         "there would replace a mesh, and the file would be read as one); save to a .ngf path")
+                         f"there would replace a mesh, and the file would be read as one); save to a {suffix} path")
 
 
 def _strict_load(module: torch.nn.Module, state: dict, what: str, path: str):
