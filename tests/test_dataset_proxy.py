@@ -33,7 +33,9 @@ def proxied(fine_blobs):
     from neurogf_warp.ground_truth.geodesics import load_kernels
 
     load_kernels("cpu")
-    return D.build_dataset(fine_blobs, proxy=700, **SMALL)
+    # a seed whose 4 held-out sources keep the proxy: its error on them is 0.25-0.37% over seeds 0-3, against the
+    # 0.3% limit (the kept proxy's rows are what these tests check; the limit itself has its own test)
+    return D.build_dataset(fine_blobs, proxy=700, seed=2, **SMALL)
 
 
 @pytest.mark.slow
@@ -48,8 +50,11 @@ def test_a_kept_proxy_gives_rows_of_the_fine_mesh(proxied, fine_blobs):
         a = getattr(d, k)
         assert a.size and a.min() >= 0 and a.max() < len(V)
     # held-out rows: the mesh's own solver at its default accuracy, from fine vertices
-    exact = GeodesicSolver(m, device="cpu").solve(d.test_src)
-    np.testing.assert_array_equal(d.test_dist, exact)
+    from neurogf_warp.ground_truth.near_source import refine_near_sources
+
+    solver = GeodesicSolver(m, device="cpu")  # lowered near each source, as evaluate()'s truth
+    want = refine_near_sources(solver, d.test_src, solver.solve(d.test_src))
+    np.testing.assert_allclose(d.test_dist, want, rtol=1e-6)
     # rows start at proxy vertices on the fine surface, next to the fine vertex their source id names
     rows = d.gd_global
     edge = np.linalg.norm(V[m.faces[:, 0]] - V[m.faces[:, 1]], axis=1).mean()
@@ -80,7 +85,11 @@ def test_a_proxy_too_far_from_the_mesh_is_dropped(fine_blobs, monkeypatch):
     np.testing.assert_array_equal(d.gd_global[:, 0, :3], V[d.gd_src])  # rows start at fine vertices again
     assert not set(d.test_src) & set(d.gd_src)
     m = load_mesh(fine_blobs)
-    np.testing.assert_array_equal(d.test_dist, GeodesicSolver(m, device="cpu").solve(d.test_src))
+    from neurogf_warp.ground_truth.near_source import refine_near_sources
+
+    solver = GeodesicSolver(m, device="cpu")  # lowered near each source, as evaluate()'s truth
+    np.testing.assert_allclose(d.test_dist, refine_near_sources(solver, d.test_src, solver.solve(d.test_src)),
+                               rtol=1e-6)
 
 
 @pytest.mark.slow
@@ -170,7 +179,7 @@ def test_a_training_run_says_it_used_a_proxy(fine_blobs, tmp_path, capsys):
 
     cfg = preset("cpu_small", querier_steps=5, epochs=1, iters_per_epoch=10, refine_dist_steps=0,
                  refine_sdf_steps=0, refine_path_steps=0).set(proxy=700, n_sources=6, n_path_sources=2, n_test=4,
-                                                               n_spread=200)
+                                                               n_spread=200, seed=2)  # kept: see ``proxied``
     train(fine_blobs, tmp_path / "m.ngf", config=cfg, device="cpu", progress=True)
     log = json.loads((tmp_path / "m.train" / "log.json").read_text())
     assert log["history"]["proxy"]["kept"] and log["history"]["proxy"]["vertices"] > 600

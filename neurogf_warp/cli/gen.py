@@ -21,6 +21,16 @@ GEN_COMMANDS = {
 }
 
 
+def _nonnegative(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {v}")
+    return v
+
+
 def _positive(text: str) -> int:
     try:
         v = int(text)
@@ -47,7 +57,7 @@ def shapes_parser() -> argparse.ArgumentParser:
                     "can be repeated or extended to a larger -n in the same folder; existing files are kept.")
     ap.add_argument("folder", help="output folder (created if missing)")
     ap.add_argument("-n", type=_positive, default=600, help="number of shapes, at least 1 (default 600)")
-    ap.add_argument("--seed", type=int, default=0, help="random seed of the collection (default 0)")
+    ap.add_argument("--seed", type=_nonnegative, default=0, help="random seed of the collection (default 0)")
     ap.add_argument("--test-every", type=_test_every, default=10,
                     help="hold out every Nth instance of each shape family in test/ (default 10, at least 2)")
     ap.add_argument("--shared-meshes", default=None,

@@ -620,6 +620,9 @@ def _quality_line(q: dict) -> str:
     if v is None:
         return "accuracy: not measured (a run that predates validation)"
     line = f"accuracy: validation MRE {100 * v:.3f}% on held-out sources"
+    up, n = q.get("validation_mre_upper"), q.get("validation_sources")
+    if up is not None:
+        line += f" ({100 * q.get('validation_level', 0.95):.0f}% upper bound {100 * up:.3f}% over {n} sources)"
     if h is not None:
         line += f" (heat method {100 * h:.3f}% on the same pairs)"
         if q.get("worse_than_heat"):
@@ -1027,10 +1030,10 @@ def _run_guarded(args, run) -> int:
             raise
         print(f"{PROG} {args.command}: error: {e}", file=sys.stderr)
         return 2
-    except OSError as e:  # the machine, not the input and not our code: a full disk, a device error
+    except (OSError, MemoryError) as e:  # the machine, not the input and not our code: a full disk, too little memory
         if debug:
             raise
-        print(f"{PROG} {args.command}: failed: {e}", file=sys.stderr)
+        print(f"{PROG} {args.command}: failed: {e or 'out of memory'}", file=sys.stderr)
         return 1
     except Exception as e:  # noqa: BLE001 - the one place that turns failures into an exit code
         if debug:

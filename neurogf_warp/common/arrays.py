@@ -45,6 +45,15 @@ def _is_torch(x) -> bool:
     return t.__module__.startswith("torch") and t.__name__ in ("Tensor", "Parameter")
 
 
+def as_array(x, name: str) -> np.ndarray:
+    """``np.asarray(x)``, with ragged input (rows of different lengths) refused naming ``name``."""
+    try:
+        return np.asarray(x)
+    except ValueError:
+        raise InputError(f"{name} has rows of different lengths: points are an (N, 3) array, one [x, y, z] per "
+                         "row") from None
+
+
 def as_points(x, name: str, device, check: bool = True, single: bool = False) -> tuple:
     """Return (wp.array of vec3 on ``device``, kind) for (N, 3) float input; kind in numpy|torch|warp.
 
@@ -77,7 +86,7 @@ def as_points(x, name: str, device, check: bool = True, single: bool = False) ->
             raise InputError(f"{name} contains non-finite coordinates (NaN or inf)")
         t = t.to(device=wp.device_to_torch(device), dtype=torch.float32).contiguous()
         return wp.from_torch(t, dtype=wp.vec3), kind
-    a = np.asarray(x)
+    a = as_array(x, name)
     if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
         raise TypeError(f"{name} must hold numeric coordinates, got dtype {a.dtype}")
     if single and a.shape == (3,):

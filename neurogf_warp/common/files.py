@@ -121,7 +121,12 @@ def output_target(path, inputs=(), what: str = "output") -> str:
     InputError (a ValueError)
         ``path`` is a device, FIFO, socket or other non-regular file, or the same file as an input.
     """
+    if not isinstance(path, (str, bytes, os.PathLike)):
+        raise InputError(f"the {what} path must be a file name (str or os.PathLike), got "
+                         f"{'None' if path is None else type(path).__name__}")
     path = os.fspath(path)
+    if isinstance(path, bytes):
+        path = os.fsdecode(path)
     if path == "":
         raise InputError(f"the {what} path is empty: pass a file name")
     target = os.path.realpath(path) if os.path.islink(path) else path

@@ -308,10 +308,15 @@ def evaluate(model: "Model | str | os.PathLike", mesh=None, reference: "str | os
         require_heat()  # before any work
     if not isinstance(path_refine, (int, np.integer)) or path_refine < 0:
         raise ValueError(f"path_refine must be an integer >= 0, got {path_refine!r}")
-    if not hasattr(model, "net"):
+    from neurogf_warp.model.model import Model
+
+    if isinstance(model, (str, bytes, os.PathLike)):
         from neurogf_warp.model.files import load
 
         model = load(model, mesh=mesh)
+    if not isinstance(model, Model):  # a generalizable network (conditioned or not) has no SDF or path head
+        raise InputError(f"evaluate needs a per-mesh model (ngf.load('x.ngf'), or a model file path), got "
+                         f"{type(model).__name__}")
     model, mesh = _with_mesh(model, mesh)
     dev = str(resolve_device(device))
     rng = np.random.default_rng(seed)

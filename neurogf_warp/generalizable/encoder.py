@@ -548,7 +548,8 @@ class WarpGenNet:
         return out
 
     def distances(self, enc: Encoded, S: wp.array, T: wp.array, center, scale: float, matrix: bool,
-                  s_nn=None, t_nn=None, s_comp=None, t_comp=None, out=None, precision: str = "fp32") -> wp.array:
+                  s_nn=None, t_nn=None, s_comp=None, t_comp=None, out=None, precision: str = "fp32",
+                  whole: bool = False) -> wp.array:
         """Distances in user units (float32): pairs (S[m], T[m]) or, with ``matrix``, all S x T (row-major).
 
         S, T: (., 3) storage dtype, user units, ``(x - center) * scale`` = unit frame; s_nn/t_nn: optional
@@ -558,7 +559,7 @@ class WarpGenNet:
         ``kernels/generalizable/tensorcore.py``; on the CPU a slow emulation of the same code). Its error against
         float64, measured: relative error of the distance, released network, 2,048-point clouds and 4,096 pairs near
         the surface (CPU emulation of the kernel): mean 3.7e-5, max 2.7e-4; 256-point clouds: mean 1.2-1.4e-4, max
-        1.4e-3.
+        1.4e-3. whole: one launch also on the CPU (else more than ``PAIR_CHUNK`` pairs run in chunks of S rows).
         """
         check_precision(precision)
         n_t = T.shape[0] if matrix else 0
@@ -566,6 +567,22 @@ class WarpGenNet:
         if out is None:
             out = wp.empty(m, dtype=wp.float32, device=self.device)
         if m == 0:
+            return out
+        if self.device.is_cpu and m > PAIR_CHUNK and not whole:
+            # one CPU launch runs to its end before Ctrl-C is seen: rows of S in chunks (every pair's distance
+            # depends on its own two points only, so the result is the same bits as one launch)
+            from neurogf_warp.inference.backends import in_chunks
+
+            per = max(n_t, 1)
+            cut = lambda a, lo, hi: None if a is None else a[lo:hi]  # noqa: E731
+
+            def run(lo, hi):
+                self.distances(enc, S[lo:hi], T if matrix else T[lo:hi], center, scale, matrix, cut(s_nn, lo, hi),
+                               t_nn if matrix else cut(t_nn, lo, hi), cut(s_comp, lo, hi),
+                               t_comp if matrix else cut(t_comp, lo, hi), out[lo * per: hi * per] if matrix
+                               else out[lo:hi], precision, whole=True)
+
+            in_chunks(self.device, S.shape[0], run, first=max(1, PAIR_CHUNK // per), align=1)
             return out
         if precision == "fp16":
             return self._pair_head_tc(enc, S, T, s_nn, t_nn, s_comp, t_comp, center, scale, n_t, m, False, out)
@@ -695,6 +712,7 @@ class WarpGenNet:
 
 
 PRECISIONS = ("fp32", "fp16")
+PAIR_CHUNK = 1 << 14  # CPU queries of more pairs run in chunks (the first about this many pairs; see distances)
 
 
 def _grid_radius(n: int) -> float:

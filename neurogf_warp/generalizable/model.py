@@ -38,15 +38,23 @@ NOT_CONDITIONED = ("condition it first: model.condition(points) or ngf.load(path
 
 
 def _finite_points(x, name: str, allow_single: bool = False) -> tuple[np.ndarray, bool]:
-    """x as an (M, 3) float64 array (and whether it was a single (3,) point); clear errors otherwise."""
+    """x as an (M, 3) float64 array (and whether it was a single (3,) point); clear errors otherwise. The dtypes
+    the per-mesh queries take (integers and floats; not booleans, complex numbers or objects)."""
+    from neurogf_warp.inference.inputs import check_tensor
+
+    check_tensor(x, name)  # meta and sparse tensors, as the per-mesh queries refuse them
     if hasattr(x, "detach"):
         x = x.detach().cpu().numpy()
     elif isinstance(x, wp.array):
         x = x.numpy()
     try:
-        a = np.asarray(x, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be an array of 3-D points, got {type(x).__name__}") from None
+        raw = np.asarray(x)
+    except (TypeError, ValueError):  # ragged rows
+        raise InputError(f"{name} must be an array of 3-D points, got {type(x).__name__} with rows of different "
+                         "lengths") from None
+    if raw.dtype.kind not in "iuf":
+        raise InputError(f"{name} must hold numeric coordinates (integers or floats), got dtype {raw.dtype}")
+    a = raw.astype(np.float64)
     single = a.shape == (3,)
     if single and allow_single:
         a = a[None]
@@ -55,7 +63,7 @@ def _finite_points(x, name: str, allow_single: bool = False) -> tuple[np.ndarray
         raise ValueError(f"{name} must have shape {want} (x, y, z per row), got shape {a.shape}")
     if not np.isfinite(a).all():
         bad = int(np.argwhere(~np.isfinite(a).all(axis=1))[0, 0])
-        raise ValueError(f"{name} holds a non-finite coordinate (NaN or inf), first at row {bad}; remove or fix "
+        raise InputError(f"{name} holds a non-finite coordinate (NaN or inf), first at row {bad}; remove or fix "
                          f"those points")
     return a, single
 
@@ -71,13 +79,29 @@ def normalization(points: np.ndarray) -> tuple[np.ndarray, float]:
     t = np.array(p.T, dtype=p.dtype if p.dtype.kind == "f" else np.float64, order="C")  # (3, N) rows: a copy
     c = (t.min(axis=1) + t.max(axis=1)) / 2
     t -= c[:, None]
-    t *= t
+    with np.errstate(over="ignore"):  # an overflowing cloud is refused below, by its (infinite) radius
+        t *= t
     r2 = t[0] + t[1]
     r2 += t[2]
     r = float(np.sqrt(r2.max()))
     if not r > 0:
         raise ValueError("all points coincide: a shape needs points spread in space to be normalized")
+    check_cloud_scale(c, r)
     return c, 1.0 / r
+
+
+def check_cloud_scale(center, radius: float, what: str = "the point cloud") -> None:
+    """The per-mesh model's size rule (``mesh.check_scale``): a cloud whose bounding radius is outside
+    [MIN_RADIUS, MAX_RADIUS], or whose coordinates reach beyond MAX_COORDINATE (estimated as |center| + radius),
+    would give distances of 0 or inf in float32; refused with an InputError."""
+    from neurogf_warp.mesh.mesh import MAX_COORDINATE, MAX_RADIUS, MIN_RADIUS
+
+    largest = float(np.abs(np.asarray(center, np.float64)).max()) + radius
+    if not MIN_RADIUS <= radius <= MAX_RADIUS or not largest <= MAX_COORDINATE:
+        raise InputError(f"{what} is outside the supported range: its bounding radius is {radius:.3g} units and its "
+                         f"coordinates reach {largest:.3g}; shapes from {MIN_RADIUS:g} to {MAX_RADIUS:g} units, with "
+                         f"coordinates up to {MAX_COORDINATE:g}, are supported (the float32 computations would give "
+                         "distances of 0 or inf); rescale or move the points, and scale the results back")
 
 
 def max_points_for(device) -> int:
@@ -141,7 +165,9 @@ class GeneralizableModel:
 
     def warp_net(self, device=None, mode: str | None = None) -> WarpGenNet:
         """The Warp weights on ``device`` in ``mode`` (cached; it also keeps the encoder's CUDA graphs)."""
-        dev = wp.get_device(device)
+        from neurogf_warp.common.arrays import resolve_device
+
+        dev = resolve_device(device)  # an unknown device named as the per-mesh queries name it
         mode = mode or default_mode(dev)
         key = (str(dev), mode)
         if key not in self._warp:
@@ -231,7 +257,7 @@ class GeneralizableModel:
         if n_points < wn.kk:
             raise InputError(f"n_points={n_points} is too small; use at least {wn.kk} (2,048 as in training)")
         check_cloud_size(n_points, wn.kk, limit, what=f"n_points={n_points}: the sampled cloud")
-        pts, _ = sample_surface(mesh, n_points, seed)
+        pts, _ = sample_surface(mesh, n_points, integer("seed", seed, minimum=0))
         check_cloud_spread(pts, wn.kk, what="the cloud sampled on the mesh")
         fcomp = mesh.internal_components[mesh.internal_faces[:, 0]].astype(np.int32)
         return Conditioned(self, wn, pts, np.asarray(mesh.center, np.float64), float(mesh.scale), mesh, fcomp)
@@ -300,11 +326,12 @@ def _condition_on_device(model, wn: WarpGenNet, t, from_torch: bool) -> Conditio
         if not np.isfinite(stats[:3]).all():
             bad = (~torch.isfinite(x64).all(dim=1)).nonzero()
             if bad.numel():
-                raise ValueError(f"points holds a non-finite coordinate (NaN or inf), first at row {int(bad[0, 0])}; "
+                raise InputError(f"points holds a non-finite coordinate (NaN or inf), first at row {int(bad[0, 0])}; "
                                  f"remove or fix those points")
     r = float(np.sqrt(stats[3]))
-    if not r > 0:
-        raise ValueError("all points coincide: a shape needs points spread in space to be normalized")
+    if not r > 0:  # the host path's refusal, word for word
+        raise InputError(cloud_spread_refusal(1, np.zeros(3), wn.kk))
+    check_cloud_scale(stats[:3], r)
     with torch.cuda.stream(ts):  # distinct points and the spread, as check_cloud_spread on the host
         d = x64 - torch.from_numpy(stats[:3].copy()).to(x64.device)
         sv = torch.linalg.svdvals(d).cpu().numpy()
@@ -331,6 +358,18 @@ def sample_surface(mesh, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     tm = trimesh.Trimesh(np.asarray(mesh.internal_vertices, np.float64), np.asarray(mesh.internal_faces), process=False)
     pts, face = trimesh.sample.sample_surface(tm, n, seed=seed)
     return np.asarray(pts, np.float64), np.asarray(face, np.int64)
+
+
+def _host_array(x, name: str) -> np.ndarray:
+    """``x`` (a list, numpy array or tensor) as a numpy array; meta tensors and ragged lists refused naming it."""
+    from neurogf_warp.inference.inputs import check_tensor
+
+    check_tensor(x, name)
+    try:
+        return np.asarray(x.detach().cpu().numpy() if hasattr(x, "detach") else x)
+    except ValueError:
+        raise InputError(f"{name} has rows of different lengths: give integer indices (one, or a 1-D list) or "
+                         "(M, 3) points") from None
 
 
 def _no_2d_integers(a: np.ndarray, name: str) -> None:
@@ -390,8 +429,17 @@ class Conditioned:
     # ---- inputs --------------------------------------------------------------------------------------------
     def _points(self, x, name, single_ok=True, allow_index=True):
         """(user-unit points (M, 3) float64, components (M,) or None, single?) from indices or points."""
+        from neurogf_warp.inference.inputs import check_tensor
+
+        check_tensor(x, name)
         arr = x.detach().cpu().numpy() if hasattr(x, "detach") else x
-        a = np.asarray(arr)
+        try:
+            a = np.asarray(arr)
+        except ValueError:  # ragged: indices mixed with points, rows of different lengths
+            raise InputError(f"{name} has rows of different lengths: give integer indices (one, or a 1-D list) or "
+                             "(M, 3) points") from None
+        if a.dtype.kind == "b":
+            raise InputError(f"{name} must be integer indices or float points, got booleans")
         if allow_index:
             _no_2d_integers(a, name)
         if allow_index and a.dtype.kind in "iu":  # indices
@@ -489,7 +537,7 @@ class Conditioned:
     def ssad(self, source, precision: str = "fp32"):
         """Single source, all destinations: one index or one (3,) point -> (n,) float32 (see distance_matrix)."""
         check_precision(precision)
-        a = np.asarray(source.detach().cpu().numpy() if hasattr(source, "detach") else source)
+        a = _host_array(source, "source")
         if not (a.ndim == 0 or (a.shape == (3,) and a.dtype.kind == "f")):
             raise ValueError(f"ssad takes one source (an integer index or a (3,) float point), got {a.dtype} "
                              f"shape {a.shape}; "
@@ -499,7 +547,8 @@ class Conditioned:
     def msad(self, sources, chunk: int = 64, precision: str = "fp32"):
         """Multiple sources, all destinations: the distance from every target to its nearest source -> (n,)."""
         check_precision(precision)
-        a = np.asarray(sources.detach().cpu().numpy() if hasattr(sources, "detach") else sources)
+        chunk = integer("chunk", chunk, minimum=1)
+        a = _host_array(sources, "sources")
         if a.size == 0:
             raise ValueError("sources is empty: give at least one source")
         if a.dtype.kind not in "iuf":

@@ -46,6 +46,9 @@ def train_folder(folder, outdir, budget_seconds=None, config=None, device=None, 
 
     from neurogf_warp.generalizable.train import _dist_setup
 
+    from neurogf_warp.training.api import check_budget
+
+    budget_seconds = check_budget(budget_seconds)  # once, before any work (not once per mesh)
     rank, world, dev, distributed = _dist_setup(device)
     folder, outdir = Path(folder), Path(outdir)
     if not folder.is_dir():

@@ -295,11 +295,20 @@ def _write_shape(job):
     return info
 
 
+MAX_SHAPES = 1_000_000  # shapes of one collection: 10^8 asked ran for minutes building its job list, writing nothing
+
+
 def write_collection(folder, n: int = 600, seed: int = 0, test_every: int = 10, shared_meshes=None,
                      start: int = 0, progress: bool = True, workers: int = 1) -> dict:
     """Write shapes start .. n-1 as ``folder/{train,test}/shape_{i:05d}_{family}.obj`` and a manifest.json
     (family, seed, split, vertex/face counts of each). Existing files are kept (so a run can be resumed).
     ``workers`` > 1 makes the shapes in that many processes (same files: each shape depends on (seed, i) only)."""
+    if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or not 1 <= n <= MAX_SHAPES:
+        from neurogf_warp.common.checks import InputError
+
+        raise InputError(f"n must be an integer from 1 to {MAX_SHAPES:,} (shapes of a collection), got {n!r}: "
+                         "a collection is written as one .obj per shape and one manifest, all of it before the "
+                         "manifest is saved")
     folder = Path(folder)
     # only the folder given: a default looked up beside the package made the files depend on where it was installed
     deform = deform_sources_present(shared_meshes)

@@ -74,6 +74,22 @@ END_RESERVE_S = 1.0
 BUDGET_STEPS = 20
 
 
+def check_config(cfg: "GenTrainConfig") -> None:
+    """InputError, before any work, for a count below its minimum (sources=0 failed inside the ground truth) or a
+    rate or period that is not a finite positive number."""
+    from neurogf_warp.common.checks import integer, number
+
+    for f in dataclasses.fields(cfg):
+        v = getattr(cfg, f.name)
+        if f.name == "budget_seconds" or isinstance(f.default, bool):
+            continue
+        if isinstance(f.default, int):  # 0 validations (val_every, val_shapes) means none; a seed may be 0
+            integer(f.name, v, minimum=0 if f.name in ("seed", "val_every", "val_shapes") else 1)
+        elif isinstance(f.default, float):
+            zero_ok = f.name in ("weight_decay", "lr_min")
+            number(f.name, v, minimum=0.0 if zero_ok else None, above=None if zero_ok else 0)
+
+
 @dataclass
 class GenTrainConfig:
     """Settings of :func:`train_generalizable` (defaults: the authors' data sizes, a smaller batch)."""
@@ -440,6 +456,14 @@ def train_generalizable(folder, output, config: GenTrainConfig | None = None, re
 
     t_call = budget_start(time.perf_counter())
     cfg = config or GenTrainConfig()
+    if cfg.budget_seconds is not None:  # the per-mesh rule, before any work (a NaN budget would never end the run)
+        from neurogf_warp.training.api import check_budget
+
+        cfg = dataclasses.replace(cfg, budget_seconds=check_budget(cfg.budget_seconds))
+    from neurogf_warp.model.files import _not_a_mesh_name
+
+    _not_a_mesh_name(output, ".pt")  # never over a mesh of the collection (the model is written at the end)
+    check_config(cfg)
     rank, world, dev, distributed = _dist_setup(device)
     log = log or (lambda s: print(s, flush=True))
     say = (lambda s: log(s)) if rank == 0 else (lambda s: None)
@@ -686,6 +710,7 @@ def _main(argv, prog: str):
                             if f.name != "budget_seconds" and getattr(a, f.name) is not None},
                          budget_seconds=a.budget_seconds)
     try:
+        check_config(cfg)
         if a.gt_only:
             rank, world, dev, distributed = _dist_setup(a.device)
             train, val = mesh_files(a.folder)

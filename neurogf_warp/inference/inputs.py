@@ -24,7 +24,7 @@ import numpy as np
 import torch
 import warp as wp
 
-from neurogf_warp.common.arrays import _is_torch, as_points, resolve_device
+from neurogf_warp.common.arrays import _is_torch, as_array, as_points, resolve_device
 from neurogf_warp.common.checks import InputError
 from neurogf_warp.inference.state import DOMAIN, query_state, to_relative
 from neurogf_warp.kernels.inference import finish
@@ -75,6 +75,12 @@ def check_tensor(x, name: str) -> None:
             raise InputError(f"{name} is a sparse torch tensor ({x.layout}): pass a dense one (x.to_dense())")
 
 
+def check_flag(check) -> None:
+    """``check`` must be a bool: a string such as "no" would read as True."""
+    if not isinstance(check, (bool, np.bool_)):
+        raise InputError(f"check must be True or False, got {check!r}")
+
+
 def _on_host(x) -> bool:
     return not isinstance(x, wp.array) and not _is_torch(x)
 
@@ -84,12 +90,13 @@ def points_in(model: Model, x, name: str, dev, check: bool = True, host: bool | 
     centre (made in float64) with ``state.frame``, device input as given with ``state.user_frame``. ``host``:
     force the host route on (True) or off (False; host input then becomes float32 mesh coordinates)."""
     check_tensor(x, name)
+    check_flag(check)
     st = query_state(model, dev)
     single = _is_single_point(x)
     if host is None:
         host = _on_host(x)
     if host and _on_host(x):
-        a = np.asarray(x)
+        a = as_array(x, name)
         if np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer):
             a = a.astype(np.float64)
             if a.ndim >= 1 and a.shape[-1] == 3:
@@ -105,7 +112,10 @@ def points_in(model: Model, x, name: str, dev, check: bool = True, host: bool | 
 
 
 def _is_single_point(x) -> bool:
-    shape = tuple(x.shape) if hasattr(x, "shape") else np.shape(x)
+    try:
+        shape = tuple(x.shape) if hasattr(x, "shape") else np.shape(x)
+    except ValueError:  # ragged: refused by the caller, naming the argument
+        return False
     if isinstance(x, wp.array):
         return x.ndim == 1 and x.dtype != wp.vec3 and shape == (3,)
     return shape == (3,)
@@ -138,7 +148,10 @@ def sources_in(model: Model, src, name: str, dev, one: bool = False):
         src = src.numpy()
     elif isinstance(src, torch.Tensor):
         src = src.detach().cpu().numpy()
-    a = np.asarray(src)
+    try:
+        a = np.asarray(src)
+    except ValueError:  # ragged lists (indices mixed with points, rows of different lengths)
+        a = np.asarray(None, dtype=object)
     if a.size == 0:
         raise ValueError(f"{name} is empty: give a vertex index, a list of indices or (S, 3) points")
     if a.dtype == object:  # None, an integer beyond int64, ragged lists, ...
@@ -165,6 +178,9 @@ def sources_in(model: Model, src, name: str, dev, one: bool = False):
     if not np.issubdtype(a.dtype, np.floating):
         raise TypeError(f"{name} must be vertex indices (integers) or points (floats), got dtype {a.dtype}")
     if one:
+        if a.ndim == 0:  # a float where an index was meant
+            raise TypeError(f"{name}: a vertex index must be an integer, got {src!r}; a source point is 3 floats "
+                            "[x, y, z]")
         if a.shape not in ((3,), (1, 3)):
             raise ValueError(f"ssad takes one source point of 3 coordinates, shape (3,), got shape {a.shape}; use "
                              "msad or distance_matrix for several")
@@ -220,6 +236,7 @@ def pair_inputs(model, p, q, device, check: bool = True):
     mesh coordinates (a host array paired with a device one is rounded to float32 first)."""
     check_tensor(p, "p")
     check_tensor(q, "q")
+    check_flag(check)
     dev = resolve_device(device, like=p)
     host = _on_host(p) and _on_host(q)
     P, kind, single_p, frame = points_in(model, p, "p", dev, False, host)

@@ -14,9 +14,9 @@ import numpy as np
 import warp as wp
 
 from neurogf_warp.common.arrays import Output, resolve_device
-from neurogf_warp.inference.backends import backend_of
+from neurogf_warp.inference.backends import CPU_CHUNK_ALIGN, backend_of, in_chunks
 from neurogf_warp.inference.inputs import check_tensor, pair_components, pair_inputs, points_in, relative_points
-from neurogf_warp.inference.state import QueryState, query_state
+from neurogf_warp.inference.state import QueryState, check_memory, query_state
 from neurogf_warp.kernels.inference import finish, mlp
 from neurogf_warp.kernels.inference import refine as refine_kernels
 from neurogf_warp.mesh.surface import _flat_points, snap_to_mesh, warp_mesh
@@ -89,40 +89,54 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None 
     st = query_state(model, dev)
     be = backend_of(st, precision)
     n, m = P.shape[0], int(m)
+    _check_memory(dev, n, m, refine, return_faces or project == "mesh")
     out = Output(kind, dev)
     res = out.empty((n, m), dtype=wp.vec3)
     if n and (refine or project == "sdf") and frame is not st.frame:
         # iterated points (refinement, Newton steps) live relative to the mesh centre, where float32 resolves the
         # mesh's own scale; device input is moved there once (float64 arithmetic) and the result moved back below
         P, Q, frame = relative_points(model, P, frame), relative_points(model, Q, frame), st.frame
-    left = None
-    if n and not refine:
-        be.paths(P, Q, res, frame)
-    elif n:
-        left = _refined_paths(st, be, P, Q, res, int(refine), dev, frame)
-    if n:  # NaN rows for unchecked ends outside the domain (before any projection: NaN stays NaN), p == q rows
-        st.launches.run(finish.finish_paths, n, {"ps": P, "qs": Q, "frame": frame, "test_domain": int(not check),
-                                                 "x": res}, group="finish_paths")
-    if n and project == "sdf":
-        flat = res.reshape(-1)
-        wp.launch(mlp.project_points, flat.shape[0], inputs=[st.weights, flat, frame, 2 * PROJECT_STEPS],
-                  outputs=[flat], device=dev)
-    if n:
+    faces = bary = None
+    if project == "mesh":
+        faces = wp.empty((n, m), dtype=wp.int32, device=dev)
+        bary = wp.empty((n, m), dtype=wp.vec3, device=dev)
+    left = []  # refined pairs whose every candidate left the surface: (count, largest excess) per chunk
+
+    def rows(lo, hi):  # pairs lo..hi: every pair's path depends on its own ends only
+        k, p_, q_, r = hi - lo, P[lo:hi], Q[lo:hi], res[lo:hi]
+        chunk_left = None
+        if not refine:
+            be.paths(p_, q_, r, frame)
+        else:
+            chunk_left = _refined_paths(st, be, p_, q_, r, int(refine), dev, frame)
+        # NaN rows for unchecked ends outside the domain (before any projection: NaN stays NaN), p == q rows
+        st.launches.run(finish.finish_paths, k, {"ps": p_, "qs": q_, "frame": frame, "test_domain": int(not check),
+                                                 "x": r}, group="finish_paths")
+        flat = r.reshape(-1)
+        if project == "sdf":
+            wp.launch(mlp.project_points, flat.shape[0], inputs=[st.weights, flat, frame, 2 * PROJECT_STEPS],
+                      outputs=[flat], device=dev)
         # host input ran relative to the mesh centre: back to mesh coordinates (float64 sum) before anything below
         # reads the points
         if frame is st.frame and st.model.in_mesh_frame:
-            flat = res.reshape(-1)
             wp.launch(finish.shift_points, flat.shape[0], inputs=[flat, wp.vec3d(*st.center)], outputs=[flat],
                       device=dev)
-    faces = None
-    if n and project == "mesh":
-        snapped, faces, bary = snap_to_mesh(model, res, device=dev, check=False)  # NaN rows stay NaN
-        wp.copy(res, snapped)
-    comps = pair_components(model, P, Q, dev, frame) if n else None
-    if comps is not None:
-        wp.launch(finish.split_paths, (n, m), inputs=[*comps, res], device=dev)
-    if left is not None:
-        _warn_left(left, P, Q, comps)
+        if project == "mesh":
+            snapped, f, b = snap_to_mesh(model, r, device=dev, check=False)  # NaN rows stay NaN
+            wp.copy(r, snapped)
+            wp.copy(faces[lo:hi], f)
+            wp.copy(bary[lo:hi], b)
+        comps = pair_components(model, p_, q_, dev, frame)
+        if comps is not None:
+            wp.launch(finish.split_paths, (k, m), inputs=[*comps, r], device=dev)
+        if chunk_left is not None:
+            left.append(_left_pairs(chunk_left, p_, q_, comps))
+
+    # CPU: chunks of pairs, so that Ctrl-C stops a long query within about a second (results as one launch)
+    first = max(1, (1 << 14) // (m * (5 * (1 + int(refine)) if refine else 1)))
+    in_chunks(dev, n, rows, first=first, align=CPU_CHUNK_ALIGN if be.precision == "fp16" else 1)
+    if left:
+        _warn_left([c for c, _ in left], [x for _, x in left], n)
     if kind == "torch":
         r = wp.to_torch(res).view(n, m, 3)
     elif kind == "warp":
@@ -137,6 +151,26 @@ def path(model: Model, p, q, m: int = 128, refine: int = 0, project: str | None 
             b = b.view(n, m, 3)
         return (r[0], f[0], b[0]) if single else (r, f, b)
     return r[0] if single else r
+
+
+def _check_memory(dev, n: int, m: int, refine: int, snapped: bool):
+    """A MemoryError naming ``m`` and the pairs, before any allocation, where the paths cannot fit: the result
+    (12 bytes a point), the faces and weights of snapped points (16), and refinement's five candidates (~9x)."""
+    per_point = 12 * (9 if refine else 1) + (16 if snapped else 0)
+    need = n * m * per_point
+    what = f"{n:,} paths of m={m:,} points"
+    hint = "ask fewer points per path (m=) or pass fewer pairs per call"
+    if dev.is_cuda:
+        check_memory(dev, need, what, hint)
+        return
+    import os
+
+    try:
+        free = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):  # not reported on this system
+        return
+    if need > 0.9 * free:
+        raise MemoryError(f"{what} need {need / 1e9:.2f} GB, but {free / 1e9:.2f} GB of memory is free: {hint}")
 
 
 def _relative_mesh(st: QueryState) -> wp.Mesh:
@@ -278,7 +312,15 @@ def surface_fit(model: Model, paths, device=None, precision: str = "auto"):
         return out.result(out.empty(0)), out.result(out.empty(0))
     st = query_state(model, dev)
     mesh_id = warp_mesh(model.mesh, dev).id if model.mesh is not None else None  # mesh coordinates, as the paths
-    length, excess = _fit(backend_of(st, precision), x.reshape(lead), dev, st.user_frame, mesh_id)
+    be, x = backend_of(st, precision), x.reshape(lead)
+    length, excess = out.empty(n), out.empty(n)
+
+    def rows(lo, hi):  # CPU: chunks of paths (Ctrl-C within about a second); every path on its own
+        a, b = _fit(be, x[lo:hi], dev, st.user_frame, mesh_id)
+        wp.copy(length[lo:hi], a)
+        wp.copy(excess[lo:hi], b)
+
+    in_chunks(dev, n, rows, first=max(1, (1 << 14) // lead[1]), align=1)
     return out.result(length), out.result(excess)
 
 
@@ -303,18 +345,25 @@ def _fit(be, x, dev, frame, mesh_id, off=None):
     return length, excess
 
 
-def _warn_left(left, P, Q, comps):
-    """A PathWarning for the pairs (of one component, p != q) whose every candidate path left the surface."""
+def _left_pairs(left, P, Q, comps) -> tuple:
+    """(how many pairs (of one component, p != q) had every candidate path leave the surface, the largest such
+    excess, mesh units) of one chunk of refined paths."""
     ex = left.numpy()
     if not np.any(ex > 0):
-        return
+        return 0, 0.0
     keep = np.any(P.numpy() != Q.numpy(), axis=1)
     if comps is not None:
         keep &= comps[0].numpy() == comps[1].numpy()
     bad = (ex > 0) & keep
-    if bad.any():
-        warnings.warn(f"{int(bad.sum())} of {len(ex)} refined paths leave the surface: no candidate path of those "
-                      f"pairs followed it (chord midpoints up to {float(ex[bad].max()):.3g} mesh units farther from "
+    return int(bad.sum()), float(ex[bad].max()) if bad.any() else 0.0
+
+
+def _warn_left(counts, worst, total: int | None = None):
+    """A PathWarning for the pairs whose every candidate path left the surface (counts and worst excess by chunk)."""
+    n_bad = int(sum(counts))
+    if n_bad:
+        warnings.warn(f"{n_bad} of {total} refined paths leave the surface: no candidate path of those "
+                      f"pairs followed it (chord midpoints up to {max(worst):.3g} mesh units farther from "
                       f"the surface than their ends); they come back as the candidate that left it least",
                       PathWarning, stacklevel=3)
 
@@ -340,11 +389,14 @@ def project(model: Model, x, steps: int = PROJECT_STEPS, device=None):
     if X.shape[0]:
         st = query_state(model, dev)
         X, frame = relative_points(model, X, frame), st.frame  # Newton steps relative to the mesh centre
-        wp.launch(mlp.project_points, X.shape[0], inputs=[st.weights, X, frame, int(steps)], outputs=[res],
-                  device=dev)
-        if frame is st.frame and st.model.in_mesh_frame:  # host input ran relative to the mesh centre
-            wp.launch(finish.shift_points, X.shape[0], inputs=[res, wp.vec3d(*st.center)], outputs=[res],
-                      device=dev)
+        def rows(lo, hi):  # CPU: chunks (Ctrl-C within about a second); every point on its own
+            wp.launch(mlp.project_points, hi - lo, inputs=[st.weights, X[lo:hi], frame, int(steps)],
+                      outputs=[res[lo:hi]], device=dev)
+            if frame is st.frame and st.model.in_mesh_frame:  # host input ran relative to the mesh centre
+                wp.launch(finish.shift_points, hi - lo, inputs=[res[lo:hi], wp.vec3d(*st.center)],
+                          outputs=[res[lo:hi]], device=dev)
+
+        in_chunks(dev, X.shape[0], rows, first=1 << 12, align=1)
     if kind == "torch":
         r = wp.to_torch(res).view(-1, 3)
     elif kind == "warp":

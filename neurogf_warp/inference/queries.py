@@ -302,11 +302,13 @@ def sdf(model: Model, x, device=None, precision: str = "auto", check: bool = Tru
     return single_answer(out.result(res), kind, single)
 
 
-def embed(model: Model, x, device=None) -> wp.array:
-    """Point embeddings e(x) of the lifting network: (N, 3) -> (N, D) float32 wp.array on the device."""
+def embed(model: Model, x, device=None, check: bool = True) -> wp.array:
+    """Point embeddings e(x) of the lifting network: (N, 3) -> (N, D) float32 wp.array on the device.
+    check: refuse non-finite points and points outside the model's domain (as ``sdf``; the network means nothing
+    there)."""
     check_tensor(x, "x")
     dev = resolve_device(device, like=x)
-    pts, _, _, frame = points_in(model, x, "x", dev, check=False)
+    pts, _, _, frame = points_in(model, x, "x", dev, check=check)
     return PerThread(query_state(model, dev)).embed(pts, frame)
 
 

@@ -48,7 +48,8 @@ def reconstruct(model: Model, resolution: int = 256, level: float = 0.0, device=
     if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) or not \
             8 <= resolution <= MAX_RESOLUTION:
         raise InputError(f"resolution must be an integer from 8 to {MAX_RESOLUTION}, got {resolution!r}")
-    if not np.isfinite(level):
+    if isinstance(level, (bool, np.bool_)) or not isinstance(level, (int, float, np.integer, np.floating)) or \
+            not np.isfinite(level):
         raise InputError(f"level must be a finite number of mesh units, got {level!r}")
     dev = resolve_device(device)
     lo, hi = _box(model)

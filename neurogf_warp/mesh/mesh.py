@@ -302,8 +302,11 @@ def _weld(v: np.ndarray, used: np.ndarray):
 def _from_arrays(vertices, faces, weld="auto", where: str = "") -> Mesh:
     """Build a Mesh from vertex records and triangles as given; ``where`` prefixes errors (e.g. a file name)."""
     pre = f"{where}: " if where else ""
-    v = np.asarray(vertices)
-    f = np.asarray(faces)
+    try:
+        v, f = np.asarray(vertices), np.asarray(faces)
+    except ValueError:  # ragged lists
+        raise InputError(f"{pre}vertices and faces must be arrays of equal-length rows: (V, 3) vertex coordinates "
+                         "and (F, 3) vertex indices") from None
     if v.dtype == object or f.dtype == object:
         raise TypeError(f"{pre}vertices and faces must be numeric arrays, got dtypes {v.dtype} and {f.dtype}")
     if not (np.issubdtype(v.dtype, np.floating) or np.issubdtype(v.dtype, np.integer)):

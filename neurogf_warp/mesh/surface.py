@@ -126,8 +126,12 @@ def snap_to_mesh(mesh, points, device=None, check: bool = True):
     out = Output(kind, dev)
     res_p, res_f, res_b = out.empty(n, dtype=wp.vec3), out.empty(n, dtype=wp.int32), out.empty(n, dtype=wp.vec3)
     if n:
-        wp.launch(kernels.snap_points, n, inputs=[warp_mesh(m, dev).id, pts, REACH], outputs=[res_p, res_f, res_b],
-                  device=dev)
+        from neurogf_warp.inference.backends import in_chunks  # chunks on the CPU: Ctrl-C within about a second
+
+        mid = warp_mesh(m, dev).id
+        in_chunks(dev, n, lambda lo, hi: wp.launch(kernels.snap_points, hi - lo, inputs=[mid, pts[lo:hi], REACH],
+                                                   outputs=[res_p[lo:hi], res_f[lo:hi], res_b[lo:hi]], device=dev),
+                  first=1 << 14, align=1)
     return tuple(_shaped(out.result(a), lead, last) for a, last in ((res_p, (3,)), (res_f, ()), (res_b, (3,))))
 
 

@@ -88,6 +88,7 @@ def save(model: Model, path, include_mesh: bool = True) -> str:
         raise TypeError(f"save(model, path): model must be a neurogf_warp Model, got "
                         f"{'None' if model is None else type(model).__name__}{hint}")
     _check_frame(np.asarray(model.center, dtype=np.float64).tolist(), model.scale, "center", "scale", "model")
+    _not_a_mesh_name(path)
     tensors = {f"net.{k}": v.detach().cpu().contiguous() for k, v in model.net.state_dict().items()}
     if model.querier is not None:
         tensors.update({f"querier.{k}": v.detach().cpu().contiguous() for k, v in model.querier.state_dict().items()})
@@ -118,6 +119,19 @@ def save(model: Model, path, include_mesh: bool = True) -> str:
     meta["checksums"] = {"tensors": {k: _digest_tensor(k, v) for k, v in tensors.items()},
                          "meta": {k: _digest_value(v) for k, v in meta.items()}}
     return atomic_write_bytes(path, st_save(tensors, metadata={"neurogf": json.dumps(meta)}), what="model file")
+
+
+def _not_a_mesh_name(path, suffix: str = ".ngf") -> None:
+    """Refuse a model path named like a mesh file: saving there would replace a mesh (``save(m, "bunny.obj")``),
+    and the file would later be read as one."""
+    from neurogf_warp.common.files import output_target
+    from neurogf_warp.mesh.files import ARCHIVE_SUFFIXES, COMPRESSED_SUFFIXES, MESH_SUFFIXES
+
+    name = os.path.basename(output_target(path, what="model file")).lower()
+    bad = [s for s in MESH_SUFFIXES + ARCHIVE_SUFFIXES + COMPRESSED_SUFFIXES if name.endswith(s)]
+    if bad:
+        raise InputError(f"cannot write model file {os.fspath(path)}: a '{bad[0]}' name is a mesh file's (saving "
+                         f"there would replace a mesh, and the file would be read as one); save to a {suffix} path")
 
 
 def _strict_load(module: torch.nn.Module, state: dict, what: str, path: str):

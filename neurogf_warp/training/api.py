@@ -18,7 +18,7 @@ from neurogf_warp.dataset.build import check_trainable
 from neurogf_warp.ground_truth.solver import load_seconds
 from neurogf_warp.mesh.mesh import load_mesh
 from neurogf_warp.training.budget import (MIN_SDF_SCALE, Budget, ThreadChooser, calibrate, fit_budget,
-                                         short_budget_scale)
+                                         short_budget_done, short_budget_said, short_budget_scale)
 from neurogf_warp.training.checkpoint import (
     CKPT_VERSION,
     RunFiles,
@@ -32,7 +32,8 @@ from neurogf_warp.training.data import TrainingData, make_sdf_pool, obtain_datas
 from neurogf_warp.training.loop import Runner
 from neurogf_warp.training.presets import choose_preset, preset
 from neurogf_warp.training.run_folder import call_key, finished_log
-from neurogf_warp.training.quality import HeatBaseline, ModelQualityWarning, budget_verdict, final_verdict
+from neurogf_warp.training.quality import (HeatBaseline, ModelQualityWarning, budget_verdict, final_verdict,
+                                          mre_estimate)
 
 if TYPE_CHECKING:
     import torch
@@ -122,10 +123,12 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
     ValueError. Ctrl-C writes a checkpoint and raises ``TrainingInterrupted``. A second process training to the
     same ``out`` while one runs gets an InputError (the run folder is locked with ``flock``).
 
-    The dataset's held-out sources score the final model (``validation_mre``) and, with potpourri3d installed, the
-    heat method on the same pairs (``heat_mre``); both, ``worse_than_heat`` and ``quality_warning`` go into the
-    model's ``config`` (the file's metadata) and the run's log. A model worse than the heat method, or a budget
-    predicted too small before the steps start, gives a ``ModelQualityWarning`` (``training.quality``).
+    The dataset's held-out sources (uniformly random vertices, as ``evaluate`` draws its sources) score the final
+    model: ``validation_mre`` over all their pairs and ``validation_mre_upper``, a 95% upper bound over sources
+    drawn the same way (``training.quality.mre_estimate``); with potpourri3d installed, the heat method on the same
+    pairs (``heat_mre``). These, ``worse_than_heat`` and ``quality_warning`` go into the model's ``config`` (the
+    file's metadata) and the run's log. A model worse than the heat method, one whose upper bound reaches the heat
+    method's MRE, or a budget predicted too small before the steps start, gives a ``ModelQualityWarning``.
     """
     from neurogf_warp.common.clock import budget_start
     from neurogf_warp.common.lazy import call_started
@@ -138,6 +141,9 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
     from neurogf_warp.common.files import output_target
 
     output_target(out, inputs=(mesh, dataset), what="model file")  # never the mesh or dataset, even with force
+    from neurogf_warp.model.files import _not_a_mesh_name
+
+    _not_a_mesh_name(out)  # the rule save() applies at the end, checked before the work
     created = not os.path.isdir(files.folder)
     lock = files.lock()
     try:
@@ -338,8 +344,8 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
                 left = deadline - time.perf_counter()
                 fitted = fit_budget(cfg, per, max(left, 0.0))
             if shrunk:
-                say(progress, f"short budget: batches x{scale:g} for more steps (about {fitted.joint_steps:,} joint "
-                              "steps planned at the measured step time; the count follows the actual speed)")
+                history["short_budget"] = {"scale": scale, "planned_joint_steps": int(fitted.joint_steps)}
+                say(progress, short_budget_said(scale))
             timings["calibrate_s"] = time.perf_counter() - t0
             cap = None
             if not cfg.runtime.fill_budget:  # the preset's own steps, the budget only a cap
@@ -384,15 +390,16 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     timings["steps_s"] = time.perf_counter() - t0
     if chooser is not None:
         history["threads"] = chooser.chosen
-        say(progress, "torch threads (timed fastest on the first steps): "
+        say(progress and bool(chooser.chosen), "torch threads (timed fastest on the first steps): "
             + ", ".join(f"{k} {v}" for k, v in chooser.chosen.items()))
-    val_mre, heat_note = trainer.validate(), None
+    estimate, heat_note = mre_estimate(*trainer.source_errors()), None
+    val_mre = estimate["mre"]
     if heat is not None:  # wait for the heat method at most until the deadline
         t0 = time.perf_counter()
         heat_mre, heat_note = heat.mre(None if deadline is None else max(0.0, deadline - t0))
         timings.update(heat_wait_s=time.perf_counter() - t0, heat_s=heat.seconds)
         history["heat_mre"] = heat_mre
-    quality = final_verdict(val_mre, heat_mre, progress, heat_note, n_test=len(ds.test_src))
+    quality = final_verdict(val_mre, heat_mre, progress, heat_note, n_test=len(ds.test_src), estimate=estimate)
     if "planned_steps" in history:  # fill_budget=False: did the budget cut the preset's steps?
         planned = history["planned_steps"]
         quality["budget_bound"] = any(trainer.steps[s] < planned[s] for s in STAGES)
@@ -400,6 +407,8 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
             say(progress, f"note: the budget bound: {sum(trainer.steps.values()):,} of the preset's "
                           f"{sum(planned.values()):,} steps ran (the machine was slower than the budget allows)")
     history["quality"] = quality
+    # the checkpoint keeps the verdict too: a model file written again from it (lost or unreadable) says the same
+    save(stage_i, step, history, elapsed)
     info = dict(trainer.cfg.to_dict(), steps=trainer.steps, train_seconds=round(elapsed, 2), **quality,
                 budget_warning=history.get("budget_warning"))
     model = save_model(trainer.net, trainer.querier, mesh, files.model, info)
@@ -407,8 +416,15 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     timings.update(call_s=call_s, spent_s=spent_before + call_s, budget_seconds=budget_seconds,
                    calibrated_s_per_step=per)
     _write_log(files, info, history, timings, key)
+    if "short_budget" in history:
+        say(progress, short_budget_done(history["short_budget"], trainer.steps["joint"]))
     say(progress, f"saved {files.model} ({call_s:.0f} s; {trainer.steps['joint']:,} joint steps, "
                   f"{sum(trainer.steps.values()):,} in all)")
+    over = spent_before + call_s - budget_seconds if budget_seconds else 0.0
+    if over > max(1.0, 0.02 * budget_seconds if budget_seconds else 0.0):
+        say(progress, f"the run took {over:.0f} s more than its {budget_seconds:g} s budget: loading, the held-out "
+                  "ground truth and saving take at least that long on this machine; give a larger budget_seconds "
+                  "(--budget-seconds)")
     return model
 
 

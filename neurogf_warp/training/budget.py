@@ -14,7 +14,7 @@ import time
 from neurogf_warp.training.acceleration import GRAPH_WARMUP, sync
 from neurogf_warp.training.config import STAGES, TrainConfig
 
-__all__ = ["calibrate", "ThreadChooser", "fit_budget", "Budget"]
+__all__ = ["calibrate", "ThreadChooser", "fit_budget", "Budget", "short_budget_said", "short_budget_done"]
 
 SLACK = 0.95  # share of the time left that the initial plan fills (the loop itself: logging, validation)
 
@@ -146,6 +146,26 @@ def short_budget_scale(joint_steps: int, device_type: str = "cuda") -> float:
     while scale > floor and joint_steps < SHORT_BUDGET_STEPS * scale:
         scale /= 2
     return scale
+
+
+def short_budget_said(scale: float) -> str:
+    """What a short-budget run says before its steps: the batch factor, and no step count (the calibration's few
+    steps leave out the loop's own costs, which dominate small batches on a CPU: a run planned at 2,000 joint steps
+    made 58)."""
+    return (f"short budget: batches x{scale:g} for more steps; the step count follows the measured speed (the last "
+            "lines say how many ran)")
+
+
+def short_budget_done(plan: dict, made: int) -> str:
+    """What a short-budget run says after its steps: the joint steps made, and the calibration's plan beside it."""
+    planned = int(plan["planned_joint_steps"])
+    line = f"short budget: {made:,} joint steps ran at batches x{plan['scale']:g}"
+    if made and planned > 1.25 * made:
+        line += (f" ({planned:,} planned from the first steps' time: the training loop took "
+                 f"{planned / made:.1f}x that time a step)")
+    elif not made:
+        line += f" ({planned:,} planned from the first steps' time: the budget ended first)"
+    return line
 
 
 def fit_budget(cfg: TrainConfig, per_step: dict, seconds: float) -> TrainConfig:

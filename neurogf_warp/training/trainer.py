@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -340,22 +341,33 @@ class Trainer:
     # -- validation: MRE on held-out sources, eval-mode BN (what inference sees)
     @torch.no_grad()
     def validate(self) -> float:
-        """Mean relative error of the eval-mode network on the dataset's held-out test sources (a fraction)."""
+        """Mean relative error of the eval-mode network over every pair of the held-out test sources (a fraction)."""
+        from neurogf_warp.training.quality import mre_estimate
+
+        return mre_estimate(*self.source_errors())["mre"]
+
+    def source_errors(self) -> tuple:
+        """Per held-out test source with a pair of finite distance > 0: the eval-mode network's mean relative error
+        over those pairs, and their count: ((S,) float64, (S,) int64), as ``quality.source_errors``."""
         was = self.net.training
         self.net.eval()
         tf32 = set_tf32(False)
         d = self.data
-        ev = self.net.embed(d.vertices)
-        errs = []
-        for i, s in enumerate(d.test_src):
-            pred = self.net.distance_from_embeddings(ev[s].expand_as(ev), ev, d.vertices[s].expand_as(d.vertices),
-                                                     d.vertices)
-            gt = d.test_dist[i]
-            ok = torch.isfinite(gt) & (gt > 0)
-            errs.append(((pred[ok] - gt[ok]).abs() / gt[ok]).mean())
+        errs, pairs = [], []
+        with torch.no_grad():
+            ev = self.net.embed(d.vertices)
+            for i, s in enumerate(d.test_src):
+                pred = self.net.distance_from_embeddings(ev[s].expand_as(ev), ev,
+                                                         d.vertices[s].expand_as(d.vertices), d.vertices)
+                gt = d.test_dist[i]
+                ok = torch.isfinite(gt) & (gt > 0)
+                if bool(ok.any()):
+                    e = (pred[ok] - gt[ok]).abs() / gt[ok]
+                    errs.append(float(torch.where(torch.isfinite(e), e, torch.ones_like(e)).double().mean()))
+                    pairs.append(int(ok.sum()))
         self.net.train(was)
         set_tf32(tf32)
-        return float(torch.stack(errs).mean()) if errs else float("nan")
+        return np.asarray(errs, np.float64), np.asarray(pairs, np.int64)
 
     # -- step state (what a checkpoint stores besides the run's bookkeeping)
     def state(self) -> dict:
