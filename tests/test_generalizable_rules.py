@@ -191,9 +191,28 @@ def test_collection_does_not_depend_on_where_the_package_is(tmp_path, capsys):
 
 
 def test_a_two_dimensional_integer_array_is_refused_as_on_a_per_mesh_model(cond):
-    """The per-mesh rule: integers are indices (one, or 1-D), floats are points; (M, 3) integers are not guessed at."""
+    """The per-mesh rule for index arguments: integers are indices (one, or 1-D), floats are points; (M, 3)
+    integers are not guessed at (point arguments, as ``distance``'s, are coordinates: the test below)."""
     two_d = np.array([[0, 1, 2], [3, 4, 5]])
-    for call in (lambda: cond.distance(two_d, two_d), lambda: cond.msad(two_d), lambda: cond.distance_matrix(two_d)):
+    for call in (lambda: cond.msad(two_d), lambda: cond.distance_matrix(two_d),
+                 lambda: cond.distance_matrix([0], two_d)):
         with pytest.raises(InputError, match="integer array of shape"):
             call()
     assert np.isfinite(cond.msad([0, 1])).any()  # 1-D integers are still indices
+
+
+# ---- one reading of integers ------------------------------------------------------------------------------------
+
+def test_integers_read_as_the_per_mesh_queries_read_them(model):
+    """Point arguments (distance) are coordinates of any real dtype, index arguments (ssad, msad, distance_matrix)
+    are indices, in both kinds of model: the same integer array never means points in one and indices in the
+    other."""
+    cloud = _ellipsoid_cloud(200, axes=(3.0, 2.0, 1.5))
+    c = model.condition(cloud)
+    p, q = np.array([0, 1, 0]), np.array([1, 0, 0])
+    assert c.distance(p, q) == c.distance(p.astype(float), q.astype(float))
+    pairs = np.array([[0, 1, 0], [1, 0, 1]]), np.array([[1, 0, 0], [0, 0, 1]])
+    np.testing.assert_array_equal(ngf.distance(c, *pairs), c.distance(*(x.astype(np.float32) for x in pairs)))
+    with pytest.raises(ValueError, match=r"\(M, 3\) or \(3,\)"):  # five integers are not points, nor read as indices
+        c.distance(np.arange(5), np.arange(5))
+    np.testing.assert_allclose(c.distance_matrix([3], [7])[0, 0], c.distance(c.points[3], c.points[7]), rtol=1e-6)

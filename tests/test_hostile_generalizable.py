@@ -78,7 +78,7 @@ QUERIES = {
     "chunk 1.5": (lambda c: c.msad([1, 2], chunk=1.5), InputError, "chunk must be an integer"),
     "far point": (lambda c: c.distance([1e6, 0, 0], c.points[0]), ValueError, "outside the model's domain"),
     "negative index": (lambda c: c.distance_matrix([0], [-1]), IndexError, r"targets: point index out of range"),
-    "float index": (lambda c: c.distance(1.5, 2), ValueError, "give integer indices"),
+    "scalar points": (lambda c: c.distance(1.5, 2), ValueError, r"p must have shape \(M, 3\) or \(3,\)"),
     "2-D integers": (lambda c: c.msad(np.array([[0, 1, 2], [3, 4, 5]])), InputError, "integer array of shape"),
     "complex point": (lambda c: c.distance(c.points[:1].astype(complex), c.points[1:2]), InputError, "complex"),
     "evaluate": (lambda c: ngf.evaluate(c), InputError, "evaluate needs a per-mesh model.*Conditioned"),

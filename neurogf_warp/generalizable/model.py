@@ -496,11 +496,14 @@ class Conditioned:
 
     # ---- queries -------------------------------------------------------------------------------------------
     def distance(self, p, q, precision: str = "fp32"):
-        """Geodesic distance of each pair: p, q (M, 3) points (or integer vertex/point indices) -> (M,) float32;
-        (3,), (3,) -> a float. precision: "fp32" or "fp16" (tensor cores; see :class:`GeneralizableModel`)."""
+        """Geodesic distance of each pair: p, q (M, 3) points -> (M,) float32; (3,), (3,) -> a float.
+
+        p and q are coordinates of any real dtype, as in the per-mesh ``ngf.distance`` (integers are never read as
+        point indices here: ``ssad``, ``msad`` and ``distance_matrix`` take indices). precision: "fp32" or "fp16"
+        (tensor cores; see :class:`GeneralizableModel`)."""
         check_precision(precision)
-        P, pc, sp = self._points(p, "p")
-        Q, qc, sq = self._points(q, "q")
+        P, pc, sp = self._points(p, "p", allow_index=False)
+        Q, qc, sq = self._points(q, "q", allow_index=False)
         if len(P) != len(Q):
             raise ValueError(f"p and q must hold the same number of points, got {len(P)} and {len(Q)}")
         out = self.wn.distances(self.enc, self._dev(P), self._dev(Q), self.center, self.scale, False,

@@ -10,11 +10,12 @@ become float32 (``QueryState.frame``), so a mesh far from the origin loses nothi
 ``wp.array``s are used as float32 mesh coordinates (``QueryState.user_frame``), the kernels subtracting the
 float64 centre, so they are exact to their own float32 resolution.
 
-One reading of every argument, for every query: a *source* argument (``ssad``, ``msad``, ``distance_matrix``
-sources and targets) that is integer is vertex indices in the mesh file's numbering (a single integer or a 1-D
-array; a 2-D integer array is refused rather than guessed), and float is points (S, 3); a *point* argument
-(``distance``, ``sdf``, ``path``, ``project``) is coordinates, (N, 3) or (3,), of any real dtype. Torch tensors
-without values (the ``meta`` device) or sparse ones are refused, naming the argument.
+One reading of every argument, for every query of both kinds of model (per-mesh and conditioned generalizable): a
+*source* argument (``ssad``, ``msad``, ``distance_matrix`` sources and targets) that is integer is vertex indices in
+the mesh file's numbering (a single integer or a 1-D array; a 2-D integer array is refused rather than guessed), and
+float is points (S, 3); a *point* argument (``distance``, ``sdf``, ``path``, ``project``) is coordinates, (N, 3) or
+(3,), of any real dtype. Torch tensors without values (the ``meta`` device) or sparse ones are refused, naming the
+argument.
 """
 from __future__ import annotations
 
