@@ -76,6 +76,10 @@ REFUSED = {
     "check as text (sdf)": (lambda m, P, Q: ngf.sdf(m, P, check="no"), InputError, "check must be True or False"),
     "check as text (distance)": (lambda m, P, Q: ngf.distance(m, P, Q, check="no"), InputError, "check must be"),
     "check as text (path)": (lambda m, P, Q: ngf.path(m, P, Q, check=0), InputError, "check must be True or False"),
+    "raw as text (ssad)": (lambda m, P, Q: ngf.ssad(m, 0, raw="yes"), InputError, "raw must be True or False"),
+    "raw as text (distance)": (lambda m, P, Q: ngf.distance(m, P, Q, raw="no"), InputError, "raw must be True"),
+    "cache as text (msad)": (lambda m, P, Q: ngf.msad(m, [0, 1], cache="no"), InputError, "cache must be True"),
+    "cache as 0 (matrix)": (lambda m, P, Q: ngf.distance_matrix(m, [0], cache=0), InputError, "cache must be True"),
     "isolines nan level": (lambda m, P, Q: ngf.isolines(m, ngf.ssad(m, 0), [np.nan]), InputError, "finite"),
 }
 

@@ -76,10 +76,10 @@ def check_tensor(x, name: str) -> None:
             raise InputError(f"{name} is a sparse torch tensor ({x.layout}): pass a dense one (x.to_dense())")
 
 
-def check_flag(check) -> None:
-    """``check`` must be a bool: a string such as "no" would read as True."""
+def check_flag(check, name: str = "check") -> None:
+    """A flag argument must be a bool: a string such as "no" would read as True."""
     if not isinstance(check, (bool, np.bool_)):
-        raise InputError(f"check must be True or False, got {check!r}")
+        raise InputError(f"{name} must be True or False, got {check!r}")
 
 
 def _on_host(x) -> bool:

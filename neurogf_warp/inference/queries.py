@@ -49,8 +49,8 @@ from neurogf_warp.common.checks import InputError
 from neurogf_warp.inference import autograd
 from neurogf_warp.inference.autograd import wants_grad
 from neurogf_warp.inference.backends import PerThread, backend_of, bind, in_chunks
-from neurogf_warp.inference.inputs import (DOMAIN, check_tensor, pair_components, pair_inputs, points_in, single_answer,
-                                          sources_in)
+from neurogf_warp.inference.inputs import (DOMAIN, check_flag, check_tensor, pair_components, pair_inputs, points_in,
+                                          single_answer, sources_in)
 from neurogf_warp.inference.paths import PROJECT_STEPS, path, project  # noqa: F401  (public through this module)
 from neurogf_warp.inference.state import PRECISIONS, check_memory, query_state, unbind
 from neurogf_warp.kernels.inference import finish
@@ -138,10 +138,12 @@ def _sources_in_chunks(be, md, pts, ids, comp, internal: wp.array, reduce_min: b
     in_chunks(dev, S, run, first=max(1, (1 << 14) // max(V, 1)), align=1)
 
 
-def _generalizable(model, name: str, device, output: str, precision: str, raw: bool, **kw):
+def _generalizable(model, name: str, device, output: str, precision: str, raw: bool, cache: bool = True, **kw):
     """The answer of a generalizable model (``neurogf_warp.generalizable``) given to a per-mesh query function: its
     own method when it is conditioned on a shape, and what the per-mesh options become there; None for a per-mesh
-    model. Options it does not have are refused by name."""
+    model. Options it does not have are refused by name; the flags are checked here for both kinds of model."""
+    check_flag(raw, "raw")
+    check_flag(cache, "cache")
     if isinstance(model, Model) or type(model).__module__ != "neurogf_warp.generalizable.model":
         return None
     method = getattr(model, name)
@@ -195,7 +197,7 @@ def ssad(model: Model, source, device=None, output: str = "numpy", precision: st
         Distances in mesh units, in the file's vertex numbering: NaN for vertices no face uses, +inf for vertices
         on another connected component, exactly 0 at the source vertex.
     """
-    gen = _generalizable(model, "ssad", device, output, precision, raw, source=source)
+    gen = _generalizable(model, "ssad", device, output, precision, raw, cache, source=source)
     if gen is not None:
         return gen
     if wants_grad(source):
@@ -211,7 +213,7 @@ def msad(model: Model, sources, device=None, output: str = "numpy", precision: s
     one point is [[x, y, z]]: a flat list of floats is refused, never read as a point or as indices).
     Returns (n_input,) float32, as ``ssad``.
     """
-    gen = _generalizable(model, "msad", device, output, precision, raw, sources=sources)
+    gen = _generalizable(model, "msad", device, output, precision, raw, cache, sources=sources)
     if gen is not None:
         return gen
     if wants_grad(sources):
@@ -236,7 +238,8 @@ def distance_matrix(model: Model, sources, targets=None, device=None, output: st
     The (S, V) form of S sources costs about S single-source queries of the distance head but one pass over the
     vertex embeddings; memory is 4 S V bytes for the result.
     """
-    gen = _generalizable(model, "distance_matrix", device, output, precision, raw, sources=sources, targets=targets)
+    gen = _generalizable(model, "distance_matrix", device, output, precision, raw, cache, sources=sources,
+                         targets=targets)
     if gen is not None:
         return gen
     if targets is None:
