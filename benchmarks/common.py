@@ -86,6 +86,8 @@ def provenance(device: str | None = None, argv: list[str] | None = None) -> dict
         "commit": os.environ.get("NEUROGF_COMMIT") or _git("rev-parse", "--short", "HEAD"),
         "dirty": bool(_git("status", "--porcelain", "--untracked-files=no")),
         "cpu_cores": os.cpu_count(),
+        # CPU timings depend on what else runs: the 1-minute load average when the result was written
+        "load_average_1min": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None,
     }
 
 

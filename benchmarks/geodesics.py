@@ -4,6 +4,8 @@ GPU (under 8 minutes on an H200):
     python benchmarks/geodesics.py --device cuda:0 --shared PATH --json out.json
 CPU smoke run (a few minutes on 2 cores):
     python benchmarks/geodesics.py --device cpu --small --json out.json
+CPU accuracy only, the shared meshes of the solver's worst-pair tail as well (about two minutes on 2 cores):
+    python benchmarks/geodesics.py --device cpu --small --skip scaling --meshes fandisk,spot,cow,rocker-arm,cheburashka
 
 Accuracy runs first (it is quick), then the scaling stages from the smallest mesh up.
 1. Scaling: the shared bunny (34,834 vertices) midpoint-subdivided 0..3 times (139K, 556K, 2.2M vertices; the
@@ -150,6 +152,9 @@ def main(argv=None) -> int:
     ap.add_argument("--public-sources", type=int, default=256)
     ap.add_argument("--bench-vertices", type=int, default=436_000, help="the QSlim benchmark mesh's vertices")
     ap.add_argument("--rows-sources", type=int, default=512, help="rows stage: at most this many rows")
+    ap.add_argument("--meshes", default=None,
+                    help="comma list of shared meshes for the accuracy stage (default: fandisk,spot,cow with --small, "
+                         "all nine otherwise)")
     ap.add_argument("--skip", default="", help="comma list of stages to skip: scaling,public,rows,classes,shared")
     ap.add_argument("--time-limit", type=float, default=420.0,
                     help="stages that would start after this many seconds are skipped (listed in the JSON)")
@@ -201,6 +206,8 @@ def main(argv=None) -> int:
         print("== accuracy on the shared meshes (exact references)", flush=True)
         names = ["fandisk", "spot", "cow"] if a.small else ["fandisk", "spot", "cow", "homer", "rocker-arm",
                                                             "cheburashka", "alligator", "stanford-bunny", "igea"]
+        if a.meshes:
+            names = [n for n in a.meshes.split(",") if n]
         for name in names:
             def one(name=name):
                 V, F, src, ex = shared_reference(name)

@@ -128,8 +128,11 @@ def header(provs: list, files: list) -> list:
     if recorded:
         commit += "; results added in " + ", ".join(f"`{c}`" for c in recorded)
     cores = list(dict.fromkeys(p.get("cpu_cores") for p in provs if p.get("cpu_cores")))
+    loads = [p["load_average_1min"] for p in provs if p.get("load_average_1min") is not None]
+    load = (f"; load average {span(loads, '{:.1f}')} (1 min, the run's own included, when its results were written)"
+            if loads and any(p.get("device") == "cpu" for p in provs) else "")
     lines = ["- command: " + ("; ".join(f"`{c}`" for c in _commands(provs)) or "not recorded"),
-             "- device: " + ", ".join(devices) + (f"; {', '.join(map(str, cores))} CPU cores" if cores else ""),
+             "- device: " + ", ".join(devices) + (f"; {', '.join(map(str, cores))} CPU cores" if cores else "") + load,
              f"- CUDA driver {_distinct(provs, 'driver')}; Warp {_distinct(provs, 'warp')}; "
              f"torch {_distinct(provs, 'torch')}",
              f"- date: {date}; commit: {commit}",

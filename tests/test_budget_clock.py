@@ -130,6 +130,8 @@ def test_ground_truth_stops_at_its_share_with_fewer_sources(shapes3, tmp_path):
             assert len(z["src"]) == 64 and bool(z["complete"])
 
 
+@pytest.mark.slow  # the whole 12 s budget is spent
+@pytest.mark.wallclock
 def test_budgeted_generalizable_training_covers_the_ground_truth(shapes3, tmp_path):
     """The whole call within its budget, ground truth included (no cache): the run's own decisions say so."""
     budget = 12.0

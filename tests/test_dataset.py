@@ -302,7 +302,8 @@ def test_held_out_rows_are_exact_grade_when_training_rows_are_coarse(two_blobs):
     coarse = D.build_dataset(two_blobs, None, **{**SMALL, "k": 1})
     assert coarse.meta["settings"]["k"] == 1 and coarse.meta["settings"]["test_k"] == DEFAULT_K
     m = load_mesh(two_blobs)
-    fine, rough = (GeodesicSolver(m, k=k, device="cpu") for k in (DEFAULT_K, 1))
+    # a batch as wide as the sources: rows are solved one by one, and a CPU solver pays for its whole batch width
+    fine, rough = (GeodesicSolver(m, k=k, device="cpu", batch=len(coarse.test_src)) for k in (DEFAULT_K, 1))
     fine.run(coarse.test_src)
     rough.run(coarse.test_src)
     from neurogf_warp.ground_truth.near_source import refine_near_sources
@@ -333,8 +334,9 @@ def test_coarse_training_rows_are_scaled_by_the_bias_the_held_out_rows_measure()
     assert c["scale"] == pytest.approx(1 / (1 + c["bias"]))
     m = load_mesh(mesh)
     P = m.internal_normalized_vertices.astype(np.float32)
-    exact = GeodesicSolver(m, k=DEFAULT_K, device="cpu").solve(d.gd_src)
-    rough = GeodesicSolver(m, k=1, device="cpu").solve(d.gd_src)
+    # a batch as wide as the sources: rows are solved one by one, and a CPU solver pays for its whole batch width
+    exact = GeodesicSolver(m, k=DEFAULT_K, device="cpu", batch=len(d.gd_src)).solve(d.gd_src)
+    rough = GeodesicSolver(m, k=1, device="cpu", batch=len(d.gd_src)).solve(d.gd_src)
     got, was = [], []
     for i in range(len(d.gd_src)):
         rows = d.gd_global[i]

@@ -49,10 +49,11 @@ def test_a_kept_proxy_gives_rows_of_the_fine_mesh(proxied, fine_blobs):
     for k in ("gd_src", "path_global_src", "path_local_src", "test_src"):
         a = getattr(d, k)
         assert a.size and a.min() >= 0 and a.max() < len(V)
-    # held-out rows: the mesh's own solver at its default accuracy, from fine vertices
+    # held-out rows: the mesh's own solver at its default accuracy, from fine vertices, lowered near each source as
+    # evaluate()'s truth (a batch as wide as the sources: a CPU solver pays for its whole batch width)
     from neurogf_warp.ground_truth.near_source import refine_near_sources
 
-    solver = GeodesicSolver(m, device="cpu")  # lowered near each source, as evaluate()'s truth
+    solver = GeodesicSolver(m, device="cpu", batch=len(d.test_src))
     want = refine_near_sources(solver, d.test_src, solver.solve(d.test_src))
     np.testing.assert_allclose(d.test_dist, want, rtol=1e-6)
     # rows start at proxy vertices on the fine surface, next to the fine vertex their source id names
@@ -68,7 +69,7 @@ def test_a_kept_proxy_gives_rows_of_the_fine_mesh(proxied, fine_blobs):
     assert np.all(rows[:, :, 6] >= np.linalg.norm(rows[:, :, 3:6] - rows[:, :, :3], axis=2) * (1 - 1e-5))
     # and close to the fine mesh's geodesics between the fine vertices nearest to both ends
     tgt = where.nearest_vertex.reshape(rows.shape[:2])
-    D_fine = GeodesicSolver(m, device="cpu").solve(d.gd_src)
+    D_fine = GeodesicSolver(m, device="cpu", batch=len(d.gd_src)).solve(d.gd_src)
     fine = np.take_along_axis(D_fine, tgt, axis=1)
     far = fine > 0.2
     assert np.mean(np.abs(rows[:, :, 6][far] - fine[far]) / fine[far]) < 0.02
@@ -87,7 +88,7 @@ def test_a_proxy_too_far_from_the_mesh_is_dropped(fine_blobs, monkeypatch):
     m = load_mesh(fine_blobs)
     from neurogf_warp.ground_truth.near_source import refine_near_sources
 
-    solver = GeodesicSolver(m, device="cpu")  # lowered near each source, as evaluate()'s truth
+    solver = GeodesicSolver(m, device="cpu", batch=len(d.test_src))  # lowered near each source, as evaluate()'s
     np.testing.assert_allclose(d.test_dist, refine_near_sources(solver, d.test_src, solver.solve(d.test_src)),
                                rtol=1e-6)
 

@@ -145,6 +145,7 @@ def test_per_mesh_functions_answer_for_a_conditioned_model(model, small_mesh):
 
 # ---- command line --------------------------------------------------------------------------------------------------
 
+@pytest.mark.slow  # five commands condition the network on the mesh, ~4 s each on a 2-core CPU
 def test_cli_info_and_queries_of_the_generalizable_network(small_mesh, tmp_path, capsys):
     from neurogf_warp.cli.main import main
 

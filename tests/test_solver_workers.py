@@ -29,9 +29,10 @@ def eager(monkeypatch):
 
 @pytest.fixture
 def patient(eager, monkeypatch):
-    """``eager``, and after its first batch this process waits (up to 60 s) until a worker has solved one, so that
-    the workers take part however slowly they start on a loaded machine."""
-    pools, calls = [], []
+    """``eager``, and once the workers are started (after this process's first batch) this process waits (up to
+    60 s) until a worker has solved one, so that the workers take part however slowly they start on a loaded
+    machine. Before the workers start there is nothing to wait for (waiting then only ran into the 60 s)."""
+    pools = []
     init, run = DistanceRows.__init__, GeodesicSolver.run
 
     def recorded(self, *args, **kwargs):
@@ -39,9 +40,8 @@ def patient(eager, monkeypatch):
         pools.append(self)
 
     def waiting(self, sources):
-        calls.append(1)
         end = time.monotonic() + 60
-        while len(calls) > 1 and pools and not pools[-1].worker_batches and time.monotonic() < end:
+        while pools and pools[-1]._pool and not pools[-1].worker_batches and time.monotonic() < end:
             time.sleep(0.05)
         return run(self, sources)
 
@@ -111,13 +111,14 @@ def test_a_failing_worker_is_reported_and_its_work_done_here(solver, monkeypatch
         real(self, mesh, dict(settings, batch=1))  # the worker's solver refuses the batches of 4 it is sent
 
     monkeypatch.setattr(solver_workers._Worker, "__init__", broken)
-    # this process waits (up to 60 s) for a worker to fail before solving on, however slowly workers start
+    # once the workers are started (after this process's first batch), this process waits (up to 60 s) for one
+    # to fail before solving on, however slowly workers start
     pools, init, run = [], DistanceRows.__init__, GeodesicSolver.run
     monkeypatch.setattr(DistanceRows, "__init__", lambda self, *a, **k: (init(self, *a, **k), pools.append(self))[0])
 
     def waiting(self, sources):
         end = time.monotonic() + 60
-        while pools and not any(w.failed for w in pools[-1]._pool) and time.monotonic() < end:
+        while pools and pools[-1]._pool and not any(w.failed for w in pools[-1]._pool) and time.monotonic() < end:
             time.sleep(0.05)
         return run(self, sources)
 
