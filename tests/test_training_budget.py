@@ -453,3 +453,40 @@ def test_the_heat_baseline_runs_in_another_process_and_gives_up_at_the_deadline(
     with pytest.warns(ModelQualityWarning, match="heat method was not compared: the heat method did not finish"):
         q = quality.final_verdict(0.01, None, progress=False, heat_note="the heat method did not finish in time")
     assert q["worse_than_heat"] is None and q["heat_note"] and "not compared" in q["quality_warning"]
+
+
+# ---- a load spike during the calibration -------------------------------------------------------------------------
+def test_a_stage_planned_from_a_slow_estimate_replans_once_measured():
+    """A calibration slowed 100x by a passing load plans a joint stage of a few steps; it runs until its own time
+    is measured (Budget.MIN_MEASURED steps) and the plan then grows to fill the time left."""
+    from neurogf_warp.training import STAGES
+    from neurogf_warp.training.budget import Budget
+
+    cfg = preset("cpu")
+    b = Budget(cfg, deadline=10.0, estimate={s: 0.1 for s in STAGES})  # the steps really take 1 ms
+    plan = b.replan(cfg.stage_steps(), 1, 0, now=0.0)
+    assert Budget.MIN_MEASURED <= plan["joint"] < 100, plan
+    assert not b.just_measured("joint", Budget.MIN_MEASURED - 1) and b.just_measured("joint", Budget.MIN_MEASURED)
+    b.record("joint", seconds=Budget.MIN_MEASURED * 1e-3, steps=Budget.MIN_MEASURED)
+    grown = b.replan(plan, 1, Budget.MIN_MEASURED, now=0.01)
+    assert grown["joint"] > 10 * plan["joint"], (plan, grown)
+    # a stage whose own steps would not fit even by the estimate is not stretched
+    late = Budget(cfg, deadline=10.0, estimate={s: 0.1 for s in STAGES}).replan(cfg.stage_steps(), 1, 0, now=9.9)
+    assert late["joint"] <= 1
+
+
+@pytest.mark.slow
+def test_a_slow_calibration_does_not_starve_the_joint_stage(tmp_path, monkeypatch):
+    """The whole call: calibrated step times 50x too slow still give the joint stage the bulk of a 20 s budget
+    (before the loop re-planned on its first measured steps it ran 4 joint steps here)."""
+    import neurogf_warp.training.api as api
+
+    real = api.calibrate
+    monkeypatch.setattr(api, "calibrate", lambda *a, **k: {s: 50 * v for s, v in (real(*a, **k) or {}).items()}
+                        or None)
+    out = tmp_path / "m.ngf"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ModelQualityWarning)
+        train(ellipsoid_mesh(), out, device="cpu", budget_seconds=20, progress=False)
+    steps = log_of(out)["config"]["steps"]
+    assert steps["joint"] >= 30, steps  # counted work: about 180-240 on a quiet 2-core machine

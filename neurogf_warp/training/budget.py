@@ -265,7 +265,7 @@ class Budget:
                 if spare <= 0:
                     break
                 plan[s] = max(plan[s], min(want[s], int(spare / max(t[s], 1e-9))))
-            return plan
+            return self._until_measured(plan, cur, step, t[cur], left)
         for _ in range(60):  # bisection: the largest plan that fits
             mid = (lo + hi) // 2 if isinstance(lo, int) else (lo + hi) / 2
             if mid == lo:
@@ -274,7 +274,21 @@ class Budget:
                 lo = mid
             else:
                 hi = mid
-        return plan_for(lo)
+        return self._until_measured(plan_for(lo), cur, step, t[cur], left)
+
+    def _until_measured(self, plan: dict, stage: str, step: int, per_step: float, left: float) -> dict:
+        """A stage whose own time is not measured yet runs at least until it is (``MIN_MEASURED`` steps, when they
+        fit by the estimate): a calibration slowed by a passing load spike otherwise plans a stage too short to
+        reach its first re-plan (a 50x spike left the joint stage 4 steps of a 20 s budget)."""
+        need = self.MIN_MEASURED - self.done[stage]
+        if self.cap is None and need > 0 and plan[stage] > 0 and need * per_step <= left:
+            plan = dict(plan, **{stage: max(plan[stage], step + need)})
+        return plan
+
+    def just_measured(self, stage: str, unrecorded: int) -> bool:
+        """True at the step where ``stage``'s own time becomes measured (``unrecorded`` steps not yet recorded):
+        the loop re-plans then, from the stage's own time."""
+        return self.done[stage] < self.MIN_MEASURED <= self.done[stage] + unrecorded
 
     @staticmethod
     def floor(steps: dict, stage_i: int, step: int) -> dict:

@@ -115,8 +115,9 @@ class Runner:
                         t0 = now
                         self.save(stage_i, step, history, elapsed)
                         last_save = time.perf_counter()
-                    if self.budget is not None and step < t.steps[stage] and \
-                            (now - seg0 > REPLAN_EVERY_S or self.budget.near_deadline(stage, now)):
+                    measured = self.budget is not None and self.budget.just_measured(stage, seg_steps)
+                    if self.budget is not None and (step < t.steps[stage] or measured) and \
+                            (now - seg0 > REPLAN_EVERY_S or measured or self.budget.near_deadline(stage, now)):
                         self.budget.record(stage, now - seg0, seg_steps)
                         seg0, seg_steps = now, 0
                         self._replan(stage_i, step, bar)
