@@ -1,4 +1,4 @@
-"""Ctrl-C within seconds on long CPU queries: large launches run in chunks (``backends.in_chunks``), the answers
+"""Ctrl-C within seconds on long CPU queries: large launches run in chunks (``chunks.in_chunks``), the answers
 are the same bits as one launch, and a SIGINT raises KeyboardInterrupt between two chunks instead of after the
 whole query."""
 import _thread
@@ -7,6 +7,7 @@ import threading
 import numpy as np
 import pytest
 
+from neurogf_warp.common import chunks
 from neurogf_warp.inference import backends
 
 from .conftest import shared_path
@@ -28,9 +29,9 @@ def _points(model, n, seed=0):
 
 def _fixed_chunks(monkeypatch, size):
     """Every CPU chunk ``size`` rows (no growing or shrinking with the clock)."""
-    monkeypatch.setattr(backends, "CPU_FIRST_CHUNK", size)
-    monkeypatch.setattr(backends, "CPU_CHUNK_ALIGN", size)
-    monkeypatch.setattr(backends, "CPU_MAX_CHUNK", size)
+    monkeypatch.setattr(chunks, "CPU_FIRST_CHUNK", size)
+    monkeypatch.setattr(chunks, "CPU_CHUNK_ALIGN", size)
+    monkeypatch.setattr(chunks, "CPU_MAX_CHUNK", size)
 
 
 def _counting(monkeypatch, model, precision, method):
@@ -51,15 +52,15 @@ def _counting(monkeypatch, model, precision, method):
 
 def test_in_chunks_covers_every_row_once(monkeypatch):
     """Consecutive, non-overlapping ranges over [0, n), sized from the previous chunk's time."""
-    monkeypatch.setattr(backends, "CPU_CHUNK_SECONDS", 1e-9)  # every chunk 'too slow': sizes shrink to the floor
+    monkeypatch.setattr(chunks, "CPU_CHUNK_SECONDS", 1e-9)  # every chunk 'too slow': sizes shrink to the floor
     seen = []
-    n = backends.in_chunks("cpu", 1000, lambda lo, hi: seen.append((lo, hi)), first=300, align=7)
+    n = chunks.in_chunks("cpu", 1000, lambda lo, hi: seen.append((lo, hi)), first=300, align=7)
     assert n == len(seen) > 3
     assert seen[0] == (0, 300) and seen[-1][1] == 1000
     assert all(a[1] == b[0] for a, b in zip(seen, seen[1:]))
     sizes = [hi - lo for lo, hi in seen]
     assert sizes[:4] == [300, 70, 14, 7] and set(sizes[4:-1]) == {7}  # at most 4x smaller a step, aligned, floor
-    assert backends.in_chunks("cpu", 0, lambda lo, hi: seen.append("never")) == 0 and seen[-1] != "never"
+    assert chunks.in_chunks("cpu", 0, lambda lo, hi: seen.append("never")) == 0 and seen[-1] != "never"
 
 
 @pytest.mark.parametrize("precision", ["fp32", "fp16"])
@@ -160,7 +161,7 @@ def test_sigint_stops_conditioning_between_chunks(gen_model, monkeypatch, ctrl_c
     """Every row-wise launch of the CPU encoder runs in chunks; a SIGINT during the third chunk ends it there."""
     _fixed_chunks(monkeypatch, 32)
     pts = _cloud(1024)
-    inner = backends.in_chunks
+    inner = chunks.in_chunks
     runs = []
     third = threading.Event()
 
@@ -172,7 +173,7 @@ def test_sigint_stops_conditioning_between_chunks(gen_model, monkeypatch, ctrl_c
             return run(lo, hi)
         return inner(device, n, counted, *a, **k)
 
-    monkeypatch.setattr(backends, "in_chunks", counting)
+    monkeypatch.setattr(chunks, "in_chunks", counting)
     total = 13 * (1024 // 32)  # 13 row-wise launches of 32 chunks each (linear layers, kNN, edge layers)
     t = threading.Thread(target=lambda: third.wait(120) and _thread.interrupt_main(), daemon=True)
     t.start()

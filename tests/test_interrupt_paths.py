@@ -7,6 +7,7 @@ import threading
 import numpy as np
 import pytest
 
+from neurogf_warp.common import chunks
 from neurogf_warp.inference import backends, paths
 
 from .conftest import shared_path
@@ -26,12 +27,12 @@ def _ends(model, n, seed):
     return V[rng.integers(0, len(V), n)], V[rng.integers(0, len(V), n)]
 
 
-def _chunks_of(monkeypatch, size, where=(paths, backends)):
+def _chunks_of(monkeypatch, size, where=(paths, backends, chunks)):
     """Every CPU chunk of rows exactly ``size`` rows (the last one less); returns the list of (lo, hi) run."""
-    real = backends.in_chunks
+    real = chunks.in_chunks
     seen = []
-    monkeypatch.setattr(backends, "CPU_MAX_CHUNK", size)
-    monkeypatch.setattr(backends, "CPU_CHUNK_SECONDS", 1e9)  # never shrink below it
+    monkeypatch.setattr(chunks, "CPU_MAX_CHUNK", size)
+    monkeypatch.setattr(chunks, "CPU_CHUNK_SECONDS", 1e9)  # never shrink below it
 
     def fixed(device, n, run, first=None, align=1):
         def counted(lo, hi):
@@ -129,7 +130,7 @@ def test_generalizable_queries_in_chunks_give_the_same_bits(conditioned, monkeyp
 
     one = run()
     monkeypatch.setattr(encoder, "PAIR_CHUNK", 50)
-    seen = _chunks_of(monkeypatch, 2, where=(backends,))
+    seen = _chunks_of(monkeypatch, 2, where=(chunks,))
     many = run()
     assert len(seen) >= 150 + 4 + 4  # 300 pairs by 2, 7 sources by 2 (twice), msad
     for a, b in zip(one, many):
@@ -140,9 +141,9 @@ def test_sigint_stops_a_long_generalizable_query(conditioned, monkeypatch, ctrl_
     from neurogf_warp.generalizable import encoder
 
     monkeypatch.setattr(encoder, "PAIR_CHUNK", 50)
-    seen = _chunks_of(monkeypatch, 4, where=(backends,))
+    seen = _chunks_of(monkeypatch, 4, where=(chunks,))
     third = threading.Event()
-    real = backends.in_chunks
+    real = chunks.in_chunks
 
     def watching(device, n, run, first=None, align=1):
         def r(lo, hi):
@@ -151,7 +152,7 @@ def test_sigint_stops_a_long_generalizable_query(conditioned, monkeypatch, ctrl_
             return run(lo, hi)
         return real(device, n, r, first, align)
 
-    monkeypatch.setattr(backends, "in_chunks", watching)
+    monkeypatch.setattr(chunks, "in_chunks", watching)
     t = threading.Thread(target=lambda: third.wait(120) and _thread.interrupt_main(), daemon=True)
     t.start()
     p = conditioned.points[np.arange(4 * 40) % 256]

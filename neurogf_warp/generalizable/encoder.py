@@ -208,8 +208,8 @@ class WarpGenNet:
 
     def _rows(self, n: int, run, first: int = 1024):
         """``run(lo, hi)`` over the rows [0, n): one call on a GPU, chunks of about half a second on the CPU
-        (``inference.backends.in_chunks``; every kernel chunked so computes each row from its own inputs)."""
-        from neurogf_warp.inference.backends import in_chunks
+        (``common.chunks.in_chunks``; every kernel chunked so computes each row from its own inputs)."""
+        from neurogf_warp.common.chunks import in_chunks
 
         in_chunks(self.device, n, run, first=first, align=1)
 
@@ -571,7 +571,7 @@ class WarpGenNet:
         if self.device.is_cpu and m > PAIR_CHUNK and not whole:
             # one CPU launch runs to its end before Ctrl-C is seen: rows of S in chunks (every pair's distance
             # depends on its own two points only, so the result is the same bits as one launch)
-            from neurogf_warp.inference.backends import in_chunks
+            from neurogf_warp.common.chunks import in_chunks
 
             per = max(n_t, 1)
             cut = lambda a, lo, hi: None if a is None else a[lo:hi]  # noqa: E731

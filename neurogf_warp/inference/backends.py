@@ -19,49 +19,19 @@ Every array is a ``wp.array`` on the state's device; vertex queries take points 
 """
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import warp as wp
 
+from neurogf_warp.common.chunks import CPU_CHUNK_ALIGN, CPU_CHUNK_SECONDS, in_chunks
 from neurogf_warp.inference.engine import fp16_refusal
 from neurogf_warp.inference.state import PRECISIONS, MeshOnDevice, QueryState, check_memory, query_state
 from neurogf_warp.kernels.inference import finish, head_fp32, mlp
 from neurogf_warp.kernels.inference import refine as refine_kernels
 from neurogf_warp.model.folded import NetShape
 
-__all__ = ["backend_of", "bind", "fp32_refusal", "TensorCores", "PerThread", "in_chunks", "CPU_CHUNK_SECONDS"]
-
-# A CPU launch runs to its end before Python sees a Ctrl-C (4M SDF points: minutes), so large CPU queries run in
-# chunks of about this many seconds; KeyboardInterrupt is raised between two of them. CUDA launches return at once.
-CPU_CHUNK_SECONDS = 0.5
-CPU_FIRST_CHUNK = 1024  # points of the first chunk (the next ones are sized from its time); a multiple of ALIGN
-CPU_CHUNK_ALIGN = 256  # chunk sizes are multiples of this (whole tensor-core tiles; every point is independent)
-CPU_MAX_CHUNK = 1 << 22
-
-
-def in_chunks(device, n: int, run, first: int | None = None, align: int = CPU_CHUNK_ALIGN):
-    """Call ``run(lo, hi)`` over [0, n): once on a CUDA device, in consecutive chunks on the CPU, each sized so that
-    it takes about ``CPU_CHUNK_SECONDS`` (from the time of the previous one), so that Ctrl-C stops a long query
-    within about that time. ``run`` must compute each row from its own inputs only (then the result is the same,
-    bit for bit, as one launch over all rows). ``first``: the first chunk's size (default ``CPU_FIRST_CHUNK``);
-    ``align``: later chunks are multiples of it. Returns the number of chunks run."""
-    if n <= 0:
-        return 0
-    if not wp.get_device(device).is_cpu:
-        run(0, n)
-        return 1
-    size, lo, count = max(1, first or CPU_FIRST_CHUNK), 0, 0
-    while lo < n:
-        hi = min(n, lo + size)
-        t0 = time.perf_counter()
-        run(lo, hi)
-        count += 1
-        dt = max(time.perf_counter() - t0, 1e-6)
-        grow = min(4.0, max(0.25, CPU_CHUNK_SECONDS / dt))  # at most 4x either way: one slow chunk is no trend
-        size = int(min(CPU_MAX_CHUNK, max(align, (size * grow) // align * align)))
-        lo = hi
-    return count
+__all__ = ["backend_of", "bind", "fp32_refusal", "TensorCores", "PerThread", "in_chunks", "CPU_CHUNK_SECONDS",
+           "CPU_CHUNK_ALIGN"]
 
 _HID = mlp.MAX_D // 2   # the per-thread kernels' hidden vectors (vec_h)
 _ACC = mlp.MAX_D // 4   # their float64 accumulators of a head's first layer (vec_acc)

@@ -126,7 +126,7 @@ def snap_to_mesh(mesh, points, device=None, check: bool = True):
     out = Output(kind, dev)
     res_p, res_f, res_b = out.empty(n, dtype=wp.vec3), out.empty(n, dtype=wp.int32), out.empty(n, dtype=wp.vec3)
     if n:
-        from neurogf_warp.inference.backends import in_chunks  # chunks on the CPU: Ctrl-C within about a second
+        from neurogf_warp.common.chunks import in_chunks  # chunks on the CPU: Ctrl-C within about a second
 
         mid = warp_mesh(m, dev).id
         in_chunks(dev, n, lambda lo, hi: wp.launch(kernels.snap_points, hi - lo, inputs=[mid, pts[lo:hi], REACH],
