@@ -180,7 +180,6 @@ def test_components_and_numbering(device, D):
     numbering, from both engines."""
     import trimesh
 
-    rng = np.random.default_rng(0)
     a = trimesh.creation.icosphere(subdivisions=1)
     V = np.vstack([[[9.0, 9.0, 9.0]], a.vertices, a.vertices + [3.0, 0, 0]])
     F = np.vstack([a.faces + 1, a.faces + 1 + len(a.vertices)])

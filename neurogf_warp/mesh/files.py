@@ -550,7 +550,7 @@ def _trimesh_arrays(data: bytes, kind: str, path: str):
 
     try:
         tm = trimesh.load(io.BytesIO(data), file_type=kind, process=False, force="mesh")
-    except ImportError as e:
+    except ImportError:
         # trimesh reaches for an optional text-encoding detector when a file is not UTF-8: it is not text
         raise InputError(f"{path} is not a mesh file: it is not text that the {kind.upper()} reader understands") from None
     except Exception as e:  # trimesh raises many types for bad or unknown files

@@ -13,7 +13,7 @@ import os
 import time
 from typing import TYPE_CHECKING
 
-from neurogf_warp.common.checks import InputError, number, say
+from neurogf_warp.common.checks import number, say
 from neurogf_warp.dataset.build import check_trainable
 from neurogf_warp.ground_truth.solver import load_seconds
 from neurogf_warp.mesh.mesh import load_mesh

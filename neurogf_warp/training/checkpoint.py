@@ -6,7 +6,6 @@ A run that writes ``spot.ngf`` keeps its work files in one folder beside it, ``s
 from __future__ import annotations
 
 import copy
-import os
 import sys
 
 import torch
