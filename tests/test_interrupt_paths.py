@@ -1,9 +1,6 @@
 """Ctrl-C within seconds on the remaining long CPU work: paths (head, refined, projected, snapped), closest mesh
 points and the generalizable model's distance queries run in chunks of rows on the CPU; the answers are the same
 bits as one launch, and a SIGINT raises KeyboardInterrupt between two chunks."""
-import _thread
-import threading
-
 import numpy as np
 import pytest
 
@@ -11,6 +8,7 @@ from neurogf_warp.common import chunks
 from neurogf_warp.inference import backends, paths
 
 from .conftest import shared_path
+from .test_interrupt import signal_on
 
 
 @pytest.fixture(scope="module")
@@ -81,22 +79,6 @@ def test_snap_to_mesh_in_chunks_gives_the_same_bits(fandisk, monkeypatch):
         _same(a, b)
 
 
-def _signal_at_chunk_3(seen):
-    """A thread that sends SIGINT (``_thread.interrupt_main``) once chunk 3 starts: (the event chunk 3 sets, the
-    event set once the signal is out, [the chunk count when it went out]). Counting from the signal, not from the
-    event, keeps the check free of thread scheduling under load."""
-    third, sent, sent_at = threading.Event(), threading.Event(), []
-
-    def send():
-        if third.wait(120):
-            sent_at.append(len(seen))
-            _thread.interrupt_main()
-            sent.set()
-
-    threading.Thread(target=send, daemon=True).start()
-    return third, sent, sent_at
-
-
 def test_sigint_stops_a_long_path_query_between_chunks(fandisk, monkeypatch, ctrl_c_raises):
     """A SIGINT sent while chunk 3 of 30 runs ends ngf.path after at most a few more chunks."""
     import neurogf_warp as ngf
@@ -106,7 +88,7 @@ def test_sigint_stops_a_long_path_query_between_chunks(fandisk, monkeypatch, ctr
     be = backends.backend_of(__import__("neurogf_warp.inference.state", fromlist=["x"]).query_state(fandisk, "cpu"),
                              "fp32")
     inner = be.paths
-    third, sent, sent_at = _signal_at_chunk_3(seen)
+    third, sent, sent_at = signal_on(seen)
 
     def signalling(*a, **k):
         if len(seen) == 3:
@@ -156,7 +138,7 @@ def test_sigint_stops_a_long_generalizable_query(conditioned, monkeypatch, ctrl_
 
     monkeypatch.setattr(encoder, "PAIR_CHUNK", 50)
     seen = _chunks_of(monkeypatch, 4, where=(chunks,))
-    third, sent, sent_at = _signal_at_chunk_3(seen)
+    third, sent, sent_at = signal_on(seen)
     real = chunks.in_chunks
 
     def watching(device, n, run, first=None, align=1):
