@@ -46,6 +46,9 @@ VARIANTS = {
     "default": {},
     "no_bn": {"norm": "none"},
     "hash": {"hash_levels": 12},
+    "landmarks32": {"landmarks": 32},
+    "landmarks64": {"landmarks": 64},
+    "landmarks128": {"landmarks": 128},
 }
 COMMON = {"compile": False}
 os.environ["NEUROGF_BAKEOFF_DESIGNS"] = "1"  # the designs the package refuses for users (no inference backend reads them)
@@ -79,6 +82,8 @@ def torch_errors(model, reference, device) -> dict:
     net = model.net.to(device).eval()
     scale = float(model.scale)
     x = torch.as_tensor((mesh.vertices - np.asarray(model.center)) * scale, dtype=torch.float32, device=device)
+    if getattr(net, "landmarks", 0):  # its table is looked up by the training's own float32 vertex array
+        x = net.landmark_table.xyz.to(device)
     prev = torch.backends.cuda.matmul.allow_tf32
     torch.backends.cuda.matmul.allow_tf32 = False
     try:

@@ -1,12 +1,13 @@
-"""The training-time network designs ``norm="none"`` and ``hash_levels``: shapes, the default layout untouched,
-the hash grid's interpolation against a float64 reference, and the settings' checks."""
+"""The training-time network designs ``norm="none"``, ``hash_levels`` and ``landmarks``: shapes, the default
+layout untouched, the hash grid's interpolation against a float64 reference, the landmark lookup and bounds,
+and the settings' checks."""
 import itertools
 
 import pytest
 import torch
 
 from neurogf_warp.common.checks import InputError
-from neurogf_warp.model.network import FC, HashGrid, NeuroGFNet
+from neurogf_warp.model.network import FC, HashGrid, Landmarks, NeuroGFNet
 from neurogf_warp.training.config import TrainConfig
 
 OPTS = dict(fourier=2, euclid=True, path_residual=True, path_window=True)
@@ -105,6 +106,40 @@ def test_hash_network_forward_and_options():
     assert net.lifting[0].grid.table.grad is not None
 
 
+def test_landmark_lookup_matches_vertices_and_refuses_other_points():
+    torch.manual_seed(5)
+    xyz = torch.rand(500, 3) * 2 - 1
+    table = torch.rand(500, 6)
+    lm = Landmarks(6)
+    lm.set_table(xyz, table)
+    perm = torch.randperm(500)
+    torch.testing.assert_close(lm(xyz[perm]), table[perm], rtol=0, atol=0)
+    off = xyz[:10] + 1e-4  # not vertices: NaN rows, never a neighbour's distances
+    assert torch.isnan(lm(off)).all()
+    with pytest.raises(InputError, match="landmark table"):
+        lm.set_table(xyz, table[:, :5])
+
+
+def test_landmark_network_starts_from_the_triangle_bound():
+    torch.manual_seed(6)
+    xyz = torch.rand(300, 3) * 2 - 1
+    table = torch.rand(300, 8) * 3
+    net = NeuroGFNet(64, landmarks=8, **OPTS)
+    net.landmark_table.set_table(xyz, table)
+    assert net.options["landmarks"] == 8
+    i, j = torch.randint(0, 300, (64,)), torch.randint(0, 300, (64,))
+    d = net.distance(xyz[i], xyz[j])
+    assert d.shape == (64,) and torch.isfinite(d).all()
+    d.sum().backward()  # the head's first layer reads the landmark features
+    assert net.gdf_head[0].linear.weight.grad[:, 64:].abs().sum() > 0
+    with torch.no_grad():  # a zero head leaves max(|p - q|, max_k |T(p) - T(q)|), the lower bound, in float64
+        net.gdf_head[-1].linear.weight.zero_()
+        d0 = net.eval().distance(xyz[i], xyz[j]).double()
+    lower = (table[i].double() - table[j].double()).abs().max(-1).values
+    ref = torch.maximum((xyz[i] - xyz[j]).double().norm(dim=-1), lower)
+    torch.testing.assert_close(d0, ref, rtol=1e-6, atol=1e-6)
+
+
 def test_settings_reach_the_network_and_bad_values_are_refused(monkeypatch):
     with pytest.raises(ValueError, match="training-time designs"):
         TrainConfig().set(norm="none", D=64)
@@ -115,5 +150,8 @@ def test_settings_reach_the_network_and_bad_values_are_refused(monkeypatch):
         TrainConfig().set(norm="layer")
     with pytest.raises(ValueError, match="hash_levels"):
         TrainConfig().set(hash_levels=99)
+    assert TrainConfig().set(landmarks=16, D=64).network.build().landmarks == 16
+    with pytest.raises(ValueError, match="landmarks"):
+        TrainConfig().set(landmarks=-1)
     with pytest.raises(InputError, match="norm"):
         NeuroGFNet(64, norm="group")

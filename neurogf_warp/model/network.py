@@ -16,8 +16,11 @@ Seven options (not in the paper; all off reproduces it exactly, and released che
   norm="none"   the lifting, the distance and SDF heads and the guidance layer without BatchNorm: each layer
                 gets a bias instead and He initialization (a leaner training step; the path head keeps BatchNorm);
   hash_levels=n the lifting also sees a multiresolution hash-grid encoding of the point (``HashGrid``: n levels
-                of trainable features, trilinearly interpolated), appended to its Fourier inputs.
-The last two are training-time designs: model files and the Warp inference engine support only the first five.
+                of trainable features, trilinearly interpolated), appended to its Fourier inputs;
+  landmarks=K   the distance head also sees the exact distances of both points to K landmark vertices
+                (``Landmarks``): |T(p) - T(q)| per landmark and the triangle-inequality bounds, and the straight
+                line under the head's output becomes max(|p - q|, lower bound) (vertex queries only).
+The last three are training-time designs: model files and the Warp inference engine support only the first five.
 """
 from __future__ import annotations
 
@@ -28,12 +31,14 @@ from torch import nn
 
 from neurogf_warp.common.checks import InputError
 
-__all__ = ["FC", "PointMLP", "NeuroGFNet", "SdfQuerier", "HashGrid", "widths", "fourier_features", "NORMS"]
+__all__ = ["FC", "PointMLP", "NeuroGFNet", "SdfQuerier", "HashGrid", "Landmarks", "widths", "fourier_features",
+           "NORMS"]
 
 SUPPORTED_D = (64, 128, 256, 512)
 MAX_FOURIER = 8
 NORMS = ("batch", "none")
 MAX_HASH_LEVELS = 16
+MAX_LANDMARKS = 256
 
 
 class FC(nn.Module):
@@ -165,6 +170,50 @@ class _HashInput(nn.Module):
         return torch.cat([h, self.grid(h[:, :3])], dim=-1)
 
 
+class Landmarks(nn.Module):
+    """Exact geodesic distances from K landmark vertices, looked up for points that are mesh vertices.
+
+    ``set_table(xyz, table)`` stores the vertices (V, 3) (normalized frame, float32) and their distances (V, K)
+    to the landmarks (normalized units). A point is matched to the vertex with bit-identical coordinates (the
+    training rows and the scoring use the same float32 vertex array); an unmatched point gets NaN features, so
+    that a query off the vertices shows as a non-finite distance, never as a plausible wrong one.
+    Buffers are not persistent: the table is rebuilt from the mesh, never read from a checkpoint.
+    """
+
+    PRIMES = (73856093, 19349663, 83492791)
+
+    def __init__(self, k: int):
+        super().__init__()
+        self.k = k
+        for name, shape, dt in (("xyz", (0, 3), torch.float32), ("table", (0, k), torch.float32),
+                                ("keys", (0,), torch.long), ("order", (0,), torch.long)):
+            self.register_buffer(name, torch.zeros(shape, dtype=dt), persistent=False)
+
+    def _key(self, x: torch.Tensor) -> torch.Tensor:
+        b = x.contiguous().view(torch.int32).long()
+        return (b[:, 0] * self.PRIMES[0]) ^ (b[:, 1] * self.PRIMES[1]) ^ (b[:, 2] * self.PRIMES[2])
+
+    def set_table(self, xyz: torch.Tensor, table: torch.Tensor) -> None:
+        """xyz : (V, 3) float32 vertices; table : (V, K) float32 distances to the landmarks."""
+        if table.shape != (len(xyz), self.k):
+            raise InputError(f"landmark table must be ({len(xyz)}, {self.k}), got {tuple(table.shape)}")
+        dev = self.table.device
+        self.xyz = xyz.to(dev, torch.float32).contiguous()
+        self.table = table.to(dev, torch.float32).contiguous()
+        keys = self._key(self.xyz)
+        self.keys, self.order = torch.sort(keys)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, 3) points -> (N, K) distances to the landmarks (NaN rows for points that are not vertices)."""
+        if len(self.keys) == 0:
+            raise InputError("this network's landmark table is empty: it is set from the mesh before training")
+        k = self._key(x)
+        at = torch.searchsorted(self.keys, k).clamp_max(len(self.keys) - 1)
+        v = self.order[at]
+        hit = (self.xyz[v] == x).all(-1, keepdim=True)
+        return torch.where(hit, self.table[v], torch.full_like(self.table[v], float("nan")))
+
+
 def fourier_features(x: torch.Tensor, L: int) -> torch.Tensor:
     """[x, sin(2^k pi x), cos(2^k pi x) for k < L]: (..., 3) -> (..., 3 + 6L); L = 0 returns x."""
     if L == 0:
@@ -177,7 +226,8 @@ class NeuroGFNet(nn.Module):
     """Overfitted NeuroGF: shared point lifting, distance head, SDF head and path head."""
 
     def __init__(self, D: int = 256, fourier: int = 0, euclid: bool = False, path_residual: bool = False,
-                 path_width: int = 1, path_window: bool = False, norm: str = "batch", hash_levels: int = 0):
+                 path_width: int = 1, path_window: bool = False, norm: str = "batch", hash_levels: int = 0,
+                 landmarks: int = 0):
         super().__init__()
         w = widths(D, path_width)
         if not (isinstance(fourier, int) and 0 <= fourier <= MAX_FOURIER):
@@ -189,7 +239,9 @@ class NeuroGFNet(nn.Module):
                              f"got {hash_levels!r}")
         self.D, self.fourier, self.euclid, self.path_residual = D, fourier, bool(euclid), bool(path_residual)
         self.path_width, self.path_window = path_width, bool(path_window)
-        self.norm, self.hash_levels = norm, hash_levels
+        if not (isinstance(landmarks, int) and 0 <= landmarks <= MAX_LANDMARKS):
+            raise InputError(f"landmarks must be an integer in 0..{MAX_LANDMARKS} (0: none), got {landmarks!r}")
+        self.norm, self.hash_levels, self.landmarks = norm, hash_levels, landmarks
         if self.path_window and not self.path_residual:
             raise InputError("path_window scales the path offsets: it needs path_residual=True")
         lw = [3 + 6 * fourier] + w["lifting"][1:]
@@ -199,7 +251,9 @@ class NeuroGFNet(nn.Module):
             encode, lw[0] = [_HashInput(grid)], lw[0] + grid.levels * grid.features
         self.lifting = nn.Sequential(*encode, *[FC(a, b, norm=norm) for a, b in zip(lw[:-1], lw[1:])])
         self.sdf_head = _head(w["head"], norm)
-        self.gdf_head = _head(w["head"], norm)
+        # landmark features: |T(p) - T(q)| per landmark, the lower and the upper triangle bound
+        self.landmark_table = Landmarks(landmarks) if landmarks else None
+        self.gdf_head = _head([w["head"][0] + (landmarks + 2 if landmarks else 0)] + w["head"][1:], norm)
         self.cdw_fc = FC(*w["guidance"], norm=norm)
         pw = w["path"]
         self.spf_head = nn.Sequential(
@@ -216,6 +270,8 @@ class NeuroGFNet(nn.Module):
             out["norm"] = self.norm
         if self.hash_levels:
             out["hash_levels"] = self.hash_levels
+        if self.landmarks:
+            out["landmarks"] = self.landmarks
         return out
 
     def path_output(self, out: torch.Tensor, lines: torch.Tensor) -> torch.Tensor:
@@ -237,6 +293,17 @@ class NeuroGFNet(nn.Module):
         """gdf_head(|e_p - e_q|) (+ |p - q| with ``euclid``, which then needs the points p, q).
 
         es, et : (N, D) embeddings; p, q : (N, 3) points -> (N,) distances, normalized units."""
+        if self.landmarks:
+            if p is None or q is None:
+                raise InputError("this network reads landmark distances of its query points: pass p and q too")
+            tp, tq = self.landmark_table(p), self.landmark_table(q)
+            diff = (tp - tq).abs()
+            lower, upper = diff.max(-1).values, (tp + tq).min(-1).values
+            h = torch.cat([(es - et).abs(), diff, lower[:, None], upper[:, None]], dim=-1)
+            d = self.gdf_head(h).squeeze(-1)
+            if self.euclid:
+                d = d + torch.maximum(torch.linalg.vector_norm(p - q, dim=-1), lower)
+            return d
         d = self.gdf_head((es - et).abs()).squeeze(-1)
         if self.euclid:
             if p is None or q is None:

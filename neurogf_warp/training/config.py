@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 from neurogf_warp.common.checks import InputError, integer
 from neurogf_warp.dataset.build import DatasetSettings
-from neurogf_warp.model.network import MAX_FOURIER, MAX_HASH_LEVELS, NORMS, SUPPORTED_D, NeuroGFNet
+from neurogf_warp.model.network import MAX_FOURIER, MAX_HASH_LEVELS, MAX_LANDMARKS, NORMS, SUPPORTED_D, NeuroGFNet
 
 __all__ = ["TrainConfig", "NetworkConfig", "ScheduleConfig", "BatchConfig", "RuntimeConfig", "DatasetSettings",
            "STAGES", "RATIOS", "QUERIER_MAX", "DIST_LOSSES", "parse_assignments"]
@@ -46,6 +46,7 @@ class NetworkConfig:
     # training-time designs (benchmarks/bakeoff.py): model files and the inference engine read only the defaults
     norm: str = "batch"            # "batch" or "none" (biases + He init, no BatchNorm outside the path head)
     hash_levels: int = 0           # levels of a hash-grid encoding appended to the lifting's inputs (0: none)
+    landmarks: int = 0             # exact distances to this many landmark vertices feed the distance head (0: none)
 
     def validate(self):
         if self.D not in SUPPORTED_D:
@@ -60,16 +61,19 @@ class NetworkConfig:
             raise ValueError(f"norm must be one of {NORMS}, got {self.norm!r}")
         if not 0 <= self.hash_levels <= MAX_HASH_LEVELS:
             raise ValueError(f"hash_levels must be an integer in 0..{MAX_HASH_LEVELS} (0: none), got {self.hash_levels}")
-        if (self.norm != "batch" or self.hash_levels) and not os.environ.get("NEUROGF_BAKEOFF_DESIGNS"):
+        if not 0 <= self.landmarks <= MAX_LANDMARKS:
+            raise ValueError(f"landmarks must be an integer in 0..{MAX_LANDMARKS} (0: none), got {self.landmarks}")
+        if (self.norm != "batch" or self.hash_levels or self.landmarks) and not os.environ.get("NEUROGF_BAKEOFF_DESIGNS"):
             # their models train, but no model file or inference backend reads them: refuse rather than lose a run
-            raise ValueError(f"norm={self.norm!r} / hash_levels={self.hash_levels} are training-time designs measured "
+            raise ValueError(f"norm={self.norm!r} / hash_levels={self.hash_levels} / landmarks={self.landmarks} are "
+                             "training-time designs measured "
                              "by benchmarks/bakeoff.py; model files and the inference kernels support only the default "
                              "(norm='batch', hash_levels=0)")
 
     def build(self) -> NeuroGFNet:
         """A freshly initialized ``NeuroGFNet`` of this shape (draws from torch's global RNG)."""
         return NeuroGFNet(self.D, self.fourier, self.euclid, self.path_residual, self.path_width, self.path_window,
-                          self.norm, self.hash_levels)
+                          self.norm, self.hash_levels, self.landmarks)
 
 
 @dataclass

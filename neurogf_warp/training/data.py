@@ -31,6 +31,7 @@ class TrainingData:
         self.pg = t(ds.path_global)
         self.pl = t(ds.path_local)
         self.vertices = t(ds.vertices)
+        self.faces = np.asarray(ds.faces)
         self.test_src = torch.as_tensor(np.asarray(ds.test_src), dtype=torch.long, device=device)
         self.test_dist = t(ds.test_dist)
         self.surface_points = np.asarray(ds.surface_points, dtype=np.float32)

@@ -70,6 +70,26 @@ def fast_path(net: NeuroGFNet, es, et, lines):
     return net.path_output(h.reshape(K, M, 3), lines)  # float32 lines: float32 points under autocast too
 
 
+def landmark_table(data: TrainingData, k: int, device) -> torch.Tensor:
+    """(V, k) exact distances (normalized units) from k landmark vertices to every vertex: landmarks spread by
+    farthest-point sampling in space, solved by the ground-truth solver (+inf across components becomes a large
+    finite value, 4: the normalized mesh fits the unit sphere, so every finite distance is far below it)."""
+    from neurogf_warp.ground_truth.geodesics import geodesic_distances
+    from neurogf_warp.training.data import warp_device
+
+    x = data.vertices
+    k = min(k, len(x))
+    far = torch.full((len(x),), float("inf"), device=x.device)
+    pick = [0]
+    for _ in range(k - 1):
+        far = torch.minimum(far, (x - x[pick[-1]]).square().sum(-1))
+        pick.append(int(far.argmax()))
+    v = x.detach().cpu().numpy().astype(np.float64)
+    d = geodesic_distances((v, data.faces), np.asarray(pick), device=warp_device(device))
+    d = np.where(np.isfinite(d), d, 4.0).astype(np.float32)
+    return torch.as_tensor(d.T.copy(), device=device)
+
+
 def cosine_lr(step: int, n: int, hi: float, lo: float) -> float:
     """Cosine decay from ``hi`` at step 0 to ``lo`` at step ``n``."""
     return lo + 0.5 * (hi - lo) * (1.0 + math.cos(math.pi * min(step, n) / max(n, 1)))
@@ -85,6 +105,8 @@ class Trainer:
         self.cfg, self.data, self.device = cfg, data, torch.device(device)
         torch.manual_seed(cfg.seed)  # weight init
         self.net = cfg.network.build().to(self.device)
+        if cfg.network.landmarks:
+            self.net.landmark_table.set_table(data.vertices, landmark_table(data, cfg.network.landmarks, self.device))
         self.querier = SdfQuerier().to(self.device)
         self.sdf_pts, self.sdf_val = sdf_pool
         self.gen = torch.Generator(device=self.device)
