@@ -3,7 +3,8 @@ default, scored against exact geodesics.
 
     python benchmarks/bakeoff.py --device cuda:0 --shared /path/to/shared --meshes bunny spot --budgets 20 60
 
-A design is a set of training settings (``VARIANTS``: the default, ``norm=none``, ``hash_levels=12``). Per
+A design is a set of training settings (``VARIANTS``: the default, ``norm=none``, ``hash_levels=12``,
+``landmarks=K`` for K in 32..256). Per
 (mesh, budget, design): ``ngf.train(mesh, out, budget_seconds=B, device=..., force=True, **design)``, timed
 whole, in one process after an untimed warm-up call (Warp's kernels compiled, CUDA initialized), the designs of
 one (mesh, budget) back to back so that a drift of the machine touches each alike. Every design runs with
@@ -49,6 +50,7 @@ VARIANTS = {
     "landmarks32": {"landmarks": 32},
     "landmarks64": {"landmarks": 64},
     "landmarks128": {"landmarks": 128},
+    "landmarks256": {"landmarks": 256},
 }
 COMMON = {"compile": False}
 os.environ["NEUROGF_BAKEOFF_DESIGNS"] = "1"  # the designs the package refuses for users (no inference backend reads them)
