@@ -83,7 +83,9 @@ def torch_errors(model, reference, device) -> dict:
     vids, sids, gt = load_reference(reference, mesh)
     net = model.net.to(device).eval()
     scale = float(model.scale)
-    x = torch.as_tensor((mesh.vertices - np.asarray(model.center)) * scale, dtype=torch.float32, device=device)
+    # internal numbering, as load_reference's ids (mesh.vertices is the file's numbering, unused vertices NaN)
+    x = torch.as_tensor((mesh.internal_vertices - np.asarray(model.center)) * scale, dtype=torch.float32,
+                        device=device)
     if getattr(net, "landmarks", 0):  # its table is looked up by the training's own float32 vertex array
         x = net.landmark_table.xyz.to(device)
     prev = torch.backends.cuda.matmul.allow_tf32
