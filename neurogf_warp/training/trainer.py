@@ -70,11 +70,16 @@ def fast_path(net: NeuroGFNet, es, et, lines):
     return net.path_output(h.reshape(K, M, 3), lines)  # float32 lines: float32 points under autocast too
 
 
-def landmark_table(data: TrainingData, k: int, device) -> torch.Tensor:
-    """(V, k) exact distances (normalized units) from k landmark vertices to every vertex: landmarks spread by
-    farthest-point sampling in space, solved by the ground-truth solver (+inf across components becomes a large
-    finite value, 4: the normalized mesh fits the unit sphere, so every finite distance is far below it)."""
+def landmark_table(data: TrainingData, k: int, device) -> tuple:
+    """The lookup table of a ``landmarks=k`` network: (n, 3) points and (n, k) exact distances (normalized units)
+    from k landmark vertices, for every vertex and every other point the distance rows use.
+
+    Landmarks are spread by farthest-point sampling in space and solved by the ground-truth solver (plain solve,
+    as the training rows); +inf across components becomes 4 (the normalized mesh fits the unit sphere, so every
+    finite distance is far below it). Rows of a proxy dataset start and end at proxy vertices, which are not mesh
+    vertices: each gets the distances of its nearest mesh vertex (a fraction of an edge off)."""
     from neurogf_warp.ground_truth.geodesics import geodesic_distances
+    from neurogf_warp.model.network import Landmarks
     from neurogf_warp.training.data import warp_device
 
     x = data.vertices
@@ -85,9 +90,27 @@ def landmark_table(data: TrainingData, k: int, device) -> torch.Tensor:
         far = torch.minimum(far, (x - x[pick[-1]]).square().sum(-1))
         pick.append(int(far.argmax()))
     v = x.detach().cpu().numpy().astype(np.float64)
-    d = geodesic_distances((v, data.faces), np.asarray(pick), device=warp_device(device))
-    d = np.where(np.isfinite(d), d, 4.0).astype(np.float32)
-    return torch.as_tensor(d.T.copy(), device=device)
+    d = geodesic_distances((v, data.faces), np.asarray(pick), device=warp_device(device), near_source=False)
+    table = torch.as_tensor(np.where(np.isfinite(d), d, 4.0).astype(np.float32).T.copy(), device=device)
+    lookup = Landmarks(k).to(device)
+    lookup.set_table(x, table)
+    pts = torch.cat([r[:, c:c + 3] for r in data.gd.values() for c in (0, 3)])
+    keys, first = _first_of_each(lookup._key(pts))
+    pts = pts[first]
+    other = torch.isnan(lookup(pts)[:, 0])
+    if bool(other.any()):
+        extra = pts[other]
+        near = torch.cat([torch.cdist(part, x).argmin(-1) for part in extra.split(4096)])
+        x, table = torch.cat([x, extra]), torch.cat([table, table[near]])
+    return x, table
+
+
+def _first_of_each(keys: torch.Tensor) -> tuple:
+    """Distinct values of ``keys`` and the index of one occurrence of each."""
+    uniq, inv = torch.unique(keys, return_inverse=True)
+    first = torch.full((len(uniq),), len(keys), dtype=torch.long, device=keys.device)
+    first.scatter_reduce_(0, inv, torch.arange(len(keys), device=keys.device), reduce="amin")
+    return uniq, first
 
 
 def cosine_lr(step: int, n: int, hi: float, lo: float) -> float:
@@ -106,7 +129,7 @@ class Trainer:
         torch.manual_seed(cfg.seed)  # weight init
         self.net = cfg.network.build().to(self.device)
         if cfg.network.landmarks:
-            self.net.landmark_table.set_table(data.vertices, landmark_table(data, cfg.network.landmarks, self.device))
+            self.net.landmark_table.set_table(*landmark_table(data, cfg.network.landmarks, self.device))
         self.querier = SdfQuerier().to(self.device)
         self.sdf_pts, self.sdf_val = sdf_pool
         self.gen = torch.Generator(device=self.device)
