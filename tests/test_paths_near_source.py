@@ -4,8 +4,8 @@ near-source patch lowers on that patch's solve, so every path is within PATH_TOL
 known), from the source to the target (Warp CPU device).
 
 Meshes: the shared fandisk (CAD), a flat jittered grid (geodesics are straight lines, many passing close to a
-vertex), two discs and two spheres pinched at one vertex, a book of three pages (edges with three faces) and an ellipsoid with
-needle faces. The pinned pairs are ones whose path from the plain k = 3 solve is more than 0.1% longer than the
+vertex), two discs and two spheres pinched at one vertex, a book of three pages (edges with three faces) and an
+ellipsoid with needle faces. The pinned pairs are ones whose path from the plain k = 3 solve is more than 0.1% longer than the
 distance reported for them.
 """
 import warnings
