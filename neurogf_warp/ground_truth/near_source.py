@@ -10,6 +10,7 @@ distance r stays within r of the source, so the patch holds it.
 
 The patches of many sources are copied into one mesh of disjoint components and solved as one row with one seed
 per component (``GeodesicSolver.run_seeds``): one solver set-up per chunk of sources, not per source.
+``trace_patch`` makes one source's patch solve the same way and traces paths on it (``geodesic_paths``).
 """
 from __future__ import annotations
 
@@ -150,7 +151,7 @@ def patch_union(solver: GeodesicSolver, src: np.ndarray, chunk: list):
     for r, fi in chunk:
         used = np.unique(F[fi])  # sorted: a patch vertex's number in the copy is its rank here
         if len(fi) == 0 or not np.isin(src[r], used):
-            continue
+            continue  # an isolated source vertex: nothing to refine
         verts.append(P[used])
         faces.append(np.searchsorted(used, F[fi]) + base)
         seeds.append(np.searchsorted(used, src[r]) + base)
