@@ -13,6 +13,7 @@ from neurogf_warp.common.arrays import resolve_device
 from neurogf_warp.ground_truth.solver import (
     DEFAULT_DELTA,
     DEFAULT_K,
+    PATH_ABS_TOLERANCE,
     PATH_DELTA,
     PATH_TOLERANCE,
     SOLVER_CACHE_SIZE,
@@ -285,7 +286,7 @@ def resample_polylines(points: np.ndarray, starts: np.ndarray, ends: np.ndarray,
 
 
 def geodesic_paths(mesh, source, targets, m: int | None = None, device=None, k: int = DEFAULT_K,
-                   windows: bool = True, delta: float = PATH_DELTA):
+                   windows: bool = True, delta: float = PATH_DELTA, near_source: bool | None = None):
     """Shortest surface paths from one vertex to others.
 
     Parameters
@@ -295,6 +296,11 @@ def geodesic_paths(mesh, source, targets, m: int | None = None, device=None, k: 
     targets : int or (T,) int, vertex indices
     m : int >= 2, optional: resample every path to m points equally spaced by arc length
     device, k, windows, delta : as in `geodesic_distances`
+    near_source : bool, optional: a target whose distance the near-source patch of `geodesic_distances` lowers
+        gets its path from that patch's solve (k = 6 on the faces within 14 mean edges of the source), so that
+        every path is within PATH_TOLERANCE of ``geodesic_distances(mesh, [source], ...)`` for its target (with
+        the same `k`, `windows`, `delta` and `near_source`). None (the default): on with `windows`, as in
+        `geodesic_distances`; False traces every path from the one solve at `k`.
 
     Returns
     -------
@@ -316,6 +322,8 @@ def geodesic_paths(mesh, source, targets, m: int | None = None, device=None, k: 
     solver = GeodesicSolver(msh, k=k, windows=windows, device=device, batch=1, delta=delta, cache=True)
     solver.run(s)
     pts, offs, flags = solver.trace(np.zeros(len(tg), np.int32), tg)
+    if windows if near_source is None else near_source:
+        pts, offs, flags = _near_source_paths(solver, s[0], tg, pts, offs, flags)
     if np.any(flags != 0):
         import warnings
 
@@ -326,3 +334,36 @@ def geodesic_paths(mesh, source, targets, m: int | None = None, device=None, k: 
     if m is not None:
         return resample_polyline(pts, offs, m, solver.device).astype(np.float32)
     return [pts[offs[i]: offs[i + 1]].astype(np.float32) for i in range(len(tg))]
+
+
+def _near_source_paths(solver: GeodesicSolver, source: int, tg: np.ndarray, pts: np.ndarray, offs: np.ndarray,
+                       flags: np.ndarray):
+    """``solver.trace``'s paths (normalized frame) with those to targets whose near-source patch distance is
+    shorter (``near_source.refine_near_sources``'s rule) traced on the patch instead. Where the patch path is
+    flagged, the first path stays if it is within PATH_TOLERANCE of the patch distance, else the path is NaN."""
+    from neurogf_warp.ground_truth import near_source as ns
+
+    d = solver.vertex_distances()[0]
+    near = np.flatnonzero(d[tg] <= ns.patch_limit(solver))  # only these can lie in the patch
+    if len(near) == 0:
+        return pts, offs, flags
+    dp, ppts, poffs, pflags = ns.trace_patch(solver, source, d, tg[near])
+    lower = np.flatnonzero(dp < d[tg[near]])
+    if len(lower) == 0:
+        return pts, offs, flags
+    paths = [pts[offs[i]: offs[i + 1]] for i in range(len(tg))]
+    flags = flags.copy()
+    for j in lower:
+        t = near[j]
+        if pflags[j] == 0:
+            paths[t], flags[t] = ppts[poffs[j]: poffs[j + 1]], 0
+            continue
+        # the patch could not trace it: the first path only if it is no longer than the patch distance allows
+        first = paths[t].astype(np.float64)
+        length = np.linalg.norm(np.diff(first, axis=0), axis=1).sum()
+        if not (flags[t] == 0 and length <= dp[j] * (1.0 + PATH_TOLERANCE) + PATH_ABS_TOLERANCE):
+            paths[t], flags[t] = np.full((max(len(ppts[poffs[j]: poffs[j + 1]]), 1), 3), np.nan), 1
+    counts = np.array([len(p) for p in paths], dtype=np.int64)
+    offs = np.zeros(len(paths) + 1, dtype=np.int64)
+    np.cumsum(counts, out=offs[1:])
+    return np.concatenate([np.asarray(p, dtype=np.float64) for p in paths]), offs, flags

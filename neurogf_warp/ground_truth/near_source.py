@@ -10,6 +10,7 @@ distance r stays within r of the source, so the patch holds it.
 
 The patches of many sources are copied into one mesh of disjoint components and solved as one row with one seed
 per component (``GeodesicSolver.run_seeds``): one solver set-up per chunk of sources, not per source.
+``trace_patch`` makes one source's patch solve the same way and traces paths on it (``geodesic_paths``).
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from neurogf_warp.ground_truth.solver import GeodesicSolver
 from neurogf_warp.mesh.mesh import load_mesh
 
 __all__ = ["refine_near_sources", "plan_chunks", "patch_limit", "solve_chunk", "apply_updates", "patch_faces",
-           "patch_faces_rows", "PATCH_RADIUS", "PATCH_K"]
+           "patch_faces_rows", "patch_union", "trace_patch", "PATCH_RADIUS", "PATCH_K"]
 
 PATCH_RADIUS = 12.0  # mean edge lengths: beyond it the k = 3 worst pair was 0.38-0.44% on the tail meshes
 PATCH_K = 6  # k = 5 left the needle mesh's degenerate-face pair at 0.64%; k = 6 took every mesh to <= 0.45%
@@ -128,12 +129,21 @@ def apply_updates(out: np.ndarray, updates: list) -> None:
         out[r, used] = np.minimum(out[r, used], d)
 
 
-def solve_chunk(solver: GeodesicSolver, src: np.ndarray, chunk: list, k: int, device, prepare=None) -> list:
-    """One union of patches (disjoint copies, numbered one after the other), one multi-seed solve on ``device``
-    (``prepare(solver)``, if given, first: ``devices.lock_captures`` where other threads solve at the same time).
+def patch_union(solver: GeodesicSolver, src: np.ndarray, chunk: list):
+    """The union of a chunk's patches as one mesh: disjoint copies, numbered one after the other.
 
-    Returns a list of (row, (n,) vertex ids, (n,) float32 patch distances in the normalized frame), for
-    ``apply_updates``."""
+    Parameters
+    ----------
+    solver : the GeodesicSolver whose ``topo.faces`` the chunk's face rows index
+    src : (S,) int, internal source vertex ids of the rows
+    chunk : list of (row, (n,) face rows), as ``plan_chunks`` makes
+
+    Returns
+    -------
+    (union Mesh in the normalized frame of ``solver.mesh`` (not welded), (C,) int seeds (one vertex of the union
+    per copy), list of C (row, (n,) sorted internal vertex ids of the copy, its first vertex in the union)), or
+    None where no patch holds its source (an isolated source vertex: nothing to refine).
+    """
     P = solver.mesh.internal_normalized_vertices
     F = solver._order[solver.topo.faces]  # mesh numbering, in the solver's face order
     verts, faces, seeds, owners = [], [], [], []
@@ -148,11 +158,71 @@ def solve_chunk(solver: GeodesicSolver, src: np.ndarray, chunk: list, k: int, de
         owners.append((r, used, base))
         base += len(used)
     if not owners:
-        return []
+        return None
     union = load_mesh((np.concatenate(verts), np.concatenate(faces)), weld=False)
+    return union, np.asarray(seeds), owners
+
+
+def solve_chunk(solver: GeodesicSolver, src: np.ndarray, chunk: list, k: int, device, prepare=None) -> list:
+    """One union of patches (``patch_union``), one multi-seed solve on ``device``
+    (``prepare(solver)``, if given, first: ``devices.lock_captures`` where other threads solve at the same time).
+
+    Returns a list of (row, (n,) vertex ids, (n,) float32 patch distances in the normalized frame), for
+    ``apply_updates``."""
+    made = patch_union(solver, src, chunk)
+    if made is None:
+        return []
+    union, seeds, owners = made
     ps = GeodesicSolver(union, k=k, device=device, max_rows=1)
     if prepare is not None:
         prepare(ps)
-    ps.run_seeds(np.asarray(seeds))
+    ps.run_seeds(seeds)
     d = ps.vertex_distances()[0] / np.float32(union.scale)  # units of P: the normalized frame
     return [(r, used, d[b: b + len(used)]) for r, used, b in owners]
+
+
+def trace_patch(solver: GeodesicSolver, source: int, dist_row: np.ndarray, targets: np.ndarray, k: int = PATCH_K,
+                radius: float = PATCH_RADIUS):
+    """Paths from ``source`` to ``targets`` traced on the source's patch solved at ``k``: the solve that
+    ``refine_near_sources`` makes for that source, so the distances are the ones it compares.
+
+    Parameters
+    ----------
+    solver : the GeodesicSolver that computed ``dist_row`` (the patch solve runs on its device)
+    source : int, internal vertex id
+    dist_row : (V,) float, distances from ``source`` in the normalized frame (``GeodesicSolver.solve``'s row)
+    targets : (T,) int, internal vertex ids
+    k, radius : as in ``refine_near_sources``
+
+    Returns
+    -------
+    dist : (T,) float32, patch distances in the normalized frame; inf for a target outside the patch
+    points : (P, 3) float64, normalized frame of ``solver.mesh``; path i is points[offsets[i]:offsets[i+1]], from
+        the source (NaN points for a flagged path; no points for a target outside the patch)
+    offsets : (T + 1,) int64
+    flags : (T,) int32, as ``GeodesicSolver.trace``'s (0 for a target outside the patch)
+    """
+    tg = np.asarray(targets, dtype=np.int64).reshape(-1)
+    T = len(tg)
+    dist = np.full(T, np.inf, dtype=np.float32)
+    none = (dist, np.zeros((0, 3)), np.zeros(T + 1, np.int64), np.zeros(T, np.int32))
+    faces = patch_faces(solver, dist_row, patch_limit(solver, radius))
+    made = patch_union(solver, np.array([source], dtype=np.int64), [(0, faces)])
+    if made is None or T == 0:
+        return none
+    union, seeds, ((_, used, _),) = made
+    j = np.minimum(np.searchsorted(used, tg), len(used) - 1)
+    inside = np.flatnonzero(used[j] == tg)
+    if len(inside) == 0:
+        return none
+    ps = GeodesicSolver(union, k=k, device=solver.device, max_rows=1)
+    ps.run_seeds(seeds)  # as solve_chunk: the same solve, so the same distances
+    dist[inside] = ps.vertex_distances()[0][j[inside]] / np.float32(union.scale)
+    pts, offs, fl = ps.trace(np.zeros(len(inside), np.int32), j[inside])
+    counts = np.zeros(T, np.int64)
+    counts[inside] = np.diff(offs)
+    offsets = np.zeros(T + 1, np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    flags = np.zeros(T, np.int32)
+    flags[inside] = fl
+    return dist, union.denormalize(pts), offsets, flags
