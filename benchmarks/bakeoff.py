@@ -4,17 +4,18 @@ default, scored against exact geodesics.
     python benchmarks/bakeoff.py --device cuda:0 --shared /path/to/shared --meshes bunny spot --budgets 20 60
 
 A design is a set of training settings (``VARIANTS``: the default, ``norm=none``, ``hash_levels=12``,
-``landmarks=K`` for K in 32..256). Per
-(mesh, budget, design): ``ngf.train(mesh, out, budget_seconds=B, device=..., force=True, **design)``, timed
-whole, in one process after an untimed warm-up call (Warp's kernels compiled, CUDA initialized), the designs of
-one (mesh, budget) back to back so that a drift of the machine touches each alike. Every design runs with
+``landmarks=K`` for K in 32..256). Per (mesh, budget, design): ``ngf.train(mesh, out, budget_seconds=B,
+device=..., force=True, **design)``, timed whole, each row in a fresh process (``--same-process``: all in this
+one) after an untimed warm-up call (Warp's kernels compiled and cached on disk), the designs of one (mesh,
+budget) back to back so that a drift of the machine touches each alike. Every design runs with
 ``compile=False``: on a machine that has not compiled these shapes before, the 20-60 s default rows run eagerly
-anyway (the budget planner's choice), and a design must not win or lose through a compile cache.
+anyway (the budget planner's choice), and a design must not win or lose through a compile cache. Meshes: the
+shared ones (``--shared``) and ``scan``, ``parts``, ``cad`` from ``benchmarks/unseen_meshes.py`` (``--unseen``).
 
 Accuracy: the trained network's distances from each source of the exact reference to every reference vertex,
 computed with torch (eval mode, fp32, raised to the straight-line distance as the public queries do), MRE, p99
 and max relative error, source excluded (``evaluation.evaluate._rel_stats``). The Warp inference engine reads
-only the default design, so torch scores every design alike; on the first default row the engine's own
+only the default design, so torch scores every design alike; on default rows the engine's own
 ``ngf.evaluate`` runs too, as a check of that scoring.
 
 Decision rule, fixed before any run: a design is kept only if, on every mesh and at every budget tried, its MRE is
@@ -54,6 +55,7 @@ VARIANTS = {
 }
 COMMON = {"compile": False}
 os.environ["NEUROGF_BAKEOFF_DESIGNS"] = "1"  # the designs the package refuses for users (no inference backend reads them)
+UNSEEN = ("scan", "parts", "cad")  # benchmarks/unseen_meshes.py's meshes, read from --unseen DIR
 MESHES = {"spot": "spot.obj", "cow": "cow.obj", "alligator": "alligator.obj", "homer": "homer.obj",
           "fandisk": "fandisk.obj", "cheburashka": "cheburashka.obj", "rocker-arm": "rocker-arm.obj",
           "bunny": "stanford-bunny.obj", "igea": "igea.ply"}
@@ -70,6 +72,16 @@ def _run_doc(meta: dict, rows: list) -> dict:
 
 def _reference(shared: Path, name: str) -> Path:
     return shared / "reference" / "exact" / (Path(MESHES[name]).stem + ".npz")
+
+
+def mesh_files(a, name: str) -> tuple:
+    """(mesh file, exact reference .npz) of a shared mesh or of one of ``unseen_meshes.py``'s (``--unseen``)."""
+    if name in UNSEEN:
+        if not a.unseen:
+            raise SystemExit(f"mesh {name!r} is one of benchmarks/unseen_meshes.py's: pass --unseen DIR (its --out)")
+        return Path(a.unseen) / f"{name}.ply", Path(a.unseen) / "reference" / f"{name}.npz"
+    shared = Path(a.shared)
+    return shared / "meshes" / MESHES[name], _reference(shared, name)
 
 
 def torch_errors(model, reference, device) -> dict:
@@ -108,13 +120,14 @@ def torch_errors(model, reference, device) -> dict:
     return _rel_stats(pred, gt)
 
 
-def run_row(ngf, shared: Path, name: str, budget: float, variant: str, a, work: Path, repeat: int) -> dict:
+def run_row(ngf, name: str, budget: float, variant: str, a, work: Path, repeat: int) -> dict:
     """Train one design on one mesh at one budget and score it: one row."""
     import torch
 
     from neurogf_warp.training.checkpoint import RunFiles
 
     out = work / f"{name}_{budget:g}s_{variant}_{repeat}.ngf"
+    mesh_file, reference = mesh_files(a, name)
     settings = {**COMMON, **VARIANTS[variant]}
     row = {"mesh": name, "budget_s": budget, "variant": variant, "repeat": repeat, "settings": settings}
     cuda = str(a.device).startswith("cuda")
@@ -124,13 +137,13 @@ def run_row(ngf, shared: Path, name: str, budget: float, variant: str, a, work: 
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             t0 = time.perf_counter()
-            model = ngf.train(str(shared / "meshes" / MESHES[name]), out, budget_seconds=budget, device=a.device,
+            model = ngf.train(str(mesh_file), out, budget_seconds=budget, device=a.device,
                               force=True, progress=False, **settings)
             row["call_s"] = time.perf_counter() - t0
         row["peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2**20 if cuda else 0.0
         log = json.loads(Path(RunFiles.for_model(out).log).read_text())
         t0 = time.perf_counter()
-        err = torch_errors(model, _reference(shared, name), a.device)
+        err = torch_errors(model, reference, a.device)
         row["eval_s"] = time.perf_counter() - t0
         params = sum(p.numel() for p in model.net.parameters())
         t, cfg = log["timings"], log["config"]
@@ -145,7 +158,7 @@ def run_row(ngf, shared: Path, name: str, budget: float, variant: str, a, work: 
                    compile=t.get("compile"), warnings=sorted({f"{w.category.__name__}: {w.message}" for w in caught}))
         if a.check_engine and variant == "default" and not getattr(a, "_checked", False):
             a._checked = True
-            res = ngf.evaluate(model, reference=_reference(shared, name), paths=False, sdf=False, device=a.device,
+            res = ngf.evaluate(model, reference=reference, paths=False, sdf=False, device=a.device,
                                verbose=False)
             row["engine_check"] = {k: res["neurogf"].get(k) for k in ("mre", "p99_rel", "max_rel")}
     except Exception as e:  # one design failing must not lose the other rows
@@ -154,23 +167,29 @@ def run_row(ngf, shared: Path, name: str, budget: float, variant: str, a, work: 
     return row
 
 
-def decide(rows: list) -> dict:
-    """The decision rule of the module docstring, applied to ``rows``: {variant: {"keep": bool, "why": [...]}}."""
+def decide(rows: list, measured_spread: dict | None = None) -> dict:
+    """The decision rule of the module docstring, applied to ``rows``: {variant: {"keep": bool, "why": [...]}}.
+
+    measured_spread : {budget: spread} from repeated default runs of another result file (``--spread-from``),
+        for rows without a repeat of their own; a repeat among ``rows`` takes precedence."""
     import numpy as np
 
     ok = [r for r in rows if r.get("mre") is not None and np.isfinite(r["mre"])]
-    spread = {}
+    spread = {float(b): float(x) for b, x in (measured_spread or {}).items()}
+    own_budgets = set()
     for r in ok:
         if r["variant"] != "default":
             continue
         same = [x["mre"] for x in ok if x["variant"] == "default" and x["mesh"] == r["mesh"]
                 and x["budget_s"] == r["budget_s"]]
         if len(same) > 1:
-            spread[r["budget_s"]] = max(spread.get(r["budget_s"], 0.0), max(same) - min(same))
+            own = spread if r["budget_s"] in own_budgets else {}
+            spread[r["budget_s"]] = max(own.get(r["budget_s"], 0.0), max(same) - min(same))
+            own_budgets.add(r["budget_s"])
     cells = sorted({(r["mesh"], r["budget_s"]) for r in rows})
     out = {"spread": spread}
     for v in VARIANTS:
-        if v == "default":
+        if v == "default" or not any(r["variant"] == v for r in rows):
             continue
         why, keep = [], True
         for mesh, b in cells:
@@ -178,7 +197,8 @@ def decide(rows: list) -> dict:
             cand = [x["mre"] for x in ok if x["variant"] == v and x["mesh"] == mesh and x["budget_s"] == b]
             if not base or not cand or b not in spread:
                 keep = False
-                why.append(f"{mesh} {b:g} s: no comparison (a row failed or no spread)")
+                ran = any(x["variant"] == v and x["mesh"] == mesh and x["budget_s"] == b for x in rows)
+                why.append(f"{mesh} {b:g} s: " + ("no comparison (a row failed or no spread)" if ran else "not run"))
                 continue
             ref, c = float(np.mean(base)), float(np.mean(cand))
             win = c < ref - spread[b]
@@ -236,11 +256,33 @@ def plot(rows: list, path: Path) -> bool:
     return True
 
 
+def _in_fresh_process(a, spec: str, work: Path) -> dict:
+    """One row (``--row spec``) in a new Python process: what one run leaves in a process (caches, allocator
+    pools, threads) cannot touch the next row."""
+    import subprocess
+    import tempfile
+
+    name, budget, variant, k = spec.split(":")
+    with tempfile.TemporaryDirectory() as tmp:
+        cmd = [sys.executable, __file__, "--row", spec, "--device", a.device, "--shared", a.shared, "--work",
+               str(work), "--out", tmp] + (["--unseen", a.unseen] if a.unseen else []) + \
+            ([] if a.check_engine else ["--no-engine-check"])
+        done = subprocess.run(cmd, capture_output=True, text=True)
+        got = Path(tmp, "row.json")
+        if done.returncode == 0 and got.exists():
+            return json.loads(got.read_text())
+    return {"mesh": name, "budget_s": float(budget), "variant": variant, "repeat": int(k),
+            "settings": {**COMMON, **VARIANTS[variant]}, "error": f"the row's process exited {done.returncode}",
+            "traceback": (done.stdout + done.stderr)[-3000:]}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cuda:0")
     p.add_argument("--shared", default=str(ROOT.parent / "shared"), help="folder with meshes/ and reference/exact/")
-    p.add_argument("--meshes", nargs="+", default=["bunny", "spot"], choices=list(MESHES))
+    p.add_argument("--meshes", nargs="+", default=["bunny", "spot"], choices=list(MESHES) + list(UNSEEN))
+    p.add_argument("--unseen", default=None, metavar="DIR",
+                   help="the --out folder of benchmarks/unseen_meshes.py (meshes scan, parts, cad)")
     p.add_argument("--budgets", nargs="+", type=float, default=[20, 60])
     p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     p.add_argument("--repeat", nargs="*", default=["bunny"], help="meshes on which the default runs twice")
@@ -249,6 +291,12 @@ def main(argv=None) -> int:
     p.add_argument("--commit", default=None, help="commit of the code measured (recorded)")
     p.add_argument("--out", default=os.environ.get("OUT", str(ROOT / "benchmarks" / "results")))
     p.add_argument("--work", default="/tmp/neurogf-bakeoff")
+    p.add_argument("--same-process", dest="fresh", action="store_false",
+                   help="every row in this process (default: each row, and the warm-up, in a fresh process)")
+    p.add_argument("--row", default=None, help=argparse.SUPPRESS)  # MESH:BUDGET:VARIANT:REPEAT, one row, JSON out
+    p.add_argument("--spread-from", default=None, metavar="JSON",
+                   help="with --merge: the run-to-run spread of the default from this result file's repeated runs "
+                        "(for runs without a repeat of their own)")
     p.add_argument("--merge", nargs="+", default=None, metavar="JSON",
                    help="no runs: join the rows of earlier bakeoff.json files, decide, write --out")
     a = p.parse_args(argv)
@@ -258,7 +306,13 @@ def main(argv=None) -> int:
         rows = [r for run in runs for r in run["rows"]]
         out = Path(a.out)
         out.mkdir(parents=True, exist_ok=True)
-        decision = decide(rows)
+        measured = None
+        if a.spread_from:
+            measured = decide([r for run in json.loads(Path(a.spread_from).read_text())["runs"]
+                               for r in run["rows"]])["spread"]
+            for run in runs:  # kept with the rows: the results page decides with the same numbers
+                run["meta"]["measured_spread"] = {"from": Path(a.spread_from).name, "spread": measured}
+        decision = decide(rows, measured)
         (out / "bakeoff.json").write_text(json.dumps({"benchmark": "bakeoff", "runs": runs, "decision": decision},
                                                      indent=1))
         plot(rows, out / "bakeoff.png")
@@ -273,16 +327,24 @@ def main(argv=None) -> int:
     print(f"neurogf_warp from {ngf.__file__}, kernels from {sys.modules['neurogf_warp.kernels'].__file__}"
           if "neurogf_warp.kernels" in sys.modules else f"neurogf_warp from {ngf.__file__}, kernels installed: "
           f"{importlib.util.find_spec('neurogf_warp.kernels').origin}", flush=True)
-    shared, work, out = Path(a.shared), Path(a.work), Path(a.out)
+    work, out = Path(a.work), Path(a.out)
     work.mkdir(parents=True, exist_ok=True)
     out.mkdir(parents=True, exist_ok=True)
+    if a.row:
+        name, budget, variant, k = a.row.split(":")
+        r = run_row(ngf, name, float(budget), variant, a, work, int(k))
+        Path(a.out, "row.json").write_text(json.dumps(r))
+        return 0
     warm_s = None
-    if a.warmup > 0:
+    if a.warmup > 0:  # Warp's and torch's caches on disk filled before the timed rows
         t0 = time.perf_counter()
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            ngf.train(str(shared / "meshes" / MESHES[a.meshes[-1]]), work / "warmup.ngf", budget_seconds=a.warmup,
-                      device=a.device, force=True, progress=False, **COMMON)
+        if a.fresh:
+            _in_fresh_process(a, f"{a.meshes[-1]}:{a.warmup:g}:default:-1", work)
+        else:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                ngf.train(str(mesh_files(a, a.meshes[-1])[0]), work / "warmup.ngf", budget_seconds=a.warmup,
+                          device=a.device, force=True, progress=False, **COMMON)
         warm_s = time.perf_counter() - t0
         print(f"warm-up call {warm_s:.1f} s", flush=True)
     rows = []
@@ -290,13 +352,14 @@ def main(argv=None) -> int:
             "host": platform.node(),
             "cpu_cores": os.cpu_count(), "torch": torch.__version__, "warp": warp.config.version,
             "python": platform.python_version(), "argv": sys.argv[1:], "commit": a.commit, "variants": VARIANTS,
-            "common_settings": COMMON, "warmup_s": warm_s,
+            "common_settings": COMMON, "warmup_s": warm_s, "one_process_per_row": a.fresh,
             "date_utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime())}
     for name in a.meshes:
         for budget in a.budgets:
             order = [(v, 0) for v in a.variants] + ([("default", 1)] if name in a.repeat else [])
             for v, k in order:
-                r = run_row(ngf, shared, name, budget, v, a, work, k)
+                r = _in_fresh_process(a, f"{name}:{budget:g}:{v}:{k}", work) if a.fresh else \
+                    run_row(ngf, name, budget, v, a, work, k)
                 rows.append(r)
                 print(table([r]).splitlines()[-1], flush=True)
                 (out / "bakeoff.json").write_text(json.dumps({"benchmark": "bakeoff", "runs": [_run_doc(meta, rows)]},

@@ -20,7 +20,7 @@ BENCH = ROOT / "benchmarks"
 HEAVY = {"queries", "kernel_api"}
 SCRIPTS = ["released", "path_snap", "geodesics", "time_to_accuracy", "generalizable", "generalizable_collection",
            "generalizable_eval", "generalizable_scaling", "queries", "kernel_api", "geodesic_tools", "bakeoff",
-           "ground_truth_setup", "multi_gpu"]
+           "ground_truth_setup", "multi_gpu", "unseen_meshes"]
 
 PROBE = textwrap.dedent("""
     import json, runpy, sys

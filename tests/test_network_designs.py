@@ -155,3 +155,34 @@ def test_settings_reach_the_network_and_bad_values_are_refused(monkeypatch):
         TrainConfig().set(landmarks=-1)
     with pytest.raises(InputError, match="norm"):
         NeuroGFNet(64, norm="group")
+
+
+def test_landmark_table_holds_solver_distances_and_maps_other_row_points():
+    from types import SimpleNamespace
+
+    import numpy as np
+    import trimesh
+
+    from neurogf_warp.ground_truth.geodesics import geodesic_distances
+    from neurogf_warp.training.trainer import landmark_table
+
+    s = trimesh.creation.icosphere(subdivisions=2)
+    v = torch.as_tensor(np.asarray(s.vertices, np.float32))
+    f = np.asarray(s.faces, np.int32)
+    # rows between vertices, and rows whose end points are off the vertices (as a proxy dataset's are)
+    off = v[:5] * 0.999
+    rows = torch.cat([torch.cat([v[:20], v[20:40], torch.ones(20, 1)], 1),
+                      torch.cat([off, v[40:45], torch.ones(5, 1)], 1)])
+    data = SimpleNamespace(vertices=v, faces=f, gd={"global": rows})
+    xyz, table = landmark_table(data, 6, "cpu")
+    assert table.shape == (len(v) + 5, 6)
+    torch.testing.assert_close(xyz[: len(v)], v, rtol=0, atol=0)
+    assert sorted(map(tuple, xyz[len(v):].tolist())) == sorted(map(tuple, off.tolist()))
+    # the first landmark is vertex 0: its column is that vertex's solver row (plain solve, normalized units)
+    ref = geodesic_distances((v.double().numpy(), f), [0], device="cpu", near_source=False)[0]
+    np.testing.assert_allclose(table[: len(v), 0].numpy(), ref, rtol=1e-6)
+    net = NeuroGFNet(64, landmarks=6, **OPTS)
+    net.landmark_table.set_table(xyz, table)
+    # an off-vertex point takes its nearest vertex's distances (here v[i] itself)
+    torch.testing.assert_close(net.landmark_table(off), table[:5], rtol=0, atol=0)
+    assert torch.isfinite(net.distance(rows[:, :3], rows[:, 3:6])).all()
