@@ -280,13 +280,16 @@ def fmt_bakeoff(runs):
             rows.append((r["mesh"], f"{r['budget_s']:.0f} s", r["variant"] + (" (2nd run)" if r.get("repeat") else ""),
                          f"{r['call_s']:.1f} s", pct(r["mre"]), pct(r["p99"], 2), pct(r["max"], 1),
                          f"{r['steps'].get('joint', 0):,}/{r['steps'].get('refine_dist', 0):,}",
-                         f"{ms.get('joint', float('nan')):.2f}/{ms.get('refine_dist', float('nan')):.2f}",
+                         f"{ms.get('joint', float('nan')):.2f}/{ms.get('refine_dist', float('nan')):.2f}"
+                         if r["steps"].get("joint") else "-",
                          f"{r.get('params', 0):,}"))
     present = {re.sub(r"\d+$", "", r["variant"]) for run in runs for r in run["rows"]}
     designs = "; ".join(f"`{k}`{'K' if k == 'landmarks' else ''} ({v})" for k, v in DESIGNS.items() if k in present)
-    fresh = all(run.get("meta", {}).get("one_process_per_row") for run in runs)
-    out = ["Each design trained by `ngf.train(mesh, out, budget_seconds=B)` "
-           + ("in a fresh process per row" if fresh else "(the rows of one command in one process)") + " and scored "
+    fresh = {bool(run.get("meta", {}).get("one_process_per_row")) for run in runs}
+    how = {frozenset([True]): "in a fresh process per row", frozenset([False]): "(the rows of one command in one "
+           "process)"}.get(frozenset(fresh), "(a fresh process per row, or the rows of one command in one process "
+                                            "where a run's notes say so)")
+    out = ["Each design trained by `ngf.train(mesh, out, budget_seconds=B)` " + how + " and scored "
            f"against exact geodesics (every exact source to every vertex). Designs: {designs}. A design is kept only "
            "if its MRE is below the default's by more than the spread of two default runs, on every mesh and "
            "budget.", ""]
