@@ -10,7 +10,8 @@ one) after an untimed warm-up call (Warp's kernels compiled and cached on disk),
 budget) back to back so that a drift of the machine touches each alike. Every design runs with
 ``compile=False``: on a machine that has not compiled these shapes before, the 20-60 s default rows run eagerly
 anyway (the budget planner's choice), and a design must not win or lose through a compile cache. Meshes: the
-shared ones (``--shared``) and ``scan``, ``parts``, ``cad`` from ``benchmarks/unseen_meshes.py`` (``--unseen``).
+shared ones (``--shared``) and ``scan``, ``parts``, ``cad``, ``joined`` from ``benchmarks/unseen_meshes.py``
+(``--unseen``); ``joined`` trains with ``allow_vertex_joins=True`` (a default call refuses it).
 
 Accuracy: the trained network's distances from each source of the exact reference to every reference vertex,
 computed with torch (eval mode, fp32, raised to the straight-line distance as the public queries do), MRE, p99
@@ -55,7 +56,8 @@ VARIANTS = {
 }
 COMMON = {"compile": False}
 os.environ["NEUROGF_BAKEOFF_DESIGNS"] = "1"  # the designs the package refuses for users (no inference backend reads them)
-UNSEEN = ("scan", "parts", "cad")  # benchmarks/unseen_meshes.py's meshes, read from --unseen DIR
+UNSEEN = ("scan", "parts", "cad", "joined")  # benchmarks/unseen_meshes.py's meshes, read from --unseen DIR
+JOINED = {"joined"}  # patches that meet at single vertices: trained with allow_vertex_joins=True
 MESHES = {"spot": "spot.obj", "cow": "cow.obj", "alligator": "alligator.obj", "homer": "homer.obj",
           "fandisk": "fandisk.obj", "cheburashka": "cheburashka.obj", "rocker-arm": "rocker-arm.obj",
           "bunny": "stanford-bunny.obj", "igea": "igea.ply"}
@@ -128,7 +130,7 @@ def run_row(ngf, name: str, budget: float, variant: str, a, work: Path, repeat: 
 
     out = work / f"{name}_{budget:g}s_{variant}_{repeat}.ngf"
     mesh_file, reference = mesh_files(a, name)
-    settings = {**COMMON, **VARIANTS[variant]}
+    settings = {**COMMON, **VARIANTS[variant], **({"allow_vertex_joins": True} if name in JOINED else {})}
     row = {"mesh": name, "budget_s": budget, "variant": variant, "repeat": repeat, "settings": settings}
     cuda = str(a.device).startswith("cuda")
     if cuda:
@@ -282,7 +284,7 @@ def main(argv=None) -> int:
     p.add_argument("--shared", default=str(ROOT.parent / "shared"), help="folder with meshes/ and reference/exact/")
     p.add_argument("--meshes", nargs="+", default=["bunny", "spot"], choices=list(MESHES) + list(UNSEEN))
     p.add_argument("--unseen", default=None, metavar="DIR",
-                   help="the --out folder of benchmarks/unseen_meshes.py (meshes scan, parts, cad)")
+                   help="the --out folder of benchmarks/unseen_meshes.py (meshes scan, parts, cad, joined)")
     p.add_argument("--budgets", nargs="+", type=float, default=[20, 60])
     p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     p.add_argument("--repeat", nargs="*", default=["bunny"], help="meshes on which the default runs twice")

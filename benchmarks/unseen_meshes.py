@@ -1,6 +1,6 @@
-"""Three test meshes of kinds the shared set lacks, with exact geodesic references in the shared format.
+"""Four test meshes of kinds the shared set lacks, with exact geodesic references in the shared format.
 
-    python benchmarks/unseen_meshes.py                      # ./unseen: scan.ply, parts.ply, cad.ply, reference/, manifest.json
+    python benchmarks/unseen_meshes.py                      # ./unseen: scan.ply ... joined.ply, reference/, manifest.json
     python benchmarks/unseen_meshes.py --out /tmp/u --scale 0.05     # small copies (a test's size)
 
 The meshes (built with numpy from a fixed seed; a re-run writes the same arrays and the same PLY bytes):
@@ -13,17 +13,22 @@ The meshes (built with numpy from a fixed seed; a re-run writes the same arrays 
   separate surfaces, so distances between parts are unreachable (inf).
 - ``cad.ply``: an L-bracket (~6K vertices) with three rectangular through-holes (genus 3): flat faces on a
   rectilinear grid with strongly anisotropic spacing (triangles up to ~16:1), sharp 90-degree edges.
+- ``joined.ply``: three bumpy open square patches (~11K vertices) whose corners are one shared vertex and which
+  share nothing else, like a tessellated teapot's patches: every geodesic between two patches passes through that
+  vertex. ``ngf.train`` refuses such a mesh unless ``allow_vertex_joins=True``.
 
-Every mesh is checked before it is written: closed (every edge in two faces, consistently oriented), every vertex
-a single fan (no pinch), no degenerate triangle, the promised number of components and Euler characteristic, and
-no patches joined at single vertices (``neurogf_warp.mesh.topology.vertex_joins``).
+Every closed mesh is checked before it is written: closed (every edge in two faces, consistently oriented), every
+vertex a single fan (no pinch), no degenerate triangle, the promised number of components and Euler
+characteristic, and no patches joined at single vertices (``neurogf_warp.mesh.topology.vertex_joins``); the joined
+mesh has exactly one pinch vertex, open boundaries, and ``vertex_joins`` finds its three patches.
 
 References (``reference/<stem>.npz``, the keys of the shared ``reference/exact/*.npz``): ``positions`` float32
 (V, 3) (the file's vertices), ``orig_index`` and ``file_index`` int32 (both the identity: every vertex is used and
 in file order), ``sources`` int32 (8,), ``dist`` float32 (8, V) with inf where unreachable, ``how``. Sources: six
 from ``np.random.default_rng(1234).choice(V, 6, replace=False)``, then the vertex farthest from vertex 0, then the
 vertex farthest from that one. Distances: tvb-gdist (exact MMP) in float64, one solve per source on the source's
-connected component (inf elsewhere). Each reference is checked: every value at most the shortest edge path
+connected component (inf elsewhere); on the joined mesh per patch, a pair on two patches through the shared vertex
+(d(s, v) = d_P(s, j) + d_Q(j, v)). Each reference is checked: every value at most the shortest edge path
 (Dijkstra) and at least the straight-line distance, finite exactly on the source's component, and
 ``dist[i, sources[j]] == dist[j, sources[i]]`` to 1e-9 relative. The table and ``manifest.json`` report the counts,
 the checks and the gdist time.
@@ -41,7 +46,8 @@ import numpy as np
 
 import _bootstrap  # noqa: E402,F401  (this checkout's neurogf_warp, installed or not)
 
-MESHES = ("scan", "parts", "cad")
+MESHES = ("scan", "parts", "cad", "joined")
+JOINED_PATCHES = 3
 SOURCE_SEED = 1234  # the shared references' source draw
 N_RANDOM_SOURCES = 6
 
@@ -276,6 +282,31 @@ def make_cad(rng: np.random.Generator, scale: float = 1.0):
     return lattice_surface(solid & ~holes, xs, ys, zs)
 
 
+def make_joined(rng: np.random.Generator, scale: float = 1.0):
+    """Three bumpy open unit squares at 120 degrees around the z axis, each with its corner at the origin, that
+    corner merged into one vertex (index 0): patches that meet at that single vertex and nowhere else.
+
+    Returns (vertices (V, 3), faces (F, 3), (V,) patch label of each vertex (vertex 0: patch 0))."""
+    n = max(6, int(round(60 * scale ** 0.5)))
+    u, w = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
+    grid = np.arange(n * n).reshape(n, n)
+    quads = np.stack([grid[:-1, :-1], grid[1:, :-1], grid[1:, 1:], grid[:-1, 1:]], -1).reshape(-1, 4)
+    tri = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    verts, faces, label = [], [], []
+    for i in range(JOINED_PATCHES):
+        a = 2 * np.pi * i / JOINED_PATCHES
+        amp, fu, fw = rng.uniform(0.1, 0.25), rng.integers(2, 5), rng.integers(2, 5)
+        z = amp * np.sin(fu * u) * np.sin(fw * w)  # zero along u = 0 and w = 0: the corner stays at the origin
+        x, y = u * np.cos(a) - w * np.sin(a), u * np.sin(a) + w * np.cos(a)
+        pts = np.stack([x, y, z], -1).reshape(-1, 3)
+        off = i * (n * n - 1)  # grid vertex 0 of patch i > 0 is the shared vertex 0, the rest follow
+        idx = np.concatenate([[0], off + np.arange(1, n * n)])
+        faces.append(idx[tri])
+        verts.append(pts if i == 0 else pts[1:])
+        label.append(np.full(len(verts[-1]), i))
+    return np.concatenate(verts), np.concatenate(faces), np.concatenate(label)
+
+
 # ------------------------------------------------------------------------------------------------------ checks
 
 def topology(v: np.ndarray, f: np.ndarray) -> dict:
@@ -412,7 +443,47 @@ class ComponentSolver:
         return out
 
 
-def exact_reference(v32: np.ndarray, f: np.ndarray) -> tuple[dict, dict]:
+class JoinedSolver:
+    """Exact distances on patches that share one vertex ``j`` (tvb-gdist per patch): within a source's patch its
+    own solve; on another patch d(s, j) plus that patch's solve from ``j`` (every path between two patches passes
+    ``j``, and a path that leaves its patch through ``j`` and comes back is never the shorter one)."""
+
+    def __init__(self, v: np.ndarray, f: np.ndarray, label: np.ndarray, j: int = 0):
+        self.v, self.label, self.j = v, label, j
+        self.patch_faces = {}
+        f = np.asarray(f, np.int64)
+        for p in np.unique(label):
+            inside = np.isin(f, np.flatnonzero(label == p)).sum(1) >= 2  # the shared vertex carries patch 0's label
+            self.patch_faces[int(p)] = ComponentSolver(v, f[inside])
+        self.labels = np.zeros(len(v), np.int64)  # one vertex-connected component
+        self._from_j = {}
+        self.seconds, self.solves = 0.0, 0
+
+    def _solve(self, p: int, s: int) -> np.ndarray:
+        cs = self.patch_faces[p]
+        d = cs(s)
+        self.seconds, self.solves = self.seconds + cs.seconds, self.solves + 1
+        cs.seconds = 0.0
+        return d
+
+    def __call__(self, s: int) -> np.ndarray:
+        """(V,) float64 distances from vertex ``s``."""
+        for p in self.patch_faces:
+            if p not in self._from_j:
+                self._from_j[p] = self._solve(p, self.j)
+        out = np.full(len(self.v), np.inf)
+        own = [int(self.label[s])] if s != self.j else list(self.patch_faces)
+        for p in own:
+            d = self._solve(p, s) if s != self.j else self._from_j[p]
+            out = np.fmin(out, d)
+        to_j = out[self.j]
+        for p, d in self._from_j.items():
+            if p not in own:
+                out = np.fmin(out, to_j + d)
+        return out
+
+
+def exact_reference(v32: np.ndarray, f: np.ndarray, label: np.ndarray | None = None) -> tuple[dict, dict]:
     """The shared-format reference of a mesh and its checks.
 
     Parameters
@@ -420,6 +491,8 @@ def exact_reference(v32: np.ndarray, f: np.ndarray) -> tuple[dict, dict]:
     v32 : (V, 3) float32, mesh units
         The vertices as stored in the file (distances are computed on their float64 values).
     f : (F, 3) int
+    label : (V,) int, optional
+        Patch of each vertex of a mesh whose patches share only vertex 0 (``make_joined``): solved per patch.
 
     Returns
     -------
@@ -430,7 +503,7 @@ def exact_reference(v32: np.ndarray, f: np.ndarray) -> tuple[dict, dict]:
 
     v = v32.astype(np.float64)
     nv = len(v)
-    solve = ComponentSolver(v, f)
+    solve = ComponentSolver(v, f) if label is None else JoinedSolver(v, f, label)
     src = [int(s) for s in np.random.default_rng(SOURCE_SEED).choice(nv, N_RANDOM_SOURCES, replace=False)]
     rows = [solve(s) for s in src]
     d0 = rows[src.index(0)] if 0 in src else solve(0)
@@ -464,7 +537,9 @@ def exact_reference(v32: np.ndarray, f: np.ndarray) -> tuple[dict, dict]:
               "max_symmetry_rel": sym, "symmetric": sym <= 1e-9}
     how = (f"tvb-gdist {_version('tvb-gdist')} (Kirsanov's exact MMP) gdist.compute_gdist(positions, faces, "
            "source_indices=[s]) in float64 on the file's float32 vertices, one solve per source on the source's "
-           "connected component (inf on the others); sources[0:6] = np.random.default_rng(1234).choice(V, 6, "
+           + ("connected component (inf on the others)" if label is None else
+              "patch, and from the shared vertex 0 on every patch: d(s, v) = d_P(s, 0) + d_Q(0, v) across patches")
+           + "; sources[0:6] = np.random.default_rng(1234).choice(V, 6, "
            "replace=False), sources[6] = farthest from vertex 0, sources[7] = farthest from sources[6]; every "
            "vertex is used and in file order, so orig_index = file_index = arange(V); stored as float32")
     ref = {"positions": v32.astype(np.float32), "orig_index": np.arange(nv, dtype=np.int32),
@@ -501,8 +576,9 @@ def write_ply(path: Path, v32: np.ndarray, f: np.ndarray) -> None:
         fh.write(rec.tobytes())
 
 
-def check_loading(ply: Path, npz: Path, v32: np.ndarray, f: np.ndarray) -> dict:
-    """The project's loaders accept the files and agree with the arrays; no patches are joined at vertices."""
+def check_loading(ply: Path, npz: Path, v32: np.ndarray, f: np.ndarray, joined: int = 0) -> dict:
+    """The project's loaders accept the files and agree with the arrays; ``vertex_joins`` finds no joined patches,
+    or with ``joined`` that many patches on one pinch vertex."""
     import trimesh
 
     from neurogf_warp.evaluation.evaluate import load_reference
@@ -520,15 +596,21 @@ def check_loading(ply: Path, npz: Path, v32: np.ndarray, f: np.ndarray) -> dict:
     out = {"load_mesh_matches": bool(same), "trimesh_matches": bool(same_tm), "load_reference_ok": ref_ok,
            "vertex_joins": {"patches": vj.patches, "joined_patches": vj.joined_patches,
                             "pinch_vertices": vj.pinch_vertices, "coincident_vertices": vj.coincident_vertices}}
-    if not (same and same_tm and ref_ok and not vj.any and vj.coincident_vertices == 0):
+    joins_ok = (not vj.any) if not joined else (vj.joined_patches == joined and vj.pinch_vertices == 1)
+    if not (same and same_tm and ref_ok and joins_ok and vj.coincident_vertices == 0):
         raise RuntimeError(f"{ply.name}: the loaders disagree with the written arrays or find vertex joins: {out}")
     return out
 
 
 def build(name: str, seed: int, scale: float):
-    """(vertices float32 (V, 3), faces int64 (F, 3), expected components, expected genus, notes) of one mesh."""
+    """(vertices float32 (V, 3), faces int64 (F, 3), expected components, expected genus, notes, patch labels or
+    None) of one mesh."""
     # one stream per mesh, so that one mesh's arrays do not depend on which others are built
     rng = np.random.default_rng([seed, MESHES.index(name)])
+    if name == "joined":
+        v, f, label = make_joined(rng, scale)
+        return (v.astype(np.float32), f.astype(np.int64), 1, None,
+                f"{JOINED_PATCHES} bumpy open patches sharing one corner vertex", label)
     if name == "scan":
         v, f = make_scan(rng, scale)
         comps, genus, notes = 1, 0, "jittered icosphere, ellipsoid, bumps, ridge, pinched neck, normal noise"
@@ -538,7 +620,19 @@ def build(name: str, seed: int, scale: float):
     else:
         v, f = make_cad(rng, scale)
         comps, genus, notes = 1, 3, "L-bracket, 3 rectangular through-holes, anisotropic grid faces"
-    return v.astype(np.float32), f.astype(np.int64), comps, genus, notes
+    return v.astype(np.float32), f.astype(np.int64), comps, genus, notes, None
+
+
+def check_joined(v: np.ndarray, f: np.ndarray) -> dict:
+    """``topology`` of the joined mesh: one component, exactly one pinch vertex, open boundaries, no edge in three
+    faces, no degenerate triangle; raises RuntimeError otherwise."""
+    topo = topology(v, f)
+    ok = (topo["components"] == 1 and topo["boundary_edges"] > 0 and topo["nonmanifold_edges"] == 0
+          and topo["misoriented_edges"] == 0 and topo["min_angle_deg"] > 0.5)
+    if not ok:
+        raise RuntimeError(f"joined: not open patches on one vertex ({topo})")
+    topo["genus"] = []  # open patches: no genus
+    return topo
 
 
 def generate(out: Path, seed: int = 0, scale: float = 1.0, meshes=MESHES, quiet: bool = False) -> dict:
@@ -548,18 +642,19 @@ def generate(out: Path, seed: int = 0, scale: float = 1.0, meshes=MESHES, quiet:
     entries = {}
     for name in meshes:
         t0 = time.perf_counter()
-        v32, f, comps, genus, notes = build(name, seed, scale)
+        v32, f, comps, genus, notes, label = build(name, seed, scale)
         # the checks run on the float32 vertices the file stores, which every reader sees
-        topo = check_mesh(name, v32.astype(np.float64), f, comps, genus)
+        topo = check_mesh(name, v32.astype(np.float64), f, comps, genus) if label is None else \
+            check_joined(v32.astype(np.float64), f)
         ply = out / f"{name}.ply"
         write_ply(ply, v32, f)
-        ref, info = exact_reference(v32, f)
+        ref, info = exact_reference(v32, f, label)
         failed = [k for k, ok in info["checks"].items() if isinstance(ok, bool) and not ok]
         if failed:
             raise RuntimeError(f"{name}: reference checks failed: {failed} ({info['checks']})")
         npz = out / "reference" / f"{name}.npz"
         np.savez_compressed(npz, **ref)
-        loading = check_loading(ply, npz, v32, f)
+        loading = check_loading(ply, npz, v32, f, JOINED_PATCHES if label is not None else 0)
         entries[name] = {"file": ply.name, "reference": f"reference/{npz.name}", "description": notes,
                          "sha256": hashlib.sha256(ply.read_bytes()).hexdigest(), **topo,
                          "sources": ref["sources"].tolist(), **info, "loading": loading,
@@ -573,7 +668,7 @@ def table(entries: dict) -> str:
     rows = ["| mesh | vertices | faces | components | genus | min angle | diameter | unreachable | gdist s | checks |",
             "|---|---|---|---|---|---|---|---|---|---|"]
     for name, e in entries.items():
-        g = sorted(set(e["genus"]))
+        g = sorted(set(e["genus"])) or ["-"]
         rows.append(f"| {e['file']} | {e['vertices']:,} | {e['faces']:,} | {e['components']} | "
                     f"{'/'.join(map(str, g))} | {e['min_angle_deg']:.2f} deg | {e['diameter']:.4g} | "
                     f"{100 * e['unreachable_fraction']:.1f}% | {e['gdist_seconds']:.2f} | "

@@ -1,5 +1,6 @@
-"""benchmarks/unseen_meshes.py at a small size: closed meshes with the promised topology, exact references that
-pass their checks (recomputed here), the project's loaders accept the files, and a re-run gives the same arrays."""
+"""benchmarks/unseen_meshes.py at a small size: closed meshes with the promised topology, patches joined at one
+vertex, exact references that pass their checks (recomputed here), the project's loaders accept the files, and a
+re-run gives the same arrays."""
 import subprocess
 import sys
 from pathlib import Path
@@ -17,7 +18,7 @@ from neurogf_warp.mesh.mesh import load_mesh  # noqa: E402
 from neurogf_warp.mesh.topology import vertex_joins  # noqa: E402
 
 SCALE = 0.05
-EXPECTED = {"scan": (1, 0), "parts": (len(um.PARTS), 0), "cad": (1, 3)}  # components, genus of each
+EXPECTED = {"scan": (1, 0), "parts": (len(um.PARTS), 0), "cad": (1, 3)}  # components, genus of each closed mesh
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +31,7 @@ def _edges(f):
     return np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), 1), axis=0)
 
 
-@pytest.mark.parametrize("name", um.MESHES)
+@pytest.mark.parametrize("name", list(EXPECTED))
 def test_mesh_is_closed_with_the_promised_components_and_genus(runs, name):
     import trimesh
 
@@ -89,6 +90,32 @@ def test_reference_is_exact_geodesics_in_the_shared_format(runs, name):
     np.testing.assert_allclose(a[both], a.T[both], rtol=1e-6)
     if name == "parts":
         assert 0 < np.mean(~fin) < 1  # other parts are unreachable
+
+
+def test_joined_patches_meet_at_one_vertex_and_cross_it_exactly(runs):
+    out = runs[0]
+    m = load_mesh(out / "joined.ply")
+    vj = vertex_joins(m)
+    assert vj.joined_patches == um.JOINED_PATCHES and vj.pinch_vertices == 1 and vj.coincident_vertices == 0
+    vid, sid, dist = load_reference(out / "reference" / "joined.npz", m)
+    f = m.internal_faces.astype(np.int64)
+    # the patch of each vertex: edge-connected pieces once the shared vertex 0 is left out
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    e = _edges(f)
+    e = e[(e != 0).all(1)]
+    n = len(m.internal_vertices)
+    _, patch = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
+    patch[0] = -1
+    assert len(np.unique(patch[1:])) == um.JOINED_PATCHES
+    # across patches a distance is d(s, 0) + d(0, v): its part past vertex 0 is the same from every other source
+    for q in np.unique(patch[1:]):
+        on_q = patch == q
+        off = [i for i, s in enumerate(sid) if patch[s] not in (q, -1)]
+        assert len(off) >= 2
+        past = dist[off][:, on_q] - dist[off][:, [0]]
+        np.testing.assert_allclose(past, np.broadcast_to(past[:1], past.shape), rtol=1e-5, atol=1e-6)
 
 
 def test_a_rerun_writes_the_same_arrays(runs):
