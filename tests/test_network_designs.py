@@ -186,3 +186,35 @@ def test_landmark_table_holds_solver_distances_and_maps_other_row_points():
     # an off-vertex point takes its nearest vertex's distances (here v[i] itself)
     torch.testing.assert_close(net.landmark_table(off), table[:5], rtol=0, atol=0)
     assert torch.isfinite(net.distance(rows[:, :3], rows[:, 3:6])).all()
+
+
+def test_landmarks_under_a_budget_repeat_the_solved_columns():
+    from types import SimpleNamespace
+
+    import numpy as np
+    import trimesh
+
+    from neurogf_warp.mesh.mesh import load_mesh
+    from neurogf_warp.training.api import LANDMARK_SHARE, _landmark_plan
+    from neurogf_warp.training.trainer import landmark_table
+
+    s = trimesh.creation.icosphere(subdivisions=1)  # 42 vertices: fewer than the columns asked for
+    v = torch.as_tensor(np.asarray(s.vertices, np.float32))
+    data = SimpleNamespace(vertices=v, faces=np.asarray(s.faces, np.int32),
+                           gd={"global": torch.cat([v[:10], v[10:20], torch.ones(10, 1)], 1)})
+    _, t = landmark_table(data, 64, "cpu", solved=5)
+    assert t.shape == (42, 64)
+    torch.testing.assert_close(t[:, 5:10], t[:, :5], rtol=0, atol=0)
+    assert len(torch.unique(t, dim=1).T) == 5
+    _, t = landmark_table(data, 64, "cpu")
+    assert t.shape == (42, 64) and len(torch.unique(t, dim=1).T) == 42
+    # the plan: K without a budget; under one, as many as fit in its share (at least 8, at most K)
+    cfg = TrainConfig()
+    cfg.network.landmarks = 128
+    mesh = load_mesh((np.asarray(s.vertices), np.asarray(s.faces)))
+    cpu = torch.device("cpu")
+    assert _landmark_plan(cfg, mesh, cpu, None)[0] == 128
+    k, per = _landmark_plan(cfg, mesh, cpu, 1.0)
+    assert k == max(8, min(128, int(LANDMARK_SHARE * 1.0 // per))) and 8 <= k <= 128
+    cfg.network.landmarks = 0
+    assert _landmark_plan(cfg, mesh, cpu, 60.0) == (0, 0.0)

@@ -248,6 +248,25 @@ def _plan_compile(cfg: TrainConfig, dev, deadline: float, timings: dict) -> str 
     return key if use else None
 
 
+LANDMARK_SHARE = 0.15  # of a budget, at most, for the landmark rows of a ``landmarks=K`` network
+
+
+def _landmark_plan(cfg: TrainConfig, mesh, dev, budget_seconds) -> tuple:
+    """(landmarks to solve, estimated seconds each) of a ``landmarks=K`` network: K, or under a budget as many as
+    fit in ``LANDMARK_SHARE`` of it (at least 8; the network's K columns then repeat them). (0, 0.0) without."""
+    k = cfg.network.landmarks
+    if not k:
+        return 0, 0.0
+    from neurogf_warp.dataset.build import cpu_seconds_per_source, gpu_seconds_per_source
+    from neurogf_warp.ground_truth.geodesics import DEFAULT_K
+
+    v = len(mesh.internal_vertices)
+    per = cpu_seconds_per_source(v, DEFAULT_K) if dev.type == "cpu" else gpu_seconds_per_source(v)
+    if budget_seconds is None:
+        return k, per
+    return int(min(k, max(8, LANDMARK_SHARE * budget_seconds // per))), per
+
+
 def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, dev, progress, callback,
          t_call: float, key, devices=None):
     """Dataset, set-up, budget, the stages and the model file of a run (new, or continued from ``ck``).
@@ -264,6 +283,9 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     # the ground truth's share counts from the start of the call (the mesh was loaded and checked in it)
     limit = None if budget_seconds is None or ck is not None else \
         max(0.0, DATA_SHARE * budget_seconds - (t_data - t_call))
+    landmarks_solved, per_landmark = _landmark_plan(cfg, mesh, dev, budget_seconds)
+    if limit is not None and landmarks_solved:  # the landmark rows are ground truth too: planned in its share
+        limit = max(0.0, limit - landmarks_solved * per_landmark)
     ds = obtain_dataset(mesh, dataset, files.dataset if dataset is None else None, cfg.data, cfg.seed, dev, progress,
                         time_limit_s=limit, partial_ok=ck is not None, devices=devices)
     dataset_s = time.perf_counter() - t_data
@@ -276,6 +298,7 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     else:  # the baseline on the held-out pairs, made by another process while the model trains (within the budget)
         heat = HeatBaseline(ds.vertices, ds.faces, ds.test_src, ds.test_dist)
     data = TrainingData(ds, dev)
+    data.landmarks_solved = landmarks_solved
     t0 = time.perf_counter()
     pool = make_sdf_pool(mesh, data.surface_points, cfg.batches.sdf_pool, cfg.seed, dev)
     timings["sdf_pool_s"] = time.perf_counter() - t0

@@ -70,20 +70,21 @@ def fast_path(net: NeuroGFNet, es, et, lines):
     return net.path_output(h.reshape(K, M, 3), lines)  # float32 lines: float32 points under autocast too
 
 
-def landmark_table(data: TrainingData, k: int, device) -> tuple:
+def landmark_table(data: TrainingData, k: int, device, solved: int | None = None) -> tuple:
     """The lookup table of a ``landmarks=k`` network: (n, 3) points and (n, k) exact distances (normalized units)
     from k landmark vertices, for every vertex and every other point the distance rows use.
 
     Landmarks are spread by farthest-point sampling in space and solved by the ground-truth solver (plain solve,
     as the training rows); +inf across components becomes 4 (the normalized mesh fits the unit sphere, so every
     finite distance is far below it). Rows of a proxy dataset start and end at proxy vertices, which are not mesh
-    vertices: each gets the distances of its nearest mesh vertex (a fraction of an edge off)."""
+    vertices: each gets the distances of its nearest mesh vertex (a fraction of an edge off). ``solved``: solve
+    only that many landmarks (a budget's share; at most k and the vertex count) and repeat their columns to k."""
     from neurogf_warp.ground_truth.geodesics import geodesic_distances
     from neurogf_warp.model.network import Landmarks
     from neurogf_warp.training.data import warp_device
 
     x = data.vertices
-    k = min(k, len(x))
+    columns, k = k, min(k, solved or k, len(x))
     far = torch.full((len(x),), float("inf"), device=x.device)
     pick = [0]
     for _ in range(k - 1):
@@ -91,8 +92,9 @@ def landmark_table(data: TrainingData, k: int, device) -> tuple:
         pick.append(int(far.argmax()))
     v = x.detach().cpu().numpy().astype(np.float64)
     d = geodesic_distances((v, data.faces), np.asarray(pick), device=warp_device(device), near_source=False)
-    table = torch.as_tensor(np.where(np.isfinite(d), d, 4.0).astype(np.float32).T.copy(), device=device)
-    lookup = Landmarks(k).to(device)
+    d = np.where(np.isfinite(d), d, 4.0).astype(np.float32)[np.arange(columns) % k]
+    table = torch.as_tensor(d.T.copy(), device=device)
+    lookup = Landmarks(columns).to(device)
     lookup.set_table(x, table)
     pts = torch.cat([r[:, c:c + 3] for r in data.gd.values() for c in (0, 3)])
     keys, first = _first_of_each(lookup._key(pts))
@@ -129,7 +131,11 @@ class Trainer:
         torch.manual_seed(cfg.seed)  # weight init
         self.net = cfg.network.build().to(self.device)
         if cfg.network.landmarks:
-            self.net.landmark_table.set_table(*landmark_table(data, cfg.network.landmarks, self.device))
+            # solved once per run: a Trainer rebuilt for other batch sizes reuses the rows
+            if getattr(data, "landmark_rows", None) is None:
+                data.landmark_rows = landmark_table(data, cfg.network.landmarks, self.device,
+                                                    getattr(data, "landmarks_solved", None))
+            self.net.landmark_table.set_table(*data.landmark_rows)
         self.querier = SdfQuerier().to(self.device)
         self.sdf_pts, self.sdf_val = sdf_pool
         self.gen = torch.Generator(device=self.device)
