@@ -13,22 +13,23 @@ The meshes (built with numpy from a fixed seed; a re-run writes the same arrays 
   separate surfaces, so distances between parts are unreachable (inf).
 - ``cad.ply``: an L-bracket (~6K vertices) with three rectangular through-holes (genus 3): flat faces on a
   rectilinear grid with strongly anisotropic spacing (triangles up to ~16:1), sharp 90-degree edges.
-- ``joined.ply``: three bumpy open square patches (~11K vertices) whose corners are one shared vertex and which
-  share nothing else, like a tessellated teapot's patches: every geodesic between two patches passes through that
-  vertex. ``ngf.train`` refuses such a mesh unless ``allow_vertex_joins=True``.
+- ``joined.ply``: four bumpy open square patches (~12K vertices) tiling a square like a tessellated teapot's
+  patches: neighbours lie along one seam in space but share only the seam's end points (other grid resolutions),
+  so every geodesic between patches passes the centre or a tip, and points a hair apart across a seam are far
+  apart on the surface. ``ngf.train`` refuses such a mesh unless ``allow_vertex_joins=True``.
 
 Every closed mesh is checked before it is written: closed (every edge in two faces, consistently oriented), every
 vertex a single fan (no pinch), no degenerate triangle, the promised number of components and Euler
 characteristic, and no patches joined at single vertices (``neurogf_warp.mesh.topology.vertex_joins``); the joined
-mesh has exactly one pinch vertex, open boundaries, and ``vertex_joins`` finds its three patches.
+mesh has open boundaries, five pinch vertices (centre and tips), and ``vertex_joins`` finds its four patches.
 
 References (``reference/<stem>.npz``, the keys of the shared ``reference/exact/*.npz``): ``positions`` float32
 (V, 3) (the file's vertices), ``orig_index`` and ``file_index`` int32 (both the identity: every vertex is used and
 in file order), ``sources`` int32 (8,), ``dist`` float32 (8, V) with inf where unreachable, ``how``. Sources: six
 from ``np.random.default_rng(1234).choice(V, 6, replace=False)``, then the vertex farthest from vertex 0, then the
 vertex farthest from that one. Distances: tvb-gdist (exact MMP) in float64, one solve per source on the source's
-connected component (inf elsewhere); on the joined mesh per patch, a pair on two patches through the shared vertex
-(d(s, v) = d_P(s, j) + d_Q(j, v)). Each reference is checked: every value at most the shortest edge path
+connected component (inf elsewhere); on the joined mesh per patch, pairs on two patches through the joints
+(``JoinedSolver``). Each reference is checked: every value at most the shortest edge path
 (Dijkstra) and at least the straight-line distance, finite exactly on the source's component, and
 ``dist[i, sources[j]] == dist[j, sources[i]]`` to 1e-9 relative. The table and ``manifest.json`` report the counts,
 the checks and the gdist time.
@@ -47,7 +48,7 @@ import numpy as np
 import _bootstrap  # noqa: E402,F401  (this checkout's neurogf_warp, installed or not)
 
 MESHES = ("scan", "parts", "cad", "joined")
-JOINED_PATCHES = 3
+JOINED_PATCHES = 4
 SOURCE_SEED = 1234  # the shared references' source draw
 N_RANDOM_SOURCES = 6
 
@@ -283,28 +284,38 @@ def make_cad(rng: np.random.Generator, scale: float = 1.0):
 
 
 def make_joined(rng: np.random.Generator, scale: float = 1.0):
-    """Three bumpy open unit squares at 120 degrees around the z axis, each with its corner at the origin, that
-    corner merged into one vertex (index 0): patches that meet at that single vertex and nowhere else.
+    """Four bumpy open unit squares tiling [-1, 1]^2 around the z axis, as a tessellated teapot's patches: along
+    each seam the two patches lie on one line in space but their vertices differ (other grid resolutions), so
+    they share only the seam's two end points, the centre (vertex 0) and a tip (vertices 1-4); the bumps vanish
+    on every patch edge, so the seams meet in space.
 
-    Returns (vertices (V, 3), faces (F, 3), (V,) patch label of each vertex (vertex 0: patch 0))."""
-    n = max(6, int(round(60 * scale ** 0.5)))
-    u, w = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
-    grid = np.arange(n * n).reshape(n, n)
-    quads = np.stack([grid[:-1, :-1], grid[1:, :-1], grid[1:, 1:], grid[:-1, 1:]], -1).reshape(-1, 4)
-    tri = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
-    verts, faces, label = [], [], []
+    Returns (vertices (V, 3), faces (F, 3), list of JOINED_PATCHES (F_p,) face index arrays, one per patch)."""
+    base = max(6, int(round(48 * scale ** 0.5)))
+    tips = [np.array([np.cos(a), np.sin(a), 0.0]) for a in np.arange(JOINED_PATCHES) * 2 * np.pi / JOINED_PATCHES]
+    verts = [np.zeros((1, 3))] + [t[None] for t in tips]
+    faces, patches, start, nf = [], [], 1 + JOINED_PATCHES, 0
     for i in range(JOINED_PATCHES):
+        n = base + 7 * i  # a resolution of its own: seam vertices of neighbours do not coincide
         a = 2 * np.pi * i / JOINED_PATCHES
-        amp, fu, fw = rng.uniform(0.1, 0.25), rng.integers(2, 5), rng.integers(2, 5)
-        z = amp * np.sin(fu * u) * np.sin(fw * w)  # zero along u = 0 and w = 0: the corner stays at the origin
+        u, w = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
+        amp, fu, fw = rng.uniform(0.08, 0.2), rng.integers(1, 4), rng.integers(1, 4)
+        z = amp * np.sin(np.pi * fu * u) * np.sin(np.pi * fw * w)  # zero on every edge: seams meet in space
         x, y = u * np.cos(a) - w * np.sin(a), u * np.sin(a) + w * np.cos(a)
         pts = np.stack([x, y, z], -1).reshape(-1, 3)
-        off = i * (n * n - 1)  # grid vertex 0 of patch i > 0 is the shared vertex 0, the rest follow
-        idx = np.concatenate([[0], off + np.arange(1, n * n)])
+        grid = np.arange(n * n).reshape(n, n)
+        quads = np.stack([grid[:-1, :-1], grid[1:, :-1], grid[1:, 1:], grid[:-1, 1:]], -1).reshape(-1, 4)
+        tri = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+        shared = {0: 0, grid[-1, 0]: 1 + i, grid[0, -1]: 1 + (i + 1) % JOINED_PATCHES}  # centre, its two tips
+        own = np.setdiff1d(np.arange(n * n), list(shared))
+        idx = np.empty(n * n, np.int64)
+        idx[own] = start + np.arange(len(own))
+        for local, glob in shared.items():
+            idx[local] = glob
+        verts.append(pts[own])
         faces.append(idx[tri])
-        verts.append(pts if i == 0 else pts[1:])
-        label.append(np.full(len(verts[-1]), i))
-    return np.concatenate(verts), np.concatenate(faces), np.concatenate(label)
+        patches.append(nf + np.arange(len(tri)))
+        start, nf = start + len(own), nf + len(tri)
+    return np.concatenate(verts), np.concatenate(faces), patches
 
 
 # ------------------------------------------------------------------------------------------------------ checks
@@ -444,42 +455,64 @@ class ComponentSolver:
 
 
 class JoinedSolver:
-    """Exact distances on patches that share one vertex ``j`` (tvb-gdist per patch): within a source's patch its
-    own solve; on another patch d(s, j) plus that patch's solve from ``j`` (every path between two patches passes
-    ``j``, and a path that leaves its patch through ``j`` and comes back is never the shorter one)."""
+    """Exact distances on patches that meet only at joint vertices (tvb-gdist per patch).
 
-    def __init__(self, v: np.ndarray, f: np.ndarray, label: np.ndarray, j: int = 0):
-        self.v, self.label, self.j = v, label, j
-        self.patch_faces = {}
+    A path from one patch to another passes joints, and between joints it runs inside one patch; so
+    d(s, v) = min(d_P(s, v) for a patch P holding both, d_P(s, a) + D(a, b) + d_Q(b, v) over joints a of s's patch
+    P and b of v's patch Q), with D the joints' distances through the patches (Floyd-Warshall over the few joints).
+
+    Parameters
+    ----------
+    v : (V, 3) float64; f : (F, 3) int; patches : list of face index arrays, one per patch
+    """
+
+    def __init__(self, v: np.ndarray, f: np.ndarray, patches: list):
         f = np.asarray(f, np.int64)
-        for p in np.unique(label):
-            inside = np.isin(f, np.flatnonzero(label == p)).sum(1) >= 2  # the shared vertex carries patch 0's label
-            self.patch_faces[int(p)] = ComponentSolver(v, f[inside])
-        self.labels = np.zeros(len(v), np.int64)  # one vertex-connected component
-        self._from_j = {}
+        self.v = v
+        self.solvers = [ComponentSolver(v, f[p]) for p in patches]
+        self.members = [np.unique(f[p]) for p in patches]
+        count = np.zeros(len(v), np.int64)
+        for m in self.members:
+            count[m] += 1
+        self.joints = np.flatnonzero(count > 1)
+        self.labels = np.zeros(len(v), np.int64)  # one vertex-connected piece
         self.seconds, self.solves = 0.0, 0
+        self._from = {}  # (patch, joint) -> (V,) distances on that patch
+        J = len(self.joints)
+        D = np.full((J, J), np.inf)
+        np.fill_diagonal(D, 0.0)
+        for p, m in enumerate(self.members):
+            here = [a for a in range(J) if self.joints[a] in set(m.tolist())]
+            for a in here:
+                d = self._row(p, int(self.joints[a]))
+                for b in here:
+                    D[a, b] = min(D[a, b], d[self.joints[b]])
+        for k in range(J):
+            D = np.minimum(D, D[:, [k]] + D[[k], :])
+        self.D = D
 
-    def _solve(self, p: int, s: int) -> np.ndarray:
-        cs = self.patch_faces[p]
-        d = cs(s)
-        self.seconds, self.solves = self.seconds + cs.seconds, self.solves + 1
-        cs.seconds = 0.0
-        return d
+    def _row(self, p: int, s: int) -> np.ndarray:
+        if (p, s) not in self._from:
+            cs = self.solvers[p]
+            self._from[p, s] = cs(s)
+            self.seconds, self.solves = self.seconds + cs.seconds, self.solves + 1
+            cs.seconds = 0.0
+        return self._from[p, s]
 
     def __call__(self, s: int) -> np.ndarray:
         """(V,) float64 distances from vertex ``s``."""
-        for p in self.patch_faces:
-            if p not in self._from_j:
-                self._from_j[p] = self._solve(p, self.j)
+        own = [p for p, m in enumerate(self.members) if s in set(m.tolist())]
         out = np.full(len(self.v), np.inf)
-        own = [int(self.label[s])] if s != self.j else list(self.patch_faces)
+        to_joint = np.full(len(self.joints), np.inf)
         for p in own:
-            d = self._solve(p, s) if s != self.j else self._from_j[p]
+            d = self._row(p, s)
             out = np.fmin(out, d)
-        to_j = out[self.j]
-        for p, d in self._from_j.items():
-            if p not in own:
-                out = np.fmin(out, to_j + d)
+            to_joint = np.fmin(to_joint, d[self.joints])
+        via = np.min(to_joint[:, None] + self.D, axis=0)  # s to every joint through the patches
+        for p, m in enumerate(self.members):
+            for a, j in enumerate(self.joints):
+                if np.isfinite(via[a]) and j in set(m.tolist()):
+                    out = np.fmin(out, via[a] + self._row(p, int(j)))
         return out
 
 
@@ -491,8 +524,8 @@ def exact_reference(v32: np.ndarray, f: np.ndarray, label: np.ndarray | None = N
     v32 : (V, 3) float32, mesh units
         The vertices as stored in the file (distances are computed on their float64 values).
     f : (F, 3) int
-    label : (V,) int, optional
-        Patch of each vertex of a mesh whose patches share only vertex 0 (``make_joined``): solved per patch.
+    label : list of (F_p,) face index arrays, optional
+        The patches of a mesh whose patches meet only at joint vertices (``make_joined``): solved per patch.
 
     Returns
     -------
@@ -538,7 +571,8 @@ def exact_reference(v32: np.ndarray, f: np.ndarray, label: np.ndarray | None = N
     how = (f"tvb-gdist {_version('tvb-gdist')} (Kirsanov's exact MMP) gdist.compute_gdist(positions, faces, "
            "source_indices=[s]) in float64 on the file's float32 vertices, one solve per source on the source's "
            + ("connected component (inf on the others)" if label is None else
-              "patch, and from the shared vertex 0 on every patch: d(s, v) = d_P(s, 0) + d_Q(0, v) across patches")
+              "patch and from every joint vertex on each of its patches; across patches the shortest way through "
+              "the joints (d_P(s, a) + D(a, b) + d_Q(b, v), D by Floyd-Warshall over the joints)")
            + "; sources[0:6] = np.random.default_rng(1234).choice(V, 6, "
            "replace=False), sources[6] = farthest from vertex 0, sources[7] = farthest from sources[6]; every "
            "vertex is used and in file order, so orig_index = file_index = arange(V); stored as float32")
@@ -596,7 +630,7 @@ def check_loading(ply: Path, npz: Path, v32: np.ndarray, f: np.ndarray, joined: 
     out = {"load_mesh_matches": bool(same), "trimesh_matches": bool(same_tm), "load_reference_ok": ref_ok,
            "vertex_joins": {"patches": vj.patches, "joined_patches": vj.joined_patches,
                             "pinch_vertices": vj.pinch_vertices, "coincident_vertices": vj.coincident_vertices}}
-    joins_ok = (not vj.any) if not joined else (vj.joined_patches == joined and vj.pinch_vertices == 1)
+    joins_ok = (not vj.any) if not joined else (vj.joined_patches == joined and vj.pinch_vertices == joined + 1)
     if not (same and same_tm and ref_ok and joins_ok and vj.coincident_vertices == 0):
         raise RuntimeError(f"{ply.name}: the loaders disagree with the written arrays or find vertex joins: {out}")
     return out
@@ -610,7 +644,7 @@ def build(name: str, seed: int, scale: float):
     if name == "joined":
         v, f, label = make_joined(rng, scale)
         return (v.astype(np.float32), f.astype(np.int64), 1, None,
-                f"{JOINED_PATCHES} bumpy open patches sharing one corner vertex", label)
+                f"{JOINED_PATCHES} bumpy open patches tiling a square, joined at the centre and the seams' tips", label)
     if name == "scan":
         v, f = make_scan(rng, scale)
         comps, genus, notes = 1, 0, "jittered icosphere, ellipsoid, bumps, ridge, pinched neck, normal noise"
@@ -624,13 +658,14 @@ def build(name: str, seed: int, scale: float):
 
 
 def check_joined(v: np.ndarray, f: np.ndarray) -> dict:
-    """``topology`` of the joined mesh: one component, exactly one pinch vertex, open boundaries, no edge in three
-    faces, no degenerate triangle; raises RuntimeError otherwise."""
+    """``topology`` of the joined mesh: one component, open boundaries, no edge in three faces, consistent
+    orientation, no degenerate triangle (its joints are counted by ``check_loading``); raises RuntimeError
+    otherwise."""
     topo = topology(v, f)
     ok = (topo["components"] == 1 and topo["boundary_edges"] > 0 and topo["nonmanifold_edges"] == 0
           and topo["misoriented_edges"] == 0 and topo["min_angle_deg"] > 0.5)
     if not ok:
-        raise RuntimeError(f"joined: not open patches on one vertex ({topo})")
+        raise RuntimeError(f"joined: not open patches joined at vertices ({topo})")
     topo["genus"] = []  # open patches: no genus
     return topo
 
