@@ -98,10 +98,11 @@ def torch_errors(model, reference, device) -> dict:
     net = model.net.to(device).eval()
     scale = float(model.scale)
     # internal numbering, as load_reference's ids (mesh.vertices is the file's numbering, unused vertices NaN)
-    x = torch.as_tensor((mesh.internal_vertices - np.asarray(model.center)) * scale, dtype=torch.float32,
-                        device=device)
     if getattr(net, "landmarks", 0):  # its table is looked up by the training's own float32 vertex array
         x = net.landmark_table.xyz.to(device)
+    else:
+        x = torch.as_tensor((mesh.internal_vertices - np.asarray(model.center)) * scale, dtype=torch.float32,
+                            device=device)
     prev = torch.backends.cuda.matmul.allow_tf32
     torch.backends.cuda.matmul.allow_tf32 = False
     try:
@@ -122,6 +123,11 @@ def torch_errors(model, reference, device) -> dict:
     return _rel_stats(pred, gt)
 
 
+def row_settings(name: str, variant: str) -> dict:
+    """The ``ngf.train`` settings of one row."""
+    return {**COMMON, **VARIANTS[variant], **({"allow_vertex_joins": True} if name in JOINED else {})}
+
+
 def run_row(ngf, name: str, budget: float, variant: str, a, work: Path, repeat: int) -> dict:
     """Train one design on one mesh at one budget and score it: one row."""
     import torch
@@ -130,7 +136,7 @@ def run_row(ngf, name: str, budget: float, variant: str, a, work: Path, repeat: 
 
     out = work / f"{name}_{budget:g}s_{variant}_{repeat}.ngf"
     mesh_file, reference = mesh_files(a, name)
-    settings = {**COMMON, **VARIANTS[variant], **({"allow_vertex_joins": True} if name in JOINED else {})}
+    settings = row_settings(name, variant)
     row = {"mesh": name, "budget_s": budget, "variant": variant, "repeat": repeat, "settings": settings}
     cuda = str(a.device).startswith("cuda")
     if cuda:
@@ -177,17 +183,15 @@ def decide(rows: list, measured_spread: dict | None = None) -> dict:
     import numpy as np
 
     ok = [r for r in rows if r.get("mre") is not None and np.isfinite(r["mre"])]
-    spread = {float(b): float(x) for b, x in (measured_spread or {}).items()}
-    own_budgets = set()
+    own = {}
     for r in ok:
         if r["variant"] != "default":
             continue
         same = [x["mre"] for x in ok if x["variant"] == "default" and x["mesh"] == r["mesh"]
                 and x["budget_s"] == r["budget_s"]]
         if len(same) > 1:
-            own = spread if r["budget_s"] in own_budgets else {}
-            spread[r["budget_s"]] = max(own.get(r["budget_s"], 0.0), max(same) - min(same))
-            own_budgets.add(r["budget_s"])
+            own[r["budget_s"]] = max(own.get(r["budget_s"], 0.0), max(same) - min(same))
+    spread = {**{float(b): float(x) for b, x in (measured_spread or {}).items()}, **own}
     cells = sorted({(r["mesh"], r["budget_s"]) for r in rows})
     out = {"spread": spread}
     for v in VARIANTS:
@@ -274,7 +278,7 @@ def _in_fresh_process(a, spec: str, work: Path) -> dict:
         if done.returncode == 0 and got.exists():
             return json.loads(got.read_text())
     return {"mesh": name, "budget_s": float(budget), "variant": variant, "repeat": int(k),
-            "settings": {**COMMON, **VARIANTS[variant]}, "error": f"the row's process exited {done.returncode}",
+            "settings": row_settings(name, variant), "error": f"the row's process exited {done.returncode}",
             "traceback": (done.stdout + done.stderr)[-3000:]}
 
 

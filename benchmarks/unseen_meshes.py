@@ -470,19 +470,18 @@ class JoinedSolver:
         f = np.asarray(f, np.int64)
         self.v = v
         self.solvers = [ComponentSolver(v, f[p]) for p in patches]
-        self.members = [np.unique(f[p]) for p in patches]
-        count = np.zeros(len(v), np.int64)
-        for m in self.members:
-            count[m] += 1
-        self.joints = np.flatnonzero(count > 1)
+        self.holds = np.zeros((len(patches), len(v)), bool)  # holds[p, i]: vertex i is on patch p
+        for p, faces in enumerate(patches):
+            self.holds[p, f[faces]] = True
+        self.joints = np.flatnonzero(self.holds.sum(0) > 1)
         self.labels = np.zeros(len(v), np.int64)  # one vertex-connected piece
         self.seconds, self.solves = 0.0, 0
         self._from = {}  # (patch, joint) -> (V,) distances on that patch
         J = len(self.joints)
         D = np.full((J, J), np.inf)
         np.fill_diagonal(D, 0.0)
-        for p, m in enumerate(self.members):
-            here = [a for a in range(J) if self.joints[a] in set(m.tolist())]
+        for p in range(len(patches)):
+            here = np.flatnonzero(self.holds[p, self.joints])
             for a in here:
                 d = self._row(p, int(self.joints[a]))
                 for b in here:
@@ -501,7 +500,7 @@ class JoinedSolver:
 
     def __call__(self, s: int) -> np.ndarray:
         """(V,) float64 distances from vertex ``s``."""
-        own = [p for p, m in enumerate(self.members) if s in set(m.tolist())]
+        own = np.flatnonzero(self.holds[:, s])
         out = np.full(len(self.v), np.inf)
         to_joint = np.full(len(self.joints), np.inf)
         for p in own:
@@ -509,14 +508,14 @@ class JoinedSolver:
             out = np.fmin(out, d)
             to_joint = np.fmin(to_joint, d[self.joints])
         via = np.min(to_joint[:, None] + self.D, axis=0)  # s to every joint through the patches
-        for p, m in enumerate(self.members):
+        for p in range(len(self.holds)):
             for a, j in enumerate(self.joints):
-                if np.isfinite(via[a]) and j in set(m.tolist()):
+                if np.isfinite(via[a]) and self.holds[p, j]:
                     out = np.fmin(out, via[a] + self._row(p, int(j)))
         return out
 
 
-def exact_reference(v32: np.ndarray, f: np.ndarray, label: np.ndarray | None = None) -> tuple[dict, dict]:
+def exact_reference(v32: np.ndarray, f: np.ndarray, label: list | None = None) -> tuple[dict, dict]:
     """The shared-format reference of a mesh and its checks.
 
     Parameters
@@ -637,8 +636,8 @@ def check_loading(ply: Path, npz: Path, v32: np.ndarray, f: np.ndarray, joined: 
 
 
 def build(name: str, seed: int, scale: float):
-    """(vertices float32 (V, 3), faces int64 (F, 3), expected components, expected genus, notes, patch labels or
-    None) of one mesh."""
+    """(vertices float32 (V, 3), faces int64 (F, 3), expected components, expected genus, notes, the patches' face
+    index arrays of a joined mesh or None) of one mesh."""
     # one stream per mesh, so that one mesh's arrays do not depend on which others are built
     rng = np.random.default_rng([seed, MESHES.index(name)])
     if name == "joined":

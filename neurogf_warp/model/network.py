@@ -203,15 +203,18 @@ class Landmarks(nn.Module):
         keys = self._key(self.xyz)
         self.keys, self.order = torch.sort(keys)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """(N, 3) points -> (N, K) distances to the landmarks (NaN rows for points that are not vertices)."""
+    def match(self, x: torch.Tensor) -> tuple:
+        """(N, 3) points -> ((N,) table row of each, (N,) bool: the row's vertex is the point, bit for bit)."""
         if len(self.keys) == 0:
             raise InputError("this network's landmark table is empty: it is set from the mesh before training")
-        k = self._key(x)
-        at = torch.searchsorted(self.keys, k).clamp_max(len(self.keys) - 1)
-        v = self.order[at]
-        hit = (self.xyz[v] == x).all(-1, keepdim=True)
-        return torch.where(hit, self.table[v], torch.full_like(self.table[v], float("nan")))
+        v = self.order[torch.searchsorted(self.keys, self._key(x)).clamp_max(len(self.keys) - 1)]
+        return v, (self.xyz[v] == x).all(-1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, 3) points -> (N, K) distances to the landmarks (NaN rows for points that are not vertices)."""
+        v, hit = self.match(x)
+        rows = self.table[v]
+        return torch.where(hit[:, None], rows, rows.new_full((), float("nan")))
 
 
 def fourier_features(x: torch.Tensor, L: int) -> torch.Tensor:

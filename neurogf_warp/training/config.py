@@ -68,7 +68,7 @@ class NetworkConfig:
             raise ValueError(f"norm={self.norm!r} / hash_levels={self.hash_levels} / landmarks={self.landmarks} are "
                              "training-time designs measured "
                              "by benchmarks/bakeoff.py; model files and the inference kernels support only the default "
-                             "(norm='batch', hash_levels=0)")
+                             "(norm='batch', hash_levels=0, landmarks=0)")
 
     def build(self) -> NeuroGFNet:
         """A freshly initialized ``NeuroGFNet`` of this shape (draws from torch's global RNG)."""

@@ -32,6 +32,8 @@ class TrainingData:
         self.pl = t(ds.path_local)
         self.vertices = t(ds.vertices)
         self.faces = np.asarray(ds.faces)
+        self.landmarks_solved = None  # landmarks a ``landmarks=K`` network's rows solve (None: K; set by the run)
+        self.landmark_rows = None  # its (points, distances) lookup table, made once per run (``landmark_table``)
         self.test_src = torch.as_tensor(np.asarray(ds.test_src), dtype=torch.long, device=device)
         self.test_dist = t(ds.test_dist)
         self.surface_points = np.asarray(ds.surface_points, dtype=np.float32)

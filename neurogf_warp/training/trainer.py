@@ -97,9 +97,8 @@ def landmark_table(data: TrainingData, k: int, device, solved: int | None = None
     lookup = Landmarks(columns).to(device)
     lookup.set_table(x, table)
     pts = torch.cat([r[:, c:c + 3] for r in data.gd.values() for c in (0, 3)])
-    keys, first = _first_of_each(lookup._key(pts))
-    pts = pts[first]
-    other = torch.isnan(lookup(pts)[:, 0])
+    pts = pts[_first_of_each(lookup._key(pts))]  # the rows' distinct end points (keys collide only by chance)
+    other = ~lookup.match(pts)[1]
     if bool(other.any()):
         extra = pts[other]
         near = torch.cat([torch.cdist(part, x).argmin(-1) for part in extra.split(4096)])
@@ -107,12 +106,11 @@ def landmark_table(data: TrainingData, k: int, device, solved: int | None = None
     return x, table
 
 
-def _first_of_each(keys: torch.Tensor) -> tuple:
-    """Distinct values of ``keys`` and the index of one occurrence of each."""
+def _first_of_each(keys: torch.Tensor) -> torch.Tensor:
+    """The index of the first occurrence of each distinct value of ``keys``."""
     uniq, inv = torch.unique(keys, return_inverse=True)
     first = torch.full((len(uniq),), len(keys), dtype=torch.long, device=keys.device)
-    first.scatter_reduce_(0, inv, torch.arange(len(keys), device=keys.device), reduce="amin")
-    return uniq, first
+    return first.scatter_reduce_(0, inv, torch.arange(len(keys), device=keys.device), reduce="amin")
 
 
 def cosine_lr(step: int, n: int, hi: float, lo: float) -> float:
@@ -132,9 +130,8 @@ class Trainer:
         self.net = cfg.network.build().to(self.device)
         if cfg.network.landmarks:
             # solved once per run: a Trainer rebuilt for other batch sizes reuses the rows
-            if getattr(data, "landmark_rows", None) is None:
-                data.landmark_rows = landmark_table(data, cfg.network.landmarks, self.device,
-                                                    getattr(data, "landmarks_solved", None))
+            if data.landmark_rows is None:
+                data.landmark_rows = landmark_table(data, cfg.network.landmarks, self.device, data.landmarks_solved)
             self.net.landmark_table.set_table(*data.landmark_rows)
         self.querier = SdfQuerier().to(self.device)
         self.sdf_pts, self.sdf_val = sdf_pool
