@@ -7,7 +7,8 @@ A design is a set of training settings (``VARIANTS``: the default, ``norm=none``
 ``landmarks=K`` for K in 32..256). Per (mesh, budget, design): ``ngf.train(mesh, out, budget_seconds=B,
 device=..., force=True, **design)``, timed whole, each row in a fresh process (``--same-process``: all in this
 one) after an untimed warm-up call (Warp's kernels compiled and cached on disk), the designs of one (mesh,
-budget) back to back so that a drift of the machine touches each alike. Every design runs with
+budget) back to back so that a drift of the machine touches each alike (``--gpus N``: side by side, one row per
+GPU, each process with 1/N of the CPU cores). Every design runs with
 ``compile=False``: on a machine that has not compiled these shapes before, the 20-60 s default rows run eagerly
 anyway (the budget planner's choice), and a design must not win or lose through a compile cache. Meshes: the
 shared ones (``--shared``) and ``scan``, ``parts``, ``cad``, ``joined`` from ``benchmarks/unseen_meshes.py``
@@ -53,6 +54,7 @@ VARIANTS = {
     "landmarks64": {"landmarks": 64},
     "landmarks128": {"landmarks": 128},
     "landmarks256": {"landmarks": 256},
+    "landmarks": {"landmarks": "scaled"},  # K by the mesh's size: scaled_landmarks()
 }
 COMMON = {"compile": False}
 os.environ["NEUROGF_BAKEOFF_DESIGNS"] = "1"  # the designs the package refuses for users (no inference backend reads them)
@@ -123,9 +125,18 @@ def torch_errors(model, reference, device) -> dict:
     return _rel_stats(pred, gt)
 
 
-def row_settings(name: str, variant: str) -> dict:
-    """The ``ngf.train`` settings of one row."""
-    return {**COMMON, **VARIANTS[variant], **({"allow_vertex_joins": True} if name in JOINED else {})}
+def scaled_landmarks(vertices: int) -> int:
+    """K of the ``landmarks`` variant: 128 below 100K vertices, 256 above (on the 134K igea 256 landmarks beat the
+    default where 128 tied with it)."""
+    return 128 if vertices < 100_000 else 256
+
+
+def row_settings(name: str, variant: str, vertices: int | None = None) -> dict:
+    """The ``ngf.train`` settings of one row (``vertices``: the mesh's, for a design sized to it)."""
+    s = {**COMMON, **VARIANTS[variant], **({"allow_vertex_joins": True} if name in JOINED else {})}
+    if s.get("landmarks") == "scaled" and vertices is not None:
+        s["landmarks"] = scaled_landmarks(vertices)
+    return s
 
 
 def run_row(ngf, name: str, budget: float, variant: str, a, work: Path, repeat: int) -> dict:
@@ -136,7 +147,7 @@ def run_row(ngf, name: str, budget: float, variant: str, a, work: Path, repeat: 
 
     out = work / f"{name}_{budget:g}s_{variant}_{repeat}.ngf"
     mesh_file, reference = mesh_files(a, name)
-    settings = row_settings(name, variant)
+    settings = row_settings(name, variant, len(ngf.load_mesh(str(mesh_file)).internal_vertices))
     row = {"mesh": name, "budget_s": budget, "variant": variant, "repeat": repeat, "settings": settings}
     cuda = str(a.device).startswith("cuda")
     if cuda:
@@ -262,18 +273,23 @@ def plot(rows: list, path: Path) -> bool:
     return True
 
 
-def _in_fresh_process(a, spec: str, work: Path) -> dict:
+def _in_fresh_process(a, spec: str, work: Path, gpu: int | None = None) -> dict:
     """One row (``--row spec``) in a new Python process: what one run leaves in a process (caches, allocator
-    pools, threads) cannot touch the next row."""
+    pools, threads) cannot touch the next row. ``gpu``: the process sees only that GPU and its share of the
+    CPU cores (rows side by side, ``--gpus``)."""
     import subprocess
     import tempfile
 
     name, budget, variant, k = spec.split(":")
+    env = dict(os.environ)
+    if gpu is not None:
+        threads = str(max(1, (os.cpu_count() or 1) // a.gpus))
+        env.update(CUDA_VISIBLE_DEVICES=str(gpu), OMP_NUM_THREADS=threads, MKL_NUM_THREADS=threads)
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [sys.executable, __file__, "--row", spec, "--device", a.device, "--shared", a.shared, "--work",
-               str(work), "--out", tmp] + (["--unseen", a.unseen] if a.unseen else []) + \
-            ([] if a.check_engine else ["--no-engine-check"])
-        done = subprocess.run(cmd, capture_output=True, text=True)
+               str(work / f"gpu{gpu}" if gpu is not None else work), "--out", tmp] + \
+            (["--unseen", a.unseen] if a.unseen else []) + ([] if a.check_engine else ["--no-engine-check"])
+        done = subprocess.run(cmd, capture_output=True, text=True, env=env)
         got = Path(tmp, "row.json")
         if done.returncode == 0 and got.exists():
             return json.loads(got.read_text())
@@ -297,6 +313,9 @@ def main(argv=None) -> int:
     p.add_argument("--commit", default=None, help="commit of the code measured (recorded)")
     p.add_argument("--out", default=os.environ.get("OUT", str(ROOT / "benchmarks" / "results")))
     p.add_argument("--work", default="/tmp/neurogf-bakeoff")
+    p.add_argument("--gpus", type=int, default=1,
+                   help="rows side by side, one per GPU (each process sees one GPU and its share of the CPU cores); "
+                        "the designs of one mesh and budget run at the same time")
     p.add_argument("--same-process", dest="fresh", action="store_false",
                    help="every row in this process (default: each row, and the warm-up, in a fresh process)")
     p.add_argument("--row", default=None, help=argparse.SUPPRESS)  # MESH:BUDGET:VARIANT:REPEAT, one row, JSON out
@@ -306,6 +325,8 @@ def main(argv=None) -> int:
     p.add_argument("--merge", nargs="+", default=None, metavar="JSON",
                    help="no runs: join the rows of earlier bakeoff.json files, decide, write --out")
     a = p.parse_args(argv)
+    if a.gpus > 1 and not a.fresh:
+        p.error("--gpus runs rows in processes of their own: drop --same-process")
     if a.merge:
         parts = [json.loads(Path(f).read_text()) for f in a.merge]
         runs = [run for d in parts for run in (d["runs"] if "runs" in d else [_run_doc(d["meta"], d["rows"])])]
@@ -360,16 +381,39 @@ def main(argv=None) -> int:
             "python": platform.python_version(), "argv": sys.argv[1:], "commit": a.commit, "variants": VARIANTS,
             "common_settings": COMMON, "warmup_s": warm_s, "one_process_per_row": a.fresh,
             "date_utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime())}
-    for name in a.meshes:
-        for budget in a.budgets:
-            order = [(v, 0) for v in a.variants] + ([("default", 1)] if name in a.repeat else [])
-            for v, k in order:
-                r = _in_fresh_process(a, f"{name}:{budget:g}:{v}:{k}", work) if a.fresh else \
-                    run_row(ngf, name, budget, v, a, work, k)
-                rows.append(r)
-                print(table([r]).splitlines()[-1], flush=True)
-                (out / "bakeoff.json").write_text(json.dumps({"benchmark": "bakeoff", "runs": [_run_doc(meta, rows)]},
-                                                             indent=1))
+    specs = [f"{name}:{budget:g}:{v}:{k}" for name in a.meshes for budget in a.budgets
+             for v, k in [(v, 0) for v in a.variants] + ([("default", 1)] if name in a.repeat else [])]
+
+    def keep(r):
+        rows.append(r)
+        print(table([r]).splitlines()[-1], flush=True)
+        (out / "bakeoff.json").write_text(json.dumps({"benchmark": "bakeoff", "runs": [_run_doc(meta, rows)]},
+                                                     indent=1))
+
+    if a.gpus > 1:
+        import queue
+        from concurrent.futures import ThreadPoolExecutor
+
+        meta["gpus_side_by_side"] = a.gpus
+        free = queue.Queue()
+        for g in range(a.gpus):
+            free.put(g)
+
+        def on_a_free_gpu(spec):
+            g = free.get()
+            try:
+                return _in_fresh_process(a, spec, work, g)
+            finally:
+                free.put(g)
+
+        with ThreadPoolExecutor(a.gpus) as pool:
+            for r in pool.map(on_a_free_gpu, specs):
+                keep(r)
+    else:
+        for spec in specs:
+            name, budget, v, k = spec.split(":")
+            keep(_in_fresh_process(a, spec, work) if a.fresh else run_row(ngf, name, float(budget), v, a, work,
+                                                                           int(k)))
     decision = decide(rows)
     meta["end_utc"] = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime())
     (out / "bakeoff.json").write_text(json.dumps({"benchmark": "bakeoff", "runs": [_run_doc(meta, rows)],

@@ -50,6 +50,7 @@ __all__ = ["Dataset", "DatasetSettings", "build_dataset", "load_dataset", "check
 
 HELD_OUT_RULE = "uniform vertices, refined near the source"  # part of the recipe: older held-out rows are not reused
 FORMAT_VERSION = 2  # 2: paths stored flat (K, M, 3) with their source per path; 1: (sources, targets, M, 3)
+OPTIONAL_ARRAYS = ("full_src", "full_dist")  # absent from files written before them: empty
 MIN_VERTICES = 16  # below this there is nothing to hold out or sample paths from
 GLOBAL_PATH_POINTS = 128  # points per resampled ground-truth path (the official num_pp_g / num_pp_l)
 LOCAL_PATH_POINTS = 32
@@ -91,6 +92,7 @@ class DatasetSettings:
     target_pool: str = "spread"    # "spread" or "all": where global targets come from
     proxy: int | None = None       # training sources on a QSlim proxy of this many vertices (dataset/proxy.py);
                                    # None: sized to the time limit on a GPU (auto_proxy), 0: never
+    full_rows: int = 0             # distance sources whose whole rows are kept (landmark features; not on a proxy)
 
     def recipe(self, seed: int) -> dict:
         """What a dataset built with these settings and ``seed`` holds (every setting but the solver's batch and
@@ -99,12 +101,14 @@ class DatasetSettings:
         # (an automatic proxy is left out: files written before it existed are still reused)
         return {"seed": int(seed), "held_out": HELD_OUT_RULE,
                 **{k: v for k, v in dataclasses.asdict(self).items()
-                   if k not in ("batch", "workers") and not (k == "proxy" and v is None)}}
+                   if k not in ("batch", "workers") and not (k == "proxy" and v is None)
+                   and not (k == "full_rows" and v == 0)}}  # files from before the setting stay reusable
 
     def validate(self) -> "DatasetSettings":
         """Raise ValueError naming the first setting out of range; returns self."""
         counts = {"n_sources": 1, "n_global": 1, "n_local1": 1, "n_local2": 1, "n_path_sources": 0,
-                  "n_path_global": 1, "n_path_local": 1, "n_test": 0, "n_surface": 1, "n_spread": 1, "k": 1}
+                  "n_path_global": 1, "n_path_local": 1, "n_test": 0, "n_surface": 1, "n_spread": 1, "k": 1,
+                  "full_rows": 0}
         for name, lo in counts.items():
             integer(name, getattr(self, name), minimum=lo)
         for name in ("batch", "workers"):
@@ -133,6 +137,8 @@ class Dataset:
     path_global : (Kg, 128, 3) float32, path_global_src : (Kg,) int64 -- paths from their source, arc-length
         resampled; path_local : (Kl, 32, 3), path_local_src : (Kl,)
     test_src : (T,) int64, test_dist : (T, V) float32 -- held-out sources and their distances (inf: unreachable)
+    full_src : (K,) int64, full_dist : (K, V) float32 -- the first distance sources' whole rows, normalized
+        (``DatasetSettings.full_rows``; empty when not asked for or solved on a proxy)
     meta : dict -- fingerprint of the mesh, settings, seed, counts of dropped paths, timings, versions
     """
 
@@ -151,6 +157,8 @@ class Dataset:
     path_local_src: np.ndarray
     test_src: np.ndarray
     test_dist: np.ndarray
+    full_src: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    full_dist: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
     meta: dict = field(default_factory=dict)
 
     @classmethod
@@ -202,10 +210,10 @@ class Dataset:
             raw = _from_format_1(raw)
         if meta.get("format_version", 1) > FORMAT_VERSION:
             raise ValueError(f"{path} was written by a newer neurogf-warp (dataset format {meta['format_version']})")
-        missing = [k for k in cls.array_names() if k not in raw]
+        missing = [k for k in cls.array_names() if k not in raw and k not in OPTIONAL_ARRAYS]
         if missing:
             raise ValueError(f"{path} is not a NeuroGF dataset: missing keys {missing}")
-        ds = cls(**{k: raw[k] for k in cls.array_names()}, meta=meta)
+        ds = cls(**{k: raw[k] for k in cls.array_names() if k in raw}, meta=meta)
         ds.scale = float(ds.scale)
         ds.check(path)
         if mesh is not None:
@@ -223,12 +231,14 @@ class Dataset:
                   "gd_global": (S, None, 7), "gd_local1": (S, None, 7), "gd_local2": (S, None, 7),
                   "path_global": (len(self.path_global_src), None, 3),
                   "path_local": (len(self.path_local_src), None, 3), "test_dist": (len(self.test_src), V)}
+        if len(self.full_src):
+            expect["full_dist"] = (len(self.full_src), V)
         for k, shape in expect.items():
             a = np.asarray(getattr(self, k))
             if a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape)):
                 want = "(" + ", ".join("n" if s is None else str(s) for s in shape) + ")"
                 raise ValueError(f"{name}: {k} has shape {a.shape}, expected {want}")
-        for k in ("gd_src", "path_global_src", "path_local_src", "test_src"):
+        for k in ("gd_src", "path_global_src", "path_local_src", "test_src", "full_src"):
             a = np.asarray(getattr(self, k))
             if a.ndim != 1 or (a.size and (a.min() < 0 or a.max() >= V)):
                 raise ValueError(f"{name}: {k} must be a list of vertex ids in [0, {V})")
@@ -572,6 +582,24 @@ class _Plan:
     target_set: np.ndarray
 
 
+def _spread_first(xyz: np.ndarray, ids: np.ndarray, k: int) -> np.ndarray:
+    """``ids`` reordered so that its first ``k`` are spread by farthest-point sampling in space (starting at
+    ``ids[0]``); the rest keep their order."""
+    k = min(k, len(ids))
+    if k <= 1:
+        return ids
+    p = xyz[ids]
+    far = np.full(len(ids), np.inf)
+    order = [0]
+    for _ in range(k - 1):
+        far = np.minimum(far, ((p - p[order[-1]]) ** 2).sum(1))
+        far[order[-1]] = -1.0  # chosen already
+        order.append(int(far.argmax()))
+    rest = np.ones(len(ids), bool)
+    rest[order] = False
+    return np.concatenate([ids[order], ids[rest]])
+
+
 def _sample(m: Mesh, st: DatasetSettings, rng, surface_mesh: Mesh | None = None,
             test_src: np.ndarray | None = None) -> _Plan:
     """Phase 1: spread vertices (QSlim), test / distance / path sources, area-weighted surface points (on
@@ -584,6 +612,8 @@ def _sample(m: Mesh, st: DatasetSettings, rng, surface_mesh: Mesh | None = None,
         n_test = min(st.n_test, V) if len(perm) > n_sources else 0
         test_src = np.sort(rng.choice(V, n_test, replace=False)).astype(perm.dtype)
     gd_src = perm[~np.isin(perm, test_src)][:n_sources]
+    if st.full_rows:  # the whole rows kept are landmarks: solve a spread set of them first
+        gd_src = _spread_first(np.asarray(m.internal_vertices, np.float64), gd_src, st.full_rows)
     surface = surface_samples(m if surface_mesh is None else surface_mesh, max(st.n_surface, 30000), rng)
     nball = int(min(V - 1, max(st.local_ball * V, 4 * st.n_local2, st.n_local1)))
     target_set = np.asarray(spread) if st.target_pool == "spread" else np.arange(V)
@@ -591,12 +621,14 @@ def _sample(m: Mesh, st: DatasetSettings, rng, surface_mesh: Mesh | None = None,
 
 
 def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _Clock, bar,
-               test_dist: np.ndarray | None = None, found: _PathSet | None = None, devices=()) -> tuple:
+               test_dist: np.ndarray | None = None, found: _PathSet | None = None, devices=(),
+               full: dict | None = None) -> tuple:
     """Phase 2: the test sources' full rows (unless given as ``test_dist``), then distance sources in order, as
     many as the time limit allows (at least one batch) while keeping its last ``PATH_SHARE`` for phase 3's paths.
     With ``found`` (``trace_with_distances``) the paths of the first ``plan.n_path_sources`` sources are traced
     from the same runs into it, and no time is kept for phase 3. ``devices``: further GPUs that share the batches
-    (``DistanceRows``), their rows and paths the same as ``solver``'s.
+    (``DistanceRows``), their rows and paths the same as ``solver``'s. ``full``: a dict that receives the whole rows
+    of the first ``st.full_rows`` kept sources ("ids", "rows").
 
     Returns (kept source ids, {"global"|"local1"|"local2": [(n, 7) rows per kept source]}, sources solved,
     (T, V) test distances, worker batches, path sources traced).
@@ -660,6 +692,9 @@ def _distances(m: Mesh, st: DatasetSettings, plan: _Plan, rng, solver, clock: _C
                 if len(tg.reach) == 0:  # nothing reachable (a vertex of degenerate faces only)
                     continue
                 kept.append(s)
+                if full is not None and len(full.setdefault("ids", [])) < st.full_rows:
+                    full["ids"].append(s)
+                    full.setdefault("rows", []).append(np.asarray(D[j], np.float32).copy())
                 pool = tg.local
                 rows["global"].append(_rows(xyz, s, _pick(rng, tg.reach, st.n_global), tg.d))
                 near = _pick(rng, pool[:st.n_local1], st.n_local1) if len(pool) >= st.n_local1 \
@@ -874,8 +909,9 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     found = _PathSet()
     here = trace_with_distances(device)
     given = test_dist is not None
+    full = {} if st.full_rows and fine_of is None else None  # a proxy's rows are not the mesh's
     kept, rows, solved, test_dist, timings["worker_batches"], n_path_done = _distances(
-        g, st, plan, rng, solver, clock, bar, test_dist, found if here else None, devs[1:])
+        g, st, plan, rng, solver, clock, bar, test_dist, found if here else None, devs[1:], full)
     if not given:  # the rows came from the training solver, on the mesh itself at the default accuracy or finer
         held_out = _near_source_rows(solver, test_src, test_dist)
     if solved < len(plan.gd_src):  # the time limit cut the sources short
@@ -885,6 +921,8 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
         for part in rows.values():
             for r in part:
                 r[:, 6] *= np.float32(coarse["scale"])
+        for r in (full or {}).get("rows", []):
+            r *= np.float32(coarse["scale"])
     timings["distance_iterations"] = solver.timings["iterations"]
     timings["paths_traced_with_distances"] = here
     del solver
@@ -908,6 +946,10 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     complete = solved == len(plan.gd_src) and n_path_done == plan.n_path_sources
     ds = _assemble(m, st, seed, plan, kept, rows, gd_src, n_path_done, out_paths, held_out, test_k, complete,
                    time_limit_s, stale, dropped, timings, proxy_meta, coarse)
+    if full and full.get("ids"):
+        ds.full_src = np.asarray(full["ids"], np.int64)
+        ds.full_dist = np.stack(full["rows"])
+        ds.check()
     if out_path is not None:
         ds.save(out_path)
     return ds

@@ -283,9 +283,11 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     # the ground truth's share counts from the start of the call (the mesh was loaded and checked in it)
     limit = None if budget_seconds is None or ck is not None else \
         max(0.0, DATA_SHARE * budget_seconds - (t_data - t_call))
-    landmarks_solved, per_landmark = _landmark_plan(cfg, mesh, dev, budget_seconds)
-    if limit is not None and landmarks_solved:  # the landmark rows are ground truth too: planned in its share
-        limit = max(0.0, limit - landmarks_solved * per_landmark)
+    landmarks_solved, _ = _landmark_plan(cfg, mesh, dev, budget_seconds)
+    if cfg.network.landmarks and cfg.data.full_rows < cfg.network.landmarks:
+        # the landmark rows come with the dataset's first distance sources (a proxy dataset has none: the trainer
+        # then solves ``landmarks_solved`` of them itself)
+        cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, full_rows=cfg.network.landmarks))
     ds = obtain_dataset(mesh, dataset, files.dataset if dataset is None else None, cfg.data, cfg.seed, dev, progress,
                         time_limit_s=limit, partial_ok=ck is not None, devices=devices)
     dataset_s = time.perf_counter() - t_data

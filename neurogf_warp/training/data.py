@@ -22,7 +22,8 @@ class TrainingData:
     (source, target) pair uniformly.
 
     gd[k] : (n, 7) rows for k in global, local1, local2; pg : (Kg, 128, 3), pl : (Kl, 32, 3) paths;
-    vertices : (V, 3); test_src : (T,) long; test_dist : (T, V); surface_points : (n, 3) numpy.
+    vertices : (V, 3); test_src : (T,) long; test_dist : (T, V); surface_points : (n, 3) numpy;
+    full_dist : (K, V) whole distance rows (K = 0 unless the dataset kept them).
     """
 
     def __init__(self, ds: Dataset, device):
@@ -34,6 +35,7 @@ class TrainingData:
         self.faces = np.asarray(ds.faces)
         self.landmarks_solved = None  # landmarks a ``landmarks=K`` network's rows solve (None: K; set by the run)
         self.landmark_rows = None  # its (points, distances) lookup table, made once per run (``landmark_table``)
+        self.full_dist = t(ds.full_dist)  # (K, V) whole rows of the first distance sources (landmark features)
         self.test_src = torch.as_tensor(np.asarray(ds.test_src), dtype=torch.long, device=device)
         self.test_dist = t(ds.test_dist)
         self.surface_points = np.asarray(ds.surface_points, dtype=np.float32)

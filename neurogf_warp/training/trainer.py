@@ -74,8 +74,9 @@ def landmark_table(data: TrainingData, k: int, device, solved: int | None = None
     """The lookup table of a ``landmarks=k`` network: (n, 3) points and (n, k) exact distances (normalized units)
     from k landmark vertices, for every vertex and every other point the distance rows use.
 
-    Landmarks are spread by farthest-point sampling in space and solved by the ground-truth solver (plain solve,
-    as the training rows); +inf across components becomes 4 (the normalized mesh fits the unit sphere, so every
+    Landmarks are the dataset's first distance sources when it kept their whole rows (``data.full_dist``), else
+    vertices spread by farthest-point sampling in space, solved by the ground-truth solver (plain solve, as the
+    training rows); +inf across components becomes 4 (the normalized mesh fits the unit sphere, so every
     finite distance is far below it). Rows of a proxy dataset start and end at proxy vertices, which are not mesh
     vertices: each gets the distances of its nearest mesh vertex (a fraction of an edge off). ``solved``: solve
     only that many landmarks (a budget's share; at most k and the vertex count) and repeat their columns to k."""
@@ -84,14 +85,19 @@ def landmark_table(data: TrainingData, k: int, device, solved: int | None = None
     from neurogf_warp.training.data import warp_device
 
     x = data.vertices
-    columns, k = k, min(k, solved or k, len(x))
-    far = torch.full((len(x),), float("inf"), device=x.device)
-    pick = [0]
-    for _ in range(k - 1):
-        far = torch.minimum(far, (x - x[pick[-1]]).square().sum(-1))
-        pick.append(int(far.argmax()))
-    v = x.detach().cpu().numpy().astype(np.float64)
-    d = geodesic_distances((v, data.faces), np.asarray(pick), device=warp_device(device), near_source=False)
+    kept = getattr(data, "full_dist", None)
+    if kept is not None and len(kept):  # the dataset's own first distance sources: no solve of their own
+        columns, k = k, min(k, len(kept))
+        d = kept[:k].detach().cpu().numpy()
+    else:
+        columns, k = k, min(k, solved or k, len(x))
+        far = torch.full((len(x),), float("inf"), device=x.device)
+        pick = [0]
+        for _ in range(k - 1):
+            far = torch.minimum(far, (x - x[pick[-1]]).square().sum(-1))
+            pick.append(int(far.argmax()))
+        v = x.detach().cpu().numpy().astype(np.float64)
+        d = geodesic_distances((v, data.faces), np.asarray(pick), device=warp_device(device), near_source=False)
     d = np.where(np.isfinite(d), d, 4.0).astype(np.float32)[np.arange(columns) % k]
     table = torch.as_tensor(d.T.copy(), device=device)
     lookup = Landmarks(columns).to(device)
