@@ -251,19 +251,27 @@ def plot(rows: list, path: Path) -> bool:
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
+        import matplotlib.ticker
     except ImportError:
         return False
     ok = [r for r in rows if r.get("mre") is not None]
     names = list(dict.fromkeys(r["mesh"] for r in ok))
     if not names:
         return False
-    fig, axes = plt.subplots(1, len(names), figsize=(4.4 * len(names), 3.8), squeeze=False)
-    for ax, name in zip(axes[0], names):
+    cols = min(len(names), 5)
+    nrows = -(-len(names) // cols)
+    fig, axes = plt.subplots(nrows, cols, figsize=(4.4 * cols, 3.8 * nrows), squeeze=False)
+    for ax in axes.flat[len(names):]:
+        ax.set_visible(False)
+    for ax, name in zip(axes.flat, names):
         for v in VARIANTS:
             rs = sorted((r for r in ok if r["mesh"] == name and r["variant"] == v), key=lambda r: r["budget_s"])
             if rs:
-                ax.semilogy([r["call_s"] for r in rs], [100 * r["mre"] for r in rs], "o--", label=v, alpha=0.8)
+                ax.loglog([r["call_s"] for r in rs], [100 * r["mre"] for r in rs], "o--", label=v, alpha=0.8)
         ax.set_title(name)
+        ax.set_xticks(sorted({r["budget_s"] for r in ok if r["mesh"] == name}))  # the budgets, as plain numbers
+        ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel("seconds, whole train() call")
         ax.set_ylabel("MRE vs exact (%)")
         ax.grid(True, which="both", alpha=0.3)
