@@ -1,0 +1,78 @@
+"""benchmarks/bakeoff.py's scheduling: rows side by side on several GPUs, each process pinned to one GPU with its
+share of the CPU cores, rows kept in their order; the landmarks design sized to the mesh."""
+import importlib
+import json
+import sys
+import types
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def bakeoff(monkeypatch):
+    monkeypatch.setenv("NEUROGF_BAKEOFF_DESIGNS", "1")  # the module sets it; restored after the test
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    return importlib.import_module("bakeoff")
+
+
+def test_the_landmarks_design_is_sized_to_the_mesh(bakeoff):
+    assert bakeoff.row_settings("spot", "landmarks", 2930)["landmarks"] == 128
+    assert bakeoff.row_settings("igea", "landmarks", 134345)["landmarks"] == 256
+    assert bakeoff.row_settings("spot", "landmarks128", 134345)["landmarks"] == 128  # a fixed K stays
+    assert bakeoff.row_settings("joined", "default", 100)["allow_vertex_joins"] is True
+
+
+def test_rows_side_by_side_each_on_one_gpu(bakeoff, monkeypatch, tmp_path):
+    seen = []
+
+    def fake_run(cmd, capture_output, text, env):
+        spec = cmd[cmd.index("--row") + 1]
+        out = Path(cmd[cmd.index("--out") + 1])
+        seen.append((spec, env["CUDA_VISIBLE_DEVICES"], env["OMP_NUM_THREADS"], cmd[cmd.index("--work") + 1]))
+        name, budget, variant, k = spec.split(":")
+        (out / "row.json").write_text(json.dumps({"mesh": name, "budget_s": float(budget), "variant": variant,
+                                                  "repeat": int(k), "mre": 0.01, "p99": 0.05, "max": 0.1}))
+        return types.SimpleNamespace(returncode=0, stdout="", stderr="")
+
+    monkeypatch.setattr("subprocess.run", fake_run)
+    monkeypatch.setattr("os.cpu_count", lambda: 64)
+    a = types.SimpleNamespace(device="cuda:0", shared=str(tmp_path), unseen=None, check_engine=True, gpus=4)
+    specs = [f"spot:{b}:{v}:0" for b in (20, 60) for v in ("default", "landmarks")]
+    rows = [bakeoff._in_fresh_process(a, s, tmp_path, g) for g, s in enumerate(specs)]
+    assert [f"{r['mesh']}:{r['budget_s']:g}:{r['variant']}:{r['repeat']}" for r in rows] == specs
+    assert [s[1] for s in seen] == ["0", "1", "2", "3"] and {s[2] for s in seen} == {"16"}
+    assert len({s[3] for s in seen}) == 4  # each GPU's runs in a folder of its own
+
+
+def test_same_process_and_several_gpus_do_not_mix(bakeoff, capsys):
+    with pytest.raises(SystemExit):
+        bakeoff.main(["--gpus", "2", "--same-process", "--device", "cpu"])
+    assert "--gpus" in capsys.readouterr().err
+
+
+def test_main_keeps_every_row_of_a_side_by_side_run(bakeoff, monkeypatch, tmp_path):
+    gpus = []
+
+    def fake_run(cmd, capture_output, text, env):
+        spec = cmd[cmd.index("--row") + 1]
+        gpus.append(env["CUDA_VISIBLE_DEVICES"])
+        name, budget, variant, k = spec.split(":")
+        Path(cmd[cmd.index("--out") + 1], "row.json").write_text(json.dumps(
+            {"mesh": name, "budget_s": float(budget), "variant": variant, "repeat": int(k), "call_s": 1.0,
+             "mre": 0.01 if variant == "default" else 0.005, "p99": 0.05, "max": 0.1, "steps": {},
+             "ms_per_step": {}, "peak_gpu_mb": 0.0, "params": 1, "sources": {}}))
+        return types.SimpleNamespace(returncode=0, stdout="", stderr="")
+
+    monkeypatch.setattr("subprocess.run", fake_run)
+    out = tmp_path / "out"
+    assert bakeoff.main(["--device", "cpu", "--gpus", "2", "--meshes", "spot", "cow", "--budgets", "20",
+                         "--variants", "default", "landmarks", "--repeat", "--warmup", "0", "--out", str(out),
+                         "--work", str(tmp_path / "work")]) == 0
+    doc = json.loads((out / "bakeoff.json").read_text())
+    rows = doc["runs"][0]["rows"]
+    assert [(r["mesh"], r["variant"]) for r in rows] == [("spot", "default"), ("spot", "landmarks"),
+                                                          ("cow", "default"), ("cow", "landmarks")]
+    assert sorted(set(gpus)) == ["0", "1"] and doc["runs"][0]["meta"]["gpus_side_by_side"] == 2
