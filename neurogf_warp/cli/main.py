@@ -640,7 +640,10 @@ def _start_ranks(device) -> int | None:
         local = int(os.environ.get("LOCAL_RANK", "0"))
         torch.cuda.set_device(local if device in (None, "cuda") else torch.device(device))
     if not dist.is_initialized():
-        dist.init_process_group("nccl" if gpu else "gloo")
+        from datetime import timedelta
+
+        # the other ranks wait in a collective while rank 0 builds the dataset: as long as that may take
+        dist.init_process_group("nccl" if gpu else "gloo", timeout=timedelta(hours=6))
     return dist.get_rank()
 
 

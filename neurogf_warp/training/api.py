@@ -192,6 +192,14 @@ def _train_ranks(ranks, mesh, out, config, device, dataset, resume, force, budge
     files = RunFiles.for_model(out)
     progress = progress and ranks.first
     held = {}
+    try:  # before the first collective: NCCL's run on the current device
+        dev = torch_device(_rank_device(device, ranks))
+        if dev.type == "cuda":
+            if dev.index is None:
+                dev = torch.device("cuda", torch.cuda.current_device())
+            torch.cuda.set_device(dev)
+    except InputError as e:
+        held["device_error"] = e
 
     def take_folder():  # as train() does in one process: checks, the lock, a finished run's answer
         files.check_writable()
@@ -208,12 +216,9 @@ def _train_ranks(ranks, mesh, out, config, device, dataset, resume, force, budge
             return held["model"] if ranks.first else load(files.model)
 
         def prepare():  # every rank: its device, the mesh and the settings, checked alike
-            dev = torch_device(_rank_device(device, ranks))
-            if dev.type == "cuda":
-                if dev.index is None:
-                    dev = torch.device("cuda", torch.cuda.current_device())
-                torch.cuda.set_device(dev)  # NCCL's collectives run on the current device
-            elif ranks.nccl:
+            if "device_error" in held:
+                raise held["device_error"]
+            if dev.type != "cuda" and ranks.nccl:
                 raise InputError(f"distributed=True with device {dev}: the process group uses NCCL, which needs "
                                  "GPUs; initialise it with the gloo backend to train on CPUs")
             if devices is not None and ranks.first:  # rank 0 alone builds the dataset, on these GPUs
@@ -227,9 +232,9 @@ def _train_ranks(ranks, mesh, out, config, device, dataset, resume, force, budge
                 else "given"
             request = {"config": cfg.to_dict(), "budget_seconds": budget_seconds, "dataset": ds,
                        "world_size": ranks.world}
-            return dev, m, cfg, request
+            return m, cfg, request
 
-        dev, mesh, cfg, request = ranks.on_each(prepare)
+        mesh, cfg, request = ranks.on_each(prepare)
         calls = ranks.gather((dev.type, request, mesh.fingerprint))
         if any(c != calls[0] for c in calls):
             r = next(i for i, c in enumerate(calls) if c != calls[0])
@@ -338,6 +343,8 @@ def _train_locked(mesh, files, config, device, dataset, resume, force, budget_se
     if ck is not None:
         cfg = ck["config"]
         request = ck["request"] or request
+        if "world_size" in request:  # a data-parallel run continued in one process
+            request = {k: v for k, v in request.items() if k != "world_size"}
     threads = torch.get_num_threads()
     if cfg.runtime.threads:
         torch.set_num_threads(cfg.runtime.threads)
