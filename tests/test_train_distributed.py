@@ -62,10 +62,12 @@ def _rank(rank, world, init, folder, mesh, kwargs, stop_at):
     result = {}
     try:
         model = train(mesh, out, config=_config(), device="cpu", progress=False, callback=callback,
-                      distributed=True, **kwargs)
+                      distributed=True, **(kwargs[rank] if isinstance(kwargs, list) else kwargs))
         result["model_steps"] = model.config["steps"]
     except TrainingInterrupted as e:
         result["interrupted"] = str(e)
+    except InputError as e:
+        result["error"] = str(e)
     finally:
         dist.destroy_process_group()
     torch.save(replica, os.path.join(folder, f"replica{rank}.pt"))
@@ -74,9 +76,10 @@ def _rank(rank, world, init, folder, mesh, kwargs, stop_at):
         json.dump(result, f)
 
 
-def _ranks(world, folder, mesh, stop_at=None, **kwargs):
+def _ranks(world, folder, mesh, stop_at=None, per_rank=None, **kwargs):
     import torch.multiprocessing as mp
 
+    kwargs = per_rank or kwargs
     ctx = mp.get_context("spawn")
     init = f"file://{folder}/rendezvous"
     procs = [ctx.Process(target=_rank, args=(r, world, init, str(folder), mesh, kwargs, stop_at))
@@ -112,6 +115,13 @@ def test_distributed_needs_a_process_group(sphere, tmp_path):
     with pytest.raises(InputError, match="torchrun"):
         train(sphere, tmp_path / "m.ngf", config=_config(), device="cpu", progress=False, distributed=True)
     assert os.listdir(tmp_path) == []  # refused before any work
+
+
+@pytest.mark.slow
+def test_ranks_asked_for_different_trainings_are_refused_together(sphere, tmp_path):
+    results, _ = _ranks(2, tmp_path, sphere, per_rank=[{}, {"lr": 1e-3}])
+    assert all("every rank must make the same call" in r.get("error", "") for r in results), results
+    assert not (tmp_path / "m.ngf").exists() and not (tmp_path / "m.train").exists()
 
 
 @pytest.mark.slow
@@ -166,13 +176,13 @@ def test_torchrun_two_ranks_finish_under_a_budget(sphere, tmp_path):
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
            str(29700 + os.getpid() % 200), "-m", "neurogf_warp.cli.main", "train", sphere, "-o", str(out),
-           "--device", "cpu", "--preset", "cpu_small", "--budget-seconds", "25", "--epochs", "1000",
+           "--device", "cpu", "--preset", "cpu_small", "--budget-seconds", "20", "--epochs", "1000",
            "--n-sources", "24", "--set", "n_test=4", "--set", "val_every=0"]
     r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=TIMEOUT_S)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert r.stderr.count("accuracy: validation MRE") == 1  # rank 0's line
     ck = load_checkpoint(RunFiles.for_model(out).checkpoint)
-    assert ck["request"]["world_size"] == 2 and ck["request"]["budget_seconds"] == 25
+    assert ck["request"]["world_size"] == 2 and ck["request"]["budget_seconds"] == 20
     assert 0 < ck["steps"]["joint"] < 1000 * ck["config"].schedule.iters_per_epoch  # the budget cut the steps
     with open(RunFiles.for_model(out).log) as f:
         assert json.load(f)["finished"]
