@@ -47,8 +47,8 @@ def _rank(rank, world, init, folder, mesh, kwargs, stop_at):
         try:
             return call(self, *a)
         finally:
-            replica.update({k: v.clone() for k, v in [*self.t.net.state_dict().items(),
-                                                     *(("querier." + k, v) for k, v in self.t.querier.state_dict().items())]})
+            querier = (("querier." + k, v) for k, v in self.t.querier.state_dict().items())
+            replica.update({k: v.clone() for k, v in [*self.t.net.state_dict().items(), *querier]})
             replica["steps"] = torch.tensor([self.t.steps[s] for s in sorted(self.t.steps)])
 
     loop.Runner.__call__ = keep

@@ -116,8 +116,9 @@ class Runner:
                         if bar is not None:
                             bar.set_postfix(f"{stage} loss {total_loss:.4g} lr {t.lr_at(stage, step - 1):.2e}"
                                                 + (f" valMRE {history['val'][-1]['mre']:.3%}" if history["val"] else ""))
-                    if stage in ("joint", "refine_dist") and ((rt.val_every and step % rt.val_every == 0) or step == n) \
-                            and (self.ranks is None or self.ranks.first):
+                    validate = stage in ("joint", "refine_dist") and ((rt.val_every and step % rt.val_every == 0)
+                                                                        or step == n)
+                    if validate and (self.ranks is None or self.ranks.first):
                         history["val"].append({"stage": stage, "step": step, "mre": t.validate()})
                     stopping = interrupted or self.stop
                     if self.ranks is not None:
