@@ -601,8 +601,9 @@ def _cmd_train(args) -> int:
         args.mesh, args.output, config=config, device=args.device, dataset=args.dataset,
         budget_seconds=args.budget_seconds, **changes)
     if done is not None:  # answered from the run's log, before torch is imported
-        _say(args, f"{args.output} is already trained (--force trains again)")
-        print(_quality_line(done), file=sys.stderr)
+        if os.environ.get("RANK", "0") == "0":  # under torchrun: said once
+            _say(args, f"{args.output} is already trained (--force trains again)")
+            print(_quality_line(done), file=sys.stderr)
         return 0
     import neurogf_warp as ngf
 

@@ -122,8 +122,9 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
         the default on CUDA). Every rank trains a replica from the same initial weights on batches of its own; the
         gradients are averaged over the ranks before each update, so the replicas stay equal and a step trains on
         world size x the batch. Rank 0 builds the dataset (with ``devices`` if given) while the others wait, then
-        every rank reads it from the run folder; rank 0 decides the step counts under a budget, validates, and
-        writes the checkpoints, the log and the model file; every rank returns that model. The group must be
+        every rank reads it from the run folder (on several machines: a shared file system); rank 0 decides the
+        step counts under a budget, validates, and writes the checkpoints, the log and the model file; every rank
+        returns that model. The group must be
         initialised (``torch.distributed.init_process_group``: NCCL on GPUs, gloo on CPUs), else InputError.
         CUDA graphs are not used. A run continued with another number of ranks needs ``resume``.
     **settings : any TrainConfig setting by name, e.g. ``D=128, lr=3e-3, n_sources=256, epochs=20``
