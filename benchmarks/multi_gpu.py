@@ -3,6 +3,7 @@
     python benchmarks/multi_gpu.py --json multi_gpu.json                       # every stage, every GPU present
     python benchmarks/multi_gpu.py --stages gt --gpus 1 2 --json out.json
     python benchmarks/multi_gpu.py --stages collection --collection coll/ --repeats 3
+    python benchmarks/multi_gpu.py --stages ddp --gpus 1 2 4 --budgets 20 60 --json ddp.json
 
 Stages:
 
@@ -16,6 +17,12 @@ Stages:
   dataset's ground truth over N GPUs, the steps on cuda:0) for each ``--budgets`` B, then ``ngf.evaluate`` against
   the exact reference (``--train-mesh``, default igea): MRE, p99, distance sources, the dataset's seconds. A first
   run of ``--warmup`` seconds on one GPU warms the compile caches and is not kept.
+- ``ddp``: one mesh trained data-parallel: ``torchrun --nproc_per_node N ... neurogf-warp train MESH -o M
+  --budget-seconds B --devices cuda:0,..,cuda:N-1`` (N ranks, one GPU each, the gradients averaged; rank 0 builds
+  the dataset on the N GPUs; one rank is the plain command) for each ``--budgets`` B and ``--gpus`` N, then
+  ``ngf.evaluate`` against the exact reference of ``--train-mesh``: MRE, p99, the steps, the run's seconds (the
+  budget counts from each process's start). The same ``--warmup`` run first. Without a GPU the ranks are gloo
+  processes on the CPU (a smoke run, not a measurement of the GPU path).
 - ``collection``: the generalizable network's ground truth on a generated collection (``--shapes`` shapes) with one
   rank, ``--repeats`` times (the command of ``generalizable_scaling.py``, ``--gt-only``): median and spread of the
   ranks' ground-truth seconds and shapes/s, and each run's process wall time.
@@ -152,9 +159,7 @@ def train_stage(a, out: dict) -> None:
 
     cuda = [str(d) for d in wp.get_cuda_devices()]
     gpus = [g for g in a.gpus if g <= len(cuda)]
-    files = {"igea": "igea.ply", "bunny": "stanford-bunny.obj", "spot": "spot.obj"}
-    mesh = common.find_shared("meshes", files[a.train_mesh])
-    ref = common.find_shared("reference", "exact", Path(files[a.train_mesh]).stem + ".npz")
+    mesh, ref = _train_files(a)
     work = Path(tempfile.mkdtemp(prefix="multi_gpu_train_"))
     rows = out.setdefault("train", [])
     plan = [(a.warmup, gpus[0], False)] if a.warmup > 0 else []
@@ -175,6 +180,58 @@ def train_stage(a, out: dict) -> None:
                "proxy": (log["history"].get("proxy") or {}).get("vertices")}
         print(f"train {a.train_mesh} {budget:g} s on {g} GPU(s) for the ground truth: MRE {100 * row['mre']:.3f}% "
               f"p99 {100 * row['p99']:.2f}%, {row['sources']['distance']} sources in {row['dataset_s']:.1f} s"
+              + ("" if keep else " (warm-up, not kept)"), flush=True)
+        if keep:
+            rows.append(row)
+
+
+def _train_files(a) -> tuple:
+    """(mesh file, exact reference .npz) of ``--train-mesh``."""
+    files = {"igea": "igea.ply", "bunny": "stanford-bunny.obj", "spot": "spot.obj"}
+    mesh = common.find_shared("meshes", files[a.train_mesh])
+    return mesh, common.find_shared("reference", "exact", Path(files[a.train_mesh]).stem + ".npz")
+
+
+def ddp_stage(a, out: dict) -> None:
+    import json
+    import tempfile
+
+    import warp as wp
+
+    import neurogf_warp as ngf
+    from neurogf_warp.training.checkpoint import RunFiles
+
+    cuda = [str(d) for d in wp.get_cuda_devices()]
+    counts = [g for g in a.gpus if g <= len(cuda)] if cuda else a.gpus
+    mesh, ref = _train_files(a)
+    work = Path(tempfile.mkdtemp(prefix="multi_gpu_ddp_"))
+    rows = out.setdefault("ddp", [])
+    plan = [(a.warmup, counts[0], False)] if a.warmup > 0 else []
+    plan += [(b, g, True) for b in a.budgets for g in counts]
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    for i, (budget, g, keep) in enumerate(plan):
+        target = work / f"{a.train_mesh}_{budget:g}s_{g}ranks.ngf"
+        cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", str(g), "--master_port",
+               str(29850 + i), str(common.ROOT / "benchmarks" / "_bootstrap.py"), "neurogf_warp.cli.main", "train",
+               str(mesh), "-o", str(target), "--budget-seconds", f"{budget:g}", "--force", "-q"]
+        cmd += ["--devices", ",".join(cuda[:g])] if cuda else ["--device", "cpu"]
+        t0 = time.perf_counter()
+        r = subprocess.run(cmd, check=False, env=env, capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        if r.returncode:
+            print(r.stdout[-2000:], r.stderr[-2000:])
+            raise SystemExit(1)
+        log = json.loads(Path(RunFiles.for_model(target).log).read_text())
+        dev = cuda[0] if cuda else "cpu"
+        res = ngf.evaluate(ngf.load(target), reference=ref, heat=False, paths=False, sdf=False, device=dev,
+                           progress=False, verbose=False)
+        n = res["neurogf"]
+        row = {"mesh": a.train_mesh, "vertices": res["vertices"], "budget_s": budget, "ranks": g,
+               "device": "cuda" if cuda else "cpu", "wall_s": wall, "call_s": log["timings"].get("call_s"),
+               "mre": n["mre"], "p99": n["p99_rel"], "steps": log["config"].get("steps"),
+               "batch_scale": log["history"].get("batch_scale"), "sources": log["history"].get("sources")}
+        print(f"ddp {a.train_mesh} {budget:g} s on {g} rank(s): MRE {100 * row['mre']:.3f}% p99 "
+              f"{100 * row['p99']:.2f}%, {row['steps']['joint']} joint steps, process {wall:.1f} s"
               + ("" if keep else " (warm-up, not kept)"), flush=True)
         if keep:
             rows.append(row)
@@ -220,15 +277,16 @@ def collection_stage(a, out: dict) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--stages", nargs="+", default=["gt", "train", "collection"],
-                    choices=["gt", "train", "collection"])
-    ap.add_argument("--gpus", type=int, nargs="+", default=[1, 2, 4], help="GPU counts (those present)")
+                    choices=["gt", "train", "ddp", "collection"])
+    ap.add_argument("--gpus", type=int, nargs="+", default=[1, 2, 4],
+                    help="GPU counts (those present); the ddp stage's ranks")
     ap.add_argument("--meshes", nargs="+", default=list(MESHES), choices=list(MESHES))
     ap.add_argument("--sources", type=int, default=None, help="sources per mesh (default: 256 at 436K, 64 at 2.2M)")
     ap.add_argument("--determinism", action="store_true", help="also one GPU twice on 32 sources of the 436K mesh")
     ap.add_argument("--budgets", type=float, nargs="+", default=[20.0, 60.0], help="train stage budgets (s)")
     ap.add_argument("--warmup", type=float, default=20.0, help="train stage: a first run of this budget, not kept "
                     "(compiles every kernel; 0: none)")
-    ap.add_argument("--train-mesh", default="igea", choices=["igea", "bunny", "spot"])
+    ap.add_argument("--train-mesh", default="igea", choices=["igea", "bunny", "spot"], help="train and ddp stages")
     ap.add_argument("--collection", default="multi_gpu_collection", help="collection folder (made if missing)")
     ap.add_argument("--shapes", type=int, default=128)
     ap.add_argument("--repeats", type=int, default=3)
@@ -240,6 +298,8 @@ def main(argv=None) -> int:
         gt_stage(a, out)
     if "train" in a.stages:
         train_stage(a, out)
+    if "ddp" in a.stages:
+        ddp_stage(a, out)
     if "collection" in a.stages:
         collection_stage(a, out)
     print(f"\n{'mesh':>11}{'sources':>8}{'GPUs':>6}{'seconds':>9}{'sources/s':>11}{'speed-up':>10}  identical")
@@ -249,6 +309,9 @@ def main(argv=None) -> int:
     for r in out.get("train", []):
         print(f"train {r['mesh']} {r['budget_s']:g} s, ground truth on {r['gpus']} GPU(s): MRE {100 * r['mre']:.3f}%, "
               f"{r['sources']['distance']} sources")
+    for r in out.get("ddp", []):
+        print(f"ddp {r['mesh']} {r['budget_s']:g} s on {r['ranks']} rank(s) ({r['device']}): MRE "
+              f"{100 * r['mre']:.3f}%, p99 {100 * r['p99']:.2f}%, {r['steps']['joint']} joint steps")
     if "collection" in out:
         c = out["collection"]
         print(f"collection, one rank x{len(c['runs'])}: median {c['median_s']:.1f} s "

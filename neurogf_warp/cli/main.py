@@ -185,6 +185,9 @@ def _add_train(sub, common):
     g.add_argument("--force", action="store_true", help="start over, replacing an existing run and model file")
     t.add_argument("--dataset", default=None, help="train on this dataset .npz instead of building one")
     t.add_argument("--devices", default=None, help=DEVICES_HELP + "; the steps run on --device, else the first")
+    t.add_argument("--no-distributed", action="store_true",
+                   help="under torchrun (WORLD_SIZE > 1), do not train data-parallel over the ranks (the default: "
+                        "one GPU per rank, rank 0 writes the model); each process would then train alone")
     t.add_argument("--weld", action="store_true",
                    help="merge vertices with exactly equal coordinates first (seams stored twice)")
     t.add_argument("--allow-vertex-joins", action="store_true",
@@ -598,20 +601,51 @@ def _cmd_train(args) -> int:
         args.mesh, args.output, config=config, device=args.device, dataset=args.dataset,
         budget_seconds=args.budget_seconds, **changes)
     if done is not None:  # answered from the run's log, before torch is imported
-        _say(args, f"{args.output} is already trained (--force trains again)")
-        print(_quality_line(done), file=sys.stderr)
+        if os.environ.get("RANK", "0") == "0":  # under torchrun: said once
+            _say(args, f"{args.output} is already trained (--force trains again)")
+            print(_quality_line(done), file=sys.stderr)
         return 0
     import neurogf_warp as ngf
 
+    ranks = None if args.no_distributed else _start_ranks(args.device)
     try:
         model = ngf.train(mesh, args.output, config=config, device=args.device, dataset=args.dataset,
                           resume=args.resume, force=args.force, budget_seconds=args.budget_seconds,
                           progress=not args.quiet, allow_vertex_joins=args.allow_vertex_joins, devices=args.devices,
-                          **changes)
+                          distributed=ranks is not None, **changes)
     except ValueError as e:
         raise InputError(_in_cli_terms(str(e))) from None
-    print(_quality_line(model.config), file=sys.stderr)  # also with -q: the one line that says how good it is
+    finally:
+        if ranks is not None:
+            import torch.distributed as dist
+
+            dist.destroy_process_group()
+    if ranks is None or ranks == 0:  # also with -q: the one line that says how good it is
+        print(_quality_line(model.config), file=sys.stderr)
     return 0
+
+
+def _start_ranks(device) -> int | None:
+    """Under torchrun (``WORLD_SIZE`` > 1): this process's rank, once the default process group is initialised
+    (NCCL on GPUs, gloo on CPUs); None for a process started alone."""
+    if int(os.environ.get("WORLD_SIZE", "1") or 1) <= 1:
+        return None
+    import torch
+    import torch.distributed as dist
+
+    if not dist.is_available():
+        raise InputError("torchrun started several processes, but this torch has no torch.distributed: run one "
+                         "process, or pass --no-distributed")
+    gpu = torch.cuda.is_available() and (device is None or str(device).startswith("cuda"))
+    if gpu:  # one GPU per process of this machine; the training call keeps to it
+        local = int(os.environ.get("LOCAL_RANK", "0"))
+        torch.cuda.set_device(local if device in (None, "cuda") else torch.device(device))
+    if not dist.is_initialized():
+        from datetime import timedelta
+
+        # the other ranks wait in a collective while rank 0 builds the dataset: as long as that may take
+        dist.init_process_group("nccl" if gpu else "gloo", timeout=timedelta(hours=6))
+    return dist.get_rank()
 
 
 def _quality_line(q: dict) -> str:

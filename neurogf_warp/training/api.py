@@ -13,7 +13,9 @@ import os
 import time
 from typing import TYPE_CHECKING
 
-from neurogf_warp.common.checks import number, say
+import numpy as np
+
+from neurogf_warp.common.checks import InputError, number, say
 from neurogf_warp.dataset.build import check_trainable
 from neurogf_warp.ground_truth.solver import load_seconds
 from neurogf_warp.mesh.mesh import load_mesh
@@ -84,7 +86,8 @@ def resolve_config(config=None, device=None, n_vertices: int = 0, **settings) ->
 
 def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = None, device=None, dataset=None,
           resume: bool = False, force: bool = False, budget_seconds: float | None = None, progress: bool = True,
-          callback=None, allow_vertex_joins: bool = False, devices=None, **settings) -> "Model":
+          callback=None, allow_vertex_joins: bool = False, devices=None, distributed: bool = False,
+          **settings) -> "Model":
     """Train a NeuroGF for ``mesh`` and write it to ``out``; returns the saved Model.
 
     Parameters
@@ -114,6 +117,16 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
         the environment variable ``NEUROGF_DEVICES`` where set, else ``device`` alone; ``build_dataset``); the
         steps run on ``device`` (default: the first of them). The same dataset as on ``device`` alone; under a
         budget its share of the time solves more sources.
+    distributed : train on every rank of torch.distributed's default process group (data-parallel; every rank
+        makes this same call, e.g. one process per GPU under ``torchrun`` with ``device=f"cuda:{LOCAL_RANK}"``,
+        the default on CUDA). Every rank trains a replica from the same initial weights on batches of its own; the
+        gradients are averaged over the ranks before each update, so the replicas stay equal and a step trains on
+        world size x the batch. Rank 0 builds the dataset (with ``devices`` if given) while the others wait, then
+        every rank reads it from the run folder (on several machines: a shared file system); rank 0 decides the
+        step counts under a budget, validates, and writes the checkpoints, the log and the model file; every rank
+        returns that model. The group must be
+        initialised (``torch.distributed.init_process_group``: NCCL on GPUs, gloo on CPUs), else InputError.
+        CUDA graphs are not used. A run continued with another number of ranks needs ``resume``.
     **settings : any TrainConfig setting by name, e.g. ``D=128, lr=3e-3, n_sources=256, epochs=20``
 
     Notes
@@ -136,6 +149,13 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
     # a fresh process's import of this stage counts too; on the command line, everything since the process began
     t_call = budget_start(call_started("train", time.perf_counter()))
     budget_seconds = check_budget(budget_seconds)
+    if distributed:
+        from neurogf_warp.training.trainer import Ranks
+
+        ranks = Ranks.of(distributed)
+        if ranks is not None:
+            return _train_ranks(ranks, mesh, out, config, device, dataset, resume, force, budget_seconds, progress,
+                                callback, settings, t_call, allow_vertex_joins, devices)
     files = RunFiles.for_model(out)
     files.check_writable()
     from neurogf_warp.common.files import output_target
@@ -159,6 +179,143 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
         raise
     finally:
         lock.release()
+
+
+def _train_ranks(ranks, mesh, out, config, device, dataset, resume, force, budget_seconds, progress, callback,
+                 settings, t_call, allow_vertex_joins, devices):
+    """``train`` over the ranks of ``ranks``: rank 0 takes the run folder and decides (a finished run, the
+    checkpoint to continue), every rank loads the mesh and the same checkpoint, then ``_run`` on every rank."""
+    import torch
+
+    from neurogf_warp.common.files import output_target
+    from neurogf_warp.model.files import _not_a_mesh_name, load
+
+    files = RunFiles.for_model(out)
+    progress = progress and ranks.first
+    held = {}
+    try:  # before the first collective: NCCL's run on the current device
+        dev = torch_device(_rank_device(device, ranks))
+        if dev.type == "cuda":
+            if dev.index is None:
+                dev = torch.device("cuda", torch.cuda.current_device())
+            torch.cuda.set_device(dev)
+    except InputError as e:
+        held["device_error"] = e
+
+    def take_folder():  # as train() does in one process: checks, the lock, a finished run's answer
+        files.check_writable()
+        output_target(out, inputs=(mesh, dataset), what="model file")
+        _not_a_mesh_name(out)
+        held["created"] = not os.path.isdir(files.folder)
+        held["lock"] = files.lock()
+        held["key"] = None if force else call_key(mesh, config, device, dataset, budget_seconds, settings)
+        held["model"] = _quick_finished(files, held["key"], progress)
+        return held["model"] is not None
+
+    try:
+        if ranks.on_first(take_folder):
+            return held["model"] if ranks.first else load(files.model)
+
+        def prepare():  # every rank: its device, the mesh and the settings, checked alike
+            if "device_error" in held:
+                raise held["device_error"]
+            if dev.type != "cuda" and ranks.nccl:
+                raise InputError(f"distributed=True with device {dev}: the process group uses NCCL, which needs "
+                                 "GPUs; initialise it with the gloo backend to train on CPUs")
+            if devices is not None and ranks.first:  # rank 0 alone builds the dataset, on these GPUs
+                from neurogf_warp.ground_truth.devices import resolve_devices
+
+                resolve_devices(devices, str(dev))
+            m = load_mesh(mesh)
+            check_trainable(m, allow_vertex_joins)
+            cfg = resolve_config(config, dev.type, len(m.internal_vertices), **settings)
+            ds = None if dataset is None else os.path.abspath(dataset) if isinstance(dataset, (str, os.PathLike)) \
+                else "given"
+            request = {"config": cfg.to_dict(), "budget_seconds": budget_seconds, "dataset": ds,
+                       "world_size": ranks.world}
+            return m, cfg, request
+
+        mesh, cfg, request = ranks.on_each(prepare)
+        calls = ranks.gather((dev.type, request, mesh.fingerprint))
+        if any(c != calls[0] for c in calls):
+            r = next(i for i, c in enumerate(calls) if c != calls[0])
+            raise InputError(f"distributed=True: rank {r} asked for another training than rank 0 (device type, mesh "
+                             "or settings differ); every rank must make the same call")
+
+        def decide():
+            ck = _existing_run(files, mesh, request, resume, force, progress)
+            files.clean_stale_temporaries()
+            return None if ck is None else "finished" if finished(ck) else "continue"
+
+        state = ranks.on_first(decide)
+        ck = None if state is None else load_checkpoint(files.checkpoint)
+        if state == "finished":
+            model = ranks.on_first(lambda: _finished_model(ck, files, mesh, progress), share=False)
+            return model if ranks.first else load(files.model)
+        if ck is not None:
+            cfg = ck["config"]
+            old = ck["request"] or {}
+            if old.get("world_size", 1) != ranks.world:
+                say(progress, f"continuing a run of {old.get('world_size', 1)} rank(s) with {ranks.world}: a step now "
+                              f"trains on {ranks.world} x the batch")
+            request = dict(old or request, world_size=ranks.world)
+        threads = torch.get_num_threads()
+        if cfg.runtime.threads:
+            torch.set_num_threads(cfg.runtime.threads)
+        try:
+            return _run(mesh, files, cfg, request, ck, dataset, dev, progress, callback, t_call, held.get("key"),
+                        devices if ranks.first else None, ranks)
+        finally:
+            torch.set_num_threads(threads)
+    except BaseException:
+        if held.get("created") and os.path.isdir(files.folder) and not os.listdir(files.folder):
+            os.rmdir(files.folder)  # refused before anything was written: leave no empty run folder
+        raise
+    finally:
+        if "lock" in held:
+            held["lock"].release()
+
+
+def _rank_device(device, ranks):
+    """A rank's training device: ``device``; None or "cuda" on a machine with GPUs: ``cuda:LOCAL_RANK`` (torchrun's
+    variable, else the rank modulo the GPU count), so that the ranks of one machine take one GPU each."""
+    import torch
+
+    if device is None and not torch.cuda.is_available():
+        return device
+    if device is None or str(device) == "cuda":
+        local = os.environ.get("LOCAL_RANK")
+        index = int(local) if local is not None else ranks.rank % max(torch.cuda.device_count(), 1)
+        return f"cuda:{index}"
+    return device
+
+
+def _rank_dataset(ranks, mesh, dataset, files, cfg, dev, progress, limit, partial_ok, devices):
+    """The dataset of a data-parallel run, the same on every rank: rank 0 obtains it as one process does (building
+    it into the run folder's cache while the other ranks wait), then the others read that file; checked by digest."""
+    import hashlib
+
+    from neurogf_warp.dataset.build import Dataset
+
+    cache = files.dataset if dataset is None else None
+    ds = ranks.on_first(lambda: obtain_dataset(mesh, dataset, cache, cfg.data, cfg.seed, dev, progress,
+                                               time_limit_s=limit, partial_ok=partial_ok, devices=devices),
+                        share=False)
+    if not ranks.first:
+        ds = ranks.on_each(lambda: Dataset.load(cache) if cache is not None else
+                           obtain_dataset(mesh, dataset, None, cfg.data, cfg.seed, dev, False))
+    else:
+        ranks.on_each(lambda: None)
+    digest = hashlib.sha1()
+    for name, a in sorted(ds.arrays().items()):
+        a = np.ascontiguousarray(a)
+        digest.update(f"{name}{a.dtype}{a.shape}".encode())
+        digest.update(a.tobytes())
+    digests = ranks.gather(digest.hexdigest())
+    if any(d != digests[0] for d in digests):
+        raise InputError("distributed=True: the ranks' datasets differ (a Dataset passed to train must be the same "
+                         "on every rank); pass a dataset file, or none")
+    return ds
 
 
 def _train_locked(mesh, files, config, device, dataset, resume, force, budget_seconds, progress, callback,
@@ -187,6 +344,8 @@ def _train_locked(mesh, files, config, device, dataset, resume, force, budget_se
     if ck is not None:
         cfg = ck["config"]
         request = ck["request"] or request
+        if "world_size" in request:  # a data-parallel run continued in one process
+            request = {k: v for k, v in request.items() if k != "world_size"}
     threads = torch.get_num_threads()
     if cfg.runtime.threads:
         torch.set_num_threads(cfg.runtime.threads)
@@ -268,16 +427,23 @@ def _landmark_plan(cfg: TrainConfig, mesh, dev, budget_seconds) -> tuple:
 
 
 def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, dev, progress, callback,
-         t_call: float, key, devices=None):
+         t_call: float, key, devices=None, ranks=None):
     """Dataset, set-up, budget, the stages and the model file of a run (new, or continued from ``ck``).
 
     The budget (``request["budget_seconds"]``) covers every call of a run: a continued run gets what the earlier
-    calls left (their wall seconds are kept in the checkpoint as ``spent_s``) and re-plans its steps to fit it."""
+    calls left (their wall seconds are kept in the checkpoint as ``spent_s``) and re-plans its steps to fit it.
+
+    With ``ranks`` (data-parallel) every rank runs this, and every value that steers the steps and is measured on a
+    clock (time left, step times, the compile decision) is rank 0's (``agree``); only rank 0 writes."""
     import torch
 
+    first = ranks is None or ranks.first
+    agree = (lambda v: v) if ranks is None else ranks.agree
     budget_seconds = request.get("budget_seconds")
     spent_before = float(ck.get("spent_s", 0.0)) if ck is not None else 0.0
     deadline = None if budget_seconds is None else t_call + budget_seconds - spent_before - SAVE_RESERVE_S
+    if ranks is not None and deadline is not None:  # rank 0's deadline on every rank's own clock
+        deadline = time.perf_counter() + agree(deadline - time.perf_counter())
     t_data = time.perf_counter()
     loaded_before = load_seconds()
     # the ground truth's share counts from the start of the call (the mesh was loaded and checked in it)
@@ -288,8 +454,11 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
         # the landmark rows come with the dataset's first distance sources (a proxy dataset has none: the trainer
         # then solves ``landmarks_solved`` of them itself)
         cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, full_rows=cfg.network.landmarks))
-    ds = obtain_dataset(mesh, dataset, files.dataset if dataset is None else None, cfg.data, cfg.seed, dev, progress,
-                        time_limit_s=limit, partial_ok=ck is not None, devices=devices)
+    if ranks is None:
+        ds = obtain_dataset(mesh, dataset, files.dataset if dataset is None else None, cfg.data, cfg.seed, dev,
+                            progress, time_limit_s=limit, partial_ok=ck is not None, devices=devices)
+    else:
+        ds = _rank_dataset(ranks, mesh, dataset, files, cfg, dev, progress, limit, ck is not None, devices)
     dataset_s = time.perf_counter() - t_data
     # the dataset's own phases (sampling, distances, paths; a cached dataset's are those of its build)
     timings = {"dataset_s": dataset_s, "dataset_phases": dict(ds.meta.get("timings") or {}),
@@ -297,16 +466,18 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     heat, heat_mre = None, None
     if ck is not None and "heat_mre" in ck["history"]:
         heat_mre = ck["history"]["heat_mre"]
-    else:  # the baseline on the held-out pairs, made by another process while the model trains (within the budget)
+    elif first:  # the baseline on the held-out pairs, made by another process while the model trains (in the budget)
         heat = HeatBaseline(ds.vertices, ds.faces, ds.test_src, ds.test_dist)
     data = TrainingData(ds, dev)
     data.landmarks_solved = landmarks_solved
     t0 = time.perf_counter()
     pool = make_sdf_pool(mesh, data.surface_points, cfg.batches.sdf_pool, cfg.seed, dev)
+    if ranks is not None:  # rank 0's SDF values (a GPU's may differ in the last bits)
+        ranks.broadcast_(pool)
     timings["sdf_pool_s"] = time.perf_counter() - t0
     from neurogf_warp.training.trainer import Trainer
 
-    trainer = Trainer(cfg, data, pool, dev)
+    trainer = Trainer(cfg, data, pool, dev, ranks)
     budget, per, chooser = None, None, None
     if dev.type == "cpu" and cfg.runtime.threads == 0:
         chooser = ThreadChooser()  # the thread count is chosen on the first steps of the main stages
@@ -320,12 +491,12 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     rescale = ck is None and deadline is not None and cfg.batches.short_budget_batches and cfg.runtime.fill_budget
     if ck is not None:
         if plan_compile:  # the checkpoint's batches: the shapes the run goes on with
-            trainer.compile_losses(_plan_compile(cfg, dev, deadline, timings) is not None)
+            trainer.compile_losses(agree(_plan_compile(cfg, dev, deadline, timings)) is not None)
         trainer.load_state(ck)
         stage_i, step, history, elapsed = ck["stage"], ck["step"], ck["history"], ck["elapsed"]
         say(progress, f"continuing the run in {files.folder}: stage {STAGES[stage_i]}, step {step}")
         if deadline is not None:  # re-plan the steps left from the budget left
-            per = history.get("per_step") or calibrate(trainer, n=3)
+            per = agree(history.get("per_step") or calibrate(trainer, n=3))
             cap = history["planned_steps"]["joint"] if "planned_steps" in history else None
             budget = Budget(trainer.cfg, deadline, per, cap=cap)
             say(progress, f"{budget_seconds - spent_before:.0f} s of the {budget_seconds:.0f} s budget left")
@@ -337,23 +508,24 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
             # the budget ended before the steps or while they were timed (a fresh GPU machine's 20 s call took 2.8 s
             # to time them and ended 1.6-2.2 s late; timing a first step costs 2.4 s on a fresh 2-core CPU): no
             # steps, the untrained model is saved, and the warnings say why
-            out_of_time = deadline <= time.perf_counter()
-            per = None if out_of_time else _calibrate(trainer, cfg, dev, n=20 if trainer.graphs else 2,
-                                                      deadline=deadline)
+            out_of_time = agree(deadline <= time.perf_counter())
+            # data-parallel: every rank times the same steps (they all-reduce), none giving up alone
+            per = None if out_of_time else agree(_calibrate(trainer, cfg, dev, n=20 if trainer.graphs else 2,
+                                                            deadline=deadline if ranks is None else None))
             out_of_time = per is None
             if out_of_time:
                 per = {s: float(budget_seconds) for s in STAGES}
-            left = deadline - time.perf_counter()
+            left = agree(deadline - time.perf_counter())
             fitted = fit_budget(cfg, per, max(left, 0.0))
             scale, history["batch_scale"] = short_budget_scale(fitted.joint_steps, dev.type), 1.0
             shrunk = rescale and scale < 1 and not out_of_time
             if shrunk:
                 batches = cfg.batches.scaled(scale, sdf_factor=max(scale, MIN_SDF_SCALE))
                 cfg = dataclasses.replace(cfg, batches=batches)
-                trainer = Trainer(cfg, data, pool, dev)  # its CUDA graphs are captured for the new shapes
+                trainer = Trainer(cfg, data, pool, dev, ranks)  # its CUDA graphs are captured for the new shapes
                 trainer.compile_losses(False)
                 history["batch_scale"] = scale
-            compiling = _plan_compile(cfg, dev, deadline, timings) if plan_compile and not out_of_time else None
+            compiling = agree(_plan_compile(cfg, dev, deadline, timings)) if plan_compile and not out_of_time else None
             if plan_compile and out_of_time:
                 timings["compile"] = {"used": False, "expected_s": None, "cached": None}
             if compiling is not None:  # compile every stage now, timed: later runs of these shapes plan with that
@@ -361,12 +533,14 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
 
                 trainer.compile_losses(True)
                 t1 = time.perf_counter()
-                per = _calibrate(trainer, cfg, dev, n=20)
-                record_compile(compiling, time.perf_counter() - t1, warm=timings["compile"]["cached"])
+                per = agree(_calibrate(trainer, cfg, dev, n=20))
+                if first:
+                    record_compile(compiling, time.perf_counter() - t1, warm=timings["compile"]["cached"])
             elif shrunk:  # timed again at the smaller batches; the full batches' times if the budget ends first
-                per = _calibrate(trainer, cfg, dev, n=8 if trainer.graphs else 2, deadline=deadline) or per
+                per = agree(_calibrate(trainer, cfg, dev, n=8 if trainer.graphs else 2,
+                                       deadline=deadline if ranks is None else None) or per)
             if shrunk or compiling is not None:
-                left = deadline - time.perf_counter()
+                left = agree(deadline - time.perf_counter())
                 fitted = fit_budget(cfg, per, max(left, 0.0))
             if shrunk:
                 history["short_budget"] = {"scale": scale, "planned_joint_steps": int(fitted.joint_steps)}
@@ -382,9 +556,10 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
             trainer.cfg = cfg
             trainer.steps = {s: 0 for s in STAGES} if out_of_time else cfg.stage_steps()
             budget = None if out_of_time else Budget(cfg, deadline, per, cap=cap)  # its floor plan is one step
-            history["budget_warning"] = budget_verdict(trainer.steps["joint"], max(left, 0.0) / budget_seconds,
-                                                       len(ds.gd_src), cfg.data.n_sources, progress,
-                                                       kernels_s=timings["kernels_load_s"])
+            if first:  # data-parallel: said once
+                history["budget_warning"] = budget_verdict(trainer.steps["joint"], max(left, 0.0) / budget_seconds,
+                                                           len(ds.gd_src), cfg.data.n_sources, progress,
+                                                           kernels_s=timings["kernels_load_s"])
     history["heat_mre"] = heat_mre
     history["sources"] = {"distance": int(len(ds.gd_src)), "asked": int(cfg.data.n_sources),
                           "test": int(len(ds.test_src)), "complete": bool(ds.meta.get("complete", True))}
@@ -399,12 +574,14 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
     history["prep_s"] = time.perf_counter() - t_data
 
     def save(stage_i, step, history, elapsed):
+        if not first:  # data-parallel: rank 0 alone writes the run folder
+            return False
         spent = spent_before + time.perf_counter() - t_call
         return save_checkpoint({"version": CKPT_VERSION, "config": trainer.cfg.to_dict(), "request": request,
                                 "fingerprint": mesh.fingerprint, "stage": stage_i, "step": step, **trainer.state(),
                                 "history": history, "elapsed": elapsed, "spent_s": spent}, files.checkpoint)
 
-    run = Runner(trainer, save, files.checkpoint, progress, callback, budget, chooser)
+    run = Runner(trainer, save, files.checkpoint, progress, callback, budget, chooser, ranks)
     t0 = time.perf_counter()
     try:
         stage_i, step, history, elapsed = run(stage_i, step, history, elapsed)
@@ -413,44 +590,56 @@ def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, de
             heat.close()
         raise
     timings["steps_s"] = time.perf_counter() - t0
-    if chooser is not None:
-        history["threads"] = chooser.chosen
-        say(progress and bool(chooser.chosen), "torch threads (timed fastest on the first steps): "
-            + ", ".join(f"{k} {v}" for k, v in chooser.chosen.items()))
-    estimate, heat_note = mre_estimate(*trainer.source_errors()), None
-    val_mre = estimate["mre"]
-    if heat is not None:  # wait for the heat method at most until the deadline
-        t0 = time.perf_counter()
-        heat_mre, heat_note = heat.mre(None if deadline is None else max(0.0, deadline - t0))
-        timings.update(heat_wait_s=time.perf_counter() - t0, heat_s=heat.seconds)
-        history["heat_mre"] = heat_mre
-    quality = final_verdict(val_mre, heat_mre, progress, heat_note, n_test=len(ds.test_src), estimate=estimate)
-    if "planned_steps" in history:  # fill_budget=False: did the budget cut the preset's steps?
-        planned = history["planned_steps"]
-        quality["budget_bound"] = any(trainer.steps[s] < planned[s] for s in STAGES)
-        if quality["budget_bound"]:
-            say(progress, f"note: the budget bound: {sum(trainer.steps.values()):,} of the preset's "
-                          f"{sum(planned.values()):,} steps ran (the machine was slower than the budget allows)")
-    history["quality"] = quality
-    # the checkpoint keeps the verdict too: a model file written again from it (lost or unreadable) says the same
-    save(stage_i, step, history, elapsed)
-    info = dict(trainer.cfg.to_dict(), steps=trainer.steps, train_seconds=round(elapsed, 2), **quality,
-                budget_warning=history.get("budget_warning"))
-    model = save_model(trainer.net, trainer.querier, mesh, files.model, info)
-    call_s = time.perf_counter() - t_call
-    timings.update(call_s=call_s, spent_s=spent_before + call_s, budget_seconds=budget_seconds,
-                   calibrated_s_per_step=per)
-    _write_log(files, info, history, timings, key)
-    if "short_budget" in history:
-        say(progress, short_budget_done(history["short_budget"], trainer.steps["joint"]))
-    say(progress, f"saved {files.model} ({call_s:.0f} s; {trainer.steps['joint']:,} joint steps, "
-                  f"{sum(trainer.steps.values()):,} in all)")
-    over = spent_before + call_s - budget_seconds if budget_seconds else 0.0
-    if over > max(1.0, 0.02 * budget_seconds if budget_seconds else 0.0):
-        say(progress, f"the run took {over:.0f} s more than its {budget_seconds:g} s budget: loading, the held-out "
-                  "ground truth and saving take at least that long on this machine; give a larger budget_seconds "
-                  "(--budget-seconds)")
-    return model
+
+    def finish():  # the verdict, the last checkpoint, the model file and the log
+        nonlocal heat_mre
+        if chooser is not None:
+            history["threads"] = chooser.chosen
+            say(progress and bool(chooser.chosen), "torch threads (timed fastest on the first steps): "
+                + ", ".join(f"{k} {v}" for k, v in chooser.chosen.items()))
+        estimate, heat_note = mre_estimate(*trainer.source_errors()), None
+        val_mre = estimate["mre"]
+        if heat is not None:  # wait for the heat method at most until the deadline
+            t0 = time.perf_counter()
+            heat_mre, heat_note = heat.mre(None if deadline is None else max(0.0, deadline - t0))
+            timings.update(heat_wait_s=time.perf_counter() - t0, heat_s=heat.seconds)
+            history["heat_mre"] = heat_mre
+        quality = final_verdict(val_mre, heat_mre, progress, heat_note, n_test=len(ds.test_src), estimate=estimate)
+        if "planned_steps" in history:  # fill_budget=False: did the budget cut the preset's steps?
+            planned = history["planned_steps"]
+            quality["budget_bound"] = any(trainer.steps[s] < planned[s] for s in STAGES)
+            if quality["budget_bound"]:
+                say(progress, f"note: the budget bound: {sum(trainer.steps.values()):,} of the preset's "
+                              f"{sum(planned.values()):,} steps ran (the machine was slower than the budget allows)")
+        history["quality"] = quality
+        # the checkpoint keeps the verdict too: a model file written again from it (lost or unreadable) says the same
+        save(stage_i, step, history, elapsed)
+        info = dict(trainer.cfg.to_dict(), steps=trainer.steps, train_seconds=round(elapsed, 2), **quality,
+                    budget_warning=history.get("budget_warning"))
+        model = save_model(trainer.net, trainer.querier, mesh, files.model, info)
+        call_s = time.perf_counter() - t_call
+        timings.update(call_s=call_s, spent_s=spent_before + call_s, budget_seconds=budget_seconds,
+                       calibrated_s_per_step=per)
+        _write_log(files, info, history, timings, key)
+        if "short_budget" in history:
+            say(progress, short_budget_done(history["short_budget"], trainer.steps["joint"]))
+        say(progress, f"saved {files.model} ({call_s:.0f} s; {trainer.steps['joint']:,} joint steps, "
+                      f"{sum(trainer.steps.values()):,} in all)")
+        over = spent_before + call_s - budget_seconds if budget_seconds else 0.0
+        if over > max(1.0, 0.02 * budget_seconds if budget_seconds else 0.0):
+            say(progress, f"the run took {over:.0f} s more than its {budget_seconds:g} s budget: loading, the held-out "
+                      "ground truth and saving take at least that long on this machine; give a larger budget_seconds "
+                      "(--budget-seconds)")
+        return model
+
+    if ranks is None:
+        return finish()
+    model = ranks.on_first(finish, share=False)
+    if first:
+        return model
+    from neurogf_warp.model.files import load
+
+    return load(files.model)  # the file rank 0 wrote: the same model on every rank
 
 
 def _existing_run(files: RunFiles, mesh, request: dict, resume: bool, force: bool, progress: bool):

@@ -33,7 +33,7 @@ from neurogf_warp.training.acceleration import CompiledLosses, GraphedStep, set_
 from neurogf_warp.training.config import STAGES, TrainConfig
 from neurogf_warp.training.data import TrainingData
 
-__all__ = ["Trainer", "fast_path", "cosine_lr"]
+__all__ = ["Trainer", "Ranks", "fast_path", "cosine_lr"]
 
 HARD_CANDIDATES = 8  # rows scored per hard-pool refresh, in batches of each distance set
 HARD_KEEP = 1 / 8    # the worst share of them forms the pool
@@ -124,14 +124,136 @@ def cosine_lr(step: int, n: int, hi: float, lo: float) -> float:
     return lo + 0.5 * (hi - lo) * (1.0 + math.cos(math.pi * min(step, n) / max(n, 1)))
 
 
+class Ranks:
+    """The ranks of one data-parallel run (a torch.distributed process group): rank 0 decides, every rank follows.
+
+    Every method is a collective: all ranks call it, in the same order. ``of(distributed)`` is None for a run in
+    one process (``distributed`` False, or a group of one rank), so that path enters no collective.
+    """
+
+    def __init__(self, group, rank: int, world: int):
+        import torch.distributed as dist
+
+        self.group, self.rank, self.world = group, rank, world
+        self.first = rank == 0
+        self.src = 0 if group is None else dist.get_global_rank(group, 0)
+        self.nccl = dist.get_backend(group) == "nccl"
+
+    @classmethod
+    def of(cls, distributed) -> "Ranks | None":
+        from neurogf_warp.ground_truth.devices import process_group
+
+        pg = process_group(distributed)
+        return None if pg is None or pg[2] == 1 else cls(*pg)
+
+    def agree(self, value):
+        """Rank 0's ``value`` (picklable) on every rank."""
+        import torch.distributed as dist
+
+        box = [value]
+        dist.broadcast_object_list(box, src=self.src, group=self.group)
+        return box[0]
+
+    def gather(self, value) -> list:
+        """Every rank's ``value`` (picklable, small), in rank order."""
+        from neurogf_warp.ground_truth.devices import all_gather_objects
+
+        return all_gather_objects(value, self.group)
+
+    def on_first(self, fn, share: bool = True):
+        """``fn()`` on rank 0 alone; what it raised is raised on every rank (the others would otherwise wait in
+        the next collective forever), and with ``share`` its value is returned on every rank."""
+        value, error = None, None
+        if self.first:
+            try:
+                value = fn()
+            except BaseException as e:  # noqa: BLE001 - raised again below, on every rank
+                error = e
+        sent = self.agree((_portable(error), value if share else None))
+        if error is not None:
+            raise error
+        if sent[0] is not None:
+            raise sent[0]
+        return value if self.first else sent[1]
+
+    def on_each(self, fn):
+        """``fn()`` on every rank; when it raised on any rank, every rank raises (the first such rank's error)."""
+        value, error = None, None
+        try:
+            value = fn()
+        except BaseException as e:  # noqa: BLE001 - raised again below, on every rank
+            error = e
+        errors = self.gather(_portable(error))
+        if error is not None:
+            raise error
+        for e in errors:
+            if e is not None:
+                raise e
+        return value
+
+    def _tensors(self, tensors, op):
+        """Run ``op(flat)`` on ``tensors`` flattened into one buffer per dtype (on the CPU under gloo) and copy
+        the result back."""
+        by_dtype = {}
+        for t in tensors:
+            by_dtype.setdefault(t.dtype, []).append(t)
+        for group in by_dtype.values():
+            flat = torch.cat([t.detach().reshape(-1) for t in group])
+            if flat.is_cuda and not self.nccl:
+                flat = flat.cpu()
+            op(flat)
+            flat = flat.to(group[0].device)
+            off = 0
+            for t in group:
+                t.data.copy_(flat[off: off + t.numel()].view_as(t))
+                off += t.numel()
+
+    def broadcast_(self, tensors) -> None:
+        """Rank 0's ``tensors`` on every rank (in place)."""
+        import torch.distributed as dist
+
+        self._tensors(list(tensors), lambda f: dist.broadcast(f, src=self.src, group=self.group))
+
+    def average_(self, tensors) -> None:
+        """Every tensor replaced by its mean over the ranks (in place; one all_reduce per dtype)."""
+        import torch.distributed as dist
+
+        def mean(flat):
+            dist.all_reduce(flat, group=self.group)
+            flat /= self.world
+
+        self._tensors(list(tensors), mean)
+
+
+def _portable(error):
+    """``error`` as an exception that survives pickling to the other ranks (its text, where it does not)."""
+    if error is None:
+        return None
+    import pickle
+
+    try:
+        pickle.loads(pickle.dumps(error))
+        return error
+    except Exception:  # noqa: BLE001 - any pickling failure: send the text instead
+        return RuntimeError(f"rank 0: {type(error).__name__}: {error}")
+
+
+def rank_seed(seed: int, rank: int, *more: int) -> int:
+    """The batch stream seed of ``rank`` > 0 of a data-parallel run (rank 0 draws the one-process stream)."""
+    return int(np.random.SeedSequence([seed, rank, *more]).generate_state(1, np.uint64)[0] >> 1)
+
+
 class Trainer:
     """The networks, data and per-stage optimizer of a run; ``step(stage, i)`` runs one iteration.
 
-    cfg : TrainConfig; data : TrainingData; sdf_pool : ((n, 3), (n,)) tensors from ``make_sdf_pool``.
+    cfg : TrainConfig; data : TrainingData; sdf_pool : ((n, 3), (n,)) tensors from ``make_sdf_pool``;
+    ranks : a ``Ranks`` for data-parallel training (every rank draws its own batches and the gradients are
+    averaged over the ranks before each update), or None.
     """
 
-    def __init__(self, cfg: TrainConfig, data: TrainingData, sdf_pool, device):
+    def __init__(self, cfg: TrainConfig, data: TrainingData, sdf_pool, device, ranks: Ranks | None = None):
         self.cfg, self.data, self.device = cfg, data, torch.device(device)
+        self.ranks = ranks
         torch.manual_seed(cfg.seed)  # weight init
         self.net = cfg.network.build().to(self.device)
         if cfg.network.landmarks:
@@ -143,6 +265,11 @@ class Trainer:
         self.sdf_pts, self.sdf_val = sdf_pool
         self.gen = torch.Generator(device=self.device)
         self.gen.manual_seed(cfg.seed + 1)
+        if ranks is not None:
+            # one start for every replica (a GPU's landmark rows may differ in the last bits), own batches per rank
+            ranks.broadcast_(self.tensors())
+            if not ranks.first:
+                self.gen.manual_seed(rank_seed(cfg.seed + 1, ranks.rank))
         self.steps = cfg.stage_steps()
         self.opt = None
         self.opt_stage = None
@@ -153,7 +280,8 @@ class Trainer:
         self._hard_at = None       # (stage, step) of its last re-ranking
         cuda = self.device.type == "cuda"
         self.amp = cfg.runtime.amp and cuda
-        self.graphs = cfg.runtime.cuda_graph and cuda
+        # data-parallel steps all-reduce between backward and the update: not inside a captured graph
+        self.graphs = cfg.runtime.cuda_graph and cuda and ranks is None
         self._compiled = CompiledLosses(cfg.runtime.compile and cuda)
         self.weights = {**L.WEIGHTS, **cfg.schedule.loss_weights}
 
@@ -250,6 +378,16 @@ class Trainer:
             if self.graphs else None  # the previous stage's graph and its memory pool go
         return self.opt
 
+    def tensors(self) -> list:
+        """Every parameter and buffer of the networks (what makes two replicas equal)."""
+        return [*self.net.parameters(), *self.net.buffers(), *self.querier.parameters(), *self.querier.buffers()]
+
+    def share_buffers(self) -> None:
+        """Rank 0's buffers (BatchNorm running statistics, drawn from its own batches) on every rank: the
+        eval-mode stages and the saved model then use one set."""
+        if self.ranks is not None:
+            self.ranks.broadcast_([*self.net.buffers(), *self.querier.buffers()])
+
     def reset_stage(self):
         """Forget the current stage's optimizer, batch and graph (the next step starts the stage afresh)."""
         self.opt, self.opt_stage, self._idx_now, self._graph = None, None, None, None
@@ -288,6 +426,8 @@ class Trainer:
         terms = self._compiled.get(stage, getattr(self, f"_loss_{stage}"))(self.gather(idx))
         loss = L.weighted_sum(terms, self.weights) if stage in ("joint", "refine_dist") else sum(terms.values())
         loss.backward()
+        if self.ranks is not None:  # the replicas stay equal: every rank applies the mean gradient
+            self.ranks.average_([p.grad for g in self.opt.param_groups for p in g["params"] if p.grad is not None])
         self.opt.step()
         # detached: terms kept after the step (the loop's last ones, a captured graph's static ones) would keep this
         # step's autograd nodes alive, and the next step, on another stream, made torch warn on every GPU run
@@ -446,6 +586,9 @@ class Trainer:
         self.gen.set_state(ck["gen"].cpu())
         g = ck.get("gen_at_batch")
         self._gen_at_batch = g.cpu() if g is not None else None
+        if self.ranks is not None and not self.ranks.first:  # the checkpoint holds rank 0's stream: a fresh one
+            self.gen.manual_seed(rank_seed(self.cfg.seed + 1, self.ranks.rank, ck["stage"], ck["step"]))
+            self._gen_at_batch = None
         hard = ck.get("hard")
         self._hard = {k: v.to(self.device) for k, v in hard.items()} if hard else None
         if ck["opt"] is not None and ck["opt_stage"] is not None and ck["opt_stage"] in STAGES:
