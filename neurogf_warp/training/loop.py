@@ -142,8 +142,11 @@ class Runner:
                         last_save = time.perf_counter()
                     measured = self.budget is not None and self.ranks is None and \
                         self.budget.just_measured(stage, seg_steps)
-                    if self.budget is not None and self.ranks is None and (step < t.steps[stage] or measured) and \
-                            (now - seg0 > REPLAN_EVERY_S or measured or self.budget.near_deadline(stage, now)):
+                    # also at a stage's planned end: a stall in the steps last measured (another job) may have
+                    # planned the stage too short, and no timed re-plan comes before it ends
+                    end = step >= t.steps[stage] and seg_steps > 0
+                    if self.budget is not None and self.ranks is None and \
+                            (now - seg0 > REPLAN_EVERY_S or measured or end or self.budget.near_deadline(stage, now)):
                         self.budget.record(stage, now - seg0, seg_steps)
                         seg0, seg_steps = now, 0
                         self._replan(stage_i, step, bar)
