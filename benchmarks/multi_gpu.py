@@ -211,16 +211,9 @@ def ddp_stage(a, out: dict) -> None:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     for i, (budget, g, keep) in enumerate(plan):
         target = work / f"{a.train_mesh}_{budget:g}s_{g}ranks.ngf"
-        cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", str(g), "--master_port",
-               str(29850 + i), str(common.ROOT / "benchmarks" / "_bootstrap.py"), "neurogf_warp.cli.main", "train",
-               str(mesh), "-o", str(target), "--budget-seconds", f"{budget:g}", "--force", "-q"]
-        cmd += ["--devices", ",".join(cuda[:g])] if cuda else ["--device", "cpu"]
-        t0 = time.perf_counter()
-        r = subprocess.run(cmd, check=False, env=env, capture_output=True, text=True)
-        wall = time.perf_counter() - t0
-        if r.returncode:
-            print(r.stdout[-2000:], r.stderr[-2000:])
-            raise SystemExit(1)
+        args = ["neurogf_warp.cli.main", "train", str(mesh), "-o", str(target), "--budget-seconds", f"{budget:g}",
+                "--force", "-q"] + (["--devices", ",".join(cuda[:g])] if cuda else ["--device", "cpu"])
+        _, wall = _torchrun(g, 29850 + i, args, env)
         log = json.loads(Path(RunFiles.for_model(target).log).read_text())
         dev = cuda[0] if cuda else "cpu"
         res = ngf.evaluate(ngf.load(target), reference=ref, heat=False, paths=False, sdf=False, device=dev,
@@ -235,6 +228,20 @@ def ddp_stage(a, out: dict) -> None:
               + ("" if keep else " (warm-up, not kept)"), flush=True)
         if keep:
             rows.append(row)
+
+
+def _torchrun(nproc: int, port: int, args: list, env: dict) -> tuple:
+    """(stdout, wall seconds) of ``torchrun --nproc_per_node nproc`` running this checkout's module ``args[0]``
+    with ``args[1:]``; exits with its output when it fails."""
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", str(nproc), "--master_port", str(port),
+           str(common.ROOT / "benchmarks" / "_bootstrap.py")] + list(args)
+    t0 = time.perf_counter()
+    r = subprocess.run(cmd, check=False, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if r.returncode:
+        print(r.stdout[-2000:], r.stderr[-2000:])
+        raise SystemExit(1)
+    return r.stdout, wall
 
 
 def collection_stage(a, out: dict) -> None:
@@ -252,17 +259,10 @@ def collection_stage(a, out: dict) -> None:
         if cache.exists():
             for p in cache.iterdir():
                 p.unlink()
-        cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "1", "--master_port", "29811",
-               str(common.ROOT / "benchmarks" / "_bootstrap.py"), "neurogf_warp.generalizable.train", str(coll),
-               "-o", str(work / "m.pt"), "--cache", str(cache), "--sources", "256", "--targets", "512",
-               "--cloud-points", "2048", "--gt-only"]
-        t0 = time.perf_counter()
-        r = subprocess.run(cmd, check=False, env=env, capture_output=True, text=True)
-        wall = time.perf_counter() - t0
-        if r.returncode:
-            print(r.stdout[-2000:], r.stderr[-2000:])
-            raise SystemExit(1)
-        mt = re.search(r"ground truth of (\d+) shapes in ([\d.]+) s", r.stdout)
+        stdout, wall = _torchrun(1, 29811, ["neurogf_warp.generalizable.train", str(coll), "-o", str(work / "m.pt"),
+                                            "--cache", str(cache), "--sources", "256", "--targets", "512",
+                                            "--cloud-points", "2048", "--gt-only"], env)
+        mt = re.search(r"ground truth of (\d+) shapes in ([\d.]+) s", stdout)
         n, sec = int(mt.group(1)), float(mt.group(2))
         runs.append({"shapes": n, "gt_s": sec, "shapes_per_s": n / sec, "wall_s": wall})
         print(f"collection one rank, run {i + 1}: {n} shapes in {sec:.1f} s ({n / sec:.2f} shapes/s), "
