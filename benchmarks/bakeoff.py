@@ -147,7 +147,8 @@ def run_row(ngf, name: str, budget: float, variant: str, a, work: Path, repeat: 
 
     out = work / f"{name}_{budget:g}s_{variant}_{repeat}.ngf"
     mesh_file, reference = mesh_files(a, name)
-    settings = row_settings(name, variant, len(ngf.load_mesh(str(mesh_file)).internal_vertices))
+    sized = VARIANTS[variant].get("landmarks") == "scaled"  # only such a design needs the mesh read first
+    settings = row_settings(name, variant, len(ngf.load_mesh(str(mesh_file)).internal_vertices) if sized else None)
     row = {"mesh": name, "budget_s": budget, "variant": variant, "repeat": repeat, "settings": settings}
     cuda = str(a.device).startswith("cuda")
     if cuda:
