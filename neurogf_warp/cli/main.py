@@ -615,14 +615,24 @@ def _cmd_train(args) -> int:
                           distributed=ranks is not None, **changes)
     except ValueError as e:
         raise InputError(_in_cli_terms(str(e))) from None
-    finally:
-        if ranks is not None:
-            import torch.distributed as dist
-
-            dist.destroy_process_group()
     if ranks is None or ranks == 0:  # also with -q: the one line that says how good it is
         print(_quality_line(model.config), file=sys.stderr)
+    if ranks is not None:
+        _leave_ranks()
     return 0
+
+
+def _leave_ranks() -> None:
+    """End a finished torchrun process: every rank past its last collective, the group destroyed, the process
+    gone. Its files are written and closed by now; the interpreter's own teardown after a gloo group can abort
+    (``terminate called without an active exception``), which torchrun reports as a failed run, so it is skipped."""
+    import torch.distributed as dist
+
+    dist.barrier()
+    dist.destroy_process_group()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
 
 
 def _start_ranks(device) -> int | None:
