@@ -266,7 +266,8 @@ def fmt_geodesic_tools(runs):
 DESIGNS = {"default": "today's network", "no_bn": "no BatchNorm outside the path head",
            "hash": "a 12-level hash-grid encoding appended to the lifting's inputs",
            "landmarks": "exact distances of both points to K landmark vertices fed to the distance head, with the "
-                        "triangle-inequality bounds; the lower bound under the output"}
+                        "triangle-inequality bounds; the lower bound under the output",
+           "landmarks_nofloor": "the same features, with |p - q| alone under the output"}
 
 
 @formatter("bakeoff", "Field designs: accuracy per second")

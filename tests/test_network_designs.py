@@ -140,6 +140,28 @@ def test_landmark_network_starts_from_the_triangle_bound():
     torch.testing.assert_close(d0, ref, rtol=1e-6, atol=1e-6)
 
 
+@pytest.mark.parametrize("floor", [0.0, 0.5])
+def test_landmark_floor_scales_the_bound_under_the_output(floor):
+    """landmark_floor c: a zero head leaves max(|p - q|, c x the lower bound); the option is recorded in the
+    network's options (and so in its files) only where it is not 1."""
+    torch.manual_seed(7)
+    xyz = torch.rand(200, 3) * 2 - 1
+    table = torch.rand(200, 8) * 3
+    net = NeuroGFNet(64, landmarks=8, landmark_floor=floor, **OPTS)
+    net.landmark_table.set_table(xyz, table)
+    assert net.options["landmark_floor"] == floor
+    assert "landmark_floor" not in NeuroGFNet(64, landmarks=8, **OPTS).options
+    i, j = torch.randint(0, 200, (64,)), torch.randint(0, 200, (64,))
+    with torch.no_grad():
+        net.gdf_head[-1].linear.weight.zero_()
+        d0 = net.eval().distance(xyz[i], xyz[j]).double()
+    lower = (table[i].double() - table[j].double()).abs().max(-1).values
+    ref = torch.maximum((xyz[i] - xyz[j]).double().norm(dim=-1), floor * lower)
+    torch.testing.assert_close(d0, ref, rtol=1e-6, atol=1e-6)
+    with pytest.raises(InputError, match="landmark_floor"):
+        NeuroGFNet(64, landmarks=8, landmark_floor=1.5, **OPTS)
+
+
 def test_settings_reach_the_network_and_bad_values_are_refused(monkeypatch):
     with pytest.raises(ValueError, match="training-time designs"):
         TrainConfig().set(norm="none", D=64)
@@ -153,6 +175,9 @@ def test_settings_reach_the_network_and_bad_values_are_refused(monkeypatch):
     assert TrainConfig().set(landmarks=16, D=64).network.build().landmarks == 16
     with pytest.raises(ValueError, match="landmarks"):
         TrainConfig().set(landmarks=-1)
+    assert TrainConfig().set(landmarks=16, landmark_floor="0", D=64).network.build().landmark_floor == 0.0
+    with pytest.raises(ValueError, match="landmark_floor"):
+        TrainConfig().set(landmark_floor=-0.5)
     with pytest.raises(InputError, match="norm"):
         NeuroGFNet(64, norm="group")
 

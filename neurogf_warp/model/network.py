@@ -230,7 +230,7 @@ class NeuroGFNet(nn.Module):
 
     def __init__(self, D: int = 256, fourier: int = 0, euclid: bool = False, path_residual: bool = False,
                  path_width: int = 1, path_window: bool = False, norm: str = "batch", hash_levels: int = 0,
-                 landmarks: int = 0):
+                 landmarks: int = 0, landmark_floor: float = 1.0):
         super().__init__()
         w = widths(D, path_width)
         if not (isinstance(fourier, int) and 0 <= fourier <= MAX_FOURIER):
@@ -244,7 +244,10 @@ class NeuroGFNet(nn.Module):
         self.path_width, self.path_window = path_width, bool(path_window)
         if not (isinstance(landmarks, int) and 0 <= landmarks <= MAX_LANDMARKS):
             raise InputError(f"landmarks must be an integer in 0..{MAX_LANDMARKS} (0: none), got {landmarks!r}")
+        if not (isinstance(landmark_floor, (int, float)) and 0.0 <= landmark_floor <= 1.0):
+            raise InputError(f"landmark_floor must be a number in 0..1 (0: no floor), got {landmark_floor!r}")
         self.norm, self.hash_levels, self.landmarks = norm, hash_levels, landmarks
+        self.landmark_floor = float(landmark_floor)
         if self.path_window and not self.path_residual:
             raise InputError("path_window scales the path offsets: it needs path_residual=True")
         lw = [3 + 6 * fourier] + w["lifting"][1:]
@@ -275,6 +278,8 @@ class NeuroGFNet(nn.Module):
             out["hash_levels"] = self.hash_levels
         if self.landmarks:
             out["landmarks"] = self.landmarks
+            if self.landmark_floor != 1.0:
+                out["landmark_floor"] = self.landmark_floor
         return out
 
     def path_output(self, out: torch.Tensor, lines: torch.Tensor) -> torch.Tensor:
@@ -304,8 +309,8 @@ class NeuroGFNet(nn.Module):
             lower, upper = diff.max(-1).values, (tp + tq).min(-1).values
             h = torch.cat([(es - et).abs(), diff, lower[:, None], upper[:, None]], dim=-1)
             d = self.gdf_head(h).squeeze(-1)
-            if self.euclid:
-                d = d + torch.maximum(torch.linalg.vector_norm(p - q, dim=-1), lower)
+            if self.euclid:  # under the head: |p - q|, raised to landmark_floor x the landmarks' lower bound
+                d = d + torch.maximum(torch.linalg.vector_norm(p - q, dim=-1), self.landmark_floor * lower)
             return d
         d = self.gdf_head((es - et).abs()).squeeze(-1)
         if self.euclid:

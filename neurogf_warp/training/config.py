@@ -47,6 +47,7 @@ class NetworkConfig:
     norm: str = "batch"            # "batch" or "none" (biases + He init, no BatchNorm outside the path head)
     hash_levels: int = 0           # levels of a hash-grid encoding appended to the lifting's inputs (0: none)
     landmarks: int = 0             # exact distances to this many landmark vertices feed the distance head (0: none)
+    landmark_floor: float = 1.0    # landmarks: the output's floor is max(|p - q|, this x their lower bound); 0: |p - q|
 
     def validate(self):
         if self.D not in SUPPORTED_D:
@@ -63,6 +64,8 @@ class NetworkConfig:
             raise ValueError(f"hash_levels must be an integer in 0..{MAX_HASH_LEVELS} (0: none), got {self.hash_levels}")
         if not 0 <= self.landmarks <= MAX_LANDMARKS:
             raise ValueError(f"landmarks must be an integer in 0..{MAX_LANDMARKS} (0: none), got {self.landmarks}")
+        if not 0.0 <= self.landmark_floor <= 1.0:
+            raise ValueError(f"landmark_floor must be a number in 0..1 (0: no floor), got {self.landmark_floor}")
         if (self.norm != "batch" or self.hash_levels or self.landmarks) and not os.environ.get("NEUROGF_BAKEOFF_DESIGNS"):
             # their models train, but no model file or inference backend reads them: refuse rather than lose a run
             raise ValueError(f"norm={self.norm!r} / hash_levels={self.hash_levels} / landmarks={self.landmarks} are "
@@ -73,7 +76,7 @@ class NetworkConfig:
     def build(self) -> NeuroGFNet:
         """A freshly initialized ``NeuroGFNet`` of this shape (draws from torch's global RNG)."""
         return NeuroGFNet(self.D, self.fourier, self.euclid, self.path_residual, self.path_width, self.path_window,
-                          self.norm, self.hash_levels, self.landmarks)
+                          self.norm, self.hash_levels, self.landmarks, self.landmark_floor)
 
 
 @dataclass
