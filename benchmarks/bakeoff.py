@@ -56,6 +56,7 @@ VARIANTS = {
     "landmarks256": {"landmarks": 256},
     "landmarks": {"landmarks": "scaled"},  # K by the mesh's size: scaled_landmarks()
     "landmarks_nofloor": {"landmarks": "scaled", "landmark_floor": 0.0},  # the landmarks only as the head's inputs
+    "landmarks_bracket": {"landmarks": "scaled", "landmark_bracket": True},  # between the landmarks' two bounds
 }
 COMMON = {"compile": False}
 os.environ["NEUROGF_BAKEOFF_DESIGNS"] = "1"  # the designs the package refuses for users (no inference backend reads them)

@@ -267,7 +267,8 @@ DESIGNS = {"default": "today's network", "no_bn": "no BatchNorm outside the path
            "hash": "a 12-level hash-grid encoding appended to the lifting's inputs",
            "landmarks": "exact distances of both points to K landmark vertices fed to the distance head, with the "
                         "triangle-inequality bounds; the lower bound under the output",
-           "landmarks_nofloor": "the same features, with |p - q| alone under the output"}
+           "landmarks_nofloor": "the same features, with |p - q| alone under the output",
+           "landmarks_bracket": "the same features, the output between the floor and the landmarks' upper bound"}
 
 
 @formatter("bakeoff", "Field designs: accuracy per second")

@@ -162,6 +162,42 @@ def test_landmark_floor_scales_the_bound_under_the_output(floor):
         NeuroGFNet(64, landmarks=8, landmark_floor=1.5, **OPTS)
 
 
+def test_landmark_bracket_keeps_the_output_between_the_bounds():
+    """landmark_bracket: floor + sigmoid(head) x (upper - floor) in float64, so never outside the landmarks' two
+    bounds; a point pair on a piece without landmarks (every entry unreached) gets |p - q| + head."""
+    from neurogf_warp.model.network import LANDMARK_UNREACHED
+
+    torch.manual_seed(8)
+    xyz = torch.rand(200, 3) * 2 - 1
+    table = torch.rand(200, 8) * 3
+    table[150:] = LANDMARK_UNREACHED  # the last 50 points: a piece no landmark reaches
+    net = NeuroGFNet(64, landmarks=8, landmark_bracket=True, **OPTS).eval()
+    net.landmark_table.set_table(xyz, table)
+    assert net.options["landmark_bracket"] is True
+    assert "landmark_bracket" not in NeuroGFNet(64, landmarks=8, **OPTS).options
+    i, j = torch.randint(0, 150, (64,)), torch.randint(0, 150, (64,))
+    with torch.no_grad():
+        d = net.distance(xyz[i], xyz[j]).double()
+        es, et = net.embed(xyz[i]), net.embed(xyz[j])
+    tp, tq = table[i].double(), table[j].double()
+    lower, upper = (tp - tq).abs().max(-1).values, (tp + tq).min(-1).values
+    floor = torch.maximum((xyz[i] - xyz[j]).double().norm(dim=-1), lower)
+    top = torch.maximum(upper, floor)
+    assert bool(((d >= floor - 1e-6) & (d <= top + 1e-6)).all())
+    h = torch.cat([(es - et).abs(), (tp - tq).abs().float(), lower[:, None].float(), upper[:, None].float()], -1)
+    with torch.no_grad():
+        head = net.gdf_head(h).squeeze(-1).double()
+    torch.testing.assert_close(d, floor + torch.sigmoid(head) * (top - floor), rtol=1e-5, atol=1e-6)
+    k, m = torch.randint(150, 200, (16,)), torch.randint(150, 200, (16,))
+    with torch.no_grad():
+        far = net.distance(xyz[k], xyz[m])
+        ek, em = net.embed(xyz[k]), net.embed(xyz[m])
+        z = torch.zeros(16, 8)
+        hk = torch.cat([(ek - em).abs(), z, z[:, :1], torch.full((16, 1), 2 * LANDMARK_UNREACHED)], -1)
+        ref = (xyz[k] - xyz[m]).norm(dim=-1) + net.gdf_head(hk).squeeze(-1)
+    torch.testing.assert_close(far, ref, rtol=1e-5, atol=1e-6)
+
+
 def test_settings_reach_the_network_and_bad_values_are_refused(monkeypatch):
     with pytest.raises(ValueError, match="training-time designs"):
         TrainConfig().set(norm="none", D=64)
@@ -176,6 +212,7 @@ def test_settings_reach_the_network_and_bad_values_are_refused(monkeypatch):
     with pytest.raises(ValueError, match="landmarks"):
         TrainConfig().set(landmarks=-1)
     assert TrainConfig().set(landmarks=16, landmark_floor="0", D=64).network.build().landmark_floor == 0.0
+    assert TrainConfig().set(landmarks=16, landmark_bracket="true", D=64).network.build().landmark_bracket
     with pytest.raises(ValueError, match="landmark_floor"):
         TrainConfig().set(landmark_floor=-0.5)
     with pytest.raises(InputError, match="norm"):

@@ -39,6 +39,7 @@ MAX_FOURIER = 8
 NORMS = ("batch", "none")
 MAX_HASH_LEVELS = 16
 MAX_LANDMARKS = 256
+LANDMARK_UNREACHED = 4.0  # a landmark table's entry across components (+inf): the normalized mesh fits the unit sphere
 
 
 class FC(nn.Module):
@@ -230,7 +231,7 @@ class NeuroGFNet(nn.Module):
 
     def __init__(self, D: int = 256, fourier: int = 0, euclid: bool = False, path_residual: bool = False,
                  path_width: int = 1, path_window: bool = False, norm: str = "batch", hash_levels: int = 0,
-                 landmarks: int = 0, landmark_floor: float = 1.0):
+                 landmarks: int = 0, landmark_floor: float = 1.0, landmark_bracket: bool = False):
         super().__init__()
         w = widths(D, path_width)
         if not (isinstance(fourier, int) and 0 <= fourier <= MAX_FOURIER):
@@ -247,7 +248,7 @@ class NeuroGFNet(nn.Module):
         if not (isinstance(landmark_floor, (int, float)) and 0.0 <= landmark_floor <= 1.0):
             raise InputError(f"landmark_floor must be a number in 0..1 (0: no floor), got {landmark_floor!r}")
         self.norm, self.hash_levels, self.landmarks = norm, hash_levels, landmarks
-        self.landmark_floor = float(landmark_floor)
+        self.landmark_floor, self.landmark_bracket = float(landmark_floor), bool(landmark_bracket)
         if self.path_window and not self.path_residual:
             raise InputError("path_window scales the path offsets: it needs path_residual=True")
         lw = [3 + 6 * fourier] + w["lifting"][1:]
@@ -280,6 +281,8 @@ class NeuroGFNet(nn.Module):
             out["landmarks"] = self.landmarks
             if self.landmark_floor != 1.0:
                 out["landmark_floor"] = self.landmark_floor
+            if self.landmark_bracket:
+                out["landmark_bracket"] = True
         return out
 
     def path_output(self, out: torch.Tensor, lines: torch.Tensor) -> torch.Tensor:
@@ -309,8 +312,14 @@ class NeuroGFNet(nn.Module):
             lower, upper = diff.max(-1).values, (tp + tq).min(-1).values
             h = torch.cat([(es - et).abs(), diff, lower[:, None], upper[:, None]], dim=-1)
             d = self.gdf_head(h).squeeze(-1)
+            e = torch.linalg.vector_norm(p - q, dim=-1)
+            floor = torch.maximum(e, self.landmark_floor * lower)
+            if self.landmark_bracket:  # the head picks a point between the floor and the upper bound
+                inside = floor + torch.sigmoid(d) * (torch.maximum(upper, floor) - floor)
+                # a piece without landmarks (every entry unreached): the head on |p - q|, as the default network
+                return torch.where(upper >= 2 * LANDMARK_UNREACHED, e + d, inside)
             if self.euclid:  # under the head: |p - q|, raised to landmark_floor x the landmarks' lower bound
-                d = d + torch.maximum(torch.linalg.vector_norm(p - q, dim=-1), self.landmark_floor * lower)
+                d = d + floor
             return d
         d = self.gdf_head((es - et).abs()).squeeze(-1)
         if self.euclid:

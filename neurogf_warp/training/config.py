@@ -48,6 +48,7 @@ class NetworkConfig:
     hash_levels: int = 0           # levels of a hash-grid encoding appended to the lifting's inputs (0: none)
     landmarks: int = 0             # exact distances to this many landmark vertices feed the distance head (0: none)
     landmark_floor: float = 1.0    # landmarks: the output's floor is max(|p - q|, this x their lower bound); 0: |p - q|
+    landmark_bracket: bool = False  # landmarks: the output between that floor and their upper bound, the head choosing
 
     def validate(self):
         if self.D not in SUPPORTED_D:
@@ -76,7 +77,7 @@ class NetworkConfig:
     def build(self) -> NeuroGFNet:
         """A freshly initialized ``NeuroGFNet`` of this shape (draws from torch's global RNG)."""
         return NeuroGFNet(self.D, self.fourier, self.euclid, self.path_residual, self.path_width, self.path_window,
-                          self.norm, self.hash_levels, self.landmarks, self.landmark_floor)
+                          self.norm, self.hash_levels, self.landmarks, self.landmark_floor, self.landmark_bracket)
 
 
 @dataclass

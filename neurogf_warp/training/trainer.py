@@ -81,7 +81,7 @@ def landmark_table(data: TrainingData, k: int, device, solved: int | None = None
     vertices: each gets the distances of its nearest mesh vertex (a fraction of an edge off). ``solved``: solve
     only that many landmarks (a budget's share; at most k and the vertex count) and repeat their columns to k."""
     from neurogf_warp.ground_truth.geodesics import geodesic_distances
-    from neurogf_warp.model.network import Landmarks
+    from neurogf_warp.model.network import LANDMARK_UNREACHED, Landmarks
     from neurogf_warp.training.data import warp_device
 
     x = data.vertices
@@ -98,7 +98,7 @@ def landmark_table(data: TrainingData, k: int, device, solved: int | None = None
             pick.append(int(far.argmax()))
         v = x.detach().cpu().numpy().astype(np.float64)
         d = geodesic_distances((v, data.faces), np.asarray(pick), device=warp_device(device), near_source=False)
-    d = np.where(np.isfinite(d), d, 4.0).astype(np.float32)[np.arange(columns) % k]
+    d = np.where(np.isfinite(d), d, LANDMARK_UNREACHED).astype(np.float32)[np.arange(columns) % k]
     table = torch.as_tensor(d.T.copy(), device=device)
     lookup = Landmarks(columns).to(device)
     lookup.set_table(x, table)
