@@ -29,7 +29,7 @@ def test_a_short_cpu_run_says_the_steps_it_made(tmp_path, ellipsoid, capsys):
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ModelQualityWarning)
-        model = train(ellipsoid, tmp_path / "m.ngf", device="cpu", budget_seconds=15, progress=True)
+        model = train(ellipsoid, tmp_path / "m.ngf", device="cpu", budget_seconds=8, progress=True)
     err = capsys.readouterr().err
     made = model.config["steps"]["joint"]
     before = [ln for ln in err.splitlines() if "short budget: batches" in ln]

@@ -175,7 +175,7 @@ def test_demo_twice_in_the_same_folder(tmp_path, capsys, ellipsoid):
     mesh = tmp_path / "blob.obj"
     trimesh.Trimesh(ellipsoid.vertices, ellipsoid.faces, process=False).export(mesh)
     out = tmp_path / "demo"
-    argv = ["demo", "-o", out, "--mesh", mesh, "--device", "cpu", "--budget-seconds", "12"]
+    argv = ["demo", "-o", out, "--mesh", mesh, "--device", "cpu", "--budget-seconds", "6"]
     code, first, _ = run(argv, capsys)
     assert code == 0 and "SSAD from vertex 0" in first
     code, second, err = run(argv, capsys)
