@@ -68,8 +68,8 @@ def test_train_loss_falls_and_beats_mre_bound(trained, tiny_dataset):
 @pytest.mark.parametrize("resample_every,flag,hard", [(1, "resume", 0.0), (5, "same call", 0.0), (1, "resume", 0.25)])
 def test_interrupt_then_continue_bit_for_bit(tmp_path, ellipsoid, tiny_dataset, resample_every, flag, hard):
     """hard: with a hard-pair pool re-ranked every 10 steps, the pool of step 10 travels in the checkpoint."""
-    cfg = small(val_every=0, resample_every=resample_every, epochs=1, iters_per_epoch=40, hard_share=hard,
-                hard_every=10)
+    cfg = small(val_every=0, resample_every=resample_every, epochs=1, iters_per_epoch=24, hard_share=hard,
+                hard_every=10, querier_steps=10)
     ref = train(ellipsoid, tmp_path / "ref.ngf", config=cfg, dataset=tiny_dataset, device="cpu", progress=False)
 
     out = tmp_path / "m.ngf"
@@ -89,7 +89,7 @@ def test_interrupt_then_continue_bit_for_bit(tmp_path, ellipsoid, tiny_dataset, 
     ck = load_checkpoint(RunFiles.for_model(out).checkpoint)
     assert ck["stage"] == len(STAGES) and ck["steps"] == ref.config["steps"]
     log = json.loads(open(RunFiles.for_model(out).log).read())
-    assert [r["step"] for r in log["history"]["loss"] if r["stage"] == "joint"][-1] == 40
+    assert [r["step"] for r in log["history"]["loss"] if r["stage"] == "joint"][-1] == 24
     # same seeds and saved RNG state: the resumed run ends where the uninterrupted one does
     for (k, a), b in zip(ref.net.state_dict().items(), done.net.state_dict().values()):
         assert torch.equal(a, b), k
