@@ -19,7 +19,9 @@ Seven options (not in the paper; all off reproduces it exactly, and released che
                 of trainable features, trilinearly interpolated), appended to its Fourier inputs;
   landmarks=K   the distance head also sees the exact distances of both points to K landmark vertices
                 (``Landmarks``): |T(p) - T(q)| per landmark and the triangle-inequality bounds, and the straight
-                line under the head's output becomes max(|p - q|, lower bound) (vertex queries only).
+                line under the head's output becomes max(|p - q|, lower bound) (vertex queries only);
+                ``landmark_floor`` scales that bound, ``landmark_bracket`` puts the output between it and the upper
+                bound (floor + sigmoid(head) x (upper - floor)).
 The last three are training-time designs: model files and the Warp inference engine support only the first five.
 """
 from __future__ import annotations
