@@ -26,7 +26,8 @@ MRE_default is the mean of the default's runs on that mesh and budget and spread
 between two default runs of the same mesh at budget B (the default runs twice on ``--repeat`` meshes). Otherwise
 it is not kept.
 
-Writes ``<out>/bakeoff.json`` (every row: errors, steps, step times, peak GPU memory, model size) and
+Writes ``<out>/bakeoff.json`` (every row: errors, steps, step times, peak GPU memory, model size: the
+parameters' ``model_mb`` and a landmark design's (V, K) float32 distance table, ``table_mb``) and
 ``<out>/bakeoff.png`` (MRE against the budget, one panel per mesh).
 """
 from __future__ import annotations
@@ -57,6 +58,7 @@ VARIANTS = {
     "landmarks": {"landmarks": "scaled"},  # K by the mesh's size: scaled_landmarks()
     "landmarks_nofloor": {"landmarks": "scaled", "landmark_floor": 0.0},  # the landmarks only as the head's inputs
     "landmarks_bracket": {"landmarks": "scaled", "landmark_bracket": True},  # between the landmarks' two bounds
+    "landmarks_bracket256": {"landmarks": 256, "landmark_bracket": True},  # the same, twice the landmarks below 100K
 }
 COMMON = {"compile": False}
 os.environ["NEUROGF_BAKEOFF_DESIGNS"] = "1"  # the designs the package refuses for users (no inference backend reads them)
@@ -168,6 +170,8 @@ def run_row(ngf, name: str, budget: float, variant: str, a, work: Path, repeat: 
         err = torch_errors(model, reference, a.device)
         row["eval_s"] = time.perf_counter() - t0
         params = sum(p.numel() for p in model.net.parameters())
+        lm = getattr(model.net, "landmark_table", None)  # (V, K) float32 distances a query would also have to read
+        table_mb = 4 * lm.table.numel() / 2**20 if lm is not None else 0.0
         t, cfg = log["timings"], log["config"]
         steps = cfg.get("steps") or {}
         per = t.get("calibrated_s_per_step") or {}
@@ -177,6 +181,7 @@ def run_row(ngf, name: str, budget: float, variant: str, a, work: Path, repeat: 
                    dataset_s=t.get("dataset_s"), calibrate_s=t.get("calibrate_s"), sources=log["history"].get("sources"),
                    batch_scale=log["history"].get("batch_scale"), validation_mre=cfg.get("validation_mre"),
                    validation_heat_mre=cfg.get("heat_mre"), params=params, model_mb=4 * params / 2**20,
+                   table_mb=table_mb,
                    compile=t.get("compile"), warnings=sorted({f"{w.category.__name__}: {w.message}" for w in caught}))
         if a.check_engine and variant == "default" and not getattr(a, "_checked", False):
             a._checked = True

@@ -271,6 +271,14 @@ DESIGNS = {"default": "today's network", "no_bn": "no BatchNorm outside the path
            "landmarks_bracket": "the same features, the output between the floor and the landmarks' upper bound"}
 
 
+def _memory(row: dict) -> str:
+    """A bake-off row's model memory: the parameters, plus a landmark design's distance table where recorded."""
+    mb = row.get("model_mb", 4 * row.get("params", 0) / 2**20)
+    if not row.get("settings", {}).get("landmarks"):
+        return f"{mb:.2f} MB"
+    return f"{mb + row.get('table_mb', 0.0):.1f} MB"
+
+
 @formatter("bakeoff", "Field designs: accuracy per second")
 def fmt_bakeoff(runs):
     rows = []
@@ -284,7 +292,7 @@ def fmt_bakeoff(runs):
                          f"{r['steps'].get('joint', 0):,}/{r['steps'].get('refine_dist', 0):,}",
                          f"{ms.get('joint', float('nan')):.2f}/{ms.get('refine_dist', float('nan')):.2f}"
                          if r["steps"].get("joint") else "-",
-                         f"{r.get('params', 0):,}"))
+                         f"{r.get('params', 0):,}", _memory(r)))
     present = {re.sub(r"\d+$", "", r["variant"]) for run in runs for r in run["rows"]}
     designs = "; ".join(f"`{k}`{'K' if k == 'landmarks' else ''} ({v})" for k, v in DESIGNS.items() if k in present)
     fresh = {bool(run.get("meta", {}).get("one_process_per_row")) for run in runs}
@@ -294,9 +302,11 @@ def fmt_bakeoff(runs):
     out = ["Each design trained by `ngf.train(mesh, out, budget_seconds=B)` " + how + " and scored "
            f"against exact geodesics (every exact source to every vertex). Designs: {designs}. A design is kept only "
            "if its MRE is below the default's by more than the spread of two default runs, on every mesh and "
-           "budget.", ""]
+           "budget. Memory: the float32 parameters, plus a landmark design's (V, K) float32 table of distances to its "
+           "landmarks, which a query of it would read too (for rows made before that size was recorded: vertices x K x "
+           "4 bytes).", ""]
     out += table(["mesh", "budget", "design", "call", "MRE", "p99", "max", "joint/refine steps",
-                  "ms per step", "parameters"], rows)
+                  "ms per step", "parameters", "memory"], rows)
     from bakeoff import decide  # the benchmark's own rule, applied to the kept rows
 
     measured = next((run["meta"]["measured_spread"] for run in runs if run.get("meta", {}).get("measured_spread")),
