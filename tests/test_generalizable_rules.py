@@ -148,7 +148,6 @@ def test_per_mesh_functions_answer_for_a_conditioned_model(model, small_mesh):
 @pytest.mark.slow  # two conditionings of the network on the mesh, ~4 s each on a 2-core CPU
 def test_cli_info_and_queries_of_the_generalizable_network(small_mesh, tmp_path, capsys, monkeypatch):
     from neurogf_warp.cli.main import main
-    from neurogf_warp.generalizable import hooks
 
     path = str(shared_path(*GEN))
     assert main(["info", path]) == 0
@@ -162,11 +161,11 @@ def test_cli_info_and_queries_of_the_generalizable_network(small_mesh, tmp_path,
     assert main(["ssad", path, "--mesh", str(small_mesh), "--source", "4", "-o", str(out_file), "-q"]) == 0
     conditioned = ngf.load(path, mesh=str(small_mesh))
     np.testing.assert_array_equal(np.load(out_file), conditioned.ssad(4))
-    # no path head: refused with exit 2 and the reason, not an internal error (the refusal is under test here, so
-    # the commands below reuse the conditioning above instead of repeating it)
-    loader = hooks.load_if_generalizable
-    monkeypatch.setattr(hooks, "load_if_generalizable",
-                        lambda p, mesh=None: conditioned if (p, mesh) == (path, str(small_mesh)) else loader(p, mesh))
+    # no path head: refused with exit 2 and the reason, not an internal error, before any conditioning on --mesh
+    from neurogf_warp.generalizable.model import GeneralizableModel
+
+    monkeypatch.setattr(GeneralizableModel, "condition",
+                        lambda self, mesh: pytest.fail("conditioned on --mesh before refusing the command"))
     capsys.readouterr()
     for argv in (["path", path, "--mesh", str(small_mesh), "--p", "0", "0", "0", "--q", "0.1", "0", "0"],
                  ["render", path, "--mesh", str(small_mesh), "-o", str(tmp_path / "r.png")],

@@ -428,12 +428,12 @@ def _load_model(args, needs_mesh: bool):
 
     from neurogf_warp.generalizable.hooks import load_if_generalizable
 
-    gen = load_if_generalizable(args.model, args.mesh)  # conditioned on --mesh when given
+    gen = load_if_generalizable(args.model)  # refused before it is conditioned on --mesh (seconds of work)
     if gen is not None and args.command not in ("info", "ssad", "msad", "distance"):
         raise InputError(f"{args.model} is a generalizable network: it answers info, ssad, msad and distance (with "
                          f"--mesh MESHFILE); {args.command} needs a per-mesh model (neurogf-warp train)")
     if gen is not None:
-        return gen
+        return gen.condition(args.mesh) if args.mesh is not None else gen
     allow = getattr(args, "allow_mesh_mismatch", False)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", MeshMismatchWarning)
