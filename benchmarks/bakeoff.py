@@ -272,10 +272,11 @@ def plot(rows: list, path: Path) -> bool:
     for ax in axes.flat[len(names):]:
         ax.set_visible(False)
     for ax, name in zip(axes.flat, names):
-        for v in VARIANTS:
+        for i, v in enumerate(VARIANTS):  # one colour per design in every panel and file
             rs = sorted((r for r in ok if r["mesh"] == name and r["variant"] == v), key=lambda r: r["budget_s"])
             if rs:
-                ax.loglog([r["call_s"] for r in rs], [100 * r["mre"] for r in rs], "o--", label=v, alpha=0.8)
+                ax.loglog([r["call_s"] for r in rs], [100 * r["mre"] for r in rs], "o--", label=v, alpha=0.8,
+                          color=f"C{i % 10}")
         ax.set_title(name)
         ax.set_xticks(sorted({r["budget_s"] for r in ok if r["mesh"] == name}))  # the budgets, as plain numbers
         ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
