@@ -491,4 +491,6 @@ def test_a_slow_calibration_does_not_starve_the_joint_stage(tmp_path, monkeypatc
         warnings.simplefilter("ignore", ModelQualityWarning)
         train(ellipsoid_mesh(), out, device="cpu", budget_seconds=20, progress=False)
     steps = log_of(out)["config"]["steps"]
-    assert steps["joint"] >= 30, steps  # counted work: about 180-240 on a quiet 2-core machine
+    # its share of the steps, which a busy machine slows alike (quiet 2-core machine: 180-240 joint steps, ~13
+    # refine_dist steps per joint step; 27 and 15 beside three busy processes; starved: 4 joint steps)
+    assert steps["joint"] >= 10 and steps["refine_dist"] <= 40 * steps["joint"], steps
