@@ -23,6 +23,16 @@ def test_the_landmarks_design_is_sized_to_the_mesh(bakeoff):
     assert bakeoff.row_settings("igea", "landmarks", 134345)["landmarks"] == 256
     assert bakeoff.row_settings("spot", "landmarks128", 134345)["landmarks"] == 128  # a fixed K stays
     assert bakeoff.row_settings("joined", "default", 100)["allow_vertex_joins"] is True
+    assert bakeoff.row_settings("spot", "landmarks_bracket256", 2930) == {"compile": False, "landmarks": 256,
+                                                                          "landmark_bracket": True}
+
+
+def test_a_landmark_design_counts_its_table_in_the_model_memory(bakeoff):
+    mp = importlib.import_module("make_performance")
+    plain = {"params": 259936, "model_mb": 0.99, "settings": {"compile": False}}
+    assert mp._memory(plain) == "0.99 MB"
+    lm = {"params": 276448, "model_mb": 1.05, "table_mb": 34.0, "settings": {"landmarks": 256}}
+    assert mp._memory(lm) == "35.0 MB"
 
 
 def test_rows_side_by_side_each_on_one_gpu(bakeoff, monkeypatch, tmp_path):
