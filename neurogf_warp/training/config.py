@@ -17,13 +17,15 @@ from dataclasses import dataclass, field
 from neurogf_warp.common.checks import InputError, integer
 from neurogf_warp.dataset.build import DatasetSettings
 from neurogf_warp.model.network import MAX_FOURIER, MAX_HASH_LEVELS, MAX_LANDMARKS, NORMS, SUPPORTED_D, NeuroGFNet
+from neurogf_warp.training.stages import STAGE_TABLE
 
 __all__ = ["TrainConfig", "NetworkConfig", "ScheduleConfig", "BatchConfig", "RuntimeConfig", "DatasetSettings",
            "STAGES", "RATIOS", "QUERIER_MAX", "DIST_LOSSES", "parse_assignments"]
 
-STAGES = ("querier", "joint", "refine_dist", "refine_sdf", "refine_path")
+# the stages in run order; what each one does is its entry in stages.STAGE_TABLE
+STAGES = tuple(STAGE_TABLE)
 # default steps of each stage per joint step (an explicit <stage>_steps overrides; querier capped, below)
-RATIOS = {"querier": 0.25, "joint": 1.0, "refine_dist": 1.0, "refine_sdf": 0.1, "refine_path": 0.3}
+RATIOS = {name: s.ratio for name, s in STAGE_TABLE.items()}
 QUERIER_MAX = 4000  # default querier steps: 0.25 x joint steps, at most this (it only guides the surface term)
 DIST_LOSSES = ("l1", "relative_global")
 # settings of older versions that did not improve training, with the value that meant "off":

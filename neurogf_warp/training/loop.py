@@ -19,6 +19,7 @@ from neurogf_warp.common.progress import Progress
 from neurogf_warp.training import losses as L
 from neurogf_warp.training.acceleration import set_tf32
 from neurogf_warp.training.config import STAGES
+from neurogf_warp.training.stages import STAGE_TABLE
 
 __all__ = ["Runner", "TrainingInterrupted"]
 
@@ -72,6 +73,7 @@ class Runner:
         try:
             while stage_i < len(STAGES):
                 stage = STAGES[stage_i]
+                spec = STAGE_TABLE[stage]
                 if self.ranks is None:
                     self._replan(stage_i, step, bar)
                 elif self._sync(stage_i, step, bar, 0.0, 0):  # interrupted at the end of the last stage
@@ -109,15 +111,14 @@ class Runner:
                     if acc_n and (step % rt.log_every == 0 or step == n):
                         row = dict(zip(terms, (acc / acc_n).tolist()))
                         total_loss = float(L.weighted_sum({k: torch.tensor(v) for k, v in row.items()})) \
-                            if stage in ("joint", "refine_dist") else sum(row.values())
+                            if spec.weighted else sum(row.values())
                         history["loss"].append({"stage": stage, "step": step, "lr": t.lr_at(stage, step - 1),
                                                 "loss": total_loss, **row})
                         acc, acc_n = None, 0
                         if bar is not None:
                             bar.set_postfix(f"{stage} loss {total_loss:.4g} lr {t.lr_at(stage, step - 1):.2e}"
                                                 + (f" valMRE {history['val'][-1]['mre']:.3%}" if history["val"] else ""))
-                    validate = stage in ("joint", "refine_dist") and ((rt.val_every and step % rt.val_every == 0)
-                                                                        or step == n)
+                    validate = spec.validates and ((rt.val_every and step % rt.val_every == 0) or step == n)
                     if validate and (self.ranks is None or self.ranks.first):
                         history["val"].append({"stage": stage, "step": step, "mre": t.validate()})
                     stopping = interrupted or self.stop

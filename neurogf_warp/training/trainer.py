@@ -9,6 +9,8 @@ Stages (reference §3-§5), run in order as one global step sequence so that a c
   refine_sdf   SDF head alone on eval-mode (running-stat) lifting features  (§5a)
   refine_path  guidance + path head on eval-mode lifting features           (§5b)
 
+What each stage trains, draws and optimizes is its entry in ``stages.STAGE_TABLE``; its losses are methods here.
+
 Differences from the official scripts, on purpose:
   * a fresh batch every ``resample_every`` steps (default 1) instead of one batch reused for 200 iterations:
     sampling is a few index draws on the device, and fresh data generalizes better;
@@ -32,6 +34,7 @@ from neurogf_warp.training import losses as L
 from neurogf_warp.training.acceleration import CompiledLosses, GraphedStep, set_tf32
 from neurogf_warp.training.config import STAGES, TrainConfig
 from neurogf_warp.training.data import TrainingData
+from neurogf_warp.training.stages import STAGE_TABLE
 
 __all__ = ["Trainer", "Ranks", "fast_path", "cosine_lr"]
 
@@ -295,17 +298,18 @@ class Trainer:
         return torch.randint(0, n, (k,), device=self.device, generator=self.gen)
 
     def _draws(self, stage):
-        """(name, pool size, count) of the index vectors one step of ``stage`` uses."""
+        """(name, pool size, count) of the index vectors one step of ``stage`` uses, in draw order."""
         b, d = self.cfg.batches, self.data
-        sdf = lambda k: ("sdf", len(self.sdf_pts), min(k, len(self.sdf_pts)))  # noqa: E731
-        if stage in ("querier", "refine_sdf"):
-            return [sdf(b.batch_querier)]
-        if stage == "refine_path":
-            return [("pg", len(d.pg), b.batch_paths_g)]
-        dist = [(k, len(d.gd[k]), n) for k, n in (("global", b.batch_g), ("local1", b.batch_l1), ("local2", b.batch_l2))]
-        if stage == "refine_dist":
-            return dist
-        return [sdf(b.batch_sdf)] + dist + [("pg", len(d.pg), b.batch_paths_g), ("pl", len(d.pl), b.batch_paths_l)]
+        n_sdf = len(self.sdf_pts)
+        parts = {  # stages.DRAWS
+            "sdf": lambda: [("sdf", n_sdf, min(b.batch_sdf, n_sdf))],
+            "querier_sdf": lambda: [("sdf", n_sdf, min(b.batch_querier, n_sdf))],
+            "distances": lambda: [(k, len(d.gd[k]), n) for k, n in
+                                  (("global", b.batch_g), ("local1", b.batch_l1), ("local2", b.batch_l2))],
+            "paths_global": lambda: [("pg", len(d.pg), b.batch_paths_g)],
+            "paths_local": lambda: [("pl", len(d.pl), b.batch_paths_l)],
+        }
+        return [row for part in STAGE_TABLE[stage].draws for row in parts[part]()]
 
     def draw(self, stage):
         """Fresh index vectors for one step of ``stage``: {name: (count,) long tensor}. With a hard-pair pool
@@ -360,12 +364,7 @@ class Trainer:
         if self.opt_stage == stage:
             return self.opt
         s = self.cfg.schedule
-        params = {"querier": lambda: self.querier.parameters(),
-                  "joint": lambda: self.net.parameters(),
-                  "refine_dist": lambda: list(self.net.lifting.parameters()) + list(self.net.gdf_head.parameters()),
-                  "refine_sdf": lambda: self.net.sdf_head.parameters(),
-                  "refine_path": lambda: list(self.net.cdw_fc.parameters()) + list(self.net.spf_head.parameters()),
-                  }[stage]()
+        params = self.trained_parameters(stage)
         # fused: one kernel for the whole update, on CUDA and on the CPU (there the cpu preset's small-batch steps
         # take 10-14% less time than with torch's default per-parameter loop). Under
         # CUDA graphs the learning rate is a device tensor (filled before each replay) and the step counter lives
@@ -377,6 +376,20 @@ class Trainer:
         self._graph = GraphedStep(lambda idx: self._update(stage, idx), self.opt.zero_grad, self.device) \
             if self.graphs else None  # the previous stage's graph and its memory pool go
         return self.opt
+
+    def trained_modules(self, stage) -> list:
+        """The modules ``stage`` trains (``Stage.trains``), in parameter-group order."""
+        out = []
+        for path in STAGE_TABLE[stage].trains:
+            m = self
+            for name in path.split("."):
+                m = getattr(m, name)
+            out.append(m)
+        return out
+
+    def trained_parameters(self, stage) -> list:
+        """The parameters ``stage``'s optimizer updates, in its order."""
+        return [p for m in self.trained_modules(stage) for p in m.parameters()]
 
     def tensors(self) -> list:
         """Every parameter and buffer of the networks (what makes two replicas equal)."""
@@ -393,26 +406,18 @@ class Trainer:
         self.opt, self.opt_stage, self._idx_now, self._graph = None, None, None, None
 
     def set_modes(self, stage):
-        """Train/eval flags and frozen parts for a stage."""
-        self.net.train(stage == "joint")
-        self.querier.train(stage == "querier")
-        self.querier.requires_grad_(stage == "querier")
-        self.net.requires_grad_(stage == "joint")
-        if stage == "refine_dist":  # eval-mode BN: a fixed affine map, exactly what inference computes
-            self.net.lifting.requires_grad_(True)
-            self.net.gdf_head.requires_grad_(True)
-        if stage == "refine_sdf":
-            self.net.sdf_head.train().requires_grad_(True)
-        if stage == "refine_path":
-            for m in (self.net.cdw_fc, self.net.spf_head):
-                m.train().requires_grad_(True)
+        """Train/eval flags and frozen parts for a stage: its trained modules (``Stage.trains``) get gradients and
+        ``Stage.train_mode``; everything else is frozen in eval mode."""
+        spec = STAGE_TABLE[stage]
+        self.net.eval().requires_grad_(False)
+        self.querier.eval().requires_grad_(False)
+        for m in self.trained_modules(stage):
+            m.train(spec.train_mode).requires_grad_(True)
 
     def lr_at(self, stage, step):
         """Learning rate of ``stage`` at ``step`` (cosine from the stage's rate to ``lr_min``)."""
         s, n = self.cfg.schedule, self.steps[stage]
-        hi = {"querier": s.lr, "joint": s.lr, "refine_dist": s.refine_dist_lr,
-              "refine_path": s.refine_path_lr}.get(stage, s.refine_lr)
-        return cosine_lr(step, n, hi, s.lr_min)
+        return cosine_lr(step, n, getattr(s, STAGE_TABLE[stage].lr), s.lr_min)
 
     def _set_lr(self, lr):
         for g in self.opt.param_groups:
@@ -423,8 +428,9 @@ class Trainer:
 
     def _update(self, stage, idx):
         """Gather, forward, backward, optimizer step: everything a CUDA graph captures."""
-        terms = self._compiled.get(stage, getattr(self, f"_loss_{stage}"))(self.gather(idx))
-        loss = L.weighted_sum(terms, self.weights) if stage in ("joint", "refine_dist") else sum(terms.values())
+        spec = STAGE_TABLE[stage]
+        terms = self._compiled.get(stage, getattr(self, spec.loss))(self.gather(idx))
+        loss = L.weighted_sum(terms, self.weights) if spec.weighted else sum(terms.values())
         loss.backward()
         if self.ranks is not None:  # the replicas stay equal: every rank applies the mean gradient
             self.ranks.average_([p.grad for g in self.opt.param_groups for p in g["params"] if p.grad is not None])
@@ -439,7 +445,7 @@ class Trainer:
         every = self.cfg.schedule.resample_every
         self._optimizer(stage)
         self._set_lr(self.lr_at(stage, step))
-        if self.cfg.schedule.hard_share > 0 and stage in ("joint", "refine_dist") and (self._hard is None or (
+        if self.cfg.schedule.hard_share > 0 and STAGE_TABLE[stage].hard_pairs and (self._hard is None or (
                 step % self.cfg.schedule.hard_every == 0 and (stage, step) != self._hard_at)):
             # before the batch's generator state is kept: a resumed run redraws it alike. Once per (stage, step):
             # the budget's calibration runs step 0 several times and must time steps, not re-rankings
