@@ -263,8 +263,8 @@ def _train_ranks(ranks, mesh, out, config, device, dataset, resume, force, budge
         if cfg.runtime.threads:
             torch.set_num_threads(cfg.runtime.threads)
         try:
-            return _run(mesh, files, cfg, request, ck, dataset, dev, progress, callback, t_call, held.get("key"),
-                        devices if ranks.first else None, ranks)
+            return _run(RunPlan(mesh, files, cfg, request, ck, dataset, dev, progress, callback, t_call,
+                                held.get("key"), devices if ranks.first else None, ranks))
         finally:
             torch.set_num_threads(threads)
     except BaseException:
@@ -350,7 +350,7 @@ def _train_locked(mesh, files, config, device, dataset, resume, force, budget_se
     if cfg.runtime.threads:
         torch.set_num_threads(cfg.runtime.threads)
     try:
-        return _run(mesh, files, cfg, request, ck, dataset, dev, progress, callback, t_call, key, devices)
+        return _run(RunPlan(mesh, files, cfg, request, ck, dataset, dev, progress, callback, t_call, key, devices))
     finally:
         torch.set_num_threads(threads)
 
@@ -426,220 +426,353 @@ def _landmark_plan(cfg: TrainConfig, mesh, dev, budget_seconds) -> tuple:
     return int(min(k, max(8, LANDMARK_SHARE * budget_seconds // per))), per
 
 
-def _run(mesh, files: RunFiles, cfg: TrainConfig, request: dict, ck, dataset, dev, progress, callback,
-         t_call: float, key, devices=None, ranks=None):
-    """Dataset, set-up, budget, the stages and the model file of a run (new, or continued from ``ck``).
+@dataclasses.dataclass
+class RunPlan:
+    """What a run is given: the checked call, its settings and the checkpoint it continues.
+
+    Attributes
+    ----------
+    mesh : the loaded, checked Mesh
+    files : the run folder's files (``RunFiles``)
+    cfg : the run's settings (a continued run's own)
+    request : what the call asked for (settings, ``budget_seconds``, dataset), as the checkpoint stores it
+    checkpoint : the checkpoint dict to continue, or None for a new run
+    dataset : None (the run folder's cache, else built), a Dataset, or a dataset ``.npz`` file
+    device : the torch device the steps run on
+    progress : progress bars and messages on stderr
+    callback : ``callback(stage, step, terms)`` after every step, or None
+    t_call : ``time.perf_counter()`` at the start of the call (s; the budget counts from it)
+    key : the call's key (``run_folder.call_key``) written to the log, or None
+    devices : GPUs that share the dataset's ground truth, or None
+    ranks : a ``trainer.Ranks`` (data-parallel), or None
+    """
+
+    mesh: object
+    files: RunFiles
+    cfg: TrainConfig
+    request: dict
+    checkpoint: dict | None
+    dataset: object
+    device: "torch.device"
+    progress: bool
+    callback: object = None
+    t_call: float = 0.0
+    key: dict | None = None
+    devices: list | None = None
+    ranks: object = None
+
+    @property
+    def first(self) -> bool:
+        """Whether this process decides and writes (one process, or rank 0)."""
+        return self.ranks is None or self.ranks.first
+
+    def agree(self, value):
+        """Rank 0's ``value`` on every rank (``value`` itself in one process)."""
+        return value if self.ranks is None else self.ranks.agree(value)
+
+
+@dataclasses.dataclass
+class _RunState:
+    """What a run has made and measured so far, passed from one phase of ``_run`` to the next.
+
+    ``deadline`` and the times are ``time.perf_counter()`` values and seconds; ``per`` is seconds per step of each
+    stage; ``stage_i, step, history, elapsed`` are where the stages stand (as a checkpoint stores them)."""
+
+    cfg: TrainConfig
+    deadline: float | None
+    spent_before: float
+    t_data: float = 0.0
+    dataset_s: float = 0.0
+    timings: dict = dataclasses.field(default_factory=dict)
+    ds: object = None
+    data: object = None
+    pool: tuple | None = None
+    heat: object = None
+    heat_mre: float | None = None
+    trainer: object = None
+    budget: object = None
+    per: dict | None = None
+    chooser: object = None
+    history: dict | None = None
+    stage_i: int = 0
+    step: int = 0
+    elapsed: float = 0.0
+
+
+def _run(plan: RunPlan):
+    """Dataset, set-up, budget, the stages and the model file of a run (new, or continued from its checkpoint).
 
     The budget (``request["budget_seconds"]``) covers every call of a run: a continued run gets what the earlier
     calls left (their wall seconds are kept in the checkpoint as ``spent_s``) and re-plans its steps to fit it.
 
     With ``ranks`` (data-parallel) every rank runs this, and every value that steers the steps and is measured on a
     clock (time left, step times, the compile decision) is rank 0's (``agree``); only rank 0 writes."""
-    import torch
+    run = _run_clock(plan)
+    _run_data(plan, run)
+    _run_set_up(plan, run)
+    _run_stages(plan, run)
+    if plan.ranks is None:
+        return _run_finish(plan, run)
+    model = plan.ranks.on_first(lambda: _run_finish(plan, run), share=False)
+    if plan.first:
+        return model
+    from neurogf_warp.model.files import load
 
-    first = ranks is None or ranks.first
-    agree = (lambda v: v) if ranks is None else ranks.agree
-    budget_seconds = request.get("budget_seconds")
+    return load(plan.files.model)  # the file rank 0 wrote: the same model on every rank
+
+
+def _run_clock(plan: RunPlan) -> _RunState:
+    """The run's state with its deadline: the budget less what earlier calls spent and ``SAVE_RESERVE_S``."""
+    budget_seconds = plan.request.get("budget_seconds")
+    ck = plan.checkpoint
     spent_before = float(ck.get("spent_s", 0.0)) if ck is not None else 0.0
-    deadline = None if budget_seconds is None else t_call + budget_seconds - spent_before - SAVE_RESERVE_S
-    if ranks is not None and deadline is not None:  # rank 0's deadline on every rank's own clock
-        deadline = time.perf_counter() + agree(deadline - time.perf_counter())
-    t_data = time.perf_counter()
+    deadline = None if budget_seconds is None else plan.t_call + budget_seconds - spent_before - SAVE_RESERVE_S
+    if plan.ranks is not None and deadline is not None:  # rank 0's deadline on every rank's own clock
+        deadline = time.perf_counter() + plan.agree(deadline - time.perf_counter())
+    return _RunState(cfg=plan.cfg, deadline=deadline, spent_before=spent_before)
+
+
+def _run_data(plan: RunPlan, run: _RunState) -> None:
+    """The dataset (within its share of the budget), the heat-method baseline, the device data and the SDF pool."""
+    mesh, ck, dev, ranks, cfg = plan.mesh, plan.checkpoint, plan.device, plan.ranks, run.cfg
+    budget_seconds = plan.request.get("budget_seconds")
+    run.t_data = t_data = time.perf_counter()
     loaded_before = load_seconds()
     # the ground truth's share counts from the start of the call (the mesh was loaded and checked in it)
     limit = None if budget_seconds is None or ck is not None else \
-        max(0.0, DATA_SHARE * budget_seconds - (t_data - t_call))
+        max(0.0, DATA_SHARE * budget_seconds - (t_data - plan.t_call))
     landmarks_solved, _ = _landmark_plan(cfg, mesh, dev, budget_seconds)
     if cfg.network.landmarks and cfg.data.full_rows < cfg.network.landmarks:
         # the landmark rows come with the dataset's first distance sources (a proxy dataset has none: the trainer
         # then solves ``landmarks_solved`` of them itself)
-        cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, full_rows=cfg.network.landmarks))
+        cfg = run.cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, full_rows=cfg.network.landmarks))
     if ranks is None:
-        ds = obtain_dataset(mesh, dataset, files.dataset if dataset is None else None, cfg.data, cfg.seed, dev,
-                            progress, time_limit_s=limit, partial_ok=ck is not None, devices=devices)
+        ds = obtain_dataset(mesh, plan.dataset, plan.files.dataset if plan.dataset is None else None, cfg.data,
+                            cfg.seed, dev, plan.progress, time_limit_s=limit, partial_ok=ck is not None,
+                            devices=plan.devices)
     else:
-        ds = _rank_dataset(ranks, mesh, dataset, files, cfg, dev, progress, limit, ck is not None, devices)
-    dataset_s = time.perf_counter() - t_data
+        ds = _rank_dataset(ranks, mesh, plan.dataset, plan.files, cfg, dev, plan.progress, limit, ck is not None,
+                           plan.devices)
+    run.ds, run.dataset_s = ds, time.perf_counter() - t_data
     # the dataset's own phases (sampling, distances, paths; a cached dataset's are those of its build)
-    timings = {"dataset_s": dataset_s, "dataset_phases": dict(ds.meta.get("timings") or {}),
-               "kernels_load_s": load_seconds() - loaded_before}  # Warp's modules, compiled or from its cache
-    heat, heat_mre = None, None
+    run.timings = {"dataset_s": run.dataset_s, "dataset_phases": dict(ds.meta.get("timings") or {}),
+                   "kernels_load_s": load_seconds() - loaded_before}  # Warp's modules, compiled or from its cache
     if ck is not None and "heat_mre" in ck["history"]:
-        heat_mre = ck["history"]["heat_mre"]
-    elif first:  # the baseline on the held-out pairs, made by another process while the model trains (in the budget)
-        heat = HeatBaseline(ds.vertices, ds.faces, ds.test_src, ds.test_dist)
-    data = TrainingData(ds, dev)
-    data.landmarks_solved = landmarks_solved
+        run.heat_mre = ck["history"]["heat_mre"]
+    elif plan.first:  # the baseline on the held-out pairs, made by another process while the model trains
+        run.heat = HeatBaseline(ds.vertices, ds.faces, ds.test_src, ds.test_dist)
+    run.data = TrainingData(ds, dev)
+    run.data.landmarks_solved = landmarks_solved
     t0 = time.perf_counter()
-    pool = make_sdf_pool(mesh, data.surface_points, cfg.batches.sdf_pool, cfg.seed, dev)
+    run.pool = make_sdf_pool(mesh, run.data.surface_points, cfg.batches.sdf_pool, cfg.seed, dev)
     if ranks is not None:  # rank 0's SDF values (a GPU's may differ in the last bits)
-        ranks.broadcast_(pool)
-    timings["sdf_pool_s"] = time.perf_counter() - t0
-    from neurogf_warp.training.trainer import Trainer
+        ranks.broadcast_(run.pool)
+    run.timings["sdf_pool_s"] = time.perf_counter() - t0
 
-    trainer = Trainer(cfg, data, pool, dev, ranks)
-    budget, per, chooser = None, None, None
+
+def _run_set_up(plan: RunPlan, run: _RunState) -> None:
+    """The trainer, and where the stages start: the checkpoint's step, or step 0 with the steps fitted to the
+    budget; then the history's record of the set-up."""
+    import torch
+
+    cfg, dev, ds = run.cfg, plan.device, run.ds
+    run.trainer = _new_trainer(plan, run, cfg)
     if dev.type == "cpu" and cfg.runtime.threads == 0:
-        chooser = ThreadChooser()  # the thread count is chosen on the first steps of the main stages
+        run.chooser = ThreadChooser()  # the thread count is chosen on the first steps of the main stages
         torch.set_num_threads(1)  # calibrated at one thread; the budget re-plans from the measured steps
     # torch.compile under a budget: decided for the batch shapes the run trains on (a new run may shrink its
     # batches, short_budget_scale, on eager steps first), so that it compiles once and plans with the time a run
     # of those shapes took here (acceleration.compile_estimate); a budget too short to win it back runs eagerly
-    plan_compile = deadline is not None and dev.type == "cuda" and cfg.runtime.compile
+    plan_compile = run.deadline is not None and dev.type == "cuda" and cfg.runtime.compile
     if plan_compile:
-        trainer.compile_losses(False)
-    rescale = ck is None and deadline is not None and cfg.batches.short_budget_batches and cfg.runtime.fill_budget
-    if ck is not None:
-        if plan_compile:  # the checkpoint's batches: the shapes the run goes on with
-            trainer.compile_losses(agree(_plan_compile(cfg, dev, deadline, timings)) is not None)
-        trainer.load_state(ck)
-        stage_i, step, history, elapsed = ck["stage"], ck["step"], ck["history"], ck["elapsed"]
-        say(progress, f"continuing the run in {files.folder}: stage {STAGES[stage_i]}, step {step}")
-        if deadline is not None:  # re-plan the steps left from the budget left
-            per = agree(history.get("per_step") or calibrate(trainer, n=3))
-            cap = history["planned_steps"]["joint"] if "planned_steps" in history else None
-            budget = Budget(trainer.cfg, deadline, per, cap=cap)
-            say(progress, f"{budget_seconds - spent_before:.0f} s of the {budget_seconds:.0f} s budget left")
+        run.trainer.compile_losses(False)
+    if plan.checkpoint is not None:
+        _run_continue(plan, run, plan_compile)
     else:
-        stage_i, step, elapsed = 0, 0, 0.0
-        history = {"loss": [], "val": []}
-        if deadline is not None:
-            t0 = time.perf_counter()
-            # the budget ended before the steps or while they were timed (a fresh GPU machine's 20 s call took 2.8 s
-            # to time them and ended 1.6-2.2 s late; timing a first step costs 2.4 s on a fresh 2-core CPU): no
-            # steps, the untrained model is saved, and the warnings say why
-            out_of_time = agree(deadline <= time.perf_counter())
-            # data-parallel: every rank times the same steps (they all-reduce), none giving up alone
-            per = None if out_of_time else agree(_calibrate(trainer, cfg, dev, n=20 if trainer.graphs else 2,
-                                                            deadline=deadline if ranks is None else None))
-            out_of_time = per is None
-            if out_of_time:
-                per = {s: float(budget_seconds) for s in STAGES}
-            left = agree(deadline - time.perf_counter())
-            fitted = fit_budget(cfg, per, max(left, 0.0))
-            scale, history["batch_scale"] = short_budget_scale(fitted.joint_steps, dev.type), 1.0
-            shrunk = rescale and scale < 1 and not out_of_time
-            if shrunk:
-                batches = cfg.batches.scaled(scale, sdf_factor=max(scale, MIN_SDF_SCALE))
-                cfg = dataclasses.replace(cfg, batches=batches)
-                trainer = Trainer(cfg, data, pool, dev, ranks)  # its CUDA graphs are captured for the new shapes
-                trainer.compile_losses(False)
-                history["batch_scale"] = scale
-            compiling = agree(_plan_compile(cfg, dev, deadline, timings)) if plan_compile and not out_of_time else None
-            if plan_compile and out_of_time:
-                timings["compile"] = {"used": False, "expected_s": None, "cached": None}
-            if compiling is not None:  # compile every stage now, timed: later runs of these shapes plan with that
-                from neurogf_warp.training.acceleration import record_compile
-
-                trainer.compile_losses(True)
-                t1 = time.perf_counter()
-                per = agree(_calibrate(trainer, cfg, dev, n=20))
-                if first:
-                    record_compile(compiling, time.perf_counter() - t1, warm=timings["compile"]["cached"])
-            elif shrunk:  # timed again at the smaller batches; the full batches' times if the budget ends first
-                per = agree(_calibrate(trainer, cfg, dev, n=8 if trainer.graphs else 2,
-                                       deadline=deadline if ranks is None else None) or per)
-            if shrunk or compiling is not None:
-                left = agree(deadline - time.perf_counter())
-                fitted = fit_budget(cfg, per, max(left, 0.0))
-            if shrunk:
-                history["short_budget"] = {"scale": scale, "planned_joint_steps": int(fitted.joint_steps)}
-                say(progress, short_budget_said(scale))
-            timings["calibrate_s"] = time.perf_counter() - t0
-            cap = None
-            if not cfg.runtime.fill_budget:  # the preset's own steps, the budget only a cap
-                cap = cfg.joint_steps
-                history["planned_steps"] = cfg.stage_steps()
-                if fitted.joint_steps >= cfg.joint_steps:
-                    fitted = cfg
-            cfg = fitted
-            trainer.cfg = cfg
-            trainer.steps = {s: 0 for s in STAGES} if out_of_time else cfg.stage_steps()
-            budget = None if out_of_time else Budget(cfg, deadline, per, cap=cap)  # its floor plan is one step
-            if first:  # data-parallel: said once
-                history["budget_warning"] = budget_verdict(trainer.steps["joint"], max(left, 0.0) / budget_seconds,
-                                                           len(ds.gd_src), cfg.data.n_sources, progress,
-                                                           kernels_s=timings["kernels_load_s"])
-    history["heat_mre"] = heat_mre
-    history["sources"] = {"distance": int(len(ds.gd_src)), "asked": int(cfg.data.n_sources),
+        run.stage_i, run.step, run.elapsed = 0, 0, 0.0
+        run.history = {"loss": [], "val": []}
+        if run.deadline is not None:
+            _run_fit_budget(plan, run, plan_compile)
+    history = run.history
+    history["heat_mre"] = run.heat_mre
+    history["sources"] = {"distance": int(len(ds.gd_src)), "asked": int(run.cfg.data.n_sources),
                           "test": int(len(ds.test_src)), "complete": bool(ds.meta.get("complete", True))}
-    history["per_step"] = per
-    history["dataset_s"] = dataset_s
+    history["per_step"] = run.per
+    history["dataset_s"] = run.dataset_s
     history["proxy"] = proxy = ds.meta.get("proxy")  # training sources on a decimated copy (dataset/proxy.py)
     if proxy and (proxy.get("error") or {}).get("mre") is not None:
         off = f"{100 * proxy['error']['mre']:.3f}% off the mesh's own geodesics from the held-out sources"
-        say(progress, f"ground truth on a {proxy['vertices']:,}-vertex proxy of the mesh ({off})" if proxy["kept"]
+        say(plan.progress, f"ground truth on a {proxy['vertices']:,}-vertex proxy of the mesh ({off})" if proxy["kept"]
             else f"a {proxy['vertices']:,}-vertex proxy was {off}: ground truth on the mesh itself")
     history["threads"] = torch.get_num_threads() if dev.type == "cpu" else None  # chooser: per stage, below
-    history["prep_s"] = time.perf_counter() - t_data
+    history["prep_s"] = time.perf_counter() - run.t_data
 
-    def save(stage_i, step, history, elapsed):
-        if not first:  # data-parallel: rank 0 alone writes the run folder
-            return False
-        spent = spent_before + time.perf_counter() - t_call
-        return save_checkpoint({"version": CKPT_VERSION, "config": trainer.cfg.to_dict(), "request": request,
-                                "fingerprint": mesh.fingerprint, "stage": stage_i, "step": step, **trainer.state(),
-                                "history": history, "elapsed": elapsed, "spent_s": spent}, files.checkpoint)
 
-    run = Runner(trainer, save, files.checkpoint, progress, callback, budget, chooser, ranks)
+def _run_continue(plan: RunPlan, run: _RunState, plan_compile: bool) -> None:
+    """A continued run: the checkpoint's state and step, and the steps left re-planned from the budget left."""
+    ck, trainer, deadline = plan.checkpoint, run.trainer, run.deadline
+    if plan_compile:  # the checkpoint's batches: the shapes the run goes on with
+        trainer.compile_losses(plan.agree(_plan_compile(run.cfg, plan.device, deadline, run.timings)) is not None)
+    trainer.load_state(ck)
+    run.stage_i, run.step, run.history, run.elapsed = ck["stage"], ck["step"], ck["history"], ck["elapsed"]
+    say(plan.progress, f"continuing the run in {plan.files.folder}: stage {STAGES[run.stage_i]}, step {run.step}")
+    if deadline is not None:  # re-plan the steps left from the budget left
+        history, budget_seconds = run.history, plan.request.get("budget_seconds")
+        run.per = plan.agree(history.get("per_step") or calibrate(trainer, n=3))
+        cap = history["planned_steps"]["joint"] if "planned_steps" in history else None
+        run.budget = Budget(trainer.cfg, deadline, run.per, cap=cap)
+        say(plan.progress, f"{budget_seconds - run.spent_before:.0f} s of the {budget_seconds:.0f} s budget left")
+
+
+def _run_fit_budget(plan: RunPlan, run: _RunState, plan_compile: bool) -> None:
+    """A new budgeted run: its steps timed (at smaller batches when the budget is short, compiled where that
+    pays) and their counts fitted to the time left; the untrained model's zero steps when the budget is gone."""
+    cfg, dev, ranks, deadline, agree = run.cfg, plan.device, plan.ranks, run.deadline, plan.agree
+    budget_seconds, history, timings = plan.request.get("budget_seconds"), run.history, run.timings
+    rescale = cfg.batches.short_budget_batches and cfg.runtime.fill_budget
+    t0 = time.perf_counter()
+    # the budget ended before the steps or while they were timed (a fresh GPU machine's 20 s call took 2.8 s
+    # to time them and ended 1.6-2.2 s late; timing a first step costs 2.4 s on a fresh 2-core CPU): no
+    # steps, the untrained model is saved, and the warnings say why
+    out_of_time = agree(deadline <= time.perf_counter())
+    # data-parallel: every rank times the same steps (they all-reduce), none giving up alone
+    per = None if out_of_time else agree(_calibrate(run.trainer, cfg, dev, n=20 if run.trainer.graphs else 2,
+                                                    deadline=deadline if ranks is None else None))
+    out_of_time = per is None
+    if out_of_time:
+        per = {s: float(budget_seconds) for s in STAGES}
+    left = agree(deadline - time.perf_counter())
+    fitted = fit_budget(cfg, per, max(left, 0.0))
+    scale, history["batch_scale"] = short_budget_scale(fitted.joint_steps, dev.type), 1.0
+    shrunk = rescale and scale < 1 and not out_of_time
+    if shrunk:
+        batches = cfg.batches.scaled(scale, sdf_factor=max(scale, MIN_SDF_SCALE))
+        cfg = dataclasses.replace(cfg, batches=batches)
+        run.trainer = _new_trainer(plan, run, cfg)  # its CUDA graphs are captured for the new shapes
+        run.trainer.compile_losses(False)
+        history["batch_scale"] = scale
+    compiling = agree(_plan_compile(cfg, dev, deadline, timings)) if plan_compile and not out_of_time else None
+    if plan_compile and out_of_time:
+        timings["compile"] = {"used": False, "expected_s": None, "cached": None}
+    if compiling is not None:  # compile every stage now, timed: later runs of these shapes plan with that
+        from neurogf_warp.training.acceleration import record_compile
+
+        run.trainer.compile_losses(True)
+        t1 = time.perf_counter()
+        per = agree(_calibrate(run.trainer, cfg, dev, n=20))
+        if plan.first:
+            record_compile(compiling, time.perf_counter() - t1, warm=timings["compile"]["cached"])
+    elif shrunk:  # timed again at the smaller batches; the full batches' times if the budget ends first
+        per = agree(_calibrate(run.trainer, cfg, dev, n=8 if run.trainer.graphs else 2,
+                               deadline=deadline if ranks is None else None) or per)
+    if shrunk or compiling is not None:
+        left = agree(deadline - time.perf_counter())
+        fitted = fit_budget(cfg, per, max(left, 0.0))
+    if shrunk:
+        history["short_budget"] = {"scale": scale, "planned_joint_steps": int(fitted.joint_steps)}
+        say(plan.progress, short_budget_said(scale))
+    timings["calibrate_s"] = time.perf_counter() - t0
+    _run_plan_steps(plan, run, cfg, fitted, per, left, out_of_time)
+
+
+def _new_trainer(plan: RunPlan, run: _RunState, cfg: TrainConfig):
+    """A Trainer of ``cfg`` on the run's data, SDF pool, device and ranks."""
+    from neurogf_warp.training.trainer import Trainer
+
+    return Trainer(cfg, run.data, run.pool, plan.device, plan.ranks)
+
+
+def _run_plan_steps(plan: RunPlan, run: _RunState, cfg: TrainConfig, fitted: TrainConfig, per: dict, left: float,
+                    out_of_time: bool) -> None:
+    """The run's step counts (``fitted``'s, or the preset's where the budget only caps them), its Budget and the
+    verdict on the budget; ``left`` is the time left (s) that ``fitted`` was fitted to."""
+    history, budget_seconds = run.history, plan.request.get("budget_seconds")
+    cap = None
+    if not cfg.runtime.fill_budget:  # the preset's own steps, the budget only a cap
+        cap = cfg.joint_steps
+        history["planned_steps"] = cfg.stage_steps()
+        if fitted.joint_steps >= cfg.joint_steps:
+            fitted = cfg
+    cfg = run.cfg = fitted
+    trainer = run.trainer
+    trainer.cfg = cfg
+    trainer.steps = {s: 0 for s in STAGES} if out_of_time else cfg.stage_steps()
+    run.per = per
+    run.budget = None if out_of_time else Budget(cfg, run.deadline, per, cap=cap)  # its floor plan is one step
+    if plan.first:  # data-parallel: said once
+        history["budget_warning"] = budget_verdict(trainer.steps["joint"], max(left, 0.0) / budget_seconds,
+                                                   len(run.ds.gd_src), cfg.data.n_sources, plan.progress,
+                                                   kernels_s=run.timings["kernels_load_s"])
+
+
+def _save(plan: RunPlan, run: _RunState, stage_i: int, step: int, history: dict, elapsed: float) -> bool:
+    """Write the run's checkpoint at (stage ``stage_i``, ``step``); data-parallel: rank 0 alone writes."""
+    if not plan.first:
+        return False
+    spent = run.spent_before + time.perf_counter() - plan.t_call
+    return save_checkpoint({"version": CKPT_VERSION, "config": run.trainer.cfg.to_dict(), "request": plan.request,
+                            "fingerprint": plan.mesh.fingerprint, "stage": stage_i, "step": step,
+                            **run.trainer.state(), "history": history, "elapsed": elapsed, "spent_s": spent},
+                           plan.files.checkpoint)
+
+
+def _run_stages(plan: RunPlan, run: _RunState) -> None:
+    """The stages from the run's (stage, step) to the end (``loop.Runner``), with checkpoints on the way."""
+    runner = Runner(run.trainer, lambda *at: _save(plan, run, *at), plan.files.checkpoint, plan.progress,
+                    plan.callback, run.budget, run.chooser, plan.ranks)
     t0 = time.perf_counter()
     try:
-        stage_i, step, history, elapsed = run(stage_i, step, history, elapsed)
+        run.stage_i, run.step, run.history, run.elapsed = runner(run.stage_i, run.step, run.history, run.elapsed)
     except BaseException:
-        if heat is not None:
-            heat.close()
+        if run.heat is not None:
+            run.heat.close()
         raise
-    timings["steps_s"] = time.perf_counter() - t0
+    run.timings["steps_s"] = time.perf_counter() - t0
 
-    def finish():  # the verdict, the last checkpoint, the model file and the log
-        nonlocal heat_mre
-        if chooser is not None:
-            history["threads"] = chooser.chosen
-            say(progress and bool(chooser.chosen), "torch threads (timed fastest on the first steps): "
-                + ", ".join(f"{k} {v}" for k, v in chooser.chosen.items()))
-        estimate, heat_note = mre_estimate(*trainer.source_errors()), None
-        val_mre = estimate["mre"]
-        if heat is not None:  # wait for the heat method at most until the deadline
-            t0 = time.perf_counter()
-            heat_mre, heat_note = heat.mre(None if deadline is None else max(0.0, deadline - t0))
-            timings.update(heat_wait_s=time.perf_counter() - t0, heat_s=heat.seconds)
-            history["heat_mre"] = heat_mre
-        quality = final_verdict(val_mre, heat_mre, progress, heat_note, n_test=len(ds.test_src), estimate=estimate)
-        if "planned_steps" in history:  # fill_budget=False: did the budget cut the preset's steps?
-            planned = history["planned_steps"]
-            quality["budget_bound"] = any(trainer.steps[s] < planned[s] for s in STAGES)
-            if quality["budget_bound"]:
-                say(progress, f"note: the budget bound: {sum(trainer.steps.values()):,} of the preset's "
-                              f"{sum(planned.values()):,} steps ran (the machine was slower than the budget allows)")
-        history["quality"] = quality
-        # the checkpoint keeps the verdict too: a model file written again from it (lost or unreadable) says the same
-        save(stage_i, step, history, elapsed)
-        info = dict(trainer.cfg.to_dict(), steps=trainer.steps, train_seconds=round(elapsed, 2), **quality,
-                    budget_warning=history.get("budget_warning"))
-        model = save_model(trainer.net, trainer.querier, mesh, files.model, info)
-        call_s = time.perf_counter() - t_call
-        timings.update(call_s=call_s, spent_s=spent_before + call_s, budget_seconds=budget_seconds,
-                       calibrated_s_per_step=per)
-        _write_log(files, info, history, timings, key)
-        if "short_budget" in history:
-            say(progress, short_budget_done(history["short_budget"], trainer.steps["joint"]))
-        say(progress, f"saved {files.model} ({call_s:.0f} s; {trainer.steps['joint']:,} joint steps, "
-                      f"{sum(trainer.steps.values()):,} in all)")
-        over = spent_before + call_s - budget_seconds if budget_seconds else 0.0
-        if over > max(1.0, 0.02 * budget_seconds if budget_seconds else 0.0):
-            say(progress, f"the run took {over:.0f} s more than its {budget_seconds:g} s budget: loading, the held-out "
+
+def _run_finish(plan: RunPlan, run: _RunState):
+    """The verdict, the last checkpoint, the model file and the log; returns the saved Model."""
+    progress, trainer, history, timings = plan.progress, run.trainer, run.history, run.timings
+    budget_seconds, deadline, files, chooser = plan.request.get("budget_seconds"), run.deadline, plan.files, run.chooser
+    if chooser is not None:
+        history["threads"] = chooser.chosen
+        say(progress and bool(chooser.chosen), "torch threads (timed fastest on the first steps): "
+            + ", ".join(f"{k} {v}" for k, v in chooser.chosen.items()))
+    estimate, heat_note = mre_estimate(*trainer.source_errors()), None
+    val_mre = estimate["mre"]
+    if run.heat is not None:  # wait for the heat method at most until the deadline
+        t0 = time.perf_counter()
+        run.heat_mre, heat_note = run.heat.mre(None if deadline is None else max(0.0, deadline - t0))
+        timings.update(heat_wait_s=time.perf_counter() - t0, heat_s=run.heat.seconds)
+        history["heat_mre"] = run.heat_mre
+    quality = final_verdict(val_mre, run.heat_mre, progress, heat_note, n_test=len(run.ds.test_src),
+                            estimate=estimate)
+    if "planned_steps" in history:  # fill_budget=False: did the budget cut the preset's steps?
+        planned = history["planned_steps"]
+        quality["budget_bound"] = any(trainer.steps[s] < planned[s] for s in STAGES)
+        if quality["budget_bound"]:
+            say(progress, f"note: the budget bound: {sum(trainer.steps.values()):,} of the preset's "
+                          f"{sum(planned.values()):,} steps ran (the machine was slower than the budget allows)")
+    history["quality"] = quality
+    # the checkpoint keeps the verdict too: a model file written again from it (lost or unreadable) says the same
+    _save(plan, run, run.stage_i, run.step, history, run.elapsed)
+    info = dict(trainer.cfg.to_dict(), steps=trainer.steps, train_seconds=round(run.elapsed, 2), **quality,
+                budget_warning=history.get("budget_warning"))
+    model = save_model(trainer.net, trainer.querier, plan.mesh, files.model, info)
+    call_s = time.perf_counter() - plan.t_call
+    timings.update(call_s=call_s, spent_s=run.spent_before + call_s, budget_seconds=budget_seconds,
+                   calibrated_s_per_step=run.per)
+    _write_log(files, info, history, timings, plan.key)
+    if "short_budget" in history:
+        say(progress, short_budget_done(history["short_budget"], trainer.steps["joint"]))
+    say(progress, f"saved {files.model} ({call_s:.0f} s; {trainer.steps['joint']:,} joint steps, "
+                  f"{sum(trainer.steps.values()):,} in all)")
+    over = run.spent_before + call_s - budget_seconds if budget_seconds else 0.0
+    if over > max(1.0, 0.02 * budget_seconds if budget_seconds else 0.0):
+        say(progress, f"the run took {over:.0f} s more than its {budget_seconds:g} s budget: loading, the held-out "
                       "ground truth and saving take at least that long on this machine; give a larger budget_seconds "
                       "(--budget-seconds)")
-        return model
-
-    if ranks is None:
-        return finish()
-    model = ranks.on_first(finish, share=False)
-    if first:
-        return model
-    from neurogf_warp.model.files import load
-
-    return load(files.model)  # the file rank 0 wrote: the same model on every rank
+    return model
 
 
 def _existing_run(files: RunFiles, mesh, request: dict, resume: bool, force: bool, progress: bool):
