@@ -582,6 +582,32 @@ class _Plan:
     target_set: np.ndarray
 
 
+@dataclass
+class _Made:
+    """Phases 2-3's results, as ``_assemble`` stores them.
+
+    kept : (n,) ids of the distance sources with targets; rows : {"global", "local1", "local2": [(m, 7) float32]}
+    distance rows (p, q, d); gd_src : the distance sources solved; n_path_sources : path sources traced;
+    out_paths : {"global", "local": ((K, M, 3) points, (K,) source ids)}; test_dist : (T, V) held-out distances
+    (normalized units) and test_k their solver's k; complete : every source asked for was solved; stale, dropped :
+    path counts; timings : seconds per phase; proxy_meta, coarse : the proxy's and the coarse rows' records or None.
+    """
+
+    kept: object
+    rows: dict
+    gd_src: np.ndarray
+    n_path_sources: int
+    out_paths: dict
+    test_dist: np.ndarray
+    test_k: int
+    complete: bool
+    stale: int
+    dropped: int
+    timings: dict
+    proxy_meta: dict | None = None
+    coarse: dict | None = None
+
+
 def _spread_first(xyz: np.ndarray, ids: np.ndarray, k: int) -> np.ndarray:
     """``ids`` reordered so that its first ``k`` are spread by farthest-point sampling in space (starting at
     ``ids[0]``); the rest keep their order."""
@@ -944,8 +970,9 @@ def build_dataset(mesh, out_path=None, settings: DatasetSettings | None = None, 
     timings["paths_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     complete = solved == len(plan.gd_src) and n_path_done == plan.n_path_sources
-    ds = _assemble(m, st, seed, plan, kept, rows, gd_src, n_path_done, out_paths, held_out, test_k, complete,
-                   time_limit_s, stale, dropped, timings, proxy_meta, coarse)
+    made = _Made(kept, rows, gd_src, n_path_done, out_paths, held_out, test_k, complete, stale, dropped, timings,
+                 proxy_meta, coarse)
+    ds = _assemble(m, st, seed, plan, made, time_limit_s)
     if full and full.get("ids"):
         ds.full_src = np.asarray(full["ids"], np.int64)
         ds.full_dist = np.stack(full["rows"])
@@ -1021,28 +1048,28 @@ def _check_held_out_time(m: Mesh, st: DatasetSettings, device, time_limit_s: flo
         "fast_simplification) to a size this budget can train")
 
 
-def _assemble(m: Mesh, st: DatasetSettings, seed: int, plan: _Plan, kept, rows, gd_src, n_path_sources, out_paths,
-              test_dist, test_k: int, complete: bool, time_limit_s, stale: int, dropped: int, timings: dict,
-              proxy_meta: dict | None = None, coarse: dict | None = None) -> Dataset:
+def _assemble(m: Mesh, st: DatasetSettings, seed: int, plan: _Plan, made: _Made, time_limit_s) -> Dataset:
     """Phase 4: the Dataset and its meta (what was asked for, what was made, how long it took)."""
+    kept, rows, gd_src, out_paths = made.kept, made.rows, made.gd_src, made.out_paths
     meta = {
         "format_version": FORMAT_VERSION, "fingerprint": m.fingerprint, "n_input_vertices": m.n_input, "seed": seed,
         # what was asked for (before capping to the mesh): a cached dataset is reused only for the same request
         "requested": st.recipe(seed),
-        "settings": dict(dataclasses.asdict(st), n_sources=len(gd_src), n_path_sources=int(n_path_sources),
-                         n_test=int(len(plan.test_src)), test_k=int(test_k), n_spread=int(len(plan.spread)),
+        "settings": dict(dataclasses.asdict(st), n_sources=len(gd_src), n_path_sources=int(made.n_path_sources),
+                         n_test=int(len(plan.test_src)), test_k=int(made.test_k), n_spread=int(len(plan.spread)),
                          local_ball_vertices=plan.nball, path_delta=PATH_DELTA),
         # how sources, targets and paths are drawn: this module's docstring (format FORMAT_VERSION)
         "definitions": f"neurogf_warp.dataset.build, dataset format {FORMAT_VERSION}",
-        "complete": bool(complete), "time_limit_s": time_limit_s,
-        "sources_without_targets": int(len(gd_src) - len(kept)), "stale_paths": stale, "dropped_paths": dropped,
+        "complete": bool(made.complete), "time_limit_s": time_limit_s,
+        "sources_without_targets": int(len(gd_src) - len(kept)), "stale_paths": made.stale,
+        "dropped_paths": made.dropped,
         "components": int(m.n_components), "units": "normalized (unit sphere)",
         # the training sources' mesh when it was a proxy (dataset/proxy.py): its size, its measured error, kept
-        "proxy": proxy_meta,
+        "proxy": made.proxy_meta,
         # training rows from a coarser solver than the held-out rows: their measured bias and the scale applied
-        "coarse_rows": coarse,
+        "coarse_rows": made.coarse,
         "versions": {"warp": wp.config.version, "numpy": np.__version__},
-        "timings": timings,
+        "timings": made.timings,
     }
     return Dataset(
         vertices=m.internal_normalized_vertices.astype(np.float32), faces=m.internal_faces.astype(np.int32),
@@ -1051,5 +1078,5 @@ def _assemble(m: Mesh, st: DatasetSettings, seed: int, plan: _Plan, kept, rows, 
         gd_global=np.stack(rows["global"]), gd_local1=np.stack(rows["local1"]), gd_local2=np.stack(rows["local2"]),
         path_global=out_paths["global"][0], path_global_src=out_paths["global"][1],
         path_local=out_paths["local"][0], path_local_src=out_paths["local"][1],
-        test_src=plan.test_src.astype(np.int64), test_dist=test_dist, meta=meta,
+        test_src=plan.test_src.astype(np.int64), test_dist=made.test_dist, meta=meta,
     ).check()
