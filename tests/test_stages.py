@@ -51,3 +51,21 @@ def test_parameter_groups_and_modes_per_stage():
     assert [s for s in STAGES if STAGE_TABLE[s].weighted] == ["joint", "refine_dist"]
     assert [s for s in STAGES if STAGE_TABLE[s].hard_pairs] == ["joint", "refine_dist"]
     assert [s for s in STAGES if STAGE_TABLE[s].validates] == ["joint", "refine_dist"]
+
+
+def test_step_caps_and_thread_trials_come_from_the_table():
+    from neurogf_warp.training.budget import SLACK, ThreadChooser, fit_budget
+    from neurogf_warp.training.config import QUERIER_MAX
+    from neurogf_warp.training.presets import preset
+
+    assert ThreadChooser.STAGES_TIMED == ("joint", "refine_dist")
+    assert [s for s in STAGES if STAGE_TABLE[s].max_steps is not None] == ["querier"]
+    cfg = preset("default")
+    per = {"querier": 1e-3, "joint": 3e-3, "refine_dist": 1e-3, "refine_sdf": 3e-4, "refine_path": 1e-3}
+    for seconds in (20.0, 3600.0):  # the querier below its cap, then at it
+        steps = fit_budget(cfg, per, seconds).stage_steps()
+        j = steps["joint"]
+        assert steps["querier"] == min(max(1, round(RATIOS["querier"] * j)), QUERIER_MAX)
+        used = sum(per[s] * n for s, n in steps.items())
+        assert SLACK * seconds * 0.9 <= used <= SLACK * seconds * 1.01, (seconds, steps)  # whole epochs
+    assert fit_budget(cfg, per, 3600.0).stage_steps()["querier"] == QUERIER_MAX

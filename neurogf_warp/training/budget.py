@@ -13,6 +13,7 @@ import time
 
 from neurogf_warp.training.acceleration import GRAPH_WARMUP, sync
 from neurogf_warp.training.config import STAGES, TrainConfig
+from neurogf_warp.training.stages import STAGE_TABLE
 
 __all__ = ["calibrate", "ThreadChooser", "fit_budget", "Budget", "short_budget_said", "short_budget_done"]
 
@@ -63,7 +64,7 @@ class ThreadChooser:
     machine; here a step is never wasted.
     """
 
-    STAGES_TIMED = ("joint", "refine_dist")  # the stages whose steps fill a CPU run (1 and 10 per joint step)
+    STAGES_TIMED = tuple(n for n, s in STAGE_TABLE.items() if s.thread_trial)  # the stages that fill a CPU run
     MIN_STEPS = 100  # shorter stages stay at the count in use (one thread at first)
 
     def __init__(self, warm: int = 1, timed: int = 5, retry_s: float = 30.0):
@@ -172,16 +173,17 @@ def fit_budget(cfg: TrainConfig, per_step: dict, seconds: float) -> TrainConfig:
     """A copy of ``cfg`` whose joint steps (other stages by their ratios) fill ``SLACK`` x ``seconds``, given
     the seconds per step of each stage."""
     fixed = sum(per_step[s] * cfg.explicit_steps(s) for s in STAGES if cfg.explicit_steps(s) is not None)
-    scaled = [s for s in STAGES if cfg.explicit_steps(s) is None and s != "querier"]
-    per_joint = sum(per_step[s] * cfg.ratio(s) for s in scaled)
+    free = [s for s in STAGES if cfg.explicit_steps(s) is None]
+    capped = [s for s in free if STAGE_TABLE[s].max_steps is not None]  # ratio x joint steps up to a cap
+    per_joint = sum(per_step[s] * cfg.ratio(s) for s in free if s not in capped)
     avail = SLACK * seconds - fixed
     joint = avail / per_joint
-    if cfg.schedule.querier_steps is None:  # ratio x joint querier steps, capped
-        from neurogf_warp.training.config import QUERIER_MAX
-
-        joint = avail / (per_joint + cfg.ratio("querier") * per_step["querier"])
-        if cfg.ratio("querier") * joint > QUERIER_MAX:
-            joint = (avail - per_step["querier"] * QUERIER_MAX) / per_joint
+    if capped:
+        joint = avail / (per_joint + sum(cfg.ratio(s) * per_step[s] for s in capped))
+        over = [s for s in capped if cfg.ratio(s) * joint > STAGE_TABLE[s].max_steps]
+        if over:  # those stages at their caps (one pass: a stage the new count pushes over stays a little short)
+            joint = (avail - sum(per_step[s] * STAGE_TABLE[s].max_steps for s in over)) / (
+                per_joint + sum(cfg.ratio(s) * per_step[s] for s in capped if s not in over))
     joint = max(1, int(joint))  # a budget too small for even this is said so (training.quality)
     sched = cfg.schedule
     epochs = max(1, joint // sched.iters_per_epoch)

@@ -17,16 +17,15 @@ from dataclasses import dataclass, field
 from neurogf_warp.common.checks import InputError, integer
 from neurogf_warp.dataset.build import DatasetSettings
 from neurogf_warp.model.network import MAX_FOURIER, MAX_HASH_LEVELS, MAX_LANDMARKS, NORMS, SUPPORTED_D, NeuroGFNet
-from neurogf_warp.training.stages import STAGE_TABLE
+from neurogf_warp.training.stages import QUERIER_MAX, STAGE_TABLE
 
 __all__ = ["TrainConfig", "NetworkConfig", "ScheduleConfig", "BatchConfig", "RuntimeConfig", "DatasetSettings",
            "STAGES", "RATIOS", "QUERIER_MAX", "DIST_LOSSES", "parse_assignments"]
 
 # the stages in run order; what each one does is its entry in stages.STAGE_TABLE
 STAGES = tuple(STAGE_TABLE)
-# default steps of each stage per joint step (an explicit <stage>_steps overrides; querier capped, below)
+# default steps of each stage per joint step (an explicit <stage>_steps overrides; Stage.max_steps caps)
 RATIOS = {name: s.ratio for name, s in STAGE_TABLE.items()}
-QUERIER_MAX = 4000  # default querier steps: 0.25 x joint steps, at most this (it only guides the surface term)
 DIST_LOSSES = ("l1", "relative_global")
 # settings of older versions that did not improve training, with the value that meant "off":
 # old configs that carry that value still load; any other value is refused
@@ -254,14 +253,15 @@ class TrainConfig:
         return None if stage == "joint" else getattr(self.schedule, f"{stage}_steps")
 
     def stage_steps(self, joint: int | None = None) -> dict:
-        """{stage: steps}: explicit counts, else ratio x joint steps (querier at most QUERIER_MAX)."""
+        """{stage: steps}: explicit counts, else ratio x joint steps (at most the stage's ``max_steps``)."""
         j, out = self.joint_steps if joint is None else int(joint), {}
         for stage in STAGES:
             n = j if stage == "joint" else self.explicit_steps(stage)
             if n is None:
                 n = max(1 if self.ratio(stage) > 0 else 0, int(round(self.ratio(stage) * j)))
-                if stage == "querier":
-                    n = min(n, QUERIER_MAX)
+                cap = STAGE_TABLE[stage].max_steps
+                if cap is not None:
+                    n = min(n, cap)
             out[stage] = int(n)
         return out
 

@@ -8,7 +8,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["Stage", "STAGE_TABLE", "DRAWS"]
+__all__ = ["Stage", "STAGE_TABLE", "DRAWS", "QUERIER_MAX"]
+
+QUERIER_MAX = 4000  # default querier steps: 0.25 x joint steps, at most this (it only guides the surface term)
 
 # the batch parts a step can draw, in the order ``Stage.draws`` lists them (``Trainer.draw``):
 #   sdf           SDF points and values from the pool, ``batch_sdf`` of them
@@ -36,6 +38,9 @@ class Stage:
     hard_pairs : a share ``hard_share`` of the distance rows comes from the hard-pair pool
     validates : the held-out MRE is measured every ``val_every`` steps and at the stage's end
     ratio : default steps per joint step (``config.RATIOS``; ``ratios`` and ``<name>_steps`` override it)
+    max_steps : a cap on the default (ratio) step count, or None
+    thread_trial : on a CPU, the thread counts are tried on this stage's first steps (``budget.ThreadChooser``):
+        the stages whose steps fill a CPU run
     """
 
     name: str
@@ -48,18 +53,21 @@ class Stage:
     hard_pairs: bool = False
     validates: bool = False
     ratio: float = 1.0
+    max_steps: int | None = None
+    thread_trial: bool = False
 
 
 # The reference's stages (§3-§5) and refine_dist (trainer.py's docstring says why each is as it is).
 # refine_dist trains in eval mode: eval-mode BN is a fixed affine map, exactly what inference computes.
 _STAGES = (
     Stage("querier", trains=("querier",), train_mode=True, lr="lr", draws=("querier_sdf",),
-          loss="_loss_querier", ratio=0.25),
+          loss="_loss_querier", ratio=0.25, max_steps=QUERIER_MAX),
     Stage("joint", trains=("net",), train_mode=True, lr="lr",
           draws=("sdf", "distances", "paths_global", "paths_local"), loss="_loss_joint",
-          weighted=True, hard_pairs=True, validates=True, ratio=1.0),
+          weighted=True, hard_pairs=True, validates=True, ratio=1.0, thread_trial=True),
     Stage("refine_dist", trains=("net.lifting", "net.gdf_head"), train_mode=False, lr="refine_dist_lr",
-          draws=("distances",), loss="_loss_refine_dist", weighted=True, hard_pairs=True, validates=True, ratio=1.0),
+          draws=("distances",), loss="_loss_refine_dist", weighted=True, hard_pairs=True, validates=True, ratio=1.0,
+          thread_trial=True),
     Stage("refine_sdf", trains=("net.sdf_head",), train_mode=True, lr="refine_lr", draws=("querier_sdf",),
           loss="_loss_refine_sdf", ratio=0.1),
     Stage("refine_path", trains=("net.cdw_fc", "net.spf_head"), train_mode=True, lr="refine_path_lr",
