@@ -455,9 +455,9 @@ class RunPlan:
     dataset: object
     device: "torch.device"
     progress: bool
-    callback: object = None
-    t_call: float = 0.0
-    key: dict | None = None
+    callback: object
+    t_call: float
+    key: dict | None
     devices: list | None = None
     ranks: object = None
 

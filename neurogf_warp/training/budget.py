@@ -177,13 +177,14 @@ def fit_budget(cfg: TrainConfig, per_step: dict, seconds: float) -> TrainConfig:
     capped = [s for s in free if STAGE_TABLE[s].max_steps is not None]  # ratio x joint steps up to a cap
     per_joint = sum(per_step[s] * cfg.ratio(s) for s in free if s not in capped)
     avail = SLACK * seconds - fixed
-    joint = avail / per_joint
-    if capped:
-        joint = avail / (per_joint + sum(cfg.ratio(s) * per_step[s] for s in capped))
-        over = [s for s in capped if cfg.ratio(s) * joint > STAGE_TABLE[s].max_steps]
-        if over:  # those stages at their caps (one pass: a stage the new count pushes over stays a little short)
-            joint = (avail - sum(per_step[s] * STAGE_TABLE[s].max_steps for s in over)) / (
-                per_joint + sum(cfg.ratio(s) * per_step[s] for s in capped if s not in over))
+    at_cap = []  # capped stages whose ratio x joint steps pass their cap: they cost their cap's time instead
+    while True:
+        joint = (avail - sum(per_step[s] * STAGE_TABLE[s].max_steps for s in at_cap)) / (
+            per_joint + sum(cfg.ratio(s) * per_step[s] for s in capped if s not in at_cap))
+        over = [s for s in capped if s not in at_cap and cfg.ratio(s) * joint > STAGE_TABLE[s].max_steps]
+        if not over:
+            break
+        at_cap += over
     joint = max(1, int(joint))  # a budget too small for even this is said so (training.quality)
     sched = cfg.schedule
     epochs = max(1, joint // sched.iters_per_epoch)
