@@ -59,6 +59,7 @@ VARIANTS = {
     "landmarks_nofloor": {"landmarks": "scaled", "landmark_floor": 0.0},  # the landmarks only as the head's inputs
     "landmarks_bracket": {"landmarks": "scaled", "landmark_bracket": True},  # between the landmarks' two bounds
     "landmarks_bracket256": {"landmarks": 256, "landmark_bracket": True},  # the same, twice the landmarks below 100K
+    "no_graphs": {"cuda_graph": False},  # today's network with eager CUDA steps: no graph captures in the set-up
 }
 COMMON = {"compile": False}
 os.environ["NEUROGF_BAKEOFF_DESIGNS"] = "1"  # the designs the package refuses for users (no inference backend reads them)
@@ -178,7 +179,9 @@ def run_row(ngf, name: str, budget: float, variant: str, a, work: Path, repeat: 
         row.update(mre=err.get("mre"), p99=err.get("p99_rel"), max=err.get("max_rel"), median=err.get("median_rel"),
                    pairs=err.get("pairs"), nonfinite=err.get("nonfinite"), steps=steps,
                    ms_per_step={k: 1e3 * v for k, v in per.items()}, steps_s=t.get("steps_s"),
-                   dataset_s=t.get("dataset_s"), calibrate_s=t.get("calibrate_s"), sources=log["history"].get("sources"),
+                   dataset_s=t.get("dataset_s"), calibrate_s=t.get("calibrate_s"),
+                   set_up={k: t.get(k) for k in ("dataset_phases", "kernels_load_s", "sdf_pool_s", "calibrate_rounds")},
+                   sources=log["history"].get("sources"),
                    batch_scale=log["history"].get("batch_scale"), validation_mre=cfg.get("validation_mre"),
                    validation_heat_mre=cfg.get("heat_mre"), params=params, model_mb=4 * params / 2**20,
                    table_mb=table_mb,

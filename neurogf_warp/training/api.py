@@ -381,14 +381,19 @@ def _warn_again(model) -> None:
         warnings.warn(msg, ModelQualityWarning, stacklevel=4)
 
 
-def _calibrate(trainer, cfg: TrainConfig, dev, n: int, deadline: float | None = None) -> dict | None:
+def _calibrate(trainer, cfg: TrainConfig, dev, n: int, rounds: list, deadline: float | None = None) -> dict | None:
     """Seconds per step of each stage, timed with the run's own TF32 setting; None when ``deadline`` (a
-    ``time.perf_counter()`` value) passed before the timing was done."""
+    ``time.perf_counter()`` value) passed before the timing was done. Appends the round's per-stage warm-up and
+    step seconds to ``rounds`` (the run log's ``timings["calibrate_rounds"]``)."""
     from neurogf_warp.training.acceleration import set_tf32
 
     tf32 = set_tf32(cfg.runtime.tf32) if dev.type == "cuda" else None
+    warm = {}
     try:
-        return calibrate(trainer, n=n, give_up_s=None if deadline is None else max(0.0, deadline - time.perf_counter()))
+        per = calibrate(trainer, n=n, give_up_s=None if deadline is None else max(0.0, deadline - time.perf_counter()),
+                        warm_s=warm)
+        rounds.append({"n": n, "warm_s": warm, "per_step_s": per})
+        return per
     finally:
         if tf32 is not None:
             set_tf32(tf32)
@@ -636,8 +641,9 @@ def _run_fit_budget(plan: RunPlan, run: _RunState, plan_compile: bool) -> None:
     # steps, the untrained model is saved, and the warnings say why
     out_of_time = agree(deadline <= time.perf_counter())
     # data-parallel: every rank times the same steps (they all-reduce), none giving up alone
+    rounds = timings["calibrate_rounds"] = []
     per = None if out_of_time else agree(_calibrate(run.trainer, cfg, dev, n=20 if run.trainer.graphs else 2,
-                                                    deadline=deadline if ranks is None else None))
+                                                    rounds=rounds, deadline=deadline if ranks is None else None))
     out_of_time = per is None
     if out_of_time:
         per = {s: float(budget_seconds) for s in STAGES}
@@ -659,11 +665,11 @@ def _run_fit_budget(plan: RunPlan, run: _RunState, plan_compile: bool) -> None:
 
         run.trainer.compile_losses(True)
         t1 = time.perf_counter()
-        per = agree(_calibrate(run.trainer, cfg, dev, n=20))
+        per = agree(_calibrate(run.trainer, cfg, dev, n=20, rounds=rounds))
         if plan.first:
             record_compile(compiling, time.perf_counter() - t1, warm=timings["compile"]["cached"])
     elif shrunk:  # timed again at the smaller batches; the full batches' times if the budget ends first
-        per = agree(_calibrate(run.trainer, cfg, dev, n=8 if run.trainer.graphs else 2,
+        per = agree(_calibrate(run.trainer, cfg, dev, n=8 if run.trainer.graphs else 2, rounds=rounds,
                                deadline=deadline if ranks is None else None) or per)
     if shrunk or compiling is not None:
         left = agree(deadline - time.perf_counter())

@@ -20,9 +20,11 @@ __all__ = ["calibrate", "ThreadChooser", "fit_budget", "Budget", "short_budget_s
 SLACK = 0.95  # share of the time left that the initial plan fills (the loop itself: logging, validation)
 
 
-def calibrate(trainer, n: int = 6, stages=STAGES, give_up_s: float | None = None) -> dict | None:
+def calibrate(trainer, n: int = 6, stages=STAGES, give_up_s: float | None = None,
+              warm_s: dict | None = None) -> dict | None:
     """Seconds per step of each of ``stages``, timed on the trainer itself; its state is restored afterwards.
-    With ``give_up_s``, None once the timing (warm-up included) has taken longer than that.
+    With ``give_up_s``, None once the timing (warm-up included) has taken longer than that. ``warm_s``, if
+    given, receives each stage's untimed warm-up seconds (first steps, CUDA graph capture).
 
     (In place rather than on a copy: compiled loss functions are then compiled once, for the real run.)
     """
@@ -35,10 +37,13 @@ def calibrate(trainer, n: int = 6, stages=STAGES, give_up_s: float | None = None
     try:
         for stage in stages:
             trainer.set_modes(stage)
+            t_warm = time.perf_counter()
             for i in range(n + warm):
                 if i == warm:
                     sync(trainer.device)
                     t0 = time.perf_counter()
+                    if warm_s is not None:
+                        warm_s[stage] = t0 - t_warm
                 trainer.step(stage, 0)
                 if give_up_s is not None and time.perf_counter() - start > give_up_s:
                     return None
