@@ -4,7 +4,7 @@ from __future__ import annotations
 import importlib
 import time
 
-__all__ = ["lazy_exports", "call_started", "import_in_background", "join_background_imports"]
+__all__ = ["lazy_exports", "call_started"]
 
 # name -> (start, end) perf_counter seconds of its first-use import: ``ngf.train(...)`` imports torch and the
 # training stages (1.5 s on a warm 2-core machine, ~7 s on a fresh GPU machine) before the call itself begins
@@ -40,36 +40,3 @@ def lazy_exports(package: str, exports: dict, namespace: dict, listed=()):
         return sorted(set(namespace) | set(exports) | set(listed))
 
     return __getattr__, __dir__
-
-
-_BACKGROUND = []  # threads of import_in_background not yet joined
-
-
-def import_in_background(*modules: str) -> None:
-    """Import ``modules`` on a daemon thread, so that a later import of them in the caller's thread finds them
-    loaded. Modules already imported are skipped; an import error is left to the caller's own import, which
-    raises it. ``join_background_imports`` waits for the thread (call it before the code that needs them, so
-    that the two threads never import the same modules at once)."""
-    import sys
-    import threading
-
-    todo = [m for m in modules if m not in sys.modules]
-    if not todo:
-        return
-
-    def load():
-        for m in todo:
-            try:
-                importlib.import_module(m)
-            except Exception:  # the caller's own import reports it
-                return
-
-    thread = threading.Thread(target=load, name="neurogf-imports", daemon=True)
-    thread.start()
-    _BACKGROUND.append(thread)
-
-
-def join_background_imports() -> None:
-    """Wait for every ``import_in_background`` thread started so far."""
-    while _BACKGROUND:
-        _BACKGROUND.pop().join()

@@ -144,13 +144,10 @@ def train(mesh, out: str | os.PathLike, *, config: TrainConfig | str | None = No
     method's MRE, or a budget predicted too small before the steps start, gives a ``ModelQualityWarning``.
     """
     from neurogf_warp.common.clock import budget_start
-    from neurogf_warp.common.lazy import call_started, import_in_background
+    from neurogf_warp.common.lazy import call_started
 
     # a fresh process's import of this stage counts too; on the command line, everything since the process began
     t_call = budget_start(call_started("train", time.perf_counter()))
-    # torch's optimizers import torch._dynamo on first use: 4-5 s on a fresh GPU machine, most of a 10 s budget's
-    # set-up; loaded while the mesh is checked and the ground truth solved, the first step no longer waits for it
-    import_in_background("torch._dynamo")
     budget_seconds = check_budget(budget_seconds)
     if distributed:
         from neurogf_warp.training.trainer import Ranks
@@ -583,10 +580,7 @@ def _run_set_up(plan: RunPlan, run: _RunState) -> None:
     budget; then the history's record of the set-up."""
     import torch
 
-    from neurogf_warp.common.lazy import join_background_imports
-
     cfg, dev, ds = run.cfg, plan.device, run.ds
-    join_background_imports()  # torch._dynamo (``train``): loaded before the optimizers need it
     run.trainer = _new_trainer(plan, run, cfg)
     if dev.type == "cpu" and cfg.runtime.threads == 0:
         run.chooser = ThreadChooser()  # the thread count is chosen on the first steps of the main stages
