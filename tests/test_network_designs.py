@@ -198,6 +198,38 @@ def test_landmark_bracket_keeps_the_output_between_the_bounds():
     torch.testing.assert_close(far, ref, rtol=1e-5, atol=1e-6)
 
 
+def test_landmark_bracket_log_is_geometric_between_the_bounds():
+    """landmark_bracket_log: floor x (upper / floor) ** sigmoid(head), against float64; the same pair gives 0 and a
+    finite gradient; the form needs the bracket."""
+    torch.manual_seed(9)
+    xyz = torch.rand(120, 3) * 2 - 1
+    table = torch.rand(120, 8) * 3
+    net = NeuroGFNet(64, landmarks=8, landmark_bracket=True, landmark_bracket_log=True, **OPTS).eval()
+    net.landmark_table.set_table(xyz, table)
+    assert net.options["landmark_bracket_log"] is True
+    assert "landmark_bracket_log" not in NeuroGFNet(64, landmarks=8, landmark_bracket=True, **OPTS).options
+    i, j = torch.randint(0, 120, (64,)), torch.randint(0, 120, (64,))
+    j[:4] = i[:4]  # p = q
+    with torch.no_grad():
+        d = net.distance(xyz[i], xyz[j]).double()
+        es, et = net.embed(xyz[i]), net.embed(xyz[j])
+    tp, tq = table[i].double(), table[j].double()
+    lower, upper = (tp - tq).abs().max(-1).values, (tp + tq).min(-1).values
+    floor = torch.maximum((xyz[i] - xyz[j]).double().norm(dim=-1), lower)
+    top = torch.maximum(upper, floor)
+    h = torch.cat([(es - et).abs(), (tp - tq).abs().float(), lower[:, None].float(), upper[:, None].float()], -1)
+    with torch.no_grad():
+        s = torch.sigmoid(net.gdf_head(h).squeeze(-1).double())
+    ref = torch.where(floor > 0, floor.clamp(min=1e-300) ** (1 - s) * top ** s, floor)
+    torch.testing.assert_close(d, ref, rtol=1e-5, atol=1e-6)
+    assert bool((d[:4] == 0).all()) and bool(((d >= floor - 1e-6) & (d <= top + 1e-6)).all())
+    p = xyz[i].clone().requires_grad_(True)
+    net.distance(p, xyz[j]).sum().backward()
+    assert bool(torch.isfinite(p.grad).all())
+    with pytest.raises(InputError, match="landmark_bracket_log"):
+        NeuroGFNet(64, landmarks=8, landmark_bracket_log=True, **OPTS)
+
+
 def test_settings_reach_the_network_and_bad_values_are_refused(monkeypatch):
     with pytest.raises(ValueError, match="training-time designs"):
         TrainConfig().set(norm="none", D=64)

@@ -21,7 +21,8 @@ Seven options (not in the paper; all off reproduces it exactly, and released che
                 (``Landmarks``): |T(p) - T(q)| per landmark and the triangle-inequality bounds, and the straight
                 line under the head's output becomes max(|p - q|, lower bound) (vertex queries only);
                 ``landmark_floor`` scales that bound, ``landmark_bracket`` puts the output between it and the upper
-                bound (floor + sigmoid(head) x (upper - floor)).
+                bound (floor + sigmoid(head) x (upper - floor); with ``landmark_bracket_log``,
+                floor x (upper / floor) ** sigmoid(head)).
 The last three are training-time designs: model files and the Warp inference engine support only the first five.
 """
 from __future__ import annotations
@@ -233,7 +234,8 @@ class NeuroGFNet(nn.Module):
 
     def __init__(self, D: int = 256, fourier: int = 0, euclid: bool = False, path_residual: bool = False,
                  path_width: int = 1, path_window: bool = False, norm: str = "batch", hash_levels: int = 0,
-                 landmarks: int = 0, landmark_floor: float = 1.0, landmark_bracket: bool = False):
+                 landmarks: int = 0, landmark_floor: float = 1.0, landmark_bracket: bool = False,
+                 landmark_bracket_log: bool = False):
         super().__init__()
         w = widths(D, path_width)
         if not (isinstance(fourier, int) and 0 <= fourier <= MAX_FOURIER):
@@ -251,6 +253,9 @@ class NeuroGFNet(nn.Module):
             raise InputError(f"landmark_floor must be a number in 0..1 (0: no floor), got {landmark_floor!r}")
         self.norm, self.hash_levels, self.landmarks = norm, hash_levels, landmarks
         self.landmark_floor, self.landmark_bracket = float(landmark_floor), bool(landmark_bracket)
+        if landmark_bracket_log and not landmark_bracket:
+            raise InputError("landmark_bracket_log sets the form of the bracket: it needs landmark_bracket=True")
+        self.landmark_bracket_log = bool(landmark_bracket_log)
         if self.path_window and not self.path_residual:
             raise InputError("path_window scales the path offsets: it needs path_residual=True")
         lw = [3 + 6 * fourier] + w["lifting"][1:]
@@ -285,6 +290,8 @@ class NeuroGFNet(nn.Module):
                 out["landmark_floor"] = self.landmark_floor
             if self.landmark_bracket:
                 out["landmark_bracket"] = True
+            if self.landmark_bracket_log:
+                out["landmark_bracket_log"] = True
         return out
 
     def path_output(self, out: torch.Tensor, lines: torch.Tensor) -> torch.Tensor:
@@ -317,7 +324,13 @@ class NeuroGFNet(nn.Module):
             e = torch.linalg.vector_norm(p - q, dim=-1)
             floor = torch.maximum(e, self.landmark_floor * lower)
             if self.landmark_bracket:  # the head picks a point between the floor and the upper bound
-                inside = floor + torch.sigmoid(d) * (torch.maximum(upper, floor) - floor)
+                top = torch.maximum(upper, floor)
+                if self.landmark_bracket_log:  # geometric: a head error costs the same relative error at any scale
+                    fl = torch.clamp(floor, min=1e-12)  # p = q: floor 0, kept 0 below
+                    inside = fl * torch.exp(torch.sigmoid(d) * (torch.log(torch.clamp(top, min=1e-12)) - torch.log(fl)))
+                    inside = torch.where(floor > 0, inside, floor)
+                else:
+                    inside = floor + torch.sigmoid(d) * (top - floor)
                 # a piece without landmarks (every entry unreached): the head on |p - q|, as the default network
                 return torch.where(upper >= 2 * LANDMARK_UNREACHED, e + d, inside)
             if self.euclid:  # under the head: |p - q|, raised to landmark_floor x the landmarks' lower bound
