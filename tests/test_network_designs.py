@@ -162,6 +162,20 @@ def test_landmark_floor_scales_the_bound_under_the_output(floor):
         NeuroGFNet(64, landmarks=8, landmark_floor=1.5, **OPTS)
 
 
+def _bracket_parts(net, xyz, table, i, j):
+    """(distances, floor, top, head output) of a bracket network's pairs (i, j), the bounds in float64."""
+    with torch.no_grad():
+        d = net.distance(xyz[i], xyz[j]).double()
+        es, et = net.embed(xyz[i]), net.embed(xyz[j])
+    tp, tq = table[i].double(), table[j].double()
+    lower, upper = (tp - tq).abs().max(-1).values, (tp + tq).min(-1).values
+    floor = torch.maximum((xyz[i] - xyz[j]).double().norm(dim=-1), lower)
+    h = torch.cat([(es - et).abs(), (tp - tq).abs().float(), lower[:, None].float(), upper[:, None].float()], -1)
+    with torch.no_grad():
+        head = net.gdf_head(h).squeeze(-1).double()
+    return d, floor, torch.maximum(upper, floor), head
+
+
 def test_landmark_bracket_keeps_the_output_between_the_bounds():
     """landmark_bracket: floor + sigmoid(head) x (upper - floor) in float64, so never outside the landmarks' two
     bounds; a point pair on a piece without landmarks (every entry unreached) gets |p - q| + head."""
@@ -176,17 +190,8 @@ def test_landmark_bracket_keeps_the_output_between_the_bounds():
     assert net.options["landmark_bracket"] is True
     assert "landmark_bracket" not in NeuroGFNet(64, landmarks=8, **OPTS).options
     i, j = torch.randint(0, 150, (64,)), torch.randint(0, 150, (64,))
-    with torch.no_grad():
-        d = net.distance(xyz[i], xyz[j]).double()
-        es, et = net.embed(xyz[i]), net.embed(xyz[j])
-    tp, tq = table[i].double(), table[j].double()
-    lower, upper = (tp - tq).abs().max(-1).values, (tp + tq).min(-1).values
-    floor = torch.maximum((xyz[i] - xyz[j]).double().norm(dim=-1), lower)
-    top = torch.maximum(upper, floor)
+    d, floor, top, head = _bracket_parts(net, xyz, table, i, j)
     assert bool(((d >= floor - 1e-6) & (d <= top + 1e-6)).all())
-    h = torch.cat([(es - et).abs(), (tp - tq).abs().float(), lower[:, None].float(), upper[:, None].float()], -1)
-    with torch.no_grad():
-        head = net.gdf_head(h).squeeze(-1).double()
     torch.testing.assert_close(d, floor + torch.sigmoid(head) * (top - floor), rtol=1e-5, atol=1e-6)
     k, m = torch.randint(150, 200, (16,)), torch.randint(150, 200, (16,))
     with torch.no_grad():
@@ -210,16 +215,8 @@ def test_landmark_bracket_log_is_geometric_between_the_bounds():
     assert "landmark_bracket_log" not in NeuroGFNet(64, landmarks=8, landmark_bracket=True, **OPTS).options
     i, j = torch.randint(0, 120, (64,)), torch.randint(0, 120, (64,))
     j[:4] = i[:4]  # p = q
-    with torch.no_grad():
-        d = net.distance(xyz[i], xyz[j]).double()
-        es, et = net.embed(xyz[i]), net.embed(xyz[j])
-    tp, tq = table[i].double(), table[j].double()
-    lower, upper = (tp - tq).abs().max(-1).values, (tp + tq).min(-1).values
-    floor = torch.maximum((xyz[i] - xyz[j]).double().norm(dim=-1), lower)
-    top = torch.maximum(upper, floor)
-    h = torch.cat([(es - et).abs(), (tp - tq).abs().float(), lower[:, None].float(), upper[:, None].float()], -1)
-    with torch.no_grad():
-        s = torch.sigmoid(net.gdf_head(h).squeeze(-1).double())
+    d, floor, top, head = _bracket_parts(net, xyz, table, i, j)
+    s = torch.sigmoid(head)
     ref = torch.where(floor > 0, floor.clamp(min=1e-300) ** (1 - s) * top ** s, floor)
     torch.testing.assert_close(d, ref, rtol=1e-5, atol=1e-6)
     assert bool((d[:4] == 0).all()) and bool(((d >= floor - 1e-6) & (d <= top + 1e-6)).all())
