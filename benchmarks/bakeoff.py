@@ -60,6 +60,7 @@ VARIANTS = {
     "landmarks_bracket": {"landmarks": "scaled", "landmark_bracket": True},  # between the landmarks' two bounds
     "landmarks_bracket256": {"landmarks": 256, "landmark_bracket": True},  # the same, twice the landmarks below 100K
     "landmarks_bracket256_log": {"landmarks": 256, "landmark_bracket": True, "landmark_bracket_log": True},  # geometric
+    "landmarks_bracket256_pair": {"landmarks": 256, "landmark_bracket": True, "landmark_pair_inputs": True},
     "no_graphs": {"cuda_graph": False},  # today's network with eager CUDA steps: no graph captures in the set-up
 }
 COMMON = {"compile": False}

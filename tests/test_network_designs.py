@@ -227,6 +227,34 @@ def test_landmark_bracket_log_is_geometric_between_the_bounds():
         NeuroGFNet(64, landmarks=8, landmark_bracket_log=True, **OPTS)
 
 
+def test_landmark_pair_inputs_reach_the_head():
+    """landmark_pair_inputs: the head's input also holds |p - q| and log(upper / floor) (capped), in that order."""
+    from neurogf_warp.model.network import LANDMARK_WIDTH_MAX
+
+    torch.manual_seed(10)
+    xyz = torch.rand(100, 3) * 2 - 1
+    table = torch.rand(100, 8) * 3
+    net = NeuroGFNet(64, landmarks=8, landmark_bracket=True, landmark_pair_inputs=True, **OPTS).eval()
+    net.landmark_table.set_table(xyz, table)
+    assert net.options["landmark_pair_inputs"] is True
+    seen = []
+    net.gdf_head.register_forward_hook(lambda m, args, out: seen.append(args[0]))
+    i, j = torch.arange(0, 50), torch.arange(50, 100)
+    j[0] = i[0]  # p = q: the width input is capped
+    with torch.no_grad():
+        net.distance(xyz[i], xyz[j])
+    h = seen[-1].double()
+    tp, tq = table[i].double(), table[j].double()
+    lower, upper = (tp - tq).abs().max(-1).values, (tp + tq).min(-1).values
+    e = (xyz[i] - xyz[j]).double().norm(dim=-1)
+    width = torch.log(upper) - torch.log(torch.maximum(e, lower).clamp(min=1e-12))
+    torch.testing.assert_close(h[:, -2], e, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(h[:, -1], width.clamp(max=LANDMARK_WIDTH_MAX), rtol=1e-5, atol=1e-5)
+    assert h[0, -1] == LANDMARK_WIDTH_MAX
+    with pytest.raises(InputError, match="landmark_pair_inputs"):
+        NeuroGFNet(64, landmark_pair_inputs=True, **OPTS)
+
+
 def test_settings_reach_the_network_and_bad_values_are_refused(monkeypatch):
     with pytest.raises(ValueError, match="training-time designs"):
         TrainConfig().set(norm="none", D=64)

@@ -22,7 +22,8 @@ Seven options (not in the paper; all off reproduces it exactly, and released che
                 line under the head's output becomes max(|p - q|, lower bound) (vertex queries only);
                 ``landmark_floor`` scales that bound, ``landmark_bracket`` puts the output between it and the upper
                 bound (floor + sigmoid(head) x (upper - floor); with ``landmark_bracket_log``,
-                floor x (upper / floor) ** sigmoid(head)).
+                floor x (upper / floor) ** sigmoid(head)); ``landmark_pair_inputs`` also gives the head |p - q| and
+                log(upper / floor).
 The last three are training-time designs: model files and the Warp inference engine support only the first five.
 """
 from __future__ import annotations
@@ -42,6 +43,7 @@ MAX_FOURIER = 8
 NORMS = ("batch", "none")
 MAX_HASH_LEVELS = 16
 MAX_LANDMARKS = 256
+LANDMARK_WIDTH_MAX = 8.0  # log(upper / floor) as a head input stops here (p = q; pieces no landmark reaches)
 LANDMARK_UNREACHED = 4.0  # a landmark table's entry across components (+inf): the normalized mesh fits the unit sphere
 
 
@@ -235,7 +237,7 @@ class NeuroGFNet(nn.Module):
     def __init__(self, D: int = 256, fourier: int = 0, euclid: bool = False, path_residual: bool = False,
                  path_width: int = 1, path_window: bool = False, norm: str = "batch", hash_levels: int = 0,
                  landmarks: int = 0, landmark_floor: float = 1.0, landmark_bracket: bool = False,
-                 landmark_bracket_log: bool = False):
+                 landmark_bracket_log: bool = False, landmark_pair_inputs: bool = False):
         super().__init__()
         w = widths(D, path_width)
         if not (isinstance(fourier, int) and 0 <= fourier <= MAX_FOURIER):
@@ -256,6 +258,9 @@ class NeuroGFNet(nn.Module):
         if landmark_bracket_log and not landmark_bracket:
             raise InputError("landmark_bracket_log sets the form of the bracket: it needs landmark_bracket=True")
         self.landmark_bracket_log = bool(landmark_bracket_log)
+        if landmark_pair_inputs and not landmarks:
+            raise InputError("landmark_pair_inputs adds inputs to the landmark features: it needs landmarks > 0")
+        self.landmark_pair_inputs = bool(landmark_pair_inputs)
         if self.path_window and not self.path_residual:
             raise InputError("path_window scales the path offsets: it needs path_residual=True")
         lw = [3 + 6 * fourier] + w["lifting"][1:]
@@ -267,7 +272,8 @@ class NeuroGFNet(nn.Module):
         self.sdf_head = _head(w["head"], norm)
         # landmark features: |T(p) - T(q)| per landmark, the lower and the upper triangle bound
         self.landmark_table = Landmarks(landmarks) if landmarks else None
-        self.gdf_head = _head([w["head"][0] + (landmarks + 2 if landmarks else 0)] + w["head"][1:], norm)
+        extra = (landmarks + 2 + 2 * self.landmark_pair_inputs) if landmarks else 0
+        self.gdf_head = _head([w["head"][0] + extra] + w["head"][1:], norm)
         self.cdw_fc = FC(*w["guidance"], norm=norm)
         pw = w["path"]
         self.spf_head = nn.Sequential(
@@ -292,6 +298,8 @@ class NeuroGFNet(nn.Module):
                 out["landmark_bracket"] = True
             if self.landmark_bracket_log:
                 out["landmark_bracket_log"] = True
+            if self.landmark_pair_inputs:
+                out["landmark_pair_inputs"] = True
         return out
 
     def path_output(self, out: torch.Tensor, lines: torch.Tensor) -> torch.Tensor:
@@ -319,10 +327,13 @@ class NeuroGFNet(nn.Module):
             tp, tq = self.landmark_table(p), self.landmark_table(q)
             diff = (tp - tq).abs()
             lower, upper = diff.max(-1).values, (tp + tq).min(-1).values
-            h = torch.cat([(es - et).abs(), diff, lower[:, None], upper[:, None]], dim=-1)
-            d = self.gdf_head(h).squeeze(-1)
             e = torch.linalg.vector_norm(p - q, dim=-1)
             floor = torch.maximum(e, self.landmark_floor * lower)
+            parts = [(es - et).abs(), diff, lower[:, None], upper[:, None]]
+            if self.landmark_pair_inputs:  # the pair's own scale and how wide its bracket is, relative to it
+                width = torch.log(torch.clamp(upper, min=1e-12)) - torch.log(torch.clamp(floor, min=1e-12))
+                parts += [e[:, None], torch.clamp(width, max=LANDMARK_WIDTH_MAX)[:, None]]
+            d = self.gdf_head(torch.cat(parts, dim=-1)).squeeze(-1)
             if self.landmark_bracket:  # the head picks a point between the floor and the upper bound
                 top = torch.maximum(upper, floor)
                 if self.landmark_bracket_log:  # geometric: a head error costs the same relative error at any scale

@@ -51,6 +51,7 @@ class NetworkConfig:
     landmark_floor: float = 1.0    # landmarks: the output's floor is max(|p - q|, this x their lower bound); 0: |p - q|
     landmark_bracket: bool = False  # landmarks: the output between that floor and their upper bound, the head choosing
     landmark_bracket_log: bool = False  # that bracket geometric: floor x (upper / floor) ** sigmoid(head)
+    landmark_pair_inputs: bool = False  # landmarks: the distance head also sees |p - q| and log(upper / floor)
 
     def validate(self):
         if self.D not in SUPPORTED_D:
@@ -80,7 +81,7 @@ class NetworkConfig:
         """A freshly initialized ``NeuroGFNet`` of this shape (draws from torch's global RNG)."""
         return NeuroGFNet(self.D, self.fourier, self.euclid, self.path_residual, self.path_width, self.path_window,
                           self.norm, self.hash_levels, self.landmarks, self.landmark_floor, self.landmark_bracket,
-                          self.landmark_bracket_log)
+                          self.landmark_bracket_log, self.landmark_pair_inputs)
 
 
 @dataclass
