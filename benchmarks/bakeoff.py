@@ -129,7 +129,37 @@ def torch_errors(model, reference, device) -> dict:
     finally:
         torch.backends.cuda.matmul.allow_tf32 = prev
         net.cpu()
-    return _rel_stats(pred, gt)
+    out = _rel_stats(pred, gt)
+    out["by_distance"] = by_distance(pred, gt, mean_edge(mesh))
+    return out
+
+
+DISTANCE_BINS = (0, 2, 5, 10, 20, float("inf"))  # pair distance in mean edge lengths
+
+
+def mean_edge(mesh) -> float:
+    """The mesh's mean edge length (mesh units), over the faces' three edges."""
+    import numpy as np
+
+    p, f = mesh.internal_vertices, mesh.internal_faces
+    return float(np.mean([np.linalg.norm(p[f[:, a]] - p[f[:, b]], axis=1).mean() for a, b in ((0, 1), (1, 2), (2, 0))]))
+
+
+def by_distance(pred, gt, edge: float) -> list:
+    """Relative errors of the finite-truth pairs (source excluded) by the pair's exact distance in mean edge
+    lengths (``DISTANCE_BINS``): per bin its pairs, MRE, p99, max and share of the summed error."""
+    import numpy as np
+
+    ok = np.isfinite(gt) & (gt > 0) & np.isfinite(pred)
+    rel = np.abs(pred[ok] - gt[ok]) / gt[ok]
+    hops, total = gt[ok] / edge, max(float(rel.sum()), 1e-300)
+    out = []
+    for lo, hi in zip(DISTANCE_BINS[:-1], DISTANCE_BINS[1:]):
+        r = rel[(hops >= lo) & (hops < hi)]
+        out.append({"edges": [lo, None if hi == float("inf") else hi], "pairs": int(r.size),
+                    **({"mre": float(r.mean()), "p99": float(np.percentile(r, 99)), "max": float(r.max()),
+                        "error_share": float(r.sum()) / total} if r.size else {})})
+    return out
 
 
 def scaled_landmarks(vertices: int) -> int:
@@ -179,6 +209,7 @@ def run_row(ngf, name: str, budget: float, variant: str, a, work: Path, repeat: 
         steps = cfg.get("steps") or {}
         per = t.get("calibrated_s_per_step") or {}
         row.update(mre=err.get("mre"), p99=err.get("p99_rel"), max=err.get("max_rel"), median=err.get("median_rel"),
+                   by_distance=err.get("by_distance"),
                    pairs=err.get("pairs"), nonfinite=err.get("nonfinite"), steps=steps,
                    ms_per_step={k: 1e3 * v for k, v in per.items()}, steps_s=t.get("steps_s"),
                    dataset_s=t.get("dataset_s"), calibrate_s=t.get("calibrate_s"),

@@ -35,6 +35,28 @@ def test_a_landmark_design_counts_its_table_in_the_model_memory(bakeoff):
     assert mp._memory(lm) == "35.0 MB"
 
 
+def test_errors_by_distance_bin_against_a_direct_count(bakeoff):
+    """by_distance: each pair in the bin of its exact distance in mean edges; MRE, max and error shares of the
+    bins as counted directly; the source itself and unreached pairs are left out."""
+    import numpy as np
+
+    rng = np.random.default_rng(3)
+    gt = rng.uniform(0.0, 30.0, (4, 500))
+    gt[:, 0], gt[0, 1] = 0.0, np.inf
+    pred = gt * (1 + rng.normal(0, 0.01, gt.shape))
+    bins = bakeoff.by_distance(pred, gt, edge=1.2)
+    ok = np.isfinite(gt) & (gt > 0)
+    rel, hops = np.abs(pred - gt)[ok] / gt[ok], gt[ok] / 1.2
+    assert sum(b["pairs"] for b in bins) == ok.sum() == 4 * 499 - 1
+    for b in bins:
+        lo, hi = b["edges"][0], b["edges"][1] or np.inf
+        r = rel[(hops >= lo) & (hops < hi)]
+        assert b["pairs"] == r.size and b["mre"] == pytest.approx(r.mean()) and b["max"] == pytest.approx(r.max())
+    assert sum(b["error_share"] for b in bins) == pytest.approx(1.0)
+    far = bakeoff.by_distance(pred, gt, edge=100.0)  # every pair within 2 edges: the other bins empty
+    assert far[0]["pairs"] == ok.sum() and all(b == {"edges": b["edges"], "pairs": 0} for b in far[1:])
+
+
 def test_rows_side_by_side_each_on_one_gpu(bakeoff, monkeypatch, tmp_path):
     seen = []
 
