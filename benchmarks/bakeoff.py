@@ -37,6 +37,7 @@ import importlib.util
 import json
 import os
 import platform
+import shutil
 import sys
 import time
 import traceback
@@ -183,6 +184,9 @@ def run_row(ngf, name: str, budget: float, variant: str, a, work: Path, repeat: 
     from neurogf_warp.training.checkpoint import RunFiles
 
     out = work / f"{name}_{budget:g}s_{variant}_{repeat}.ngf"
+    # an earlier command's run folder would lend this row its dataset (``force`` keeps a matching one): the row
+    # times the whole call, ground truth included
+    shutil.rmtree(RunFiles.for_model(out).folder, ignore_errors=True)
     mesh_file, reference = mesh_files(a, name)
     sized = VARIANTS[variant].get("landmarks") == "scaled"  # only such a design needs the mesh read first
     settings = row_settings(name, variant, len(ngf.load_mesh(str(mesh_file)).internal_vertices) if sized else None)
