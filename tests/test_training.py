@@ -398,3 +398,22 @@ def test_calibration_times_steps_not_rerankings(tiny_dataset, monkeypatch):
     monkeypatch.setattr(t, "refresh_hard", lambda: (calls.append(1), real())[1])
     calibrate(t, n=3, stages=("joint", "refine_dist"))
     assert len(calls) == 2 and t._hard is None and t._hard_at is None
+
+
+def test_calibration_reports_each_stages_warm_up_apart(tiny_dataset, monkeypatch):
+    """``warm_s`` gets each stage's untimed first step: a first step made slow shows there, not in the step time."""
+    from neurogf_warp.training.budget import calibrate
+
+    t = Trainer(small(), TrainingData(tiny_dataset, "cpu"), (torch.zeros(64, 3), torch.zeros(64)), "cpu")
+    real, seen = t.step, []
+
+    def step(stage, i):
+        if stage == "joint" and stage not in seen:  # the first joint step: as a process's first optimizer step
+            seen.append(stage)
+            time.sleep(0.5)
+        return real(stage, i)
+
+    monkeypatch.setattr(t, "step", step)
+    warm = {}
+    per = calibrate(t, n=2, stages=("querier", "joint"), warm_s=warm)
+    assert set(warm) == {"querier", "joint"} and warm["joint"] >= 0.5 > per["joint"], (warm, per)
