@@ -176,6 +176,17 @@ def _bracket_parts(net, xyz, table, i, j):
     return d, floor, torch.maximum(upper, floor), head
 
 
+def _bracket_net(seed: int, n: int, option: str):
+    """A D = 64 bracket network with ``option`` on, its table set from n random points: (net, xyz, table)."""
+    torch.manual_seed(seed)
+    xyz = torch.rand(n, 3) * 2 - 1
+    table = torch.rand(n, 8) * 3
+    net = NeuroGFNet(64, landmarks=8, landmark_bracket=True, **{option: True}, **OPTS).eval()
+    net.landmark_table.set_table(xyz, table)
+    assert net.options[option] is True
+    return net, xyz, table
+
+
 def test_landmark_bracket_keeps_the_output_between_the_bounds():
     """landmark_bracket: floor + sigmoid(head) x (upper - floor) in float64, so never outside the landmarks' two
     bounds; a point pair on a piece without landmarks (every entry unreached) gets |p - q| + head."""
@@ -206,12 +217,7 @@ def test_landmark_bracket_keeps_the_output_between_the_bounds():
 def test_landmark_bracket_log_is_geometric_between_the_bounds():
     """landmark_bracket_log: floor x (upper / floor) ** sigmoid(head), against float64; the same pair gives 0 and a
     finite gradient; the form needs the bracket."""
-    torch.manual_seed(9)
-    xyz = torch.rand(120, 3) * 2 - 1
-    table = torch.rand(120, 8) * 3
-    net = NeuroGFNet(64, landmarks=8, landmark_bracket=True, landmark_bracket_log=True, **OPTS).eval()
-    net.landmark_table.set_table(xyz, table)
-    assert net.options["landmark_bracket_log"] is True
+    net, xyz, table = _bracket_net(9, 120, "landmark_bracket_log")
     assert "landmark_bracket_log" not in NeuroGFNet(64, landmarks=8, landmark_bracket=True, **OPTS).options
     i, j = torch.randint(0, 120, (64,)), torch.randint(0, 120, (64,))
     j[:4] = i[:4]  # p = q
@@ -231,12 +237,7 @@ def test_landmark_pair_inputs_reach_the_head():
     """landmark_pair_inputs: the head's input also holds |p - q| and log(upper / floor) (capped), in that order."""
     from neurogf_warp.model.network import LANDMARK_WIDTH_MAX
 
-    torch.manual_seed(10)
-    xyz = torch.rand(100, 3) * 2 - 1
-    table = torch.rand(100, 8) * 3
-    net = NeuroGFNet(64, landmarks=8, landmark_bracket=True, landmark_pair_inputs=True, **OPTS).eval()
-    net.landmark_table.set_table(xyz, table)
-    assert net.options["landmark_pair_inputs"] is True
+    net, xyz, table = _bracket_net(10, 100, "landmark_pair_inputs")
     seen = []
     net.gdf_head.register_forward_hook(lambda m, args, out: seen.append(args[0]))
     i, j = torch.arange(0, 50), torch.arange(50, 100)
