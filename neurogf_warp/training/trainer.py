@@ -370,7 +370,13 @@ class Trainer:
         # CUDA graphs the learning rate is a device tensor (filled before each replay) and the step counter lives
         # on the device (capturable).
         lr = torch.tensor(s.lr, device=self.device) if self.graphs else s.lr
-        self.opt = torch.optim.AdamW(params, lr=lr, weight_decay=s.weight_decay, fused=True, capturable=self.graphs)
+        if self.cfg.runtime.optimizer == "plain":  # the same update without torch.optim (training/adamw.py)
+            from neurogf_warp.training.adamw import AdamW
+
+            self.opt = AdamW(params, lr=lr, weight_decay=s.weight_decay)
+        else:
+            self.opt = torch.optim.AdamW(params, lr=lr, weight_decay=s.weight_decay, fused=True,
+                                         capturable=self.graphs)
         self.opt_stage = stage
         self._idx_now = None
         self._graph = GraphedStep(lambda idx: self._update(stage, idx), self.opt.zero_grad, self.device) \
