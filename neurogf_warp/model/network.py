@@ -231,6 +231,14 @@ def fourier_features(x: torch.Tensor, L: int) -> torch.Tensor:
     return torch.cat([x, torch.sin(f).flatten(-2), torch.cos(f).flatten(-2)], dim=-1)
 
 
+_TINY = 1e-12  # distances (normalized units) clamped here before a log: p = q gives a floor of 0
+
+
+def _log_ratio(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """log(a / b) of two non-negative distance tensors, each clamped at ``_TINY``."""
+    return torch.log(torch.clamp(a, min=_TINY)) - torch.log(torch.clamp(b, min=_TINY))
+
+
 class NeuroGFNet(nn.Module):
     """Overfitted NeuroGF: shared point lifting, distance head, SDF head and path head."""
 
@@ -331,15 +339,13 @@ class NeuroGFNet(nn.Module):
             floor = torch.maximum(e, self.landmark_floor * lower)
             parts = [(es - et).abs(), diff, lower[:, None], upper[:, None]]
             if self.landmark_pair_inputs:  # the pair's own scale and how wide its bracket is, relative to it
-                width = torch.log(torch.clamp(upper, min=1e-12)) - torch.log(torch.clamp(floor, min=1e-12))
-                parts += [e[:, None], torch.clamp(width, max=LANDMARK_WIDTH_MAX)[:, None]]
+                parts += [e[:, None], torch.clamp(_log_ratio(upper, floor), max=LANDMARK_WIDTH_MAX)[:, None]]
             d = self.gdf_head(torch.cat(parts, dim=-1)).squeeze(-1)
             if self.landmark_bracket:  # the head picks a point between the floor and the upper bound
                 top = torch.maximum(upper, floor)
                 if self.landmark_bracket_log:  # geometric: a head error costs the same relative error at any scale
-                    fl = torch.clamp(floor, min=1e-12)  # p = q: floor 0, kept 0 below
-                    inside = fl * torch.exp(torch.sigmoid(d) * (torch.log(torch.clamp(top, min=1e-12)) - torch.log(fl)))
-                    inside = torch.where(floor > 0, inside, floor)
+                    inside = torch.clamp(floor, min=_TINY) * torch.exp(torch.sigmoid(d) * _log_ratio(top, floor))
+                    inside = torch.where(floor > 0, inside, floor)  # p = q: floor 0 stays 0
                 else:
                     inside = floor + torch.sigmoid(d) * (top - floor)
                 # a piece without landmarks (every entry unreached): the head on |p - q|, as the default network

@@ -58,13 +58,12 @@ class AdamW:
             torch._foreach_addcmul_(v, grads, grads, 1.0 - b2)
             # step size lr / (1 - b1^t) and denominator sqrt(v) / sqrt(1 - b2^t) + eps, per parameter on the device
             t = [s.to(p.dtype) for s, p in zip(steps, ps)]  # the bias corrections in the parameters' precision
-            size = torch._foreach_pow(b1, t)
-            torch._foreach_sub_(size, 1.0)
-            torch._foreach_div_(size, -lr)
+            size, root = torch._foreach_pow(b1, t), torch._foreach_pow(b2, t)
+            for x in (size, root):  # 1 - beta^t
+                torch._foreach_neg_(x)
+                torch._foreach_add_(x, 1.0)
             torch._foreach_reciprocal_(size)
-            root = torch._foreach_pow(b2, t)
-            torch._foreach_neg_(root)
-            torch._foreach_add_(root, 1.0)
+            torch._foreach_mul_(size, lr)
             torch._foreach_sqrt_(root)
             denom = torch._foreach_sqrt(v)
             torch._foreach_div_(denom, root)
