@@ -331,21 +331,23 @@ def plot(rows: list, path: Path) -> bool:
     return True
 
 
-def _in_fresh_process(a, spec: str, work: Path, gpu: int | None = None) -> dict:
+def _in_fresh_process(a, spec: str, work: Path, slot: int | None = None) -> dict:
     """One row (``--row spec``) in a new Python process: what one run leaves in a process (caches, allocator
     pools, threads) cannot touch the next row. ``gpu``: the process sees only that GPU and its share of the
-    CPU cores (rows side by side, ``--gpus``)."""
+    CPU cores (rows side by side, ``--gpus``); ``slot``: GPU ``slot % --gpus``, a work folder of its own (rows at once
+    must not share a mesh's dataset folder)."""
     import subprocess
     import tempfile
 
     name, budget, variant, k = spec.split(":")
     env = dict(os.environ)
+    gpu = None if slot is None else slot % a.gpus
     if gpu is not None:
-        threads = str(max(1, (os.cpu_count() or 1) // a.gpus))
+        threads = str(max(1, (os.cpu_count() or 1) // (a.gpus * a.share)))
         env.update(CUDA_VISIBLE_DEVICES=str(gpu), OMP_NUM_THREADS=threads, MKL_NUM_THREADS=threads)
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [sys.executable, __file__, "--row", spec, "--device", a.device, "--shared", a.shared, "--work",
-               str(work / f"gpu{gpu}" if gpu is not None else work), "--out", tmp] + \
+               str(work / f"slot{slot}" if slot is not None else work), "--out", tmp] + \
             (["--unseen", a.unseen] if a.unseen else []) + ([] if a.check_engine else ["--no-engine-check"])
         done = subprocess.run(cmd, capture_output=True, text=True, env=env)
         got = Path(tmp, "row.json")
@@ -374,6 +376,9 @@ def main(argv=None) -> int:
     p.add_argument("--gpus", type=int, default=1,
                    help="rows side by side, one per GPU (each process sees one GPU and its share of the CPU cores); "
                         "the designs of one mesh and budget run at the same time")
+    p.add_argument("--share", type=int, default=1, metavar="N",
+                   help="N rows at once on each GPU (time-sliced: each row gets about 1/N of the GPU and of the "
+                        "CPU cores, so its errors bound from above those of a row alone)")
     p.add_argument("--same-process", dest="fresh", action="store_false",
                    help="every row in this process (default: each row, and the warm-up, in a fresh process)")
     p.add_argument("--row", default=None, help=argparse.SUPPRESS)  # MESH:BUDGET:VARIANT:REPEAT, one row, JSON out
@@ -383,8 +388,10 @@ def main(argv=None) -> int:
     p.add_argument("--merge", nargs="+", default=None, metavar="JSON",
                    help="no runs: join the rows of earlier bakeoff.json files, decide, write --out")
     a = p.parse_args(argv)
-    if a.gpus > 1 and not a.fresh:
-        p.error("--gpus runs rows in processes of their own: drop --same-process")
+    if (a.gpus > 1 or a.share > 1) and not a.fresh:
+        p.error("--gpus and --share run rows in processes of their own: drop --same-process")
+    if a.share < 1:
+        p.error(f"--share is the number of rows at once on one GPU (1 or more), got {a.share}")
     if a.merge:
         parts = [json.loads(Path(f).read_text()) for f in a.merge]
         runs = [run for d in parts for run in (d["runs"] if "runs" in d else [_run_doc(d["meta"], d["rows"])])]
@@ -448,14 +455,16 @@ def main(argv=None) -> int:
         (out / "bakeoff.json").write_text(json.dumps({"benchmark": "bakeoff", "runs": [_run_doc(meta, rows)]},
                                                      indent=1))
 
-    if a.gpus > 1:
+    if a.gpus * a.share > 1:
         import queue
         from concurrent.futures import ThreadPoolExecutor
 
         meta["gpus_side_by_side"] = a.gpus
+        if a.share > 1:
+            meta["rows_sharing_a_gpu"] = a.share
         free = queue.Queue()
-        for g in range(a.gpus):
-            free.put(g)
+        for slot in range(a.gpus * a.share):
+            free.put(slot)
 
         def on_a_free_gpu(spec):
             g = free.get()
@@ -464,7 +473,7 @@ def main(argv=None) -> int:
             finally:
                 free.put(g)
 
-        with ThreadPoolExecutor(a.gpus) as pool:
+        with ThreadPoolExecutor(a.gpus * a.share) as pool:
             for r in pool.map(on_a_free_gpu, specs):
                 keep(r)
     else:
