@@ -22,7 +22,8 @@ from neurogf_warp.kernels.inference import tensorcore as tc
 from neurogf_warp.model.folded import folded_layers, net_shape
 from neurogf_warp.model.model import Model
 
-__all__ = ["PRECISIONS", "DOMAIN", "QueryState", "MeshOnDevice", "query_state", "to_relative", "unbind", "check_memory"]
+__all__ = ["PRECISIONS", "DOMAIN", "QueryState", "MeshOnDevice", "query_state", "to_relative", "unbind", "check_memory",
+           "landmark_rows"]
 
 PRECISIONS = ("auto", "fp16", "fp32")
 _KEPT_ID_SETS, _KEPT_ID_LEN = 8, 4096  # vertex-index sets kept on the device per state, and their largest size
@@ -199,6 +200,20 @@ class QueryState:
         self._weights = self._head_weights = self._engine = self._mesh = self.tile_head = None
         self.point_source = None
         self.backends.clear()
+
+
+def landmark_rows(model: Model) -> np.ndarray:
+    """(V, K) float32: a landmark network's table (``model.landmarks``, file numbering) in the mesh's internal
+    vertex order (input vertices merged into one internal vertex share their distances)."""
+    if not model.net.landmarks:
+        raise ValueError("this network has no landmark table (landmarks=0)")
+    if model.mesh is None or model.landmarks is None:
+        raise ValueError("a landmark network answers from its table of distances at the mesh's vertices: load the "
+                         "model with its mesh (neurogf_warp.load(path, mesh=...)) from a file that stores the table")
+    m = model.mesh
+    rows = np.empty((len(m.internal_vertices), model.net.landmarks), np.float32)
+    rows[m.input_to_internal] = model.landmarks
+    return rows
 
 
 def _make_frame(center: np.ndarray, scale: float) -> mlp.Frame:

@@ -44,6 +44,10 @@ class Model:
     mesh_frame : bool
         True when ``center``/``scale`` are a mesh's frame even without a mesh attached (a model file saved
         without its mesh keeps its normalization): queries then take and return mesh coordinates and units.
+    landmarks : (V, K) float32 or None
+        For a network with ``landmarks=K`` (``net.landmarks``): the exact geodesic distances from every mesh vertex
+        (the mesh file's numbering) to its K landmark vertices, normalized units (multiply by ``1 / scale`` for
+        mesh units); an entry across components is ``network.LANDMARK_UNREACHED``. None for other networks.
 
     Per-device state (folded weights, packed tensor-core weights, mesh tables, kept vertex embeddings) is made
     by the inference stage (``neurogf_warp.bind``, the queries) and kept in ``_states`` (device name -> a
@@ -58,6 +62,7 @@ class Model:
     scale: float = 1.0
     config: dict = field(default_factory=dict)
     mesh_frame: bool = False
+    landmarks: np.ndarray | None = None
     _states: dict = field(default_factory=dict, repr=False)  # device name -> DeviceState
 
     def __post_init__(self):
@@ -66,6 +71,14 @@ class Model:
             self.querier.eval()
         self.center = np.asarray(self.center, dtype=np.float64).reshape(3)
         self.scale = float(self.scale)
+        if self.landmarks is not None:
+            self.landmarks = np.ascontiguousarray(self.landmarks, dtype=np.float32)
+            k = self.net.landmarks
+            n = None if self.mesh is None else self.mesh.n_input
+            if not k or self.landmarks.ndim != 2 or self.landmarks.shape[1] != k or \
+                    (n is not None and len(self.landmarks) != n):
+                raise ValueError(f"landmarks must be (vertices, K) = ({n}, {k}) for this network, got "
+                                 f"{self.landmarks.shape}")
 
     @property
     def D(self) -> int:
@@ -75,6 +88,11 @@ class Model:
     def in_mesh_frame(self) -> bool:
         """True when inputs/outputs are in the mesh's coordinates (a mesh is attached, or its frame was kept)."""
         return self.mesh is not None or self.mesh_frame
+
+    def normalized_vertices(self) -> np.ndarray:
+        """(V, 3) float32: the mesh's vertices (file numbering) in the network's frame, ``(x - center) * scale``
+        rounded once to float32, as training and the landmark lookup see them."""
+        return ((np.asarray(self.mesh.vertices, np.float64) - self.center) * self.scale).astype(np.float32)
 
     def unbind(self, device=None) -> None:
         """Free the vertex embeddings kept on ``device`` (a Warp device or its name, "cpu" or "cuda:N"; every
