@@ -212,7 +212,8 @@ def landmark_rows(model: Model) -> np.ndarray:
                          "model with its mesh (neurogf_warp.load(path, mesh=...)) from a file that stores the table")
     m = model.mesh
     rows = np.empty((len(m.internal_vertices), model.net.landmarks), np.float32)
-    rows[m.input_to_internal] = model.landmarks
+    used = m.input_to_internal >= 0
+    rows[m.input_to_internal[used]] = model.landmarks[used]
     return rows
 
 

@@ -1,7 +1,8 @@
 """Model files: our own ``.ngf`` format and the released NeuroGF ``.pth`` checkpoints, checked on load.
 
 Our format is a safetensors file: tensors ``net.*`` (weights and BatchNorm statistics), optional
-``querier.*`` and ``mesh.*`` (vertices, faces, index, input_to_internal, components), and JSON metadata
+``querier.*`` and ``mesh.*`` (vertices, faces, index, input_to_internal, components), for a network with
+landmarks ``landmarks.table`` ((V, K) float32 distances of the stored vertices to the landmarks), and JSON metadata
 (format version, D, network options, normalization, config, mesh fingerprint). Why safetensors: loading runs
 no pickled code, the file is memory-mappable and readable from any language, and the header carries the
 metadata, so one file is the whole model.
@@ -28,14 +29,17 @@ from neurogf_warp.mesh.mesh import Mesh, component_labels, load_mesh, mesh_finge
 from neurogf_warp.common.checks import InputError
 from neurogf_warp.model.checkpoint_match import MeshMismatchError, warn_if_mesh_mismatch
 from neurogf_warp.model.model import Model
-from neurogf_warp.model.network import MAX_FOURIER, SUPPORTED_D, NeuroGFNet, SdfQuerier
+from neurogf_warp.model.network import LANDMARK_UNREACHED, MAX_FOURIER, SUPPORTED_D, NeuroGFNet, SdfQuerier
 
 __all__ = ["save", "load", "load_querier", "FORMAT_VERSION"]
 
 FORMAT = "neurogf-warp"
 FORMAT_VERSION = 2
 # network options a file may set, with their JSON types (bool is checked apart from int: True is an int)
-NET_OPTIONS = {"fourier": int, "euclid": bool, "path_residual": bool, "path_width": int, "path_window": bool}
+NET_OPTIONS = {"fourier": int, "euclid": bool, "path_residual": bool, "path_width": int, "path_window": bool,
+               "landmarks": int, "landmark_floor": float, "landmark_bracket": bool, "landmark_bracket_log": bool,
+               "landmark_pair_inputs": bool}
+LANDMARK_TABLE = "landmarks.table"
 MESH_TENSORS = ("mesh.vertices", "mesh.faces", "mesh.index")
 MESH_TENSORS_V2 = MESH_TENSORS + ("mesh.input_to_internal", "mesh.components")
 # relative tolerance for the stored normalization against the one recomputed from the stored vertices
@@ -102,6 +106,8 @@ def save(model: Model, path, include_mesh: bool = True) -> str:
         "config": model.config,
         "mesh_fingerprint": model.mesh.fingerprint if model.mesh is not None else None,
     }
+    if model.net.landmarks:
+        tensors[LANDMARK_TABLE] = torch.from_numpy(_internal_table(model))
     if model.mesh is not None and include_mesh:
         m = model.mesh
         tensors["mesh.vertices"] = torch.from_numpy(np.ascontiguousarray(m.internal_vertices, dtype=np.float64))
@@ -119,6 +125,18 @@ def save(model: Model, path, include_mesh: bool = True) -> str:
     meta["checksums"] = {"tensors": {k: _digest_tensor(k, v) for k, v in tensors.items()},
                          "meta": {k: _digest_value(v) for k, v in meta.items()}}
     return atomic_write_bytes(path, st_save(tensors, metadata={"neurogf": json.dumps(meta)}), what="model file")
+
+
+def _internal_table(model: Model) -> np.ndarray:
+    """A landmark network's table in the mesh's internal vertex order (the order of the stored vertices)."""
+    if model.mesh is None or model.landmarks is None:
+        raise InputError("cannot save a network with landmarks without its mesh and its table (model.landmarks): "
+                         "its distances are read from that table at the mesh's vertices")
+    m = model.mesh
+    used = m.input_to_internal >= 0
+    table = np.empty((len(m.internal_vertices), model.net.landmarks), np.float32)
+    table[m.input_to_internal[used]] = model.landmarks[used]
+    return table
 
 
 def _not_a_mesh_name(path, suffix: str = ".ngf") -> None:
@@ -170,7 +188,8 @@ def _check_options(options, path: str) -> dict:
             raise InputError(f"{path}: unknown network option {k!r} in 'net_options' (known: {', '.join(NET_OPTIONS)}); "
                              "the file may come from a newer neurogf-warp")
         want = NET_OPTIONS[k]
-        if (want is bool and not isinstance(v, bool)) or (want is int and (isinstance(v, bool) or not isinstance(v, int))):
+        if (want is bool and not isinstance(v, bool)) or (want is int and (isinstance(v, bool) or not isinstance(v, int))) \
+                or (want is float and not _is_number(v)):
             raise InputError(f"{path}: network option {k!r} must be {want.__name__}, got {v!r}")
     if not 0 <= options.get("fourier", 0) <= MAX_FOURIER:
         raise InputError(f"{path}: network option 'fourier' must lie in 0..{MAX_FOURIER}, got {options['fourier']}")
@@ -383,7 +402,7 @@ def _load_ngf(path: str, mesh, check_mesh: bool) -> Model:
         querier = SdfQuerier()
         _strict_load(querier, qstate, "SDF querier", path)
         _check_weights(qstate, path, "querier.")
-    unknown = sorted(k for k in tensors if not k.startswith(("net.", "querier.", "mesh.")))
+    unknown = sorted(k for k in tensors if not k.startswith(("net.", "querier.", "mesh.")) and k != LANDMARK_TABLE)
     if unknown:
         _fail(path, f"unexpected tensors {', '.join(unknown)}")
 
@@ -401,9 +420,38 @@ def _load_ngf(path: str, mesh, check_mesh: bool) -> Model:
                                     "query this mesh in the model's stored frame.")
     else:
         m = stored
+    landmarks = _landmarks(net, tensors.get(LANDMARK_TABLE), m, stored, want, path)
     # without a mesh the stored normalization is still the frame the model answered in when it was saved
     return Model(net=net, querier=querier, mesh=m, center=np.asarray(center, dtype=np.float64), scale=float(scale),
-                 config=dict(config), mesh_frame=m is None)
+                 config=dict(config), mesh_frame=m is None, landmarks=landmarks)
+
+
+def _landmarks(net: NeuroGFNet, table, mesh: Mesh | None, stored: Mesh | None, fingerprint, path: str):
+    """A landmark network's table in the mesh file's numbering (rows of unused input vertices NaN), checked;
+    None for other networks and for a model loaded without a mesh."""
+    if not net.landmarks:
+        if table is not None:
+            _fail(path, f"tensor {LANDMARK_TABLE} is stored but the network has no landmarks")
+        return None
+    if table is None:
+        _fail(path, f"the network reads {net.landmarks} landmark distances per vertex but tensor {LANDMARK_TABLE} is "
+              "missing (the file was edited or damaged)")
+    t = table.numpy()
+    if mesh is None:
+        return None  # the frame is kept; vertex queries need the mesh, and with it the table
+    if mesh.fingerprint != fingerprint:
+        raise InputError(f"{path}: a network with landmarks answers from its table of distances at its training "
+                         "mesh's vertices, so it cannot query another mesh: pass the training mesh")
+    V = len(mesh.internal_vertices)
+    if t.dtype != np.float32 or t.shape != (V, net.landmarks):
+        _fail(path, f"tensor {LANDMARK_TABLE} must be ({V}, {net.landmarks}) float32, got {t.dtype} {t.shape}")
+    if not (np.all(np.isfinite(t)) and t.min() >= 0.0 and t.max() <= LANDMARK_UNREACHED):
+        _fail(path, f"tensor {LANDMARK_TABLE} must hold distances in [0, {LANDMARK_UNREACHED:g}] (normalized units; "
+              f"{LANDMARK_UNREACHED:g}: another component)")
+    out = np.full((mesh.n_input, net.landmarks), np.nan, np.float32)
+    used = mesh.input_to_internal >= 0
+    out[used] = t[mesh.input_to_internal[used]]
+    return out
 
 
 def _stored_mesh(meta: dict, tensors: dict, version: int, fingerprint, path: str) -> Mesh | None:

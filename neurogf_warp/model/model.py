@@ -47,7 +47,8 @@ class Model:
     landmarks : (V, K) float32 or None
         For a network with ``landmarks=K`` (``net.landmarks``): the exact geodesic distances from every mesh vertex
         (the mesh file's numbering) to its K landmark vertices, normalized units (multiply by ``1 / scale`` for
-        mesh units); an entry across components is ``network.LANDMARK_UNREACHED``. None for other networks.
+        mesh units); an entry across components is ``network.LANDMARK_UNREACHED``, the rows of vertices no face
+        uses are NaN. None for other networks, and for one loaded without its mesh (which cannot answer).
 
     Per-device state (folded weights, packed tensor-core weights, mesh tables, kept vertex embeddings) is made
     by the inference stage (``neurogf_warp.bind``, the queries) and kept in ``_states`` (device name -> a
@@ -75,10 +76,15 @@ class Model:
             self.landmarks = np.ascontiguousarray(self.landmarks, dtype=np.float32)
             k = self.net.landmarks
             n = None if self.mesh is None else self.mesh.n_input
-            if not k or self.landmarks.ndim != 2 or self.landmarks.shape[1] != k or \
-                    (n is not None and len(self.landmarks) != n):
-                raise ValueError(f"landmarks must be (vertices, K) = ({n}, {k}) for this network, got "
-                                 f"{self.landmarks.shape}")
+            if not k or self.landmarks.ndim != 2 or self.landmarks.shape[1] != k or n is None or \
+                    len(self.landmarks) != n:
+                raise ValueError(f"landmarks must be (mesh vertices, K) = ({n}, {k}) for this network and its mesh, "
+                                 f"got {self.landmarks.shape}")
+            # the torch network looks its landmark rows up by the vertices' float32 coordinates
+            import torch
+
+            self.net.landmark_table.set_table(torch.from_numpy(self.normalized_vertices()),
+                                              torch.from_numpy(self.landmarks))
 
     @property
     def D(self) -> int:

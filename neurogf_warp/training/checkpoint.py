@@ -8,6 +8,7 @@ from __future__ import annotations
 import copy
 import sys
 
+import numpy as np
 import torch
 
 from neurogf_warp.mesh.mesh import Mesh
@@ -61,7 +62,26 @@ def save_model(net, querier, mesh: Mesh, path: str, info: dict):
     from neurogf_warp.model.files import save
     from neurogf_warp.model.model import Model
 
-    model = Model(net=copy.deepcopy(net).cpu().eval(), querier=copy.deepcopy(querier).cpu().eval(), mesh=mesh,
-                  center=mesh.center, scale=mesh.scale, config=info)
+    net = copy.deepcopy(net).cpu().eval()
+    model = Model(net=net, querier=copy.deepcopy(querier).cpu().eval(), mesh=mesh, center=mesh.center,
+                  scale=mesh.scale, config=info, landmarks=mesh_landmarks(net, mesh))
     save(model, path)
     return model
+
+
+def mesh_landmarks(net, mesh: Mesh):
+    """A landmark network's table at the mesh's vertices (file numbering), taken from the rows it trained with;
+    None for other networks. Every used vertex must have its exact row there (ground truth on the mesh itself)."""
+    if not net.landmarks:
+        return None
+    x = ((np.asarray(mesh.vertices, np.float64) - mesh.center) * mesh.scale).astype(np.float32)
+    used = np.zeros(mesh.n_input, bool)
+    used[mesh.input_to_internal >= 0] = True
+    rows, hit = net.landmark_table.match(torch.from_numpy(x))
+    hit = hit.numpy()
+    if not hit[used].all():
+        raise ValueError(f"{int((~hit[used]).sum())} mesh vertices have no landmark row: a network with landmarks "
+                         "needs its ground truth on the mesh itself, not on a proxy of it")
+    out = net.landmark_table.table[rows].numpy().copy()
+    out[~used] = np.nan
+    return out
