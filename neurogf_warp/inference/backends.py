@@ -14,6 +14,10 @@ and never look at the precision:
     settle(x, starts, ends, steps, scratch, frame)     path refinement: ends pinned, inner points onto the surface
     sweep(x, starts, ends, scratch, frame)             one shortening sweep (midpoints, one Newton step)
 
+A landmark network (``NeuroGFNet(landmarks=K)``) runs on PerThread only: its distance head also reads each point's
+row of exact distances to the landmarks (a vertex's own row; a point's row interpolated at its closest surface
+point), ``kernels/inference/landmark.py``; TensorCores refuses it.
+
 Every array is a ``wp.array`` on the state's device; vertex queries take points relative to the mesh centre
 (``state.frame``), point queries points in the ``frame`` they pass; distances come back in user units.
 """
