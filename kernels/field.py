@@ -17,6 +17,19 @@ One thread, one query; no tiles, no shared memory.
     signed_distance_and_gradient(net, x) -> (float, vec3)    ... and its gradient (surface normal direction)
     project_to_surface(net, x, steps) -> vec3                Newton steps onto the SDF head's zero level set
 
+Landmark networks (``NeuroGFNet(landmarks=K, ...)``): their distance head also reads each point's exact distances
+to K landmark vertices, looked up in a ``LandmarkTable`` (``warp_structs.landmarks(model, device)``: the table and
+a ``wp.Mesh`` of the vertices, network frame). A point's row is named by its *location* (vec3i ids, vec3 weights):
+
+    locate(lm, x) -> (vec3i, vec3)                           location of x's closest surface point (a vertex's own row)
+    vertex_location(v) -> (vec3i, vec3)                      location of vertex v (its row, exactly)
+    face_location(lm, face, bary) -> (vec3i, vec3)           location of a point of a triangle (barycentric weights)
+    landmark_distance(net, lm, p, ip, wp, q, iq, wq) -> float       predicted geodesic distance
+    landmark_distance_and_gradient(net, lm, p, ip, wp, q, iq, wq)   -> (float, vec3 d/dp); T(p) moves with its
+                                                             weights on a fixed triangle (the in-plane gradient)
+
+``geodesic_distance`` and the other distance functions above do not read landmarks: use these for such networks.
+
 Cost per call (D=256 released layout; ``benchmarks/kernel_api.py`` prints them for any model): one lifting
 (3 -> 64 -> 128 -> 256) is 82K FLOPs, a head (256 -> 64 -> 64 -> 1) 41K; a backward pass through either costs
 about what its forward does. Gradients are exact for the piecewise-linear ReLU network away from kinks; at a
@@ -24,6 +37,14 @@ kink the unit counts as off (see ``kernels/mlp.py``).
 """
 import warp as wp
 
+from .inference.landmark import (
+    LandmarkTable,
+    face_location,
+    landmark_distance,
+    landmark_distance_and_gradient,
+    locate,
+    vertex_location,
+)
 from .inference.mlp import (
     MAX_D,
     Frame,
@@ -48,7 +69,8 @@ from .inference.mlp import (
 
 __all__ = ["NeuroGFWeights", "Frame", "SourceSet", "to_net", "from_net", "embed", "geodesic_distance",
            "distance_and_gradient", "distance_to_sources", "distance_to_sources_and_gradient", "geodesic_direction",
-           "signed_distance", "signed_distance_and_gradient", "project_to_surface", "MAX_D"]
+           "signed_distance", "signed_distance_and_gradient", "project_to_surface", "MAX_D", "LandmarkTable", "locate",
+           "vertex_location", "face_location", "landmark_distance", "landmark_distance_and_gradient"]
 
 
 @wp.struct

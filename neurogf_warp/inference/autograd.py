@@ -18,6 +18,7 @@ import torch
 import warp as wp
 
 from neurogf_warp.common.arrays import resolve_device
+from neurogf_warp.common.checks import InputError
 from neurogf_warp.inference.state import query_state
 from neurogf_warp.kernels.inference import mlp
 
@@ -167,8 +168,19 @@ def _float_tensor(x, name: str) -> torch.Tensor:
     return x
 
 
+def _no_landmarks(model):
+    """The gradient kernels here run the plain distance head: a landmark network's is refused, naming the in-kernel
+    function that has its gradient."""
+    k = getattr(getattr(model, "net", None), "landmarks", 0)
+    if k:
+        raise InputError(f"gradients of distances are not offered for a landmark network (landmarks={k}); pass "
+                         "inputs without requires_grad, or use kernels.field.landmark_distance_and_gradient in a Warp "
+                         "kernel")
+
+
 def distance(model, p, q, plain, **kw):
     """``plain`` (``queries.distance``) with gradients to whichever of p, q requires one (torch tensors)."""
+    _no_landmarks(model)
     p = p if isinstance(p, torch.Tensor) else torch.as_tensor(np.asarray(p, np.float32), device=q.device)
     q = q if isinstance(q, torch.Tensor) else torch.as_tensor(np.asarray(q, np.float32), device=p.device)
     return _Distance.apply(_float_tensor(p, "p"), _float_tensor(q, "q"), model, kw, plain)
@@ -176,12 +188,14 @@ def distance(model, p, q, plain, **kw):
 
 def ssad(model, source, plain, **kw):
     """``plain`` (``queries.ssad``) from a point source tensor (3,) with gradients to it."""
+    _no_landmarks(model)
     return _Sources.apply(_float_tensor(source, "source"), model, kw, True, plain, None)
 
 
 def msad(model, sources, plain, matrix, **kw):
     """``plain`` (``queries.msad``) from point sources (S, 3) with gradients to them (each vertex's to its nearest
     source, found by ``matrix``, ``queries.distance_matrix``)."""
+    _no_landmarks(model)
     return _Sources.apply(_float_tensor(sources, "sources"), model, kw, False, plain, matrix)
 
 

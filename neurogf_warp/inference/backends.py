@@ -14,6 +14,10 @@ and never look at the precision:
     settle(x, starts, ends, steps, scratch, frame)     path refinement: ends pinned, inner points onto the surface
     sweep(x, starts, ends, scratch, frame)             one shortening sweep (midpoints, one Newton step)
 
+A landmark network (``NeuroGFNet(landmarks=K)``) runs on PerThread only: its distance head also reads each point's
+row of exact distances to the landmarks (a vertex's own row; a point's row interpolated at its closest surface
+point), ``kernels/inference/landmark.py``; TensorCores refuses it.
+
 Every array is a ``wp.array`` on the state's device; vertex queries take points relative to the mesh centre
 (``state.frame``), point queries points in the ``frame`` they pass; distances come back in user units.
 """
@@ -26,7 +30,7 @@ import warp as wp
 from neurogf_warp.common.chunks import CPU_CHUNK_ALIGN, CPU_CHUNK_SECONDS, in_chunks
 from neurogf_warp.inference.engine import fp16_refusal
 from neurogf_warp.inference.state import PRECISIONS, MeshOnDevice, QueryState, check_memory, query_state
-from neurogf_warp.kernels.inference import finish, head_fp32, mlp
+from neurogf_warp.kernels.inference import finish, head_fp32, landmark, mlp
 from neurogf_warp.kernels.inference import refine as refine_kernels
 from neurogf_warp.model.folded import NetShape
 
@@ -37,18 +41,23 @@ _HID = mlp.MAX_D // 2   # the per-thread kernels' hidden vectors (vec_h)
 _ACC = mlp.MAX_D // 4   # their float64 accumulators of a head's first layer (vec_acc)
 
 
-def fp32_refusal(shape: NetShape) -> str | None:
-    """Why the per-thread float32 kernels cannot run a network of this shape (None: they can). Their weights
-    struct has three lifting layers, three-layer heads and a four-layer point-wise path head, and their local
-    vectors bound the widths."""
+def fp32_refusal(shape: NetShape, options: dict | None = None) -> str | None:
+    """Why the per-thread float32 kernels cannot run a network of this shape and these options (``net.options``;
+    None: they can). Their weights struct has three lifting layers, three-layer heads and a four-layer point-wise
+    path head, and their local vectors bound the widths. A landmark network's distance head reads D + K + 2 inputs
+    (``kernels/inference/landmark.py``); its geometric bracket and pair inputs are not written there."""
     D = shape.D
+    K = (options or {}).get("landmarks", 0)
+    if K and (options.get("landmark_bracket_log") or options.get("landmark_pair_inputs")):
+        return ("a landmark network with landmark_bracket_log or landmark_pair_inputs (the per-thread kernels run "
+                "landmark networks with the linear bracket or without one, and no pair inputs)")
     if len(shape.lifting) != 4 or D > mlp.MAX_D or max(shape.lifting[1:3]) > _HID or \
             shape.lifting[0] > 3 + 6 * mlp.MAX_FOURIER:
         return (f"lifting widths {shape.lifting} (the per-thread kernels need (F, H1, H2, D): three layers, "
                 f"H1, H2 <= {_HID}, D <= {mlp.MAX_D}, F <= {3 + 6 * mlp.MAX_FOURIER})")
-    for name, head in (("distance", shape.distance), ("SDF", shape.sdf)):
-        if len(head) != 4 or head[0] != D or head[-1] != 1 or head[1] > _ACC or head[2] > _HID:
-            return (f"{name} head widths {head} (the per-thread kernels need ({D}, H1, H2, 1): three layers, "
+    for name, head, width in (("distance", shape.distance, D + K + 2 * bool(K)), ("SDF", shape.sdf, D)):
+        if len(head) != 4 or head[0] != width or head[-1] != 1 or head[1] > _ACC or head[2] > _HID:
+            return (f"{name} head widths {head} (the per-thread kernels need ({width}, H1, H2, 1): three layers, "
                     f"H1 <= {_ACC}, H2 <= {_HID})")
     if shape.guidance != (2 * D, D):
         return f"guidance widths {shape.guidance} (the per-thread kernels need ({2 * D}, {D}))"
@@ -80,7 +89,9 @@ def bind(model, device=None, precision: str = "auto") -> int:
 def _choose(state: QueryState, precision: str):
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
-    fp16_no, fp32_no = fp16_refusal(state.shape), fp32_refusal(state.shape)
+    fp16_no, fp32_no = fp16_refusal(state.shape), fp32_refusal(state.shape, state.options)
+    if state.options.get("landmarks"):  # the tensor-core kernels have no landmark features: "auto" is fp32
+        fp16_no = landmark_fp16_refusal(state.options)
     if precision == "auto":
         precision = "fp16" if state.device.is_cuda and fp16_no is None else "fp32"
     if precision == "fp16" and fp16_no is not None:
@@ -88,6 +99,12 @@ def _choose(state: QueryState, precision: str):
     if precision == "fp32" and fp32_no is not None:
         raise ValueError(f"this network's shape ({state.shape}) is not supported by the per-thread kernels: {fp32_no}")
     return TensorCores(state) if precision == "fp16" else PerThread(state)
+
+
+def landmark_fp16_refusal(options: dict) -> str:
+    """Why the tensor-core kernels cannot run a landmark network."""
+    return (f"it is a landmark network (landmarks={options['landmarks']}): its distance head also reads the exact "
+            "distances to its landmarks, which only the per-thread kernels look up")
 
 
 class _Backend:
@@ -123,6 +140,9 @@ class TensorCores(_Backend):
 
     def __init__(self, state: QueryState):
         super().__init__(state)
+        if state.options.get("landmarks"):
+            raise ValueError(f"precision='fp16' cannot run this network: {landmark_fp16_refusal(state.options)}; "
+                             "use precision='fp32'")
         state.engine  # built (and the network's shape checked) now
 
     @property
@@ -253,14 +273,16 @@ class PerThread(_Backend):
                             block_dim=head_fp32.THREADS, device=dev)
         return head
 
-    def _finish(self, head, rows, row_comp, src, src_comp, out, raw: bool):
+    def _finish(self, head, rows, row_comp, src, src_comp, out, raw: bool, euclid: float | None = None):
+        """Finished distances from head values (``euclid``: the |x - s| term's factor, default the network's)."""
         st = self.state
+        if euclid is None:
+            euclid = 1.0 if st.options["euclid"] else 0.0
 
         def run(lo, hi):  # columns lo..hi (rows of the result: targets)
             wp.launch(finish.finish_rows, (head.shape[0], hi - lo),
                       inputs=[head[:, lo:hi], rows[lo:hi], row_comp[lo:hi] if row_comp is not None else st.no_ints,
-                              src, src_comp if src_comp is not None else st.no_ints, st.frame,
-                              1.0 if st.options["euclid"] else 0.0, int(raw)],
+                              src, src_comp if src_comp is not None else st.no_ints, st.frame, euclid, int(raw)],
                       outputs=[out[:, lo:hi]], device=self.device)
 
         in_chunks(self.device, head.shape[1], run, first=1 << 16)
@@ -271,6 +293,9 @@ class PerThread(_Backend):
         S, V = len(pts), md.V
         src_pos = wp.array(pts.astype(np.float32), dtype=wp.vec3, device=dev)
         src_comp = wp.array(comp.astype(np.int32), dtype=wp.int32, device=dev) if comp is not None else None
+        if self.landmarks:
+            self._landmark_vertex_distances(md, src_pos, ids, src_comp, out, reduce_min, raw)
+            return
         head = self._head_values(md, src_pos)
         full = out.reshape((S, V)) if not reduce_min else wp.empty((S, V), dtype=wp.float32, device=dev)
         self._finish(head, md.verts, md.comp if md.multi else None, src_pos, src_comp, full, raw)
@@ -279,6 +304,12 @@ class PerThread(_Backend):
 
     def target_distances(self, src_pos, tgt_pos, src_comp, tgt_comp, out: wp.array, raw: bool):
         st = self.state
+        if self.landmarks:
+            lm = self._table()
+            head = self._landmark_head(lm, src_pos, self._locate(lm, src_pos, st.frame), tgt_pos, self.embed(tgt_pos),
+                                       self._locate(lm, tgt_pos, st.frame))
+            self._finish(head, tgt_pos, tgt_comp, src_pos, src_comp, out, raw, euclid=0.0)
+            return
         es = self.embed(src_pos)
         head = wp.empty(out.shape, dtype=wp.float32, device=self.device)
         wp.launch(head_fp32.head_rows, out.shape, outputs=[head], device=self.device,
@@ -287,9 +318,65 @@ class PerThread(_Backend):
 
     def pairs(self, p, q, out, raw: bool, frame):
         st = self.state
+        if self.landmarks:
+            lm = self._table()
+            (pi, pw), (qi, qw) = self._locate(lm, p, frame), self._locate(lm, q, frame)
+            wp.launch(landmark.pair_distances, p.shape[0], inputs=[st.weights, lm, p, q, pi, pw, qi, qw, frame, int(raw)],
+                      outputs=[out], device=self.device)
+            return
         wp.launch(finish.finish_pairs, p.shape[0], inputs=[st.head_weights, p, q, frame,
                                                            1.0 if st.options["euclid"] else 0.0, int(raw)],
                   outputs=[out], device=self.device)
+
+    # ---- landmark networks: the distance head also reads the table rows of both points (kernels/inference/landmark.py)
+    @property
+    def landmarks(self) -> int:
+        """K, the network's landmark count (0: not a landmark network)."""
+        return self.state.options.get("landmarks", 0)
+
+    def _table(self) -> landmark.LandmarkTable:
+        st = self.state
+        return st.mesh("a landmark network's distance").landmark_table(st.model)
+
+    def _locate(self, lm: landmark.LandmarkTable, pts: wp.array, frame, ids=None):
+        """(vec3i ids, vec3 weights) locations of points in ``frame`` (their closest surface points' table rows), or of
+        the internal vertices ``ids`` (numpy, their exact rows) given for them."""
+        n, dev = pts.shape[0], self.device
+        if ids is not None:
+            w = np.zeros((n, 3), np.float32)
+            w[:, 0] = 1.0
+            return (wp.array(np.repeat(np.asarray(ids, np.int32).reshape(-1, 1), 3, 1), dtype=wp.vec3i, device=dev),
+                    wp.array(w, dtype=wp.vec3, device=dev))
+        loc = (wp.empty(n, dtype=wp.vec3i, device=dev), wp.empty(n, dtype=wp.vec3, device=dev))
+        if n:
+            wp.launch(landmark.locate_points, n, inputs=[lm, pts, frame], outputs=list(loc), device=dev)
+        return loc
+
+    def _landmark_head(self, lm, src_pos, src_loc, xs, ex, x_loc=None) -> wp.array:
+        """(S, N) landmark distances (network frame) from sources to rows xs (embeddings ex; locations x_loc, None:
+        the rows are the mesh's vertices), in chunks of rows."""
+        st, dev = self.state, self.device
+        S, N = src_pos.shape[0], xs.shape[0]
+        es = self.embed(src_pos)
+        head = wp.empty((S, N), dtype=wp.float32, device=dev)
+        none = (wp.empty(0, dtype=wp.vec3i, device=dev), wp.empty(0, dtype=wp.vec3, device=dev))
+        x_ids, x_w = x_loc if x_loc is not None else none
+        in_chunks(dev, N, lambda lo, hi: wp.launch(
+            landmark.head_table, (S, hi - lo), device=dev, outputs=[head[:, lo:hi]],
+            inputs=[st.weights, lm, es, src_pos, *src_loc, ex, xs, x_ids, x_w, st.frame, lo]),
+            first=max(1, 2048 // max(S, 1)))
+        return head
+
+    def _landmark_vertex_distances(self, md: MeshOnDevice, src_pos, ids, src_comp, out: wp.array, reduce_min: bool,
+                                   raw: bool):
+        dev, lm = self.device, self._table()
+        S, V = src_pos.shape[0], md.V
+        ex = self.kept if self.kept is not None else self.embed(md.verts)
+        head = self._landmark_head(lm, src_pos, self._locate(lm, src_pos, self.state.frame, ids), md.verts, ex)
+        full = out.reshape((S, V)) if not reduce_min else wp.empty((S, V), dtype=wp.float32, device=dev)
+        self._finish(head, md.verts, md.comp if md.multi else None, src_pos, src_comp, full, raw, euclid=0.0)
+        if reduce_min:
+            wp.launch(finish.min_rows, V, inputs=[full], outputs=[out], device=dev)
 
     def sdf(self, x, out, frame, test_domain: bool = False):  # the kernel gives NaN outside the domain anyway
         wp.launch(mlp.signed_distances, x.shape[0], inputs=[self.state.weights, x, frame], outputs=[out],

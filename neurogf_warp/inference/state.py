@@ -17,7 +17,7 @@ from neurogf_warp.common.arrays import resolve_device
 from neurogf_warp.common.checks import InputError
 from neurogf_warp.inference.engine import Engine
 from neurogf_warp.inference.launches import Recorded
-from neurogf_warp.kernels.inference import finish, mlp
+from neurogf_warp.kernels.inference import finish, landmark, mlp
 from neurogf_warp.kernels.inference import tensorcore as tc
 from neurogf_warp.model.folded import folded_layers, net_shape
 from neurogf_warp.model.model import Model
@@ -47,12 +47,22 @@ class MeshOnDevice:
         self.dev = dev
         self.rel64 = rel  # (V, 3) float64 relative vertices: vertex sources without arithmetic per query
         self.lifted = None  # fp16 rows of the vertices embedded inside the kernels (no kept embeddings)
-        self._wp_mesh = self._face_comp = None
-        if self.multi:  # closest-point queries give a point's component (in these relative coordinates)
+        self._wp_mesh = self._face_comp = self._landmarks = None
+        # closest-point queries give a point's component and a landmark network's table row (relative coordinates)
+        if self.multi or model.net.landmarks:
             self._wp_mesh = wp.Mesh(points=self.verts, indices=wp.array(m.internal_faces.reshape(-1).astype(np.int32),
                                                                          device=dev))
+        if self.multi:
             self._face_comp = wp.array(m.internal_components[m.internal_faces[:, 0]].astype(np.int32), dtype=wp.int32,
                                        device=dev)
+
+    def landmark_table(self, model: Model) -> landmark.LandmarkTable:
+        """A landmark network's table (``landmark_rows``, internal order) on the device with the mesh it lives on, in
+        these relative coordinates (made on first use; the model's landmark options are read then)."""
+        if self._landmarks is None:
+            rows = wp.array(landmark_rows(model), dtype=wp.float32, device=self.dev)
+            self._landmarks = landmark_struct(model, rows, self.verts, self._wp_mesh)
+        return self._landmarks
 
     def components_of(self, pts: wp.array) -> wp.array:
         """Component label of each point, relative coordinates (that of its closest surface point; -1 for a
@@ -93,6 +103,7 @@ class QueryState:
         self.frame = _make_frame(np.zeros(3), scale)
         self.user_frame = _make_frame(self.center, scale)
         self._weights = self._head_weights = self._engine = self._mesh = self._multi = None
+        self._kernel_landmarks = None  # (wp.Mesh, LandmarkTable) in the network frame, for users' kernels
         self.backends = {}  # precision asked for -> backend (backends.backend_of)
         self.bound = {}
         self.tables = None
@@ -160,6 +171,18 @@ class QueryState:
             self._mesh = MeshOnDevice(self.model, self.device)
         return self._mesh
 
+    def kernel_landmarks(self) -> landmark.LandmarkTable:
+        """A landmark network's table for users' kernels (``kernels.field``): the mesh's vertices and a ``wp.Mesh`` of
+        them in the network frame, sharing the device rows of ``MeshOnDevice.landmark_table`` (made on first use)."""
+        if self._kernel_landmarks is None:
+            md = self.mesh("a landmark network's table")
+            rows = md.landmark_table(self.model).rows
+            # the network frame as to_net maps a vertex: (x - centre) in float64, times the float32 scale
+            pts = wp.array((md.rel64 * float(self.frame.xscale)).astype(np.float32), dtype=wp.vec3, device=self.device)
+            mesh = wp.Mesh(points=pts, indices=md.landmark_table(self.model).indices)
+            self._kernel_landmarks = (mesh, landmark_struct(self.model, rows, pts, mesh))
+        return self._kernel_landmarks[1]
+
     def retune(self, tuning: tc.Tuning):
         """Use other tile settings from now on (a new engine; the kept embeddings stay)."""
         self.tuning = tuning
@@ -198,7 +221,7 @@ class QueryState:
         """Free everything this state holds on its device."""
         self.unbind()
         self._weights = self._head_weights = self._engine = self._mesh = self.tile_head = None
-        self.point_source = None
+        self.point_source = self._kernel_landmarks = None
         self.backends.clear()
 
 
@@ -215,6 +238,22 @@ def landmark_rows(model: Model) -> np.ndarray:
     used = m.input_to_internal >= 0
     rows[m.input_to_internal[used]] = model.landmarks[used]
     return rows
+
+
+def landmark_struct(model: Model, rows: wp.array, points: wp.array, mesh: wp.Mesh) -> landmark.LandmarkTable:
+    """A ``landmark.LandmarkTable`` of ``rows`` ((V, K) float32 on the device) on the vertices ``points`` (vec3, in the frame
+    its users pass points in) and ``mesh`` (a wp.Mesh of them, which must outlive the struct), with the network's
+    options."""
+    net = model.net
+    t = landmark.LandmarkTable()
+    t.rows = rows
+    t.indices = mesh.indices
+    t.points = points
+    t.mesh = mesh.id
+    t.floor = float(net.landmark_floor)
+    t.bracket = int(net.landmark_bracket)
+    t.euclid = 1.0 if net.euclid else 0.0
+    return t
 
 
 def _make_frame(center: np.ndarray, scale: float) -> mlp.Frame:

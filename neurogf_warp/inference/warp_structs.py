@@ -7,6 +7,7 @@
     net = weights(model, "cuda:0")            # field.NeuroGFWeights
     fr = frame(model)                            # field.Frame: field.to_net(fr, x), distances * fr.dscale
     src = source_set(model, [0, 17], "cuda:0")   # field.SourceSet: MSAD sources, bound once
+    lm = landmarks(model, "cuda:0")              # field.LandmarkTable of a landmark network (network frame)
 
 Keep the model alive while kernels use these structs: they point into arrays the model caches.
 """
@@ -22,7 +23,7 @@ from neurogf_warp.kernels import field
 from neurogf_warp.kernels.inference import mlp
 from neurogf_warp.mesh.surface import points_of
 
-__all__ = ["weights", "frame", "source_set"]
+__all__ = ["weights", "frame", "source_set", "landmarks"]
 
 
 def weights(model, device=None) -> mlp.NeuroGFWeights:
@@ -58,3 +59,12 @@ def source_set(model, sources, device=None) -> field.SourceSet:
     s.points = wp.array(net_pts.astype(np.float32), dtype=wp.vec3, device=dev)
     s.emb = embed(model, pts, dev)
     return s
+
+
+def landmarks(model, device=None) -> field.LandmarkTable:
+    """A landmark network's table for ``field.locate`` and ``field.landmark_distance``: the exact distances of every
+    mesh vertex to the landmarks (rows in the mesh's internal vertex order, normalized units), the vertices and a
+    ``wp.Mesh`` of them in the network frame (``to_net(frame(model), x)``), on ``device``. Kept by the model's
+    per-device state. Vertex rows for ``field.vertex_location`` are internal indices:
+    ``model.mesh.input_to_internal[i]`` for the file's vertex i."""
+    return query_state(model, device).kernel_landmarks()
