@@ -66,7 +66,7 @@ VARIANTS = {
     "plain_adamw": {"optimizer": "plain"},  # today's network, AdamW without torch.optim (training/adamw.py)
 }
 COMMON = {"compile": False}
-os.environ["NEUROGF_BAKEOFF_DESIGNS"] = "1"  # the designs the package refuses for users (no inference backend reads them)
+os.environ["NEUROGF_BAKEOFF_DESIGNS"] = "1"  # the designs the package refuses for users (no inference backend runs them)
 UNSEEN = ("scan", "parts", "cad", "joined")  # benchmarks/unseen_meshes.py's meshes, read from --unseen DIR
 JOINED = {"joined"}  # patches that meet at single vertices: trained with allow_vertex_joins=True
 MESHES = {"spot": "spot.obj", "cow": "cow.obj", "alligator": "alligator.obj", "homer": "homer.obj",

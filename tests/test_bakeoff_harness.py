@@ -71,12 +71,19 @@ def test_rows_side_by_side_each_on_one_gpu(bakeoff, monkeypatch, tmp_path):
 
     monkeypatch.setattr("subprocess.run", fake_run)
     monkeypatch.setattr("os.cpu_count", lambda: 64)
-    a = types.SimpleNamespace(device="cuda:0", shared=str(tmp_path), unseen=None, check_engine=True, gpus=4)
+    a = types.SimpleNamespace(device="cuda:0", shared=str(tmp_path), unseen=None, check_engine=True, gpus=4, share=1)
     specs = [f"spot:{b}:{v}:0" for b in (20, 60) for v in ("default", "landmarks")]
     rows = [bakeoff._in_fresh_process(a, s, tmp_path, g) for g, s in enumerate(specs)]
     assert [f"{r['mesh']}:{r['budget_s']:g}:{r['variant']}:{r['repeat']}" for r in rows] == specs
     assert [s[1] for s in seen] == ["0", "1", "2", "3"] and {s[2] for s in seen} == {"16"}
     assert len({s[3] for s in seen}) == 4  # each GPU's runs in a folder of its own
+    # two rows at once on each of two GPUs: slots 0..3 on GPUs 0, 1, 0, 1, a quarter of the cores and a folder each
+    seen.clear()
+    a.gpus, a.share = 2, 2
+    for slot, s in enumerate(specs):
+        bakeoff._in_fresh_process(a, s, tmp_path, slot)
+    assert [s[1] for s in seen] == ["0", "1", "0", "1"] and {s[2] for s in seen} == {"16"}
+    assert len({s[3] for s in seen}) == 4
 
 
 def test_same_process_and_several_gpus_do_not_mix(bakeoff, capsys):

@@ -259,6 +259,10 @@ def test_landmark_pair_inputs_reach_the_head():
 def test_settings_reach_the_network_and_bad_values_are_refused(monkeypatch):
     with pytest.raises(ValueError, match="training-time designs"):
         TrainConfig().set(norm="none", D=64)
+    with pytest.raises(ValueError, match="training-time designs"):
+        TrainConfig().set(landmarks=16, landmark_bracket=True, landmark_bracket_log=True, D=64)
+    # the bracket design trains for users: its model files and fp32 queries exist
+    assert TrainConfig().set(landmarks=16, landmark_bracket=True, D=64).network.build().landmark_bracket
     monkeypatch.setenv("NEUROGF_BAKEOFF_DESIGNS", "1")
     net = TrainConfig().set(norm="none", hash_levels="3", D=64).network.build()
     assert net.norm == "none" and net.hash_levels == 3

@@ -24,9 +24,9 @@ Seven options (not in the paper; all off reproduces it exactly, and released che
                 bound (floor + sigmoid(head) x (upper - floor); with ``landmark_bracket_log``,
                 floor x (upper / floor) ** sigmoid(head)); ``landmark_pair_inputs`` also gives the head |p - q| and
                 log(upper / floor).
-The last three are training-time designs: model files and the Warp inference engine support only the first five,
-except that the engine's per-thread float32 kernels (precision "fp32") answer distance queries of landmark networks
-(linear bracket or none, without pair inputs) from the model's table (``Model.landmarks``).
+Model files store all of them. ``norm`` and ``hash_levels`` train only for the bake-off (no inference kernel runs
+them); landmark networks (linear bracket or none, without pair inputs) answer distance queries on the per-thread
+float32 kernels (precision "fp32") from the model's table (``Model.landmarks``), not on the tensor-core kernels.
 """
 from __future__ import annotations
 

@@ -44,7 +44,8 @@ class NetworkConfig:
     path_residual: bool = True     # path head outputs offsets from the straight line
     path_width: int = 1            # path head hidden widths x1 or x2
     path_window: bool = True       # path offsets x sin(pi t): exact end points (needs path_residual)
-    # training-time designs (benchmarks/bakeoff.py): model files and the inference engine read only the defaults
+    # other field designs (benchmarks/bakeoff.py): landmarks (with or without the bracket) train and answer fp32
+    # queries; norm, hash_levels and the bracket's two other forms train only for the bake-off
     norm: str = "batch"            # "batch" or "none" (biases + He init, no BatchNorm outside the path head)
     hash_levels: int = 0           # levels of a hash-grid encoding appended to the lifting's inputs (0: none)
     landmarks: int = 0             # exact distances to this many landmark vertices feed the distance head (0: none)
@@ -70,12 +71,13 @@ class NetworkConfig:
             raise ValueError(f"landmarks must be an integer in 0..{MAX_LANDMARKS} (0: none), got {self.landmarks}")
         if not 0.0 <= self.landmark_floor <= 1.0:
             raise ValueError(f"landmark_floor must be a number in 0..1 (0: no floor), got {self.landmark_floor}")
-        if (self.norm != "batch" or self.hash_levels or self.landmarks) and not os.environ.get("NEUROGF_BAKEOFF_DESIGNS"):
-            # their models train, but no model file or inference backend reads them: refuse rather than lose a run
-            raise ValueError(f"norm={self.norm!r} / hash_levels={self.hash_levels} / landmarks={self.landmarks} are "
-                             "training-time designs measured "
-                             "by benchmarks/bakeoff.py; model files and the inference kernels support only the default "
-                             "(norm='batch', hash_levels=0, landmarks=0)")
+        if (self.norm != "batch" or self.hash_levels or self.landmark_bracket_log or self.landmark_pair_inputs) and \
+                not os.environ.get("NEUROGF_BAKEOFF_DESIGNS"):
+            # their models train, but no inference backend runs them: refuse rather than lose a run
+            raise ValueError(f"norm={self.norm!r} / hash_levels={self.hash_levels} / landmark_bracket_log="
+                             f"{self.landmark_bracket_log} / landmark_pair_inputs={self.landmark_pair_inputs} are "
+                             "training-time designs measured by benchmarks/bakeoff.py; the inference kernels run "
+                             "norm='batch', hash_levels=0 and landmarks without those two forms")
 
     def build(self) -> NeuroGFNet:
         """A freshly initialized ``NeuroGFNet`` of this shape (draws from torch's global RNG)."""

@@ -7,7 +7,8 @@ Euclidean term or residual paths; L1 losses); ``cpu`` fits a CPU run of a few mi
 sources); ``cpu_small`` is a seconds-long smoke run for tests (its models are not meant to be accurate). Each
 preset is a set of changes to the ``TrainConfig`` defaults (= ``default``). ``cpu`` and ``cpu_large`` solve
 ground truth with one process per core (``DatasetSettings.workers``) and train with the torch thread count that
-their first steps show to be fastest (``threads=0``); ``cpu_small`` trains with one thread.
+their first steps show to be fastest (``threads=0``); ``cpu_small`` trains with one thread. ``landmarks`` and
+``cpu_landmarks`` are ``default`` and ``cpu`` with the bracket design of 256 landmarks.
 """
 from __future__ import annotations
 
@@ -61,6 +62,10 @@ PRESETS = {
 }
 
 PRESETS["cpu_large"] = dict(PRESETS["cpu"], n_sources=768, n_path_sources=16, refine_dist_lr=5e-3)
+# the bracket design with 256 landmarks (docs/design.md): lower error than "default" / "cpu" at 20, 60 and 300 s on
+# the bake-off's meshes, but its queries run on the per-thread float32 kernels only
+PRESETS["landmarks"] = dict(PRESETS["default"], landmarks=256, landmark_bracket=True)
+PRESETS["cpu_landmarks"] = dict(PRESETS["cpu"], landmarks=256, landmark_bracket=True)
 LARGE_MESH = 15000  # vertices
 
 # What each preset is for, and the settings that say so (flat TrainConfig names, as --set takes them); a preset
@@ -76,6 +81,11 @@ DESCRIPTIONS = {
                       settings=dict(n_sources=768, n_path_sources=16, refine_dist_lr=5e-3)),
     "cpu_small": dict(text="a seconds-long smoke run, its models not meant to be accurate",
                       settings=dict(D=64, n_sources=64, epochs=1, iters_per_epoch=100)),
+    "landmarks": dict(text="default with the distances to 256 landmark vertices feeding the distance head "
+                           "(fp32 queries only)", based_on="default", settings=dict(landmarks=256,
+                                                                                   landmark_bracket=True)),
+    "cpu_landmarks": dict(text="cpu with 256 landmarks (fp32 queries only)", based_on="cpu",
+                          settings=dict(landmarks=256, landmark_bracket=True)),
 }
 
 
