@@ -25,7 +25,8 @@ import warp as wp
 
 from neurogf_warp.common.chunks import CPU_CHUNK_ALIGN, CPU_CHUNK_SECONDS, in_chunks
 from neurogf_warp.inference.engine import fp16_refusal
-from neurogf_warp.inference.state import PRECISIONS, MeshOnDevice, QueryState, check_memory, query_state
+from neurogf_warp.inference.state import (PRECISIONS, MeshOnDevice, QueryState, check_memory, landmark_rows,
+                                          query_state)
 from neurogf_warp.kernels.inference import finish, head_fp32, mlp
 from neurogf_warp.kernels.inference import refine as refine_kernels
 from neurogf_warp.model.folded import NetShape
@@ -80,7 +81,7 @@ def bind(model, device=None, precision: str = "auto") -> int:
 def _choose(state: QueryState, precision: str):
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
-    fp16_no, fp32_no = fp16_refusal(state.shape), fp32_refusal(state.shape)
+    fp16_no, fp32_no = fp16_refusal(state.shape, state.options), fp32_refusal(state.shape)
     if precision == "auto":
         precision = "fp16" if state.device.is_cuda and fp16_no is None else "fp32"
     if precision == "fp16" and fp16_no is not None:
@@ -140,10 +141,33 @@ class TensorCores(_Backend):
             st.tables = (bound, eng.rows(md.verts, bound, md.comp), eng.sources(bound, md.verts, md.comp))
         return st.tables[1], st.tables[2]
 
+    def _landmark_refusal(self, what: str):
+        """A landmark network on these kernels answers single vertex sources on a bound model only."""
+        if self.state.options.get("landmarks"):
+            raise ValueError(f"precision='fp16' runs a landmark network's single-source query from a vertex on a "
+                             f"bound model only (neurogf_warp.ssad(model, vertex) with cache=True); {what} needs "
+                             "precision='fp32'")
+
+    def _landmark_table(self, md: MeshOnDevice) -> wp.array:
+        """The landmark table's rows in internal vertex order on the device, (V * K,) float32 (made once)."""
+        if md.landmarks is None:
+            md.landmarks = wp.array(landmark_rows(self.state.model).reshape(-1), dtype=wp.float32, device=self.device)
+        return md.landmarks
+
     def vertex_distances(self, md: MeshOnDevice, pts: np.ndarray, ids, comp, out: wp.array, reduce_min: bool,
                          raw: bool):
         eng, dev, bound = self.eng, self.device, self.kept
         S, V = len(pts), md.V
+        if eng.K:
+            if ids is None:
+                self._landmark_refusal("a point source")
+            if S != 1:
+                self._landmark_refusal(f"a query from {S} sources")
+            if bound is None:
+                self._landmark_refusal("a query without kept embeddings (cache=False)")
+            rows, table = self._tables(md, bound)
+            eng.landmark_ssad(rows, table, self._landmark_table(md), out, int(ids[0]), raw)
+            return
         kw = dict(count=S, reduce_min=reduce_min, raw=raw)
         if bound is not None and ids is not None:  # rows of the kept tables: nothing to embed or copy
             rows, table = self._tables(md, bound)
@@ -183,12 +207,14 @@ class TensorCores(_Backend):
         return tables[multi]
 
     def target_distances(self, src_pos, tgt_pos, src_comp, tgt_comp, out: wp.array, raw: bool):
+        self._landmark_refusal("a distance matrix to given targets")
         eng = self.eng
         eng.distances(eng.rows(tgt_pos, eng.embed(tgt_pos), tgt_comp), eng.sources(eng.embed(src_pos), src_pos,
                                                                                    src_comp),
                       out.reshape(-1), out.shape[1], count=out.shape[0], raw=raw)
 
     def pairs(self, p, q, out, raw: bool, frame):
+        self._landmark_refusal("a point-pair distance")
         self.eng.pairs(p, q, out, raw, frame)
 
     def sdf(self, x, out, frame, test_domain: bool = False):

@@ -47,6 +47,7 @@ class MeshOnDevice:
         self.dev = dev
         self.rel64 = rel  # (V, 3) float64 relative vertices: vertex sources without arithmetic per query
         self.lifted = None  # fp16 rows of the vertices embedded inside the kernels (no kept embeddings)
+        self.landmarks = None  # a landmark network's table rows (V * K,) float32 for the tensor-core kernels
         self._wp_mesh = self._face_comp = None
         if self.multi:  # closest-point queries give a point's component (in these relative coordinates)
             self._wp_mesh = wp.Mesh(points=self.verts, indices=wp.array(m.internal_faces.reshape(-1).astype(np.int32),
