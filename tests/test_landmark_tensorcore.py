@@ -16,7 +16,9 @@ from neurogf_warp.model.network import NeuroGFNet
 
 from tests.test_tensorcore import close, icosphere_mesh, random_net
 
-DEVICE = "cpu" if wp.is_cpu_available() else "cuda:0"
+# the CPU emulation wherever Warp has its CPU backend, and a GPU when there is one
+DEVICES = (["cpu"] if wp.is_cpu_available() else []) + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
+DEVICE = DEVICES[0]
 SOURCES = 12  # the test sources are among the first vertices, never landmarks (from a landmark lower = upper)
 TOL = 2e-3  # as tests/test_tensorcore.py: fp16 activations against float64, relative to the largest distance
 
@@ -42,7 +44,7 @@ def landmark_model(D, K, seed, tie_rows=True, **options):
     opts.update(options)
     net = random_net(D, seed, **opts)
     xn = mesh.normalize(mesh.vertices)
-    marks = rng.choice(np.arange(SOURCES, len(xn)), K, replace=False)
+    marks = rng.choice(np.arange(SOURCES, len(xn)), K, replace=K > len(xn) - SOURCES)  # K = 256: some twice
     # a metric (the chord, scaled): lower <= it <= upper for every pair, so the bracket has room
     table = (np.linalg.norm(xn[:, None] - xn[marks][None], axis=-1) * rng.uniform(1.05, 1.4)).astype(np.float32)
     model = ngf.Model(net=net, mesh=mesh, center=mesh.center, scale=mesh.scale, landmarks=table)
@@ -73,17 +75,21 @@ def reference_ssad(net, mesh, src: int) -> np.ndarray:
     return d.numpy() / mesh.scale
 
 
-@pytest.mark.parametrize("D,K", [(64, 16), (64, 32)])
-def test_bound_ssad_matches_float64(D, K):
+CASES = [(d, D, K) for d in DEVICES for D, K in ([(64, 16), (64, 32)] if d == "cpu" else
+                                                  [(64, 16), (128, 64), (256, 256)])]
+
+
+@pytest.mark.parametrize("device,D,K", CASES)
+def test_bound_ssad_matches_float64(device, D, K):
     seed = int(np.random.SeedSequence().entropy % 2**31)
     model, net, mesh, rng = landmark_model(D, K, seed)
-    msg = f"seed {seed}, {DEVICE}, D={D}, K={K}"
+    msg = f"seed {seed}, {device}, D={D}, K={K}"
     srcs = rng.choice(SOURCES, 2, replace=False)
     for s in srcs:
-        got = ngf.ssad(model, int(s), device=DEVICE, precision="fp16", raw=True)
+        got = ngf.ssad(model, int(s), device=device, precision="fp16", raw=True)
         close(got, reference_ssad(net, mesh, int(s)), f"ssad from {s}, " + msg, TOL)
     # finished answers: exactly 0 at the source, never below the straight line
-    d = ngf.ssad(model, int(srcs[0]), device=DEVICE, precision="fp16")
+    d = ngf.ssad(model, int(srcs[0]), device=device, precision="fp16")
     chord = np.linalg.norm(mesh.vertices - mesh.vertices[srcs[0]], axis=1)
     assert d[srcs[0]] == 0.0 and np.all(d >= chord * (1 - 1e-6)), msg
 
@@ -93,14 +99,15 @@ def test_bound_ssad_matches_float64(D, K):
                                      dict(landmark_pair_inputs=True, landmark_floor=0.5),
                                      dict(fourier=2, landmark_bracket=False, euclid=False)],
                          ids=["log", "plain", "pair-inputs", "plain-no-euclid"])
-def test_other_landmark_forms_match_float64(options):
+@pytest.mark.parametrize("device", DEVICES)
+def test_other_landmark_forms_match_float64(device, options):
     seed = int(np.random.SeedSequence().entropy % 2**31)
     model, net, mesh, rng = landmark_model(64, 16, seed, **options)
     s = int(rng.integers(SOURCES))
-    got = ngf.ssad(model, s, device=DEVICE, precision="fp16", raw=True)
+    got = ngf.ssad(model, s, device=device, precision="fp16", raw=True)
     # the plain forms add the whole head to the floor, not a sigmoid of it: fp16 shows more (as point queries do)
     tol = TOL if options.get("landmark_bracket", True) else 5e-3
-    close(got, reference_ssad(net, mesh, s), f"seed {seed}, {options}", tol)
+    close(got, reference_ssad(net, mesh, s), f"seed {seed}, {device}, {options}", tol)
 
 
 @pytest.mark.slow
@@ -116,7 +123,8 @@ def test_tile_variants_agree():
         np.testing.assert_array_equal(ngf.ssad(model, 9, device=DEVICE, precision="fp16"), base, err_msg=str(setting))
 
 
-def test_unreached_landmarks_and_components():
+@pytest.mark.parametrize("device", DEVICES)
+def test_unreached_landmarks_and_components(device):
     """Two separate parts: landmarks only on the first, so the second part's table rows are all unreached; +inf
     across the parts, and from a source on the second part the head on |s - q| (no bracket)."""
     import trimesh
@@ -132,7 +140,7 @@ def test_unreached_landmarks_and_components():
     model = ngf.Model(net=net, mesh=mesh, center=mesh.center, scale=mesh.scale, landmarks=table)
     net.landmark_table = TableLookup(xn, table)
     for s, here in ((2, slice(0, n)), (n + 3, slice(n, 2 * n))):
-        d = ngf.ssad(model, s, device=DEVICE, precision="fp16", raw=True)
+        d = ngf.ssad(model, s, device=device, precision="fp16", raw=True)
         other = slice(n, 2 * n) if s < n else slice(0, n)
         assert np.all(np.isinf(d[other])), s
         close(d[here], reference_ssad(net, mesh, s)[here], f"source {s}", TOL)
