@@ -231,8 +231,7 @@ def run(a) -> dict:
             away = subset != src
             row["max_rel"] = float((err[away] / np.abs(ref[away])).max())
             row["checked_vertices"] = int(len(subset))
-            model.invalidate()
-            del model, first, out
+            model.invalidate()  # frees this K's embeddings and table before the next K
         except Exception as e:  # a K that fails (memory, compilation) is reported, the others still run
             row["error"] = f"{type(e).__name__}: {e}"[:500]
         res["rows"].append(row)

@@ -13,7 +13,6 @@ import warp as wp
 import neurogf_warp as ngf
 from neurogf_warp.model import network
 from neurogf_warp.model.network import NeuroGFNet
-
 from tests.test_tensorcore import close, icosphere_mesh, random_net
 
 # the CPU emulation wherever Warp has its CPU backend, and a GPU when there is one

@@ -64,8 +64,9 @@ class Tuning:
     warps_sdf: int = 16
     warps_other: int = 16      # embeddings and the path head
     cpu_warps: int = 1         # the CPU emulation runs this many warps (32 fibers each) through all tiles
-    # (m-tiles per warp, prefetch) and persistent warps per multiprocessor of a landmark network's single-source
-    # kernel on kept embeddings (the table rows stream after the embeddings, so it has a tuning of its own)
+    # (m-tiles per warp, prefetch of the embeddings) and persistent warps per multiprocessor of a landmark network's
+    # single-source kernel on kept embeddings (its table rows stream after the embeddings, so it has a tuning of its
+    # own; its register cap is regs_ssad)
     landmark_ssad: tuple = (2, False)
     warps_landmark_ssad: int = 16
 
@@ -207,7 +208,7 @@ def head_struct(layers, device) -> Head:
 
 # ---- landmark networks ----------------------------------------------------------------------------------------------
 
-LANDMARK_K = tuple(range(16, 257, 16))  # landmark counts of the native kernels: whole k-steps, up to network.MAX_LANDMARKS
+LANDMARK_K = tuple(range(16, 257, 16))  # landmark counts of the native kernels: whole k-steps, up to MAX_LANDMARKS
 LANDMARK_FORMS = {"plain": 0, "bracket": 1, "bracket_log": 2}
 
 
@@ -447,7 +448,7 @@ def landmark_ssad_kernel(D: int, K: int, mt: int = 2, prefetch: bool = False, ma
         "out": "(float*)out.data", "ld": "rows.n", "reduce_min": "0", "euclid": "0.0f",
         "row_comp": "rows.comp.shape[0] ? (const int*)rows.comp.data : nullptr", "raw": f"(flags & {RAW}) ? 1 : 0"}) + \
         native_init("LandmarkNet", "M", {
-            "table": "(const float*)table.data", "floor": "lm_floor", "euclid": "euclid",
+            "table": "(const float*)table.data", "floor_scale": "lm_floor", "euclid": "euclid",
             "unreached": f"{2.0 * LANDMARK_UNREACHED!r}f", "form": "form", "pair_inputs": "pair_inputs",
             "width_max": f"{LANDMARK_WIDTH_MAX!r}f"}) + f"""
     ngf::landmark_ssad_rows<{D}, {K}, {mt}, {'true' if prefetch else 'false'}>(H, F, (const float*)rows.pts.data,

@@ -931,7 +931,7 @@ NGF_FN void ssad_rows(const Head& H, const Frame& f, const float* pts, const u32
 struct LandmarkNet
 {
     const float* table;  // (V, K) float32, normalized units; the rows of the bound vertices
-    float floor;         // landmark_floor: the floor is max(|s - q|, floor x lower)
+    float floor_scale;   // landmark_floor: the floor is max(|s - q|, floor_scale x lower)
     float euclid;        // 1: the plain form adds the floor to the head
     float unreached;     // upper at or beyond this: no landmark reaches the pair (2 x network.LANDMARK_UNREACHED)
     int form;            // 0: y (+ floor); 1: floor + sigmoid(y) (top - floor); 2: floor (top / floor) ** sigmoid(y)
@@ -948,7 +948,10 @@ NGF_FN f32x2 row_minmax(float lo, float up)  // the max of lo and the min of up 
     up = min2(up, shfl_xor(up, 2));
     return f32x2{lo, up};
 }
-NGF_FN float floats_at(const u32x4& v, int i) { return bits_to_float(i == 0 ? v.x : i == 1 ? v.y : i == 2 ? v.z : v.w); }
+NGF_FN float floats_at(const u32x4& v, int i)
+{
+    return bits_to_float(i == 0 ? v.x : i == 1 ? v.y : i == 2 ? v.z : v.w);
+}
 
 #define NGF_TINY 1e-12f  // network._TINY: distances clamped here before a log (s = q gives a floor of 0)
 
@@ -1036,7 +1039,7 @@ NGF_FN void landmark_tile(const SsadTile<D, MT>& a, const Head& H, const Frame& 
             const float* p = pts + 3 * a.r[m][i];
             const float dx = (p[0] - sp[0]) * f.xscale, dy = (p[1] - sp[1]) * f.xscale, dz = (p[2] - sp[2]) * f.xscale;
             e[m][i] = sqrtf(dx * dx + dy * dy + dz * dz);  // |s - q|, network frame (as finish_inside's chord)
-            floor_[m][i] = max2(e[m][i], M.floor * lower[m][i]);
+            floor_[m][i] = max2(e[m][i], M.floor_scale * lower[m][i]);
             float v = t == 0 ? lower[m][i] : upper[m][i];
             if (t >= 2)
                 v = M.pair_inputs ? (t == 2 ? e[m][i] : min2(log_ratio(upper[m][i], floor_[m][i]), M.width_max)) : 0.0f;
