@@ -20,7 +20,7 @@ BENCH = ROOT / "benchmarks"
 HEAVY = {"queries", "kernel_api"}
 SCRIPTS = ["released", "path_snap", "geodesics", "time_to_accuracy", "generalizable", "generalizable_collection",
            "generalizable_eval", "generalizable_scaling", "queries", "kernel_api", "geodesic_tools", "bakeoff",
-           "ground_truth_setup", "multi_gpu", "unseen_meshes"]
+           "ground_truth_setup", "multi_gpu", "unseen_meshes", "landmark_ssad"]
 
 PROBE = textwrap.dedent("""
     import json, runpy, sys
@@ -62,6 +62,18 @@ def test_help_runs_from_a_plain_checkout_with_this_checkouts_package(name, tmp_p
     assert Path(probe["package"]).resolve() == ROOT / "neurogf_warp" / "__init__.py"
     assert Path(probe["kernels"]).resolve() == ROOT / "kernels" / "__init__.py"
     assert Path(probe["mlp"]).resolve() == ROOT / "kernels" / "inference" / "mlp.py"
+
+
+@pytest.mark.slow
+def test_landmark_ssad_runs_on_the_cpu(tmp_path):
+    """The landmark SSAD benchmark's smoke test: a tiny mesh on the CPU emulation, every K checked against float64."""
+    out = tmp_path / "landmark_ssad.json"
+    r = subprocess.run([sys.executable, str(BENCH / "landmark_ssad.py"), "--device", "cpu", "--small", "--json",
+                        str(out)], cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    res = json.loads(out.read_text())
+    assert [row["K"] for row in res["rows"]] == [0, 16, 32] and all("kernel_ms" in row for row in res["rows"])
+    assert res["provenance"]["command"].startswith("python benchmarks/landmark_ssad.py --device cpu --small")
 
 
 def test_every_maintained_benchmark_is_covered():

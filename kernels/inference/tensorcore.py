@@ -28,6 +28,10 @@ import warp as wp
 
 from . import mlp
 
+# the landmark networks' constants (neurogf_warp/model/network.py; the kernels package does not import the library)
+LANDMARK_UNREACHED = 4.0  # a table entry across components: an upper bound at 2x this means no landmark reaches
+LANDMARK_WIDTH_MAX = 8.0  # the log-ratio head input stops here
+
 HEADER = (Path(__file__).resolve().parent / "native" / "neurogf_mma.h").read_text()
 BUILD = wp.ModuleBuildOptions(extra_cuda_preamble=HEADER, extra_cpu_preamble=HEADER)
 MODULE_OPTIONS = {"extra_build_options": BUILD, "enable_backward": False}
@@ -60,6 +64,11 @@ class Tuning:
     warps_sdf: int = 16
     warps_other: int = 16      # embeddings and the path head
     cpu_warps: int = 1         # the CPU emulation runs this many warps (32 fibers each) through all tiles
+    # (m-tiles per warp, prefetch of the embeddings) and persistent warps per multiprocessor of a landmark network's
+    # single-source kernel on kept embeddings (its table rows stream after the embeddings, so it has a tuning of its
+    # own; its register cap is regs_ssad)
+    landmark_ssad: tuple = (2, False)
+    warps_landmark_ssad: int = 16
 
 
 @wp.struct
@@ -195,6 +204,45 @@ def head_struct(layers, device) -> Head:
     H.b1 = _arr(pack_lanes(b1), wp.float32, device)
     H.w2 = _arr(pack_lanes(W2.reshape(-1)), wp.float32, device)
     return H
+
+
+# ---- landmark networks ----------------------------------------------------------------------------------------------
+
+LANDMARK_K = tuple(range(16, 257, 16))  # landmark counts of the native kernels: whole k-steps, up to MAX_LANDMARKS
+LANDMARK_FORMS = {"plain": 0, "bracket": 1, "bracket_log": 2}
+
+
+def landmark_columns() -> np.ndarray:
+    """The table column that mma column c (0..15) of a landmark k-step carries: lane t loads floats 4t .. 4t+3 of a
+    16-column block and puts the first two in columns 2t, 2t+1 of the A fragment, the other two in 2t+8, 2t+9."""
+    c = np.arange(16)
+    t, lane_half = (c % 8) // 2, c // 8
+    return 4 * t + 2 * lane_half + c % 2
+
+
+def landmark_first_layer(W0: np.ndarray, D: int, K: int) -> np.ndarray:
+    """A landmark head's first layer (H, D + K + 2 [+ 2]) as the kernel's k-steps see it (H, D + K + 16): the
+    embedding columns as they are, each 16 landmark columns permuted to the lanes' loads (``landmark_columns``), then
+    every scalar input (lower, upper [, |s - q|, log-ratio]) twice, for its fp16 high and low parts."""
+    H, n_in = W0.shape
+    scalars = n_in - D - K
+    if K % 16 or scalars not in (2, 4):
+        raise ValueError(f"a landmark head's first layer must be (H, D + K + 2 or 4) with K in {LANDMARK_K}, "
+                         f"got {W0.shape} for D={D}, K={K}")
+    out = np.zeros((H, D + K + 16))
+    out[:, :D] = W0[:, :D]
+    perm = landmark_columns()
+    for j in range(K // 16):
+        out[:, D + 16 * j: D + 16 * j + 16] = W0[:, D + 16 * j + perm]
+    out[:, D + K: D + K + 2 * scalars] = np.repeat(W0[:, D + K:], 2, axis=1)
+    return out
+
+
+def landmark_head_struct(layers, D: int, K: int, device) -> Head:
+    """``head_struct`` of a landmark network's distance head: its first layer packed by ``landmark_first_layer``
+    (D/16 + K/16 + 1 k-steps), the rest as in every head."""
+    (W0, b0), *rest = layers
+    return head_struct([(landmark_first_layer(W0, D, K), b0), *rest], device)
 
 
 @wp.struct
@@ -383,6 +431,46 @@ def lift_ssad_kernel(D: int, ks0: int, mt: int = 1, nc: int = 8):
     ngf::lift_ssad_rows<{D}, {ks0}, {mt}, {nc}>(L, H, F, (const float*)rows.pts.data, rows.n, S, O, tid >> 5, n_warps);
 """
     return _distance_kernel(call, f"ngf_lift_ssad_rows_{D}_{ks0}_{mt}_{nc}")
+
+
+@functools.lru_cache(maxsize=None)
+def landmark_ssad_kernel(D: int, K: int, mt: int = 2, prefetch: bool = False, max_regs: int = 0):
+    """One source to every row of kept packed embeddings for a landmark network with K landmarks: ``table`` (V, K)
+    float32 rows of the bound vertices, the source its row ``src_row``; ``form`` (``LANDMARK_FORMS``), ``floor``,
+    ``pair_inputs`` as in network.NeuroGFNet; ``flags`` takes ``RAW`` only."""
+    if K not in LANDMARK_K:
+        raise ValueError(f"K = {K} landmarks: the tensor-core kernels support K in {LANDMARK_K} (multiples of 16 up "
+                         "to 256)")
+    snippet = native_initializer(Head, "Head", "head", "H") + _frame_cpp("frame") + native_init("Sources", "S", {
+        "emb": "(const ngf::u32x4*)src.emb.data", "pos": "(const float*)src.pos.data",
+        "comp": "src.comp.shape[0] ? (const int*)src.comp.data : nullptr", "ids": "nullptr", "row0": "src_row",
+        "count": "1"}) + native_init("DistanceOut", "O", {
+        "out": "(float*)out.data", "ld": "rows.n", "reduce_min": "0", "euclid": "0.0f",
+        "row_comp": "rows.comp.shape[0] ? (const int*)rows.comp.data : nullptr", "raw": f"(flags & {RAW}) ? 1 : 0"}) + \
+        native_init("LandmarkNet", "M", {
+            "table": "(const float*)table.data", "floor_scale": "lm_floor", "euclid": "euclid",
+            "unreached": f"{2.0 * LANDMARK_UNREACHED!r}f", "form": "form", "pair_inputs": "pair_inputs",
+            "width_max": f"{LANDMARK_WIDTH_MAX!r}f"}) + f"""
+    ngf::landmark_ssad_rows<{D}, {K}, {mt}, {'true' if prefetch else 'false'}>(H, F, (const float*)rows.pts.data,
+        (const ngf::u32x4*)rows.cached.data, rows.n, S, M, O, tid >> 5, n_warps);
+"""
+
+    def body(head: Head, frame: mlp.Frame, rows: Rows, src: Sources, src_row: int, table: wp.array(dtype=wp.float32),
+             lm_floor: float, euclid: float, form: int, pair_inputs: int, out: wp.array(dtype=wp.float32), flags: int,
+             tid: int, n_warps: int): ...
+
+    name = f"ngf_landmark_ssad_rows_{D}_{K}_{mt}_{int(prefetch)}" + (f"_r{max_regs}" if max_regs else "")
+    native = wp.func_native(snippet)(_unique(body, name))
+    regs = dict(cuda_max_registers=max_regs, enable_cuda_smem_spilling=True) if max_regs else {}
+
+    @wp.kernel(module="unique", module_options=MODULE_OPTIONS, **regs)
+    def landmark_ssad_rows(head: Head, frame: mlp.Frame, rows: Rows, src: Sources, src_row: int,
+                           table: wp.array(dtype=wp.float32), lm_floor: float, euclid: float, form: int,
+                           pair_inputs: int, out: wp.array(dtype=wp.float32), flags: int, n_warps: int):
+        native(head, frame, rows, src, src_row, table, lm_floor, euclid, form, pair_inputs, out, flags, wp.tid(),
+               n_warps)
+
+    return landmark_ssad_rows
 
 
 def _points_kernel(call: str, name: str, out_dtype):

@@ -89,22 +89,20 @@ def bind(model, device=None, precision: str = "auto") -> int:
 def _choose(state: QueryState, precision: str):
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
-    fp16_no, fp32_no = fp16_refusal(state.shape), fp32_refusal(state.shape, state.options)
-    if state.options.get("landmarks"):  # the tensor-core kernels have no landmark features: "auto" is fp32
-        fp16_no = landmark_fp16_refusal(state.options)
+    fp16_no, fp32_no = fp16_refusal(state.shape, state.options), fp32_refusal(state.shape, state.options)
+    chosen_by_auto = precision == "auto"
     if precision == "auto":
         precision = "fp16" if state.device.is_cuda and fp16_no is None else "fp32"
     if precision == "fp16" and fp16_no is not None:
         raise ValueError(f"precision='fp16' cannot run this network: {fp16_no}; use precision='fp32'")
     if precision == "fp32" and fp32_no is not None:
         raise ValueError(f"this network's shape ({state.shape}) is not supported by the per-thread kernels: {fp32_no}")
-    return TensorCores(state) if precision == "fp16" else PerThread(state)
-
-
-def landmark_fp16_refusal(options: dict) -> str:
-    """Why the tensor-core kernels cannot run a landmark network."""
-    return (f"it is a landmark network (landmarks={options['landmarks']}): its distance head also reads the exact "
-            "distances to its landmarks, which only the per-thread kernels look up")
+    if precision == "fp32":
+        return PerThread(state)
+    # "auto" on a landmark network: the tensor cores answer what they run (a vertex source on a bound model), the
+    # per-thread kernels the other distance queries
+    auto_landmarks = chosen_by_auto and state.options.get("landmarks") and fp32_no is None
+    return TensorCores(state, PerThread(state) if auto_landmarks else None)
 
 
 class _Backend:
@@ -138,11 +136,9 @@ class TensorCores(_Backend):
     precision = "fp16"
     bytes_per_channel = 2
 
-    def __init__(self, state: QueryState):
+    def __init__(self, state: QueryState, landmark_fallback: "PerThread | None" = None):
         super().__init__(state)
-        if state.options.get("landmarks"):
-            raise ValueError(f"precision='fp16' cannot run this network: {landmark_fp16_refusal(state.options)}; "
-                             "use precision='fp32'")
+        self.fallback = landmark_fallback  # a landmark network's queries these kernels do not run (precision "auto")
         state.engine  # built (and the network's shape checked) now
 
     @property
@@ -160,10 +156,34 @@ class TensorCores(_Backend):
             st.tables = (bound, eng.rows(md.verts, bound, md.comp), eng.sources(bound, md.verts, md.comp))
         return st.tables[1], st.tables[2]
 
+    def _elsewhere(self, what: str) -> bool:
+        """True when a landmark network's query goes to the per-thread kernels (precision "auto"); for "fp16" an
+        error: these kernels answer a landmark network's single vertex source on a bound model only."""
+        if not self.state.options.get("landmarks"):
+            return False
+        if self.fallback is not None:
+            return True
+        raise ValueError(f"precision='fp16' runs a landmark network's single-source query from a vertex on a "
+                         f"bound model only (neurogf_warp.ssad(model, vertex) with cache=True); {what} needs "
+                         "precision='fp32' (or 'auto')")
+
+    def _landmark_table(self, md: MeshOnDevice) -> wp.array:
+        """The landmark table's rows in internal vertex order on the device, (V * K,) float32 (the per-thread
+        kernels' copy, made once)."""
+        return md.landmark_table(self.state.model).rows.flatten()
+
     def vertex_distances(self, md: MeshOnDevice, pts: np.ndarray, ids, comp, out: wp.array, reduce_min: bool,
                          raw: bool):
         eng, dev, bound = self.eng, self.device, self.kept
         S, V = len(pts), md.V
+        if eng.K:
+            what = ("a point source" if ids is None else f"a query from {S} sources" if S != 1 else
+                    "a query without kept embeddings (cache=False)" if bound is None else None)
+            if what is not None and self._elsewhere(what):
+                return self.fallback.vertex_distances(md, pts, ids, comp, out, reduce_min, raw)
+            rows, table = self._tables(md, bound)
+            eng.landmark_ssad(rows, table, self._landmark_table(md), out, int(ids[0]), raw)
+            return
         kw = dict(count=S, reduce_min=reduce_min, raw=raw)
         if bound is not None and ids is not None:  # rows of the kept tables: nothing to embed or copy
             rows, table = self._tables(md, bound)
@@ -203,12 +223,16 @@ class TensorCores(_Backend):
         return tables[multi]
 
     def target_distances(self, src_pos, tgt_pos, src_comp, tgt_comp, out: wp.array, raw: bool):
+        if self._elsewhere("a distance matrix to given targets"):
+            return self.fallback.target_distances(src_pos, tgt_pos, src_comp, tgt_comp, out, raw)
         eng = self.eng
         eng.distances(eng.rows(tgt_pos, eng.embed(tgt_pos), tgt_comp), eng.sources(eng.embed(src_pos), src_pos,
                                                                                    src_comp),
                       out.reshape(-1), out.shape[1], count=out.shape[0], raw=raw)
 
     def pairs(self, p, q, out, raw: bool, frame):
+        if self._elsewhere("a point-pair distance"):
+            return self.fallback.pairs(p, q, out, raw, frame)
         self.eng.pairs(p, q, out, raw, frame)
 
     def sdf(self, x, out, frame, test_domain: bool = False):

@@ -14,19 +14,34 @@ from neurogf_warp.model.folded import NetShape
 
 from .launches import Recorded
 
-__all__ = ["Engine", "fp16_refusal"]
+__all__ = ["Engine", "fp16_refusal", "landmark_inputs", "landmark_form"]
 
 _SIZED_LAUNCHES = 16  # recorded launches kept per kind that is keyed by a size (a few sizes recur: single sources,
 # path ends, one path)
 _PATH_SCRATCH_BYTES = 16 << 20  # path queries up to this much scratch keep it with their recorded launches
 
 
-def fp16_refusal(shape: NetShape) -> str | None:
+def landmark_inputs(options: dict) -> int:
+    """Inputs a landmark network's distance head takes besides the embedding: K differences, the two bounds, and
+    |p - q| and the bracket's log-width with ``landmark_pair_inputs`` (0 for other networks)."""
+    K = options.get("landmarks", 0)
+    return K + 2 + 2 * bool(options.get("landmark_pair_inputs")) if K else 0
+
+
+def landmark_form(options: dict) -> int:
+    """``tc.LANDMARK_FORMS`` code of how a landmark network's output is made from its head."""
+    if not options.get("landmark_bracket"):
+        return tc.LANDMARK_FORMS["plain"]
+    return tc.LANDMARK_FORMS["bracket_log" if options.get("landmark_bracket_log") else "bracket"]
+
+
+def fp16_refusal(shape: NetShape, options: dict | None = None) -> str | None:
     """Why the tensor-core kernels cannot run a network of this shape (None: they can).
 
     The native code is written for the released layout: lifting F -> D/4 -> D/2 -> D with D in SUPPORTED_D,
     distance and SDF heads D -> D/4 -> D/4 -> 1, a guidance layer 2D -> D and a four-layer point-wise path head
-    whose widths are template parameters (P1, P2 multiples of 16; P3 is padded to 16 by the packing).
+    whose widths are template parameters (P1, P2 multiples of 16; P3 is padded to 16 by the packing). A landmark
+    network (``options["landmarks"]`` = K) has D + K + 2 (+ 2) distance-head inputs, K in ``tc.LANDMARK_K``.
     """
     D = shape.D
     if D not in tc.SUPPORTED_D:
@@ -34,9 +49,13 @@ def fp16_refusal(shape: NetShape) -> str | None:
     want_lift = (D // 4, D // 2, D)
     if shape.lifting[1:] != want_lift:
         return f"lifting widths {shape.lifting} (the tensor-core kernels need (F, {', '.join(map(str, want_lift))}))"
-    for name, head in (("distance", shape.distance), ("SDF", shape.sdf)):
-        if head != (D, D // 4, D // 4, 1):
-            return f"{name} head widths {head} (the tensor-core kernels need ({D}, {D // 4}, {D // 4}, 1))"
+    K = (options or {}).get("landmarks", 0)
+    if K and K not in tc.LANDMARK_K:
+        return f"K = {K} landmarks (the tensor-core kernels support K in {tc.LANDMARK_K}: multiples of 16 up to 256)"
+    extra = landmark_inputs(options or {})
+    for name, head, n_in in (("distance", shape.distance, D + extra), ("SDF", shape.sdf, D)):
+        if head != (n_in, D // 4, D // 4, 1):
+            return f"{name} head widths {head} (the tensor-core kernels need ({n_in}, {D // 4}, {D // 4}, 1))"
     if shape.guidance != (2 * D, D):
         return f"guidance widths {shape.guidance} (the tensor-core kernels need ({2 * D}, {D}))"
     path = shape.path
@@ -55,14 +74,22 @@ class Engine:
 
     def __init__(self, layers: dict, shape: NetShape, options: dict, frame: mlp.Frame, device,
                  tuning: tc.Tuning = tc.Tuning()):
-        why = fp16_refusal(shape)
+        why = fp16_refusal(shape, options)
         if why is not None:
             raise ValueError(f"precision='fp16' cannot run this network: {why}; use precision='fp32'")
         self.device, self.frame, self.D, self.tuning = device, frame, shape.D, tuning
         self.ks0 = tc.input_ksteps(shape.lifting[0])
         self.euclid = 1.0 if options["euclid"] else 0.0
         self.lifting = tc.lifting_struct(layers["lifting"], options["fourier"], device)
-        self.dist_head = tc.head_struct(layers["distance"], device)
+        # K > 0: the distance head's first layer also reads landmark distances; only landmark_ssad runs it
+        self.K = options.get("landmarks", 0)
+        if self.K:
+            self.dist_head = tc.landmark_head_struct(layers["distance"], self.D, self.K, device)
+            self.landmark_params = {"lm_floor": float(options.get("landmark_floor", 1.0)), "euclid": self.euclid,
+                                    "form": landmark_form(options),
+                                    "pair_inputs": int(bool(options.get("landmark_pair_inputs")))}
+        else:
+            self.dist_head = tc.head_struct(layers["distance"], device)
         self.sdf_head = tc.head_struct(layers["sdf"], device)
         self.path_head = tc.path_struct(layers["guidance"], layers["path"], options["path_residual"],
                                         options["path_window"], device)
@@ -152,6 +179,26 @@ class Engine:
         self.launches.replay(key, {"src": src, "src_ids": ids if ids is not None else self._none,
                                    "src_row": int(row0), "n_src": int(count), "out": out, "ld": int(ld),
                                    "flags": flags})
+
+    def landmark_ssad(self, rows: tc.Rows, src: tc.Sources, table: wp.array, out: wp.array, row0: int,
+                      raw: bool = False):
+        """A landmark network's distances from source row ``row0`` of ``src`` to every row of ``rows`` (kept
+        embeddings), ``table`` the (V * K,) float32 landmark rows of both (the rows' numbering). out: (V,) float32."""
+        n = rows.n
+        if not n:
+            return
+        t = self.tuning
+        mt, prefetch = t.landmark_ssad
+        kernel = tc.landmark_ssad_kernel(self.D, self.K, mt, prefetch, t.regs_ssad)
+        key = kernel
+        if key not in self.launches or self.launches.held(key) is not rows:
+            p = self.landmark_params
+            cmd = self._launch(kernel, -(-n // (16 * mt)), [self.dist_head, self.frame, rows, src, 0, table,
+                                                             p["lm_floor"], p["euclid"], p["form"], p["pair_inputs"],
+                                                             out, 0], t.warps_landmark_ssad, record=True)
+            self.launches.record(key, cmd, kernel, held=rows, cpu_blocks=True)
+        self.launches.replay(key, {"src": src, "src_row": int(row0), "table": table, "out": out,
+                                   "flags": tc.RAW if raw else 0})
 
     def pairs(self, p: wp.array, q: wp.array, out: wp.array, raw: bool = False, frame: mlp.Frame | None = None):
         n = p.shape[0]

@@ -918,6 +918,203 @@ NGF_FN void ssad_rows(const Head& H, const Frame& f, const float* pts, const u32
     }
 }
 
+// ---- landmark networks ------------------------------------------------------------------------------------------
+// A landmark network's distance head also reads the exact distances T(s), T(q) of both points to K landmarks: fp32
+// rows of a (V, K) table. Its first layer takes [|e_s - e_q| (D), |T(s) - T(q)| (K), lower, upper (, |s - q|,
+// log(upper / floor))]: the K differences enter as fp16 k-steps like the embedding channels (they are features),
+// the scalars as fp16 high + low pairs in one last k-step (fp32-accurate), and the bounds and the bracket around
+// the head's output are computed in fp32 from the fp32 rows, since they set the answer's accuracy.
+// Lane t of a row group reads floats 4t .. 4t+3 of each 16-column block of a row in one load; the host permutes the
+// layer's landmark columns to match (tensorcore.landmark_head_struct), so the table keeps its natural order.
+
+// How a landmark network turns its head's output y into a distance (network.NeuroGFNet.distance_from_embeddings).
+struct LandmarkNet
+{
+    const float* table;  // (V, K) float32, normalized units; the rows of the bound vertices
+    float floor_scale;   // landmark_floor: the floor is max(|s - q|, floor_scale x lower)
+    float euclid;        // 1: the plain form adds the floor to the head
+    float unreached;     // upper at or beyond this: no landmark reaches the pair (2 x network.LANDMARK_UNREACHED)
+    int form;            // 0: y (+ floor); 1: floor + sigmoid(y) (top - floor); 2: floor (top / floor) ** sigmoid(y)
+    int pair_inputs;     // 1: the head also reads |s - q| and min(log(upper / floor), width_max)
+    float width_max;
+};
+
+NGF_FN float max2(float a, float b) { return b > a ? b : a; }
+NGF_FN f32x2 row_minmax(float lo, float up)  // the max of lo and the min of up over the 4 lanes of a row group
+{
+    lo = max2(lo, shfl_xor(lo, 1));
+    up = min2(up, shfl_xor(up, 1));
+    lo = max2(lo, shfl_xor(lo, 2));
+    up = min2(up, shfl_xor(up, 2));
+    return f32x2{lo, up};
+}
+NGF_FN float floats_at(const u32x4& v, int i)
+{
+    return bits_to_float(i == 0 ? v.x : i == 1 ? v.y : i == 2 ? v.z : v.w);
+}
+
+#define NGF_TINY 1e-12f  // network._TINY: distances clamped here before a log (s = q gives a floor of 0)
+
+NGF_FN float log_ratio(float a, float b) { return logf(max2(a, NGF_TINY)) - logf(max2(b, NGF_TINY)); }
+
+// The landmark k-steps of the first layer for MT m-tiles: c0 += |T(q) - T(s)| W, and each row's bounds (every lane
+// of a row group holds those of rows g and g + 8). s_marks: the source's table row.
+template <int D, int K, int MT>
+NGF_FN void landmark_ksteps(const Head& W, const float* table, const int (&r)[MT][2], const float* s_marks,
+                            float (&c0)[MT][D / 32][4], float (&lower)[MT][2], float (&upper)[MT][2])
+{
+    const int t = lane_id() & 3;
+#pragma unroll
+    for (int m = 0; m < MT; ++m)
+#pragma unroll
+        for (int i = 0; i < 2; ++i)
+        {
+            lower[m][i] = 0.0f;
+            upper[m][i] = NGF_INF;
+        }
+#pragma unroll 4
+    for (int j = 0; j < K / 16; ++j)
+    {
+        const u32x4 sb = ld_table4((const u32x4*)(s_marks + 16 * j + 4 * t));
+        u32 a[MT][1][4];
+#pragma unroll
+        for (int m = 0; m < MT; ++m)
+#pragma unroll
+            for (int i = 0; i < 2; ++i)
+            {
+                const u32x4 qb = ld_stream((const u32x4*)(table + (size_t)r[m][i] * K + 16 * j + 4 * t));
+                float d[4];
+#pragma unroll
+                for (int c = 0; c < 4; ++c)
+                {
+                    const float q = floats_at(qb, c), s = floats_at(sb, c);
+                    d[c] = fabsf(q - s);
+                    lower[m][i] = max2(lower[m][i], d[c]);
+                    upper[m][i] = min2(upper[m][i], q + s);
+                }
+                a[m][0][i] = pack_half2(d[0], d[1]);      // row g (i = 0) or g + 8, columns 2t, 2t + 1
+                a[m][0][2 + i] = pack_half2(d[2], d[3]);  // the same rows, columns 2t + 8, 2t + 9
+            }
+        dense<MT, 1, D / 32>(a, W.w0, D / 32, D / 16 + j, 0, c0);
+    }
+#pragma unroll
+    for (int m = 0; m < MT; ++m)
+#pragma unroll
+        for (int i = 0; i < 2; ++i)
+        {
+            const f32x2 b = row_minmax(lower[m][i], upper[m][i]);
+            lower[m][i] = b.x;
+            upper[m][i] = b.y;
+        }
+}
+
+// The landmark head on one tile of kept embeddings (SsadTile) and the finished distances of its rows.
+template <int D, int K, int MT>
+NGF_FN void landmark_tile(const SsadTile<D, MT>& a, const Head& H, const Frame& f, const float* pts,
+                          const u32x4* s_row, const float* sp, int sc, const float* s_marks, const LandmarkNet& M,
+                          const DistanceOut& o)
+{
+    const int t = lane_id() & 3;
+    float c0[MT][D / 32][4];
+    zero<MT, D / 32>(c0);
+#pragma unroll
+    for (int b = 0; b < D / 32; ++b)
+    {
+        u32 d[MT][2][4];
+#pragma unroll
+        for (int m = 0; m < MT; ++m)
+            segments_to_a(a.seg[m][0][b], a.seg[m][1][b], d[m]);
+        subtract_source<MT, 2>(d, s_row, 2 * b);
+        dense<MT, 2, D / 32>(d, H.w0, D / 32, 2 * b, 0, c0);
+    }
+    float lower[MT][2], upper[MT][2], e[MT][2], floor_[MT][2];
+    landmark_ksteps<D, K, MT>(H, M.table, a.r, s_marks, c0, lower, upper);
+    // the last k-step: lane t holds columns 2t, 2t + 1 = the high and low fp16 parts of scalar t of the row
+    u32 z[MT][1][4];
+#pragma unroll
+    for (int m = 0; m < MT; ++m)
+#pragma unroll
+        for (int i = 0; i < 2; ++i)
+        {
+            const float* p = pts + 3 * a.r[m][i];
+            const float dx = (p[0] - sp[0]) * f.xscale, dy = (p[1] - sp[1]) * f.xscale, dz = (p[2] - sp[2]) * f.xscale;
+            e[m][i] = sqrtf(dx * dx + dy * dy + dz * dz);  // |s - q|, network frame (as finish_inside's chord)
+            floor_[m][i] = max2(e[m][i], M.floor_scale * lower[m][i]);
+            float v = t == 0 ? lower[m][i] : upper[m][i];
+            if (t >= 2)
+                v = M.pair_inputs ? (t == 2 ? e[m][i] : min2(log_ratio(upper[m][i], floor_[m][i]), M.width_max)) : 0.0f;
+            const float vhi = half_bits_to_float(pack_half2(v, 0.0f) & 0xffffu);
+            z[m][0][i] = pack_half2(vhi, v - vhi);
+            z[m][0][2 + i] = 0u;
+        }
+    dense<MT, 1, D / 32>(z, H.w0, D / 32, D / 16 + K / 16, 0, c0);
+    float y[MT][2];
+    head_tail<MT, D / 32>(H, c0, y);
+#pragma unroll
+    for (int m = 0; m < MT; ++m)
+#pragma unroll
+        for (int i = 0; i < 2; ++i)
+        {
+            const float fl = floor_[m][i];
+            float v;
+            if (M.form == 0)
+                v = y[m][i] + M.euclid * fl;
+            else if (upper[m][i] >= M.unreached)  // a piece without landmarks: the head on |s - q|
+                v = e[m][i] + y[m][i];
+            else
+            {
+                const float top = max2(upper[m][i], fl);
+                const float sig = 1.0f / (1.0f + expf(-y[m][i]));
+                if (M.form == 1)
+                    v = fl + sig * (top - fl);
+                else
+                    v = fl > 0.0f ? max2(fl, NGF_TINY) * expf(sig * log_ratio(top, fl)) : fl;
+            }
+            const int rc = o.row_comp ? o.row_comp[a.r[m][i]] : 0;
+            const float d = finish_inside(v, f, pts + 3 * a.r[m][i], sp, 0.0f, o.row_comp && sc != rc, o.raw, true);
+            if (t == i && a.ok[m][i])
+                o.out[a.r[m][i]] = d;
+        }
+}
+
+// One source to every row of kept embeddings for a landmark network (SSAD on a bound model), as ssad_rows.
+template <int D, int K, int MT, bool PF>
+NGF_FN void landmark_ssad_rows(const Head& H, const Frame& f, const float* pts, const u32x4* cached, int n,
+                               const Sources& S, const LandmarkNet& M, const DistanceOut& o, int warp, int n_warps)
+{
+    const int n_tiles = (n + 16 * MT - 1) / (16 * MT);
+    const int srow = S.row(0);
+    const u32x4* s_row = S.emb + (size_t)srow * (D / 8);
+    const float* sp = S.pos + 3 * srow;
+    const int sc = S.comp ? S.comp[srow] : 0;
+    const float* s_marks = M.table + (size_t)srow * K;
+    if (!PF)
+    {
+        for (int tile = warp; tile < n_tiles; tile += n_warps)
+        {
+            SsadTile<D, MT> a;
+            a.load(cached, tile, n);
+            landmark_tile<D, K, MT>(a, H, f, pts, s_row, sp, sc, s_marks, M, o);
+        }
+        return;
+    }
+    SsadTile<D, MT> a, b;
+    if (warp < n_tiles)
+        a.load(cached, warp, n);
+    for (int tile = warp; tile < n_tiles; tile += 2 * n_warps)
+    {
+        const int next = tile + n_warps;
+        if (next < n_tiles)
+            b.load(cached, next, n);
+        landmark_tile<D, K, MT>(a, H, f, pts, s_row, sp, sc, s_marks, M, o);
+        if (next >= n_tiles)
+            break;
+        if (next + n_warps < n_tiles)
+            a.load(cached, next + n_warps, n);
+        landmark_tile<D, K, MT>(b, H, f, pts, s_row, sp, sc, s_marks, M, o);
+    }
+}
+
 // One source to N points embedded here (SSAD without kept embeddings): each chunk of the last lifting layer goes
 // straight into the head's first layer as |e - s|, so the embedding is never held whole. MT m-tiles per warp
 // share each weight load.
