@@ -26,7 +26,7 @@ PAGE = ROOT / "docs" / "performance.md"
 
 FORMATTERS: dict = {}  # benchmark name -> (title, function(runs) -> list of Markdown lines)
 PLOTTERS: dict = {}  # benchmark name -> function(runs, png path): a figure beside the table (matplotlib)
-ORDER = ["queries", "released", "kernel_api", "path_snap", "geodesic_tools", "ground_truth_setup", "geodesics", "time_to_accuracy",
+ORDER = ["queries", "landmark_ssad", "released", "kernel_api", "path_snap", "geodesic_tools", "ground_truth_setup", "geodesics", "time_to_accuracy",
          "bakeoff", "generalizable",
          "generalizable_collection", "generalizable_eval", "generalizable_scaling", "multi_gpu"]
 
@@ -196,6 +196,31 @@ def fmt_queries(runs):
     cached = [c.get("warp from the kernel cache, new process") for c in comp]
     out += ["", f"Warp kernels of every query: {span(cold, '{:.1f}', ' s')} to compile from an empty kernel cache, "
             f"{span(cached, '{:.2f}', ' s')} to load from the cache in a new process. Sizes: {sizes}."]
+    return out
+
+
+H200_COPY_GBPS = 4278  # read + write copy bandwidth queries.py measured on an H200 (queries_h200_2026-11-28.json)
+
+
+@formatter("landmark_ssad", "Landmark networks: a bound SSAD on tensor cores against K")
+def fmt_landmark_ssad(runs):
+    out = []
+    for run in runs:
+        mesh, gpu = run.get("mesh", {}), "H200" in str(run.get("provenance", {}).get("device_name"))
+        rows = [(r["K"], f"{r['table_mb']:.1f}", r["bytes_per_vertex"], f"{r['kernel_ms']:.4f}",
+                 f"{r['public_ms']:.4f}", f"{r['gb_per_s']:,.0f}",
+                 f"{r['gb_per_s'] / H200_COPY_GBPS:.0%}" if gpu else "-", f"{r['max_err']:.1e}")
+                for r in run["rows"] if "error" not in r]
+        out += [f"A random network of width D = {run['D']} with K landmarks (K = 0: today's network) bound to a "
+                f"{mesh.get('vertices', 0):,}-vertex mesh; `ngf.ssad(model, vertex)` with precision fp16: GPU time "
+                "per call (CUDA events around back-to-back calls of the backend) and the public call's time, the "
+                "bytes each vertex costs (fp16 embedding, float32 table row, the point, the answer), the bandwidth "
+                f"that makes and its share of the {H200_COPY_GBPS:,} GB/s copy bandwidth `benchmarks/queries.py` "
+                "measured on an H200, and the error against a float64 evaluation relative to the largest distance.",
+                ""]
+        out += table(["K", "table MB", "bytes per vertex", "GPU ms", "public call ms", "GB/s", "of the copy ceiling",
+                      "max error"], rows)
+        out += [""] + [f"- K = {r['K']}: {r['error']}" for r in run["rows"] if "error" in r]
     return out
 
 

@@ -207,7 +207,8 @@ class RuntimeConfig:
     # runs this run's steps fastest, timed at its start: on a busy machine one thread can beat several)
     threads: int | None = None
     # "torch": torch.optim.AdamW (fused); "plain": training.adamw.AdamW, the same update from tensor ops, which
-    # spares a fresh process torch._dynamo's import at the first step (bakeoff_setup10_h200_2026-11-29.json)
+    # spares a fresh process torch._dynamo's import at the first step (bakeoff_setup10_h200_2026-11-29.json);
+    # the GPU presets use "plain" (presets.py)
     optimizer: str = "torch"
 
     def validate(self):

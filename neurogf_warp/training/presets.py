@@ -31,7 +31,10 @@ PRESETS = {
     # set by that analogy, not from a GPU run of its own; its steps cost ~1% of a 60 s budget). Without a budget
     # this is 80,000 refine_dist steps instead of 20,000: about 3 more minutes on an H100 (3.2 ms per full-batch
     # step, from a profile); the accuracy of such an unbudgeted run with this recipe is unknown
-    "default": dict(hard_share=0.25, ratios={"refine_dist": 4.0, "refine_sdf": 0.4}),
+    # The plain AdamW spares a fresh process the 4-6 s of torch._dynamo's import at its first step: at 10 s on an
+    # H200 bunny, spot and cow then train (MRE 0.67-1.22%) instead of ending untrained (10.7-16.9%), and at 20 s
+    # their MRE is 5-17% lower (bakeoff_plain_adamw_h200_2026-11-29.json); the CPU presets keep torch's (no gain)
+    "default": dict(hard_share=0.25, ratios={"refine_dist": 4.0, "refine_sdf": 0.4}, optimizer="plain"),
     "paper": dict(fourier=0, euclid=False, path_residual=False, path_width=1, path_window=False, dist_loss="l1",
                   refine_dist_steps=0, refine_path_lr=1e-3, ratios={"refine_path": 0.1}),
     # CPU: a short joint stage and a long refine_dist (its steps cost a third to a fifth of a joint step); 4 x 100
