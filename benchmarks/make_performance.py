@@ -26,7 +26,7 @@ PAGE = ROOT / "docs" / "performance.md"
 
 FORMATTERS: dict = {}  # benchmark name -> (title, function(runs) -> list of Markdown lines)
 PLOTTERS: dict = {}  # benchmark name -> function(runs, png path): a figure beside the table (matplotlib)
-ORDER = ["queries", "landmark_ssad", "released", "kernel_api", "path_snap", "geodesic_tools", "ground_truth_setup", "geodesics", "time_to_accuracy",
+ORDER = ["queries", "landmark_ssad", "between_vertices", "released", "kernel_api", "path_snap", "geodesic_tools", "ground_truth_setup", "geodesics", "time_to_accuracy",
          "bakeoff", "generalizable",
          "generalizable_collection", "generalizable_eval", "generalizable_scaling", "multi_gpu"]
 
@@ -222,6 +222,17 @@ def fmt_landmark_ssad(runs):
                       "max error"], rows)
         out += [""] + [f"- K = {r['K']}: {r['error']}" for r in run["rows"] if "error" in r]
     return out
+
+
+@formatter("between_vertices", "Distances between vertices: edge midpoints against exact geodesics")
+def fmt_between_vertices(runs):
+    rows = [(r["model"], r["design"], where[3:], pct(r[where]["mre"]), pct(r[where]["p99"], 2), pct(r[where]["max"], 1),
+             f"{r[where]['pairs']:,}") for run in runs for r in run["rows"] for where in ("at_vertices", "at_midpoints")]
+    out = ["Each model's distances from vertex sources to every vertex and to every edge midpoint, against the "
+           "ground-truth solver on the mesh subdivided at its edge midpoints (the same surface).", ""]
+    out += table(["model", "design", "targets", "MRE", "p99", "max", "pairs"], rows)
+    notes = [n for run in runs for n in run.get("notes", [])]
+    return out + ([""] + [f"- {n}" for n in notes] if notes else [])
 
 
 @formatter("released", "Released checkpoints through the Warp kernels")
