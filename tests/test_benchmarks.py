@@ -20,7 +20,7 @@ BENCH = ROOT / "benchmarks"
 HEAVY = {"queries", "kernel_api"}
 SCRIPTS = ["released", "path_snap", "geodesics", "time_to_accuracy", "generalizable", "generalizable_collection",
            "generalizable_eval", "generalizable_scaling", "queries", "kernel_api", "geodesic_tools", "bakeoff",
-           "ground_truth_setup", "multi_gpu", "unseen_meshes", "landmark_ssad"]
+           "ground_truth_setup", "multi_gpu", "unseen_meshes", "landmark_ssad", "between_vertices"]
 
 PROBE = textwrap.dedent("""
     import json, runpy, sys
@@ -74,6 +74,28 @@ def test_landmark_ssad_runs_on_the_cpu(tmp_path):
     res = json.loads(out.read_text())
     assert [row["K"] for row in res["rows"]] == [0, 16, 32] and all("kernel_ms" in row for row in res["rows"])
     assert res["provenance"]["command"].startswith("python benchmarks/landmark_ssad.py --device cpu --small")
+
+
+def test_between_vertices_scores_a_model(tmp_path, ellipsoid):
+    """The between-vertices benchmark on a random network of the ellipsoid: rows at vertices and at midpoints, every
+    edge's midpoint counted."""
+    import torch
+
+    import neurogf_warp as ngf
+    from neurogf_warp.model.network import NeuroGFNet
+
+    torch.manual_seed(0)
+    path = tmp_path / "m.ngf"
+    ngf.save(ngf.Model(net=NeuroGFNet(64, euclid=True), mesh=ellipsoid, center=ellipsoid.center,
+                       scale=ellipsoid.scale), path)
+    out = tmp_path / "bv.json"
+    r = subprocess.run([sys.executable, str(BENCH / "between_vertices.py"), str(path), "--sources", "2", "--json",
+                        str(out)], cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    row = json.loads(out.read_text())["rows"][0]
+    edges = 3 * len(ellipsoid.internal_faces) // 2  # a closed mesh: each edge in two faces
+    assert row["midpoints"] == edges and row["at_midpoints"]["pairs"] == 2 * edges
+    assert row["at_vertices"]["pairs"] == 2 * (len(ellipsoid.internal_vertices) - 1)
 
 
 def test_every_maintained_benchmark_is_covered():
