@@ -68,11 +68,13 @@ def test_round_trips_and_the_flat_format_of_older_checkpoints():
 
 def test_presets():
     assert set(PRESETS) >= {"default", "paper", "cpu", "cpu_small"}
-    # the GPU recipe: the hard-pair pool and 4 refine_dist steps per joint step on top of the dataclass defaults;
-    # the CPU presets keep uniform batches (not measured there)
-    assert preset("default") == TrainConfig(preset="default").set(hard_share=0.25,
+    # the GPU recipe: the hard-pair pool, 4 refine_dist steps per joint step and the plain AdamW on top of the
+    # dataclass defaults; the CPU presets keep uniform batches (not measured there) and torch's AdamW
+    assert preset("default") == TrainConfig(preset="default").set(hard_share=0.25, optimizer="plain",
                                                                     ratios={"refine_dist": 4.0, "refine_sdf": 0.4})
     assert preset("cpu").schedule.hard_share == 0 and preset("paper").schedule.hard_share == 0
+    assert preset("cpu").runtime.optimizer == "torch" and preset("landmarks").runtime.optimizer == "plain"
+    assert preset("landmarks").network.landmarks == preset("cpu_landmarks").network.landmarks == 256
     cpu = preset("cpu")
     assert cpu.preset == "cpu" and cpu.network.D < 256 and cpu.batches.batch_g < TrainConfig().batches.batch_g
     assert choose_preset("cpu", 3000) == "cpu" and choose_preset("cuda:0", 3000) == "default"
