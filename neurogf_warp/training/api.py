@@ -413,9 +413,6 @@ def _plan_compile(cfg: TrainConfig, dev, deadline: float, timings: dict) -> str 
 
 
 LANDMARK_SHARE = 0.15  # of a budget, at most, for the landmark rows of a ``landmarks=K`` network
-# the landmark table's rows come from a solve of at least this many Steiner points per edge: the bounds read them as
-# exact (on spot, a table of k = 1 rows, 0.13% off, left a model 0.186% MRE; the same model read k = 3 rows 0.069%)
-LANDMARK_MIN_K = 3
 
 
 def _landmark_plan(cfg: TrainConfig, mesh, dev, budget_seconds) -> tuple:
@@ -550,9 +547,9 @@ def _run_data(plan: RunPlan, run: _RunState) -> None:
     limit = None if budget_seconds is None or ck is not None else \
         max(0.0, DATA_SHARE * budget_seconds - (t_data - plan.t_call))
     landmarks_solved, _ = _landmark_plan(cfg, mesh, dev, budget_seconds)
-    if cfg.network.landmarks and cfg.data.full_rows < cfg.network.landmarks and cfg.data.k >= LANDMARK_MIN_K:
-        # the landmark rows come with the dataset's first distance sources (a proxy dataset has none, and a coarser
-        # solve's rows are not taken: the trainer then solves ``landmarks_solved`` of them itself)
+    if cfg.network.landmarks and cfg.data.full_rows < cfg.network.landmarks:
+        # the landmark rows come with the dataset's first distance sources (a proxy dataset has none: the trainer
+        # then solves ``landmarks_solved`` of them itself)
         cfg = run.cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, full_rows=cfg.network.landmarks))
     if ranks is None:
         ds = obtain_dataset(mesh, plan.dataset, plan.files.dataset if plan.dataset is None else None, cfg.data,
