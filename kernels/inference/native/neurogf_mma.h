@@ -882,22 +882,19 @@ struct SsadTile
     }
 };
 
-template <int D, int MT, bool PF>
-NGF_FN void ssad_rows(const Head& H, const Frame& f, const float* pts, const u32x4* cached, int n, const Sources& S,
-                      const DistanceOut& o, int warp, int n_warps)
+// Every tile of kept embeddings a persistent warp owns, loaded and handed to finish(tile); with PF the next tile's
+// load is issued before this one's head runs, so its latency hides behind the mma work.
+template <int D, int MT, bool PF, class Finish>
+NGF_FN void each_kept_tile(const u32x4* cached, int n, int warp, int n_warps, Finish finish)
 {
     const int n_tiles = (n + 16 * MT - 1) / (16 * MT);
-    const int srow = S.row(0);
-    const u32x4* s_row = S.emb + (size_t)srow * (D / 8);
-    const float* sp = S.pos + 3 * srow;
-    const int sc = S.comp ? S.comp[srow] : 0;
     if (!PF)
     {
         for (int tile = warp; tile < n_tiles; tile += n_warps)
         {
             SsadTile<D, MT> a;
             a.load(cached, tile, n);
-            a.finish(H, f, pts, s_row, sp, sc, o);
+            finish(a);
         }
         return;
     }
@@ -909,13 +906,25 @@ NGF_FN void ssad_rows(const Head& H, const Frame& f, const float* pts, const u32
         const int next = tile + n_warps;
         if (next < n_tiles)
             b.load(cached, next, n);
-        a.finish(H, f, pts, s_row, sp, sc, o);
+        finish(a);
         if (next >= n_tiles)
             break;
         if (next + n_warps < n_tiles)
             a.load(cached, next + n_warps, n);
-        b.finish(H, f, pts, s_row, sp, sc, o);
+        finish(b);
     }
+}
+
+template <int D, int MT, bool PF>
+NGF_FN void ssad_rows(const Head& H, const Frame& f, const float* pts, const u32x4* cached, int n, const Sources& S,
+                      const DistanceOut& o, int warp, int n_warps)
+{
+    const int srow = S.row(0);
+    const u32x4* s_row = S.emb + (size_t)srow * (D / 8);
+    const float* sp = S.pos + 3 * srow;
+    const int sc = S.comp ? S.comp[srow] : 0;
+    each_kept_tile<D, MT, PF>(cached, n, warp, n_warps,
+                              [&](const SsadTile<D, MT>& t) { t.finish(H, f, pts, s_row, sp, sc, o); });
 }
 
 // ---- landmark networks ------------------------------------------------------------------------------------------
@@ -1082,37 +1091,14 @@ template <int D, int K, int MT, bool PF>
 NGF_FN void landmark_ssad_rows(const Head& H, const Frame& f, const float* pts, const u32x4* cached, int n,
                                const Sources& S, const LandmarkNet& M, const DistanceOut& o, int warp, int n_warps)
 {
-    const int n_tiles = (n + 16 * MT - 1) / (16 * MT);
     const int srow = S.row(0);
     const u32x4* s_row = S.emb + (size_t)srow * (D / 8);
     const float* sp = S.pos + 3 * srow;
     const int sc = S.comp ? S.comp[srow] : 0;
     const float* s_marks = M.table + (size_t)srow * K;
-    if (!PF)
-    {
-        for (int tile = warp; tile < n_tiles; tile += n_warps)
-        {
-            SsadTile<D, MT> a;
-            a.load(cached, tile, n);
-            landmark_tile<D, K, MT>(a, H, f, pts, s_row, sp, sc, s_marks, M, o);
-        }
-        return;
-    }
-    SsadTile<D, MT> a, b;
-    if (warp < n_tiles)
-        a.load(cached, warp, n);
-    for (int tile = warp; tile < n_tiles; tile += 2 * n_warps)
-    {
-        const int next = tile + n_warps;
-        if (next < n_tiles)
-            b.load(cached, next, n);
-        landmark_tile<D, K, MT>(a, H, f, pts, s_row, sp, sc, s_marks, M, o);
-        if (next >= n_tiles)
-            break;
-        if (next + n_warps < n_tiles)
-            a.load(cached, next + n_warps, n);
-        landmark_tile<D, K, MT>(b, H, f, pts, s_row, sp, sc, s_marks, M, o);
-    }
+    each_kept_tile<D, MT, PF>(cached, n, warp, n_warps, [&](const SsadTile<D, MT>& t) {
+        landmark_tile<D, K, MT>(t, H, f, pts, s_row, sp, sc, s_marks, M, o);
+    });
 }
 
 // One source to N points embedded here (SSAD without kept embeddings): each chunk of the last lifting layer goes
