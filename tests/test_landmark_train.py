@@ -50,3 +50,18 @@ def test_trained_landmark_model_round_trip_and_queries(landmark_model, ellipsoid
     assert np.abs(half - d).max() <= 2e-3 * d.max()
     with pytest.raises(ValueError, match="needs precision='fp32'"):
         ngf.distance(back, back.mesh.vertices[:2], back.mesh.vertices[2:4], precision="fp16")
+
+
+@pytest.mark.slow
+def test_landmark_rows_of_a_coarse_dataset_are_solved_again(tmp_path, ellipsoid, one_thread):
+    """A dataset solved at k = 1 (the CPU presets) lends its landmarks but not their rows: the bounds read the table
+    as exact, so the run solves those landmarks again at k = 3 (all of them without a budget)."""
+    from neurogf_warp.ground_truth.geodesics import geodesic_distances
+
+    cfg = preset("cpu_small", k=1, querier_steps=5, epochs=1, iters_per_epoch=20, landmarks=8, landmark_bracket=True)
+    model = train(ellipsoid, tmp_path / "m.ngf", config=cfg, device="cpu", progress=False)
+    marks = model.landmarks.argmin(0)
+    fine = geodesic_distances(ellipsoid, marks, device="cpu", k=3, near_source=False) * ellipsoid.scale
+    coarse = geodesic_distances(ellipsoid, marks, device="cpu", k=1, near_source=False) * ellipsoid.scale
+    np.testing.assert_allclose(model.landmarks.T, fine, rtol=1e-5, atol=1e-6)
+    assert np.abs(coarse - fine).max() > 1e-4  # the two solves differ, so the test tells them apart

@@ -36,6 +36,8 @@ class TrainingData:
         self.landmarks_solved = None  # landmarks a ``landmarks=K`` network's rows solve (None: K; set by the run)
         self.landmark_rows = None  # its (points, distances) lookup table, made once per run (``landmark_table``)
         self.full_dist = t(ds.full_dist)  # (K, V) whole rows of the first distance sources (landmark features)
+        self.full_src = np.asarray(ds.full_src, np.int64)  # (K,) their vertices
+        self.solve_k = int((ds.meta.get("settings") or {}).get("k", 3))  # Steiner points per edge of those rows
         self.test_src = torch.as_tensor(np.asarray(ds.test_src), dtype=torch.long, device=device)
         self.test_dist = t(ds.test_dist)
         self.surface_points = np.asarray(ds.surface_points, dtype=np.float32)

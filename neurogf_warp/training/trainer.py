@@ -73,11 +73,17 @@ def fast_path(net: NeuroGFNet, es, et, lines):
     return net.path_output(h.reshape(K, M, 3), lines)  # float32 lines: float32 points under autocast too
 
 
+# the landmark table's rows come from a solve of at least this many Steiner points per edge: the bounds read them as
+# exact (a spot model read with its k = 1 table 0.186% MRE, with k = 3 rows 0.069%; docs/design.md)
+LANDMARK_MIN_K = 3
+
+
 def landmark_table(data: TrainingData, k: int, device, solved: int | None = None) -> tuple:
     """The lookup table of a ``landmarks=k`` network: (n, 3) points and (n, k) exact distances (normalized units)
     from k landmark vertices, for every vertex and every other point the distance rows use.
 
-    Landmarks are the dataset's first distance sources when it kept their whole rows (``data.full_dist``), else
+    Landmarks are the dataset's first distance sources when it kept their whole rows (``data.full_dist``; rows of a
+    solve coarser than ``LANDMARK_MIN_K`` are solved again at it, ``solved`` of them), else
     vertices spread by farthest-point sampling in space, solved by the ground-truth solver (plain solve, as the
     training rows); +inf across components becomes 4 (the normalized mesh fits the unit sphere, so every
     finite distance is far below it). Rows of a proxy dataset start and end at proxy vertices, which are not mesh
@@ -92,6 +98,12 @@ def landmark_table(data: TrainingData, k: int, device, solved: int | None = None
     if kept is not None and len(kept):  # the dataset's own first distance sources: no solve of their own
         columns, k = k, min(k, len(kept))
         d = kept[:k].detach().cpu().numpy()
+        if data.solve_k < LANDMARK_MIN_K:  # a coarse solve's rows: as many as the share allows solved again finer
+            n = min(k, solved or k)
+            v = x.detach().cpu().numpy().astype(np.float64)
+            d = d.copy()
+            d[:n] = geodesic_distances((v, data.faces), data.full_src[:n], device=warp_device(device), k=LANDMARK_MIN_K,
+                                       near_source=False)
     else:
         columns, k = k, min(k, solved or k, len(x))
         far = torch.full((len(x),), float("inf"), device=x.device)
