@@ -62,6 +62,7 @@ VARIANTS = {
     "landmarks_bracket256": {"landmarks": 256, "landmark_bracket": True},  # the same, twice the landmarks below 100K
     "landmarks_bracket256_log": {"landmarks": 256, "landmark_bracket": True, "landmark_bracket_log": True},  # geometric
     "landmarks_bracket256_pair": {"landmarks": 256, "landmark_bracket": True, "landmark_pair_inputs": True},
+    "landmarks_bracket256_hard": {"landmarks": 256, "landmark_bracket": True, "hard_share": 0.25},  # + hard pairs
     "no_graphs": {"cuda_graph": False},  # today's network with eager CUDA steps: no graph captures in the set-up
     "plain_adamw": {"optimizer": "plain"},  # today's network, AdamW without torch.optim (training/adamw.py)
 }
