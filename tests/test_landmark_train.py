@@ -65,3 +65,21 @@ def test_landmark_rows_of_a_coarse_dataset_are_solved_again(tmp_path, ellipsoid,
     coarse = geodesic_distances(ellipsoid, marks, device="cpu", k=1, near_source=False) * ellipsoid.scale
     np.testing.assert_allclose(model.landmarks.T, fine, rtol=1e-5, atol=1e-6)
     assert np.abs(coarse - fine).max() > 1e-4  # the two solves differ, so the test tells them apart
+
+
+def test_coarse_rows_get_the_larger_share_of_a_budget(ellipsoid):
+    """Under a budget, rows of a k = 1 dataset are solved again within LANDMARK_RESOLVE_SHARE of it, the landmarks
+    of other runs within LANDMARK_SHARE; without a budget all K."""
+    import torch
+
+    from neurogf_warp.dataset.build import cpu_seconds_per_source
+    from neurogf_warp.training import api
+
+    cpu = torch.device("cpu")
+    per = cpu_seconds_per_source(len(ellipsoid.internal_vertices), 3)
+    coarse = preset("cpu", landmarks=256, landmark_bracket=True)  # k = 1 rows
+    fine = preset("cpu", k=3, landmarks=256, landmark_bracket=True)
+    budget = 40.5 * per  # 40.5 sources' time: 20 at half of it, 6 (so 8, the least) at 15%
+    assert api._landmark_plan(coarse, ellipsoid, cpu, budget)[0] == int(api.LANDMARK_RESOLVE_SHARE * 40)
+    assert api._landmark_plan(fine, ellipsoid, cpu, budget)[0] == max(8, int(api.LANDMARK_SHARE * 40))
+    assert api._landmark_plan(coarse, ellipsoid, cpu, None)[0] == 256

@@ -413,22 +413,30 @@ def _plan_compile(cfg: TrainConfig, dev, deadline: float, timings: dict) -> str 
 
 
 LANDMARK_SHARE = 0.15  # of a budget, at most, for the landmark rows of a ``landmarks=K`` network
+# ... where the dataset's rows are coarser (k < trainer.LANDMARK_MIN_K) and are solved again: the table's accuracy
+# outweighs the training time it costs (two CPU cores, 60 s, share 0.15 / 0.3 / 0.5: spot 0.152 / 0.097 / 0.074%
+# MRE, cow 0.186 / 0.156 / 0.135%; bakeoff_landmark_resolve_share_cpu_2026-11-29.json)
+LANDMARK_RESOLVE_SHARE = 0.5
 
 
 def _landmark_plan(cfg: TrainConfig, mesh, dev, budget_seconds) -> tuple:
     """(landmarks to solve, estimated seconds each) of a ``landmarks=K`` network: K, or under a budget as many as
-    fit in ``LANDMARK_SHARE`` of it (at least 8; the network's K columns then repeat them). (0, 0.0) without."""
+    fit in ``LANDMARK_SHARE`` of it (``LANDMARK_RESOLVE_SHARE`` where coarse dataset rows are solved again; at
+    least 8; the network's K columns then repeat them, or keep their coarse rows). (0, 0.0) without."""
     k = cfg.network.landmarks
     if not k:
         return 0, 0.0
     from neurogf_warp.dataset.build import cpu_seconds_per_source, gpu_seconds_per_source
     from neurogf_warp.ground_truth.geodesics import DEFAULT_K
 
+    from neurogf_warp.training.trainer import LANDMARK_MIN_K
+
     v = len(mesh.internal_vertices)
     per = cpu_seconds_per_source(v, DEFAULT_K) if dev.type == "cpu" else gpu_seconds_per_source(v)
     if budget_seconds is None:
         return k, per
-    return int(min(k, max(8, LANDMARK_SHARE * budget_seconds // per))), per
+    share = LANDMARK_RESOLVE_SHARE if cfg.data.k < LANDMARK_MIN_K else LANDMARK_SHARE
+    return int(min(k, max(8, share * budget_seconds // per))), per
 
 
 @dataclasses.dataclass
