@@ -14,9 +14,10 @@ and never look at the precision:
     settle(x, starts, ends, steps, scratch, frame)     path refinement: ends pinned, inner points onto the surface
     sweep(x, starts, ends, scratch, frame)             one shortening sweep (midpoints, one Newton step)
 
-A landmark network (``NeuroGFNet(landmarks=K)``) runs on PerThread only: its distance head also reads each point's
-row of exact distances to the landmarks (a vertex's own row; a point's row interpolated at its closest surface
-point), ``kernels/inference/landmark.py``; TensorCores refuses it.
+A landmark network (``NeuroGFNet(landmarks=K)``): its distance head also reads each point's row of exact distances
+to the landmarks (a vertex's own row; a point's row interpolated at its closest surface point). PerThread answers
+every distance query of it (``kernels/inference/landmark.py``); TensorCores a single vertex source on a bound model,
+handing the others to a PerThread when "auto" chose it and refusing them for "fp16".
 
 Every array is a ``wp.array`` on the state's device; vertex queries take points relative to the mesh centre
 (``state.frame``), point queries points in the ``frame`` they pass; distances come back in user units.
@@ -317,12 +318,15 @@ class PerThread(_Backend):
         S, V = len(pts), md.V
         src_pos = wp.array(pts.astype(np.float32), dtype=wp.vec3, device=dev)
         src_comp = wp.array(comp.astype(np.int32), dtype=wp.int32, device=dev) if comp is not None else None
-        if self.landmarks:
-            self._landmark_vertex_distances(md, src_pos, ids, src_comp, out, reduce_min, raw)
-            return
-        head = self._head_values(md, src_pos)
+        if self.landmarks:  # the head's values include the floor under them: no |x - s| term when finishing
+            lm = self._table()
+            ex = self.kept if self.kept is not None else self.embed(md.verts)
+            head = self._landmark_head(lm, src_pos, self._locate(lm, src_pos, self.state.frame, ids), md.verts, ex)
+        else:
+            head = self._head_values(md, src_pos)
         full = out.reshape((S, V)) if not reduce_min else wp.empty((S, V), dtype=wp.float32, device=dev)
-        self._finish(head, md.verts, md.comp if md.multi else None, src_pos, src_comp, full, raw)
+        self._finish(head, md.verts, md.comp if md.multi else None, src_pos, src_comp, full, raw,
+                     euclid=0.0 if self.landmarks else None)
         if reduce_min:
             wp.launch(finish.min_rows, V, inputs=[full], outputs=[out], device=dev)
 
@@ -390,17 +394,6 @@ class PerThread(_Backend):
             inputs=[st.weights, lm, es, src_pos, *src_loc, ex, xs, x_ids, x_w, st.frame, lo]),
             first=max(1, 2048 // max(S, 1)))
         return head
-
-    def _landmark_vertex_distances(self, md: MeshOnDevice, src_pos, ids, src_comp, out: wp.array, reduce_min: bool,
-                                   raw: bool):
-        dev, lm = self.device, self._table()
-        S, V = src_pos.shape[0], md.V
-        ex = self.kept if self.kept is not None else self.embed(md.verts)
-        head = self._landmark_head(lm, src_pos, self._locate(lm, src_pos, self.state.frame, ids), md.verts, ex)
-        full = out.reshape((S, V)) if not reduce_min else wp.empty((S, V), dtype=wp.float32, device=dev)
-        self._finish(head, md.verts, md.comp if md.multi else None, src_pos, src_comp, full, raw, euclid=0.0)
-        if reduce_min:
-            wp.launch(finish.min_rows, V, inputs=[full], outputs=[out], device=dev)
 
     def sdf(self, x, out, frame, test_domain: bool = False):  # the kernel gives NaN outside the domain anyway
         wp.launch(mlp.signed_distances, x.shape[0], inputs=[self.state.weights, x, frame], outputs=[out],

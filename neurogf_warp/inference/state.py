@@ -233,11 +233,7 @@ def landmark_rows(model: Model) -> np.ndarray:
     if model.mesh is None or model.landmarks is None:
         raise ValueError("a landmark network answers from its table of distances at the mesh's vertices: load the "
                          "model with its mesh (neurogf_warp.load(path, mesh=...)) from a file that stores the table")
-    m = model.mesh
-    rows = np.empty((len(m.internal_vertices), model.net.landmarks), np.float32)
-    used = m.input_to_internal >= 0
-    rows[m.input_to_internal[used]] = model.landmarks[used]
-    return rows
+    return model.internal_landmarks()
 
 
 def landmark_struct(model: Model, rows: wp.array, points: wp.array, mesh: wp.Mesh) -> landmark.LandmarkTable:

@@ -132,11 +132,7 @@ def _internal_table(model: Model) -> np.ndarray:
     if model.mesh is None or model.landmarks is None:
         raise InputError("cannot save a network with landmarks without its mesh and its table (model.landmarks): "
                          "its distances are read from that table at the mesh's vertices")
-    m = model.mesh
-    used = m.input_to_internal >= 0
-    table = np.empty((len(m.internal_vertices), model.net.landmarks), np.float32)
-    table[m.input_to_internal[used]] = model.landmarks[used]
-    return table
+    return model.internal_landmarks()
 
 
 def _not_a_mesh_name(path, suffix: str = ".ngf") -> None:

@@ -100,6 +100,15 @@ class Model:
         rounded once to float32, as training and the landmark lookup see them."""
         return ((np.asarray(self.mesh.vertices, np.float64) - self.center) * self.scale).astype(np.float32)
 
+    def internal_landmarks(self) -> np.ndarray:
+        """(V, K) float32: ``landmarks`` in the mesh's internal vertex order (input vertices merged into one internal
+        vertex share their distances); needs the mesh and the table."""
+        m = self.mesh
+        used = m.input_to_internal >= 0
+        rows = np.empty((len(m.internal_vertices), self.net.landmarks), np.float32)
+        rows[m.input_to_internal[used]] = self.landmarks[used]
+        return rows
+
     def unbind(self, device=None) -> None:
         """Free the vertex embeddings kept on ``device`` (a Warp device or its name, "cpu" or "cuda:N"; every
         device when None) and everything made from them; see ``neurogf_warp.bind``."""

@@ -74,7 +74,7 @@ def mesh_landmarks(net, mesh: Mesh):
     None for other networks. Every used vertex must have its exact row there (ground truth on the mesh itself)."""
     if not net.landmarks:
         return None
-    x = ((np.asarray(mesh.vertices, np.float64) - mesh.center) * mesh.scale).astype(np.float32)
+    x = mesh.normalize(mesh.vertices).astype(np.float32)
     used = np.zeros(mesh.n_input, bool)
     used[mesh.input_to_internal >= 0] = True
     rows, hit = net.landmark_table.match(torch.from_numpy(x))
